@@ -1,0 +1,335 @@
+r"""Compatible critic of the MPC-based deterministic policy gradient (paper, sections 2.2 and 4).
+
+From one closed-loop episode (an :class:`~mpcmobo.mpc.records.EpisodeRecord`) the critic fits
+
+* the value baseline (eq. nu)
+
+  .. math:: V^\nu(x) = V_\theta(x) + \nabla_\theta V_\theta(x)^\top \nu,
+
+  i.e. features :math:`\phi_k = \nabla_\theta V_\theta(x_k)` on top of the MPC value, by LSTDV
+  (eq. lstdv_update);
+* the compatible advantage (eq. Q_w, eq. adv)
+
+  .. math:: A^w(x_k, u_k) = \Psi_k^\top w, \qquad
+            \Psi_k = \nabla_\theta \pi_\theta(x_k)\,(u_k - \pi_\theta(x_k)),
+
+  by LSTDQ (eq. lstdq_update), and from it
+* the deterministic policy gradient (eq. DPG)
+
+  .. math:: \nabla_\theta J \approx \frac{1}{T} \sum_k
+            \nabla_\theta\pi_\theta(x_k)\nabla_\theta\pi_\theta(x_k)^\top w .
+
+The policy *minimises* the cost, so ``grad`` is the gradient of the closed-loop cost J and the
+actor step is ``theta <- theta - alpha * grad`` (eq. theta).
+
+Two LSTDV rules
+---------------
+``method="paper"`` is eq. lstdv_update as printed,
+
+.. math:: \nu = \Xi_\nu^{-1} b_\nu,\quad \Xi_\nu = \sum_k \phi_k\phi_k^\top,\quad
+          b_\nu = \sum_k \phi_k\,\big(L_k + \gamma V_\theta(x_{k+1}) - V_\theta(x_k)\big),
+
+which is the least-squares regression of the one-step TD error *of* :math:`V_\theta` on the
+features: :math:`V^\nu(x_k) \approx L_k + \gamma V_\theta(x_{k+1})`. It bootstraps on the MPC
+value :math:`V_\theta` rather than on :math:`V^\nu` itself, so it is one fitted value-iteration
+step from :math:`V_\theta`, not a fixed point of the Bellman equation; when :math:`V_\theta` is far
+from the true value of the policy (the usual case with an imperfect model) the result is biased.
+
+``method="lstd"`` (default) is the LSTD(0) fixed point of the projected Bellman equation for
+:math:`V^\nu`, i.e. :math:`\sum_k \phi_k (L_k + \gamma V^\nu(x_{k+1}) - V^\nu(x_k)) = 0`:
+
+.. math:: A\nu = b,\quad A = \sum_k \phi_k(\phi_k - \gamma\phi_{k+1})^\top,\quad
+          b = \sum_k \phi_k\,\delta_k,\quad
+          \delta_k = L_k + \gamma V_\theta(x_{k+1}) - V_\theta(x_k).
+
+If the Bellman equation holds exactly for some :math:`V^\nu`, the LSTD rule recovers that
+:math:`\nu` while the paper's rule in general does not (it does only if :math:`\gamma = 0` or
+:math:`\nabla V_\theta(x_{k+1})^\top\nu = 0`); see the tests. This is why it is the default.
+
+The LSTDQ target (eq. lstdq_update) is :math:`\delta^V_k = L_k + \gamma V(x_{k+1}) - V^\nu(x_k)`
+with :math:`V(x_{k+1})` either :math:`V_\theta(x_{k+1})` as printed in the paper
+(``q_target="V_theta"``) or :math:`V^\nu(x_{k+1})` (``q_target="V_nu"``), which is what the
+paper's own derivation (substituting :math:`Q^w = A^w + V^\nu` into eq. LSTDQ_eq) gives. The
+difference :math:`-\gamma\nabla V_\theta(x_{k+1})^\top\nu` depends on the explored input through
+:math:`x_{k+1}` and therefore correlates with :math:`\Psi_k`, biasing :math:`w`. By default the
+target follows the method: ``"V_theta"`` for ``method="paper"``, ``"V_nu"`` for ``"lstd"``.
+
+Numerics
+--------
+Features are scaled per column to unit root-mean-square (the CSTR's sensitivities span many
+orders of magnitude) and the scaling is undone in the result. The regressions are solved with
+``scipy.linalg.lstsq`` on the stacked, ridge-augmented feature matrix
+:math:`[\Phi_s; \sqrt{\rho n} I]` (never by forming normal equations); the LSTD system
+:math:`A_s z = b_s` (n_theta x n_theta) by ``lstsq`` on :math:`[A_s; \sqrt{\rho} n I]`. With
+columns of unit RMS, ``ridge`` (:math:`\rho`) is relative to the per-sample second moment of the
+features and dimensionless; ``ridge=0`` gives the minimum-norm least-squares solution.
+
+Robustness
+----------
+Transition k (from x_k to x_{k+1}) is used only if both solves succeeded and every quantity it
+touches is finite. If fewer than ``min_valid_steps`` transitions remain, or a system is degenerate
+(all features zero, non-finite solution), the corresponding part returns zeros and ``ok`` is
+False: ``w``, ``grad`` and ``advantage`` are then zeros, never NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from mpcmobo.mpc.records import EpisodeRecord
+
+_METHODS = ("lstd", "paper")
+_Q_TARGETS = ("V_theta", "V_nu")
+
+
+@dataclass
+class CriticResult:
+    """Output of :meth:`CompatibleCritic.fit` for one episode.
+
+    Arrays are indexed by step k = 0..T-1 (``V_nu``: states 0..T). ``grad`` is the gradient of the
+    closed-loop cost (descend it). ``mask`` marks the transitions used by the LSTD fits and
+    ``policy_mask`` the steps whose policy sensitivity is available (those enter ``grad`` and
+    ``grad_norms``; elsewhere ``advantage`` and ``grad_norms`` are 0).
+    """
+
+    nu: np.ndarray  # (n_theta,) value-baseline weights (eq. nu)
+    w: np.ndarray  # (n_theta,) compatible advantage weights (eq. adv)
+    advantage: np.ndarray  # (T,) A^w_k = Psi_k^T w
+    grad: np.ndarray  # (n_theta,) policy gradient of J (eq. DPG), mean over policy_mask
+    grad_norms: np.ndarray  # (T,) ||grad pi_k grad pi_k^T w||
+    V_nu: np.ndarray  # (T+1,) V^nu(x_k) (NaN where V_theta is unavailable)
+    Vc: float  # sum_k V^nu(x_k) over the T+1 states (NaN if no state is available)
+    valid_steps: int  # number of transitions used by the fits
+    ok: bool  # both fits succeeded
+    nu_ok: bool = True
+    w_ok: bool = True
+    mask: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (T,)
+    policy_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (T,)
+    method: str = "lstd"
+    q_target: str = "V_nu"
+
+    @property
+    def mean_abs_advantage(self) -> float:
+        """Mean |A^w_k| over the transitions used by the fit (0 if none)."""
+        if not np.any(self.mask):
+            return 0.0
+        return float(np.mean(np.abs(self.advantage[self.mask])))
+
+
+def _finite_rows(a: np.ndarray) -> np.ndarray:
+    """True for each leading-index entry whose trailing entries are all finite."""
+    a = np.asarray(a, dtype=float)
+    if a.ndim == 1:
+        return np.isfinite(a)
+    return np.all(np.isfinite(a.reshape(a.shape[0], -1)), axis=1)
+
+
+def transition_mask(record: EpisodeRecord) -> np.ndarray:
+    """(T,) bool: transition k usable by the critic.
+
+    Requires ``success[k]`` and ``success[k+1]`` and finite ``L_k``, ``u_k``, ``pi_k``,
+    ``grad pi_k``, ``V(x_k)``, ``V(x_{k+1})``, ``grad V(x_k)``, ``grad V(x_{k+1})``.
+    """
+    T = record.steps
+    success = np.asarray(record.success, dtype=bool).reshape(-1)
+    if success.shape[0] != T + 1:
+        raise ValueError(f"record.success has {success.shape[0]} entries, expected {T + 1}")
+    V_ok = np.isfinite(np.asarray(record.V, dtype=float))
+    dV_ok = _finite_rows(record.dV)
+    state_ok = success & V_ok & dV_ok
+    return (
+        state_ok[:-1]
+        & state_ok[1:]
+        & np.isfinite(np.asarray(record.L, dtype=float))
+        & _finite_rows(record.u)
+        & _finite_rows(record.pi)
+        & _finite_rows(record.dpi)
+    )
+
+
+def _column_scale(F: np.ndarray) -> np.ndarray:
+    """Per-column root-mean-square of ``F`` (1 where a column is all zero)."""
+    s = np.sqrt(np.mean(F * F, axis=0)) if F.shape[0] else np.ones(F.shape[1])
+    return np.where((s > 0) & np.isfinite(s), s, 1.0)
+
+
+def ridge_lstsq(F: np.ndarray, y: np.ndarray, ridge: float) -> np.ndarray | None:
+    r"""Scaled ridge least squares: argmin_p ||F p - y||^2 + rho n ||D p||^2.
+
+    Columns of ``F`` (n x m) are scaled to unit RMS (D = diag of the scales), the system
+    :math:`[F D^{-1}; \sqrt{\rho n} I] z = [y; 0]` is solved by ``lstsq`` and ``p = D^{-1} z`` is
+    returned; ``None`` if degenerate (no rows, all-zero features) or non-finite.
+    """
+    n, m = F.shape
+    if n == 0 or not np.any(F):
+        return None
+    s = _column_scale(F)
+    Fs = F / s
+    if ridge > 0:
+        Fs = np.vstack([Fs, np.sqrt(ridge * n) * np.eye(m)])
+        y = np.concatenate([y, np.zeros(m)])
+    try:
+        z = scipy.linalg.lstsq(Fs, y, lapack_driver="gelsd")[0]
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    p = z / s
+    return p if np.all(np.isfinite(p)) else None
+
+
+def lstd_solve(
+    Phi: np.ndarray, Phi_next: np.ndarray, delta: np.ndarray, gamma: float, ridge: float
+) -> np.ndarray | None:
+    r"""LSTD(0) fixed point for V^nu = V_theta + phi^T nu (method "lstd").
+
+    Solves :math:`\sum_k \phi_k(\phi_k - \gamma\phi_{k+1})^\top \nu = \sum_k \phi_k\delta_k`
+    after per-column scaling :math:`\phi = D\phi_s` (``A_s = D^{-1} A D^{-1}``, ``b_s = D^{-1} b``,
+    ``nu = D^{-1} z``), by ``lstsq`` on :math:`[A_s; \sqrt{\rho} n I] z = [b_s; 0]`.
+    Returns ``None`` if degenerate or non-finite.
+    """
+    n, m = Phi.shape
+    if n == 0 or not np.any(Phi):
+        return None
+    s = _column_scale(np.vstack([Phi, Phi_next]))
+    Ps, Pns = Phi / s, Phi_next / s
+    A = Ps.T @ (Ps - gamma * Pns)
+    b = Ps.T @ delta
+    if ridge > 0:
+        A = np.vstack([A, np.sqrt(ridge) * n * np.eye(m)])
+        b = np.concatenate([b, np.zeros(m)])
+    try:
+        z = scipy.linalg.lstsq(A, b, lapack_driver="gelsd")[0]
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    nu = z / s
+    return nu if np.all(np.isfinite(nu)) else None
+
+
+class CompatibleCritic:
+    """LSTDV / LSTDQ compatible critic and DPG gradient of one episode (see module docstring).
+
+    Parameters
+    ----------
+    gamma:
+        Discount factor; ``None`` takes ``record.gamma``.
+    ridge:
+        Relative ridge regularisation (dimensionless, features scaled to unit RMS).
+    method:
+        ``"lstd"`` (LSTD(0) fixed point, default) or ``"paper"`` (eq. lstdv_update as printed).
+    q_target:
+        Value of x_{k+1} in the LSTDQ target: ``"V_theta"`` (as printed in the paper) or
+        ``"V_nu"``; ``None`` follows the method (paper -> V_theta, lstd -> V_nu).
+    min_valid_steps:
+        Fewer usable transitions than this makes the fit fail (``ok=False``).
+    """
+
+    def __init__(
+        self,
+        gamma: float | None,
+        ridge: float = 1e-6,
+        method: str = "lstd",
+        q_target: str | None = None,
+        min_valid_steps: int = 2,
+    ) -> None:
+        if method not in _METHODS:
+            raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+        if q_target is None:
+            q_target = "V_theta" if method == "paper" else "V_nu"
+        if q_target not in _Q_TARGETS:
+            raise ValueError(f"q_target must be one of {_Q_TARGETS}, got {q_target!r}")
+        if ridge < 0 or not np.isfinite(ridge):
+            raise ValueError("ridge must be finite and >= 0")
+        self.gamma = None if gamma is None else float(gamma)
+        self.ridge = float(ridge)
+        self.method = method
+        self.q_target = q_target
+        self.min_valid_steps = max(1, int(min_valid_steps))
+
+    def fit(self, record: EpisodeRecord) -> CriticResult:
+        """Fit nu (eq. lstdv_update), w (eq. lstdq_update) and the DPG gradient (eq. DPG)."""
+        gamma = float(record.gamma) if self.gamma is None else self.gamma
+        T = record.steps
+        dpi = np.asarray(record.dpi, dtype=float).reshape(T, -1, np.asarray(record.u).shape[1])
+        n_theta = dpi.shape[1]
+        V = np.asarray(record.V, dtype=float).reshape(T + 1)
+        dV = np.asarray(record.dV, dtype=float).reshape(T + 1, n_theta)
+        L = np.asarray(record.L, dtype=float).reshape(T)
+        du = np.asarray(record.u, dtype=float) - np.asarray(record.pi, dtype=float)  # (T, nu)
+
+        mask = transition_mask(record)
+        idx = np.flatnonzero(mask)
+        enough = idx.size >= self.min_valid_steps
+
+        # ---- LSTDV (eq. lstdv_update): nu of V^nu = V_theta + dV^T nu (eq. nu)
+        nu = None
+        if enough:
+            Phi, Phi_next = dV[idx], dV[idx + 1]
+            delta = L[idx] + gamma * V[idx + 1] - V[idx]  # TD error of V_theta
+            if self.method == "paper":
+                nu = ridge_lstsq(Phi, delta, self.ridge)  # Xi_nu nu = b_nu, as least squares
+            else:
+                nu = lstd_solve(Phi, Phi_next, delta, gamma, self.ridge)
+        nu_ok = nu is not None
+        if nu is None:
+            nu = np.zeros(n_theta)
+
+        # V^nu(x_k) = V_theta(x_k) + grad V_theta(x_k)^T nu  (eq. nu)
+        state_ok = np.isfinite(V) & _finite_rows(dV)
+        V_nu = np.full(T + 1, np.nan)
+        V_nu[state_ok] = V[state_ok] + dV[state_ok] @ nu
+        n_states = int(np.count_nonzero(state_ok))
+        # sum over the T+1 states; with missing states, (T+1) x mean so that failed solves do not
+        # shrink the sum (and so fake a decrease in f3)
+        Vc = float(np.sum(V_nu[state_ok]) * (T + 1) / n_states) if n_states else float("nan")
+
+        # ---- LSTDQ (eq. lstdq_update): compatible features Psi_k = grad pi_k (u_k - pi_k)
+        success = np.asarray(record.success, dtype=bool).reshape(T + 1)
+        policy_mask = success[:-1] & _finite_rows(dpi) & _finite_rows(du)
+        Psi = np.zeros((T, n_theta))
+        Psi[policy_mask] = np.einsum("kpa,ka->kp", dpi[policy_mask], du[policy_mask])
+        w = None
+        if enough and nu_ok:
+            V_next = V_nu[idx + 1] if self.q_target == "V_nu" else V[idx + 1]
+            delta_V = L[idx] + gamma * V_next - V_nu[idx]  # delta^V_k
+            if np.all(np.isfinite(delta_V)):
+                w = ridge_lstsq(Psi[idx], delta_V, self.ridge)
+        w_ok = w is not None
+        ok = nu_ok and w_ok
+        if not ok:
+            w = np.zeros(n_theta)
+
+        # A^w_k = Psi_k^T w  (eq. adv, eq. Q_w)
+        advantage = Psi @ w
+        # grad_theta J_k = grad pi_k grad pi_k^T w  (eq. DPG)
+        g_k = np.zeros((T, n_theta))
+        g_k[policy_mask] = np.einsum(
+            "kpa,kqa,q->kp", dpi[policy_mask], dpi[policy_mask], w, optimize=True
+        )
+        # (1/T) sum_k over steps with a sensitivity; the actor descends it (eq. theta)
+        grad = g_k[policy_mask].mean(axis=0) if np.any(policy_mask) else np.zeros(n_theta)
+        grad_norms = np.linalg.norm(g_k, axis=1)
+        if not (np.all(np.isfinite(grad)) and np.all(np.isfinite(advantage))):
+            # overflow in the products: treat as a failed fit rather than leak inf / NaN
+            ok, w_ok = False, False
+            w, advantage, grad = np.zeros(n_theta), np.zeros(T), np.zeros(n_theta)
+            grad_norms = np.zeros(T)
+
+        return CriticResult(
+            nu=nu,
+            w=w,
+            advantage=advantage,
+            grad=grad,
+            grad_norms=grad_norms,
+            V_nu=V_nu,
+            Vc=Vc,
+            valid_steps=int(idx.size),
+            ok=bool(ok),
+            nu_ok=bool(nu_ok),
+            w_ok=bool(w_ok),
+            mask=mask,
+            policy_mask=policy_mask,
+            method=self.method,
+            q_target=self.q_target,
+        )
