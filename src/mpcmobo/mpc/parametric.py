@@ -1,0 +1,460 @@
+"""The parametric NMPC of eq. (V0): policy (eq. Policy), value and their KKT sensitivities.
+
+The optimal control problem, with the cost of section 5 of the paper::
+
+    V_theta(x) = min  theta_c + sum_{i<N} gamma^i [ |x_i - x_r|^2_Q + |u_i - u_r|^2_R + Gamma^T eta_i ]
+                      + sum_{i<N} G^T [x_i - x_r; u_i - u_r] + G_x^T (x_N - x_r)
+                      + gamma^N [ |x_N - x_r|^2_T + Gamma_f^T eta_N ]                  (eq. cost_mpc)
+         s.t.  x_{i+1} = f_hat_theta(x_i, u_i)                                        (eq. mpc_model)
+               x_0 = x                                                                (eq. v2)
+               u_lb <= u_i <= u_ub                                 (pure input bounds g(u) <= 0)
+               x_lb + b_lb - eta_i <= x_i <= x_ub - b_ub + eta_i, i = 0..N           (eq. violation)
+               eta_i >= 0                                                             (eq. slack)
+
+The linear term ``G`` acts on deviations from the reference (the paper writes it on ``[x, u]``;
+the two differ by a constant, so the policy is the same and the value is better scaled).
+
+Decision variables are scaled, ``x = x_r + S_x z_x``, ``u = u_r + S_u z_u``, ``eta = S_x z_eta``,
+and the cost is divided by ``cost_scale``; values and sensitivities are returned in physical units.
+
+Sensitivities (eq. nabla_pi). IPOPT is run to the barrier parameter ``tau`` (option ``mu_target``),
+so its solution is exactly the root of the barrier-relaxed primal-dual KKT residual::
+
+    R(y, p) = [ grad_zeta Lagr ;  G ;  diag(mu) H + tau ],   y = (zeta, lambda, mu),
+
+with ``Lagr = Phi + lambda^T G + mu^T H`` and ``H <= 0`` collecting every inequality (general and
+simple bounds). ``R`` is smooth across active-set changes and ``dR/dy`` stays invertible, so
+
+    d pi / d theta = - (dR/dtheta)^T (dR/dy)^{-T} e_{u_0}                             (eq. nabla_pi)
+    d V  / d theta = d Lagr / d theta at the solution                                  (grad V)
+
+and the finite differences of the solver's own outputs agree with them.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from mpcmobo.systems.base import System, rk4_step
+from mpcmobo.systems.parameterization import Parameterization
+
+_SUCCESS = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
+
+
+@dataclass
+class MPCSolution:
+    """Result of one MPC solve at state ``x`` with parameters ``theta``."""
+
+    action: np.ndarray  # (nu,) pi_theta(x), or the fallback input when the solve failed
+    value: float  # V_theta(x) (NaN when failed)
+    dpi_dtheta: np.ndarray | None  # (n_theta, nu)
+    dV_dtheta: np.ndarray | None  # (n_theta,)
+    success: bool
+    status: str
+    slack: float = 0.0  # sum of the slacks eta, physical units
+    iterations: int = 0
+    plan_u: np.ndarray | None = None  # (N, nu) predicted inputs
+    plan_x: np.ndarray | None = None  # (N+1, nx) predicted states
+    solve_time: float = 0.0  # seconds, solve + sensitivities
+    fallback: bool = False
+    info: dict = field(default_factory=dict)
+
+
+class ParametricMPC:
+    """The MPC of eq. (V0) for a :class:`~mpcmobo.systems.System`, built once, solved many times.
+
+    Parameters
+    ----------
+    system:
+        The system whose model, bounds, references and parameterization are used.
+    model:
+        ``"imperfect"``, ``"perfect"``, another name in ``system.models`` or a parameter vector.
+    tau:
+        Barrier parameter at which the problem is solved and differentiated (scaled units).
+    tol:
+        IPOPT tolerance on the barrier problem.
+    warm_start:
+        Initialise each solve from the shifted previous solution.
+    solver_options:
+        Extra IPOPT options (``{"max_iter": 200}``, ...).
+    """
+
+    def __init__(
+        self,
+        system: System,
+        model: str | np.ndarray = "imperfect",
+        *,
+        horizon: int | None = None,
+        gamma: float | None = None,
+        tau: float = 1e-6,
+        tol: float = 1e-8,
+        max_iter: int = 150,
+        warm_start: bool = True,
+        solver_options: dict | None = None,
+        cost_scale: float | None = None,
+        jit: bool = False,
+    ) -> None:
+        spec = system.mpc_spec
+        self.system = system
+        self.model = model if isinstance(model, str) else "custom"
+        self.model_params = np.array(system.model_params(model), dtype=float)
+        self.N = int(spec.horizon if horizon is None else horizon)
+        self.gamma = float(spec.gamma if gamma is None else gamma)
+        if self.N < 1:
+            raise ValueError(f"horizon must be at least 1, got {self.N}")
+        if not 0 < self.gamma <= 1:
+            raise ValueError(f"gamma must be in (0, 1], got {self.gamma}")
+        if tau <= 0:
+            raise ValueError(f"tau must be positive, got {tau}")
+        self.tau = float(tau)
+        self.warm_start = bool(warm_start)
+        self.param: Parameterization = system.parameterization
+        self.theta0 = self.param.theta0.copy()
+        self.theta_names = list(self.param.names)
+        self.n_theta = self.param.n_theta
+        nx, nu = system.nx, system.nu
+        self.nx, self.nu = nx, nu
+        self.Sx, self.Su = np.asarray(system.x_scale, float), np.asarray(system.u_scale, float)
+        self.Gamma = np.full(nx, 1e5) if spec.Gamma is None else np.asarray(spec.Gamma, float)
+        self.Gamma_f = self.Gamma if spec.Gamma_f is None else np.asarray(spec.Gamma_f, float)
+        if cost_scale is None:
+            cost_scale = float(np.sum(system.Q * self.Sx**2) + np.sum(system.R * self.Su**2)) / (
+                nx + nu
+            )
+        self.cost_scale = float(cost_scale)
+        self._build()
+        opts = {
+            "ipopt.print_level": 0,
+            "print_time": False,
+            "ipopt.sb": "yes",
+            "ipopt.tol": tol,
+            "ipopt.acceptable_tol": max(1e-6, 100 * tol),
+            "ipopt.mu_target": self.tau,
+            "ipopt.max_iter": max_iter,
+            "ipopt.bound_relax_factor": 0.0,
+            "ipopt.honor_original_bounds": "no",
+            "ipopt.nlp_scaling_method": "none",
+        }
+        if jit:  # generated C code of the NLP functions, compiled once (needs a C compiler)
+            opts.update(
+                {
+                    "jit": True,
+                    "compiler": "shell",
+                    "jit_options": {"flags": ["-O2"], "verbose": False},
+                }
+            )
+        for k, v in (solver_options or {}).items():
+            opts[k if k.startswith("ipopt.") or k in ("print_time",) else f"ipopt.{k}"] = v
+        self._solver = ca.nlpsol("mpc", "ipopt", self._nlp, opts)
+        warm_opts = dict(opts)
+        warm_opts.update(
+            {
+                "ipopt.warm_start_init_point": "yes",
+                "ipopt.warm_start_bound_push": 1e-6,
+                "ipopt.warm_start_mult_bound_push": 1e-6,
+                "ipopt.mu_init": 1e-3,
+                "ipopt.max_iter": min(max_iter, 50),
+            }
+        )
+        self._solver_warm = (
+            ca.nlpsol("mpc_warm", "ipopt", self._nlp, warm_opts) if self.warm_start else None
+        )
+        self._prev: dict | None = None
+
+    # ------------------------------------------------------------------ construction
+    def _build(self) -> None:
+        sysm, P = self.system, self.param
+        nx, nu, N = self.nx, self.nu, self.N
+        Sx, Su, xr, ur = self.Sx, self.Su, sysm.x_ref, sysm.u_ref
+        x0 = ca.SX.sym("x0", nx)
+        th = ca.SX.sym("theta", self.n_theta)
+        b = P.blocks
+        theta_c = th[b["theta_c"]][0]
+        Tw, G, Qw, Rw = th[b["T"]], th[b["G"]], th[b["Q"]], th[b["R"]]
+        pm = ca.SX(ca.DM(self.model_params))
+        if "model" in b:
+            pm = ca.SX(pm)
+            mth = th[b["model"]]
+            for j, idx in enumerate(P.model_param_index):
+                pm[idx] = mth[j]
+        x_lo, x_hi = ca.SX(ca.DM(sysm.x_lb)), ca.SX(ca.DM(sysm.x_ub))
+        if "backoff" in b:
+            bo = th[b["backoff"]]
+            x_lo, x_hi = x_lo + bo[:nx], x_hi - bo[nx:]
+        F = _rk4_function(sysm, nx, nu, pm.numel())
+
+        w, lbw, ubw = [], [], []
+        g_eq, g_in = [], []
+        self._iu, self._ix, self._ie = [], [], []  # index lists into w
+        pos = 0
+        zu_lb, zu_ub = (sysm.u_lb - ur) / Su, (sysm.u_ub - ur) / Su
+        finite_lb, finite_ub = np.isfinite(sysm.x_lb), np.isfinite(sysm.x_ub)
+        cost = theta_c
+        x_phys = x0
+        for i in range(N + 1):
+            # slacks of stage i (eq. slack)
+            ze = ca.SX.sym(f"eta{i}", nx)
+            w.append(ze)
+            lbw += [0.0] * nx
+            ubw += [np.inf] * nx
+            self._ie.append(list(range(pos, pos + nx)))
+            pos += nx
+            eta = Sx * ze
+            # l1-relaxed state constraints (eq. violation), scaled rows H <= 0
+            for j in range(nx):
+                if finite_lb[j]:
+                    g_in.append((x_lo[j] - x_phys[j] - eta[j]) / Sx[j])
+                if finite_ub[j]:
+                    g_in.append((x_phys[j] - x_hi[j] - eta[j]) / Sx[j])
+            dx = x_phys - xr
+            if i < N:
+                zu = ca.SX.sym(f"u{i}", nu)
+                w.append(zu)
+                lbw += list(zu_lb)
+                ubw += list(zu_ub)
+                self._iu.append(list(range(pos, pos + nu)))
+                pos += nu
+                u_phys = ur + Su * zu
+                du = u_phys - ur
+                gi = self.gamma**i
+                cost += gi * (ca.dot(dx, Qw * dx) + ca.dot(du, Rw * du) + ca.dot(self.Gamma, eta))
+                cost += ca.dot(G, ca.vertcat(dx, du))
+                zx = ca.SX.sym(f"x{i + 1}", nx)
+                w.append(zx)
+                lbw += [-np.inf] * nx
+                ubw += [np.inf] * nx
+                self._ix.append(list(range(pos, pos + nx)))
+                pos += nx
+                x_next = xr + Sx * zx
+                g_eq.append((F(x_phys, u_phys, pm) - x_next) / Sx)  # (eq. mpc_model)
+                x_phys = x_next
+            else:
+                cost += ca.dot(G[:nx], dx)
+                cost += self.gamma**N * (ca.dot(dx, Tw * dx) + ca.dot(self.Gamma_f, eta))
+        wv = ca.vertcat(*w)
+        geq, gin = ca.vertcat(*g_eq), ca.vertcat(*g_in)
+        g = ca.vertcat(geq, gin)
+        p = ca.vertcat(x0, th)
+        f = cost / self.cost_scale
+        self.nw, self.neq, self.nin = wv.numel(), geq.numel(), gin.numel()
+        self._lbw, self._ubw = np.array(lbw), np.array(ubw)
+        self._lbg = np.concatenate([np.zeros(self.neq), np.full(self.nin, -np.inf)])
+        self._ubg = np.zeros(self.neq + self.nin)
+        self._nlp = {"x": wv, "p": p, "f": f, "g": g}
+        self._iu_flat = np.array(sum(self._iu, []))
+        self._ix_flat = np.array(sum(self._ix, []))
+        self._ie_flat = np.array(sum(self._ie, []))
+
+        # ---------------- barrier-relaxed KKT system (eq. nabla_pi)
+        lb_idx = np.flatnonzero(np.isfinite(self._lbw))
+        ub_idx = np.flatnonzero(np.isfinite(self._ubw))
+        self._lb_idx, self._ub_idx = lb_idx, ub_idx
+        H = ca.vertcat(
+            gin,
+            ca.DM(self._lbw[lb_idx]) - wv[lb_idx.tolist()],
+            wv[ub_idx.tolist()] - ca.DM(self._ubw[ub_idx]),
+        )
+        self.nH = H.numel()
+        lam = ca.SX.sym("lam", self.neq)
+        mu = ca.SX.sym("mu", self.nH)
+        lagr = f + ca.dot(lam, geq) + ca.dot(mu, H)
+        R = ca.vertcat(ca.gradient(lagr, wv), geq, mu * H + self.tau)
+        y = ca.vertcat(wv, lam, mu)
+        Jy = ca.jacobian(R, y)
+        Jth = ca.jacobian(R, th)
+        # total derivative of the returned value f(w*(theta), theta): partial in theta plus
+        # grad_w f . dw/dtheta. It equals dLagr/dtheta up to O(tau) terms and is exact for the
+        # barrier solution the solver returns.
+        dfdth = ca.gradient(f, th)
+        dfdw = ca.gradient(f, wv)
+        self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw])
+        self._ny = y.numel()
+        self._Jy_sp = self._kkt.sparsity_out(0)
+
+    # ------------------------------------------------------------------ validation
+    def check_theta(self, theta) -> np.ndarray:
+        if theta is None:
+            return self.theta0.copy()
+        theta = np.asarray(theta, dtype=float)
+        if theta.ndim != 1 or theta.shape[0] != self.n_theta:
+            raise ValueError(
+                f"theta has shape {theta.shape}, expected ({self.n_theta},): {self.theta_names}"
+            )
+        if not np.all(np.isfinite(theta)):
+            raise ValueError(f"theta contains NaN or inf: {theta}")
+        return theta
+
+    def reset(self) -> None:
+        """Forget the warm start (call between episodes)."""
+        self._prev = None
+
+    # ------------------------------------------------------------------ solve
+    def _cold_guess(self, x: np.ndarray) -> np.ndarray:
+        w0 = np.zeros(self.nw)
+        zx0 = (x - self.system.x_ref) / self.Sx
+        for idx in self._ix:
+            w0[idx] = zx0
+        return w0
+
+    def fallback_action(self) -> np.ndarray:
+        """The safe input used when a solve fails: the shifted previous plan, else ``u_r``."""
+        if self._prev is not None and self._prev["plan_u"] is not None:
+            plan = self._prev["plan_u"]
+            age = min(self._prev["age"] + 1, plan.shape[0] - 1)
+            return self.system.clip_input(plan[age])
+        return self.system.clip_input(self.system.u_ref)
+
+    def solve(self, x, theta=None, sensitivities: bool = True) -> MPCSolution:
+        """Solve eq. (V0) at state ``x``; return pi_theta(x), V_theta(x) and their gradients."""
+        x = self.system.check_state(x)
+        theta = self.check_theta(theta)
+        t0 = time.perf_counter()
+        p = np.concatenate([x, theta])
+        warm = self.warm_start and self._prev is not None
+        ok, status, iters, out, wopt = self._run_solver(x, p, warm)
+        if not ok and warm:  # a warm start can mislead IPOPT: retry once from a cold start
+            ok, status, iters2, out, wopt = self._run_solver(x, p, False)
+            iters += iters2
+        if not ok:
+            act = self.fallback_action()
+            if self._prev is not None:
+                self._prev["age"] += 1
+            nan = np.full(self.n_theta, np.nan)
+            return MPCSolution(
+                action=act,
+                value=np.nan,
+                dpi_dtheta=np.full((self.n_theta, self.nu), np.nan) if sensitivities else None,
+                dV_dtheta=nan if sensitivities else None,
+                success=False,
+                status=status,
+                slack=np.nan,
+                iterations=iters,
+                solve_time=time.perf_counter() - t0,
+                fallback=True,
+            )
+        lam_g = np.asarray(out["lam_g"]).reshape(-1)
+        lam_x = np.asarray(out["lam_x"]).reshape(-1)
+        plan_u = self.system.u_ref + self.Su * wopt[self._iu_flat].reshape(self.N, self.nu)
+        plan_x = np.vstack(
+            [x, self.system.x_ref + self.Sx * wopt[self._ix_flat].reshape(self.N, self.nx)]
+        )
+        slack = float(np.sum(np.tile(self.Sx, self.N + 1) * wopt[self._ie_flat]))
+        value = float(out["f"]) * self.cost_scale
+        action = self.system.clip_input(plan_u[0])
+        sol = MPCSolution(
+            action=action,
+            value=value,
+            dpi_dtheta=None,
+            dV_dtheta=None,
+            success=True,
+            status=status,
+            slack=slack,
+            iterations=iters,
+            plan_u=plan_u,
+            plan_x=plan_x,
+        )
+        if sensitivities:
+            try:
+                sol.dpi_dtheta, sol.dV_dtheta = self._sensitivities(wopt, lam_g, lam_x, p)
+            except (RuntimeError, ValueError) as err:  # singular KKT matrix
+                sol.dpi_dtheta = np.full((self.n_theta, self.nu), np.nan)
+                sol.dV_dtheta = np.full(self.n_theta, np.nan)
+                sol.info["sensitivity_error"] = str(err)
+        self._remember(wopt, lam_g, lam_x, plan_u)
+        sol.solve_time = time.perf_counter() - t0
+        return sol
+
+    def _run_solver(self, x: np.ndarray, p: np.ndarray, warm: bool):
+        if warm:
+            w0, lam_g0, lam_x0 = self._prev["w_shift"], self._prev["lam_g"], self._prev["lam_x"]
+        else:
+            w0, lam_g0, lam_x0 = self._cold_guess(x), None, None
+        args = {
+            "x0": w0,
+            "p": p,
+            "lbx": self._lbw,
+            "ubx": self._ubw,
+            "lbg": self._lbg,
+            "ubg": self._ubg,
+        }
+        if lam_g0 is not None:
+            args["lam_g0"], args["lam_x0"] = lam_g0, lam_x0
+        solver = self._solver_warm if warm else self._solver
+        try:
+            out = solver(**args)
+        except RuntimeError as err:  # IPOPT can raise on evaluation errors
+            return False, f"Exception: {err}", 0, None, None
+        st = solver.stats()
+        status, iters = st.get("return_status", "unknown"), int(st.get("iter_count", 0))
+        wopt = np.asarray(out["x"]).reshape(-1)
+        ok = status in _SUCCESS and bool(np.all(np.isfinite(wopt)))
+        return ok, status, iters, out, wopt
+
+    def _remember(self, w, lam_g, lam_x, plan_u) -> None:
+        """Store the solution, shifted by one stage, as the next warm start."""
+        ws = w.copy()
+        for lst in (self._iu, self._ix):
+            for i in range(len(lst) - 1):
+                ws[lst[i]] = w[lst[i + 1]]
+        for i in range(len(self._ie) - 1):
+            ws[self._ie[i]] = w[self._ie[i + 1]]
+        self._prev = {"w_shift": ws, "lam_g": lam_g, "lam_x": lam_x, "plan_u": plan_u, "age": 0}
+
+    def _multipliers(self, w, lam_g, lam_x):
+        """Split CasADi's multipliers into (lambda for G, mu >= 0 for every row of H)."""
+        tau = self.tau
+        lam = lam_g[: self.neq]
+        mu_g = np.maximum(lam_g[self.neq :], 1e-300)
+        # casadi: lam_x = z_U - z_L. With both bounds finite, the far bound's multiplier follows
+        # from barrier complementarity, z * gap = tau; the near one from the difference.
+        gap_l = w - self._lbw
+        gap_u = self._ubw - w
+        zL = np.maximum(-lam_x, 0.0)
+        zU = np.maximum(lam_x, 0.0)
+        both = np.isfinite(gap_l) & np.isfinite(gap_u)
+        near_l = both & (gap_l <= gap_u)
+        near_u = both & ~near_l
+        zU = np.where(near_l, tau / np.maximum(gap_u, 1e-300), zU)
+        zL = np.where(near_l, zU - lam_x, zL)
+        zL = np.where(near_u, tau / np.maximum(gap_l, 1e-300), zL)
+        zU = np.where(near_u, lam_x + zL, zU)
+        mu = np.concatenate(
+            [mu_g, np.maximum(zL[self._lb_idx], 1e-300), np.maximum(zU[self._ub_idx], 1e-300)]
+        )
+        return lam, mu
+
+    def _sensitivities(self, w, lam_g, lam_x, p):
+        lam, mu = self._multipliers(w, lam_g, lam_x)
+        Jy, Jth, dfdth, dfdw = self._kkt(w, lam, mu, p)
+        Jy = _to_csc(Jy, self._Jy_sp)
+        Jth = np.asarray(ca.DM(Jth).full())
+        # one factorisation of dR/dy serves both sensitivities: dy/dtheta = -(dR/dy)^-1 dR/dtheta
+        dy = spla.splu(Jy).solve(-Jth)  # (ny, n_theta)
+        dw = dy[: self.nw]
+        dpi = (self.Su[:, None] * dw[self._iu[0]]).T  # (eq. nabla_pi), physical, (n_theta, nu)
+        dV = self.cost_scale * (np.asarray(dfdth).reshape(-1) + np.asarray(dfdw).reshape(-1) @ dw)
+        if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
+            raise ValueError("non-finite sensitivity (singular KKT matrix)")
+        return dpi, dV
+
+
+def _rk4_function(system: System, nx: int, nu: int, npar: int) -> ca.Function:
+    x, u, p = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("p", npar)
+    xn = rk4_step(system.dynamics, x, u, p, system.dt, system.substeps)
+    return ca.Function("F", [x, u, p], [xn])
+
+
+def _to_csc(M, sparsity) -> sp.csc_matrix:
+    """A CasADi sparse DM to a SciPy CSC matrix (CasADi stores CCS)."""
+    M = ca.DM(M)
+    nrow, ncol = sparsity.size()
+    colind = np.asarray(sparsity.colind())
+    row = np.asarray(sparsity.row())
+    data = np.asarray(M.nonzeros())
+    return sp.csc_matrix((data, row, colind), shape=(nrow, ncol))

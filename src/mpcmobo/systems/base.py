@@ -1,0 +1,204 @@
+"""A controlled system: true plant, imperfect model, constraints, references and the RL cost.
+
+A :class:`System` holds everything the MPC and the learners need to know about a process and
+nothing about how it is controlled. The CSTR of the paper is one instance
+(:mod:`mpcmobo.systems.cstr`); a user-defined system is another, registered with
+:func:`mpcmobo.systems.register_system`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+
+import casadi as ca
+import numpy as np
+
+from mpcmobo.systems.parameterization import MPCSpec, Parameterization
+from mpcmobo.systems.space import SearchSpace
+
+# f(x, u, p) -> dx/dt, written with CasADi symbols; p are the model parameters (the mismatch).
+Dynamics = Callable[[ca.SX, ca.SX, ca.SX], ca.SX]
+
+
+def rk4_step(f: Dynamics, x, u, p, dt: float, substeps: int = 1):
+    """One explicit fourth-order Runge-Kutta step of ``dx/dt = f(x, u, p)`` over ``dt``."""
+    h = dt / substeps
+    for _ in range(substeps):
+        k1 = f(x, u, p)
+        k2 = f(x + h / 2 * k1, u, p)
+        k3 = f(x + h / 2 * k2, u, p)
+        k4 = f(x + h * k3, u, p)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
+def _vec(a, n: int, label: str) -> np.ndarray:
+    a = np.asarray(a, dtype=float).reshape(-1)
+    if a.shape != (n,):
+        raise ValueError(f"{label} has {a.shape[0]} entries, expected {n}")
+    return a
+
+
+@dataclass
+class System:
+    """A discrete-time control problem built from continuous dynamics and RK4.
+
+    Parameters
+    ----------
+    dynamics:
+        ``f(x, u, p)`` continuous-time right-hand side with CasADi expressions.
+    true_params:
+        Model parameters ``p`` of the true plant.
+    models:
+        Named parameter vectors for the MPC's prediction model, at least ``"perfect"``
+        (equal to ``true_params``) and usually ``"imperfect"``.
+    Q, R, Gamma:
+        Weights of the RL stage cost ``L = |x-x_r|_Q^2 + |u-u_r|_R^2 + Gamma^T max(0, h(x))``,
+        ``h`` the state bound violations (paper, section 5).
+    x0_lb, x0_ub:
+        Box of the uniform initial-state distribution.
+    """
+
+    name: str
+    state_names: Sequence[str]
+    input_names: Sequence[str]
+    dynamics: Dynamics
+    param_names: Sequence[str]
+    true_params: np.ndarray
+    models: dict[str, np.ndarray]
+    dt: float
+    x_ref: np.ndarray
+    u_ref: np.ndarray
+    x_lb: np.ndarray
+    x_ub: np.ndarray
+    u_lb: np.ndarray
+    u_ub: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    Gamma: np.ndarray
+    x0_lb: np.ndarray
+    x0_ub: np.ndarray
+    episode_steps: int = 60
+    substeps: int = 1
+    mpc_spec: MPCSpec = field(default_factory=MPCSpec)
+    x_scale: np.ndarray | None = None
+    u_scale: np.ndarray | None = None
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        nx, nu, npar = len(self.state_names), len(self.input_names), len(self.param_names)
+        self.state_names = tuple(self.state_names)
+        self.input_names = tuple(self.input_names)
+        self.param_names = tuple(self.param_names)
+        for name in ("x_ref", "x_lb", "x_ub", "Q", "Gamma", "x0_lb", "x0_ub"):
+            setattr(self, name, _vec(getattr(self, name), nx, f"{self.name}.{name}"))
+        for name in ("u_ref", "u_lb", "u_ub", "R"):
+            setattr(self, name, _vec(getattr(self, name), nu, f"{self.name}.{name}"))
+        self.true_params = _vec(self.true_params, npar, f"{self.name}.true_params")
+        self.models = {k: _vec(v, npar, f"{self.name} model '{k}'") for k, v in self.models.items()}
+        self.models.setdefault("perfect", self.true_params.copy())
+        if np.any(self.u_lb > self.u_ub) or np.any(self.x_lb > self.x_ub):
+            raise ValueError(f"{self.name}: a lower bound exceeds its upper bound")
+        if self.dt <= 0:
+            raise ValueError(f"{self.name}: dt must be positive, got {self.dt}")
+        if self.x_scale is None:
+            span = self.x_ub - self.x_lb
+            self.x_scale = np.where(np.isfinite(span) & (span > 0), span / 2, 1.0)
+        if self.u_scale is None:
+            span = self.u_ub - self.u_lb
+            self.u_scale = np.where(np.isfinite(span) & (span > 0), span / 2, 1.0)
+        x, u, p = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("p", npar)
+        xn = rk4_step(self.dynamics, x, u, p, self.dt, self.substeps)
+        self._step_fn = ca.Function("step", [x, u, p], [xn])
+
+    # ------------------------------------------------------------------ sizes and names
+    @property
+    def nx(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def nu(self) -> int:
+        return len(self.input_names)
+
+    def with_spec(self, **changes) -> System:
+        """A copy of the system with a modified MPC parameterization."""
+        return replace(self, mpc_spec=replace(self.mpc_spec, **changes))
+
+    # ------------------------------------------------------------------ validation
+    def check_state(self, x) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        if x.shape not in ((self.nx,), (self.nx, 1)):
+            raise ValueError(f"state has shape {x.shape}, expected ({self.nx},) for {self.name}")
+        x = x.reshape(-1)
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"state contains NaN or inf: {x}")
+        return x
+
+    def check_input(self, u) -> np.ndarray:
+        u = np.asarray(u, dtype=float)
+        if u.shape not in ((self.nu,), (self.nu, 1)):
+            raise ValueError(f"input has shape {u.shape}, expected ({self.nu},) for {self.name}")
+        u = u.reshape(-1)
+        if not np.all(np.isfinite(u)):
+            raise ValueError(f"input contains NaN or inf: {u}")
+        return u
+
+    def model_params(self, model: str | np.ndarray) -> np.ndarray:
+        if isinstance(model, str):
+            if model not in self.models:
+                raise ValueError(
+                    f"unknown model '{model}' for {self.name}; known: {sorted(self.models)}"
+                )
+            return self.models[model]
+        return _vec(model, len(self.param_names), "model parameters")
+
+    # ------------------------------------------------------------------ plant and cost
+    def plant_step(self, x, u) -> np.ndarray:
+        """The true plant over one sampling period: ``x_{k+1} = f(x_k, u_k)``."""
+        return np.asarray(
+            self._step_fn(self.check_state(x), self.check_input(u), self.true_params)
+        ).reshape(-1)
+
+    def model_step(self, x, u, model: str | np.ndarray = "imperfect") -> np.ndarray:
+        """The MPC's prediction model ``x_{k+1} = f_hat(x_k, u_k)`` (eq. mpc_model)."""
+        p = self.model_params(model)
+        return np.asarray(self._step_fn(self.check_state(x), self.check_input(u), p)).reshape(-1)
+
+    def constraint_violation(self, x, u=None) -> float:
+        """Sum of the positive parts of the state-bound violations ``max(0, h(x))``."""
+        x = np.asarray(x, dtype=float).reshape(-1)
+        return float(np.sum(np.maximum(0, self.x_lb - x) + np.maximum(0, x - self.x_ub)))
+
+    def stage_cost(self, x, u) -> float:
+        """RL stage cost L(x, u) of section 5: weighted squared error plus violation penalty."""
+        x, u = self.check_state(x), self.check_input(u)
+        dx, du = x - self.x_ref, u - self.u_ref
+        viol = np.maximum(0, self.x_lb - x) + np.maximum(0, x - self.x_ub)
+        return float(dx @ (self.Q * dx) + du @ (self.R * du) + self.Gamma @ viol)
+
+    def sample_initial_state(self, rng: np.random.Generator) -> np.ndarray:
+        """A draw of the (uniform, box) initial-state distribution."""
+        return rng.uniform(self.x0_lb, self.x0_ub)
+
+    def clip_input(self, u) -> np.ndarray:
+        return np.clip(np.asarray(u, dtype=float).reshape(-1), self.u_lb, self.u_ub)
+
+    # ------------------------------------------------------------------ MPC
+    def make_mpc(self, model: str | np.ndarray = "imperfect", **options):
+        """The parametric MPC of eq. (V0) for this system with the given prediction model.
+
+        ``options`` are passed to :class:`mpcmobo.mpc.ParametricMPC` (solver settings).
+        """
+        from mpcmobo.mpc.parametric import ParametricMPC  # systems -> mpc: lazy, one-way use
+
+        return ParametricMPC(self, model=model, **options)
+
+    @property
+    def search_space(self) -> SearchSpace:
+        return self.parameterization.space
+
+    @property
+    def parameterization(self) -> Parameterization:
+        """The learnable theta of the MPC: names, theta0, blocks and search space."""
+        return Parameterization.from_system(self)

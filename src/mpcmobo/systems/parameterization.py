@@ -1,0 +1,145 @@
+"""The learnable parameter vector theta of the MPC (eq. V0 with the cost of section 5)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mpcmobo.systems.space import SearchSpace
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mpcmobo.systems.base import System
+
+
+@dataclass
+class MPCSpec:
+    """How the MPC of eq. (V0) is parameterised for a system: a setting, not code.
+
+    The learnable vector theta is, in this order (each block optional where noted):
+
+    ``theta_c`` (1), ``T_<x>`` terminal weights (nx), ``G_<x>``, ``G_<u>`` linear terms (nx+nu),
+    ``Q_<x>`` stage state weights (nx), ``R_<u>`` stage input weights (nu), then the model
+    parameters listed in ``learn_model`` (``model_<name>``) and, if ``learn_backoff``, state
+    constraint back-offs ``b_lb_<x>``, ``b_ub_<x>`` (2 nx).
+    """
+
+    horizon: int = 10
+    gamma: float = 0.99
+    Gamma: np.ndarray | None = None  # slack penalties of the stage constraints (nx,)
+    Gamma_f: np.ndarray | None = None  # slack penalties of the terminal constraints (nx,)
+    Q0: np.ndarray | None = None  # initial stage weights (default: the RL stage cost's)
+    R0: np.ndarray | None = None
+    T0: np.ndarray | None = None  # initial terminal weights (default: Q0)
+    weight_log_range: float = 4.0  # search bounds theta0 * exp(+-range) for the weights
+    G_bound: np.ndarray | None = None  # |G| bounds (nx+nu,)
+    theta_c_bound: float = 1e4
+    learn_theta_c: bool = False  # theta_c never changes the policy; searched only if True
+    learn_model: tuple[str, ...] = ()  # names of model parameters made learnable
+    model_log_range: float = 0.7
+    learn_backoff: bool = False
+    backoff_max: np.ndarray | None = None  # upper bound of each back-off (nx,)
+
+
+@dataclass(frozen=True)
+class Parameterization:
+    """Names, default values, blocks (index slices) and search space of theta."""
+
+    names: tuple[str, ...]
+    theta0: np.ndarray
+    blocks: dict[str, slice]
+    space: SearchSpace
+    model_param_index: tuple[int, ...]  # which model parameters are learnable, in block order
+
+    @property
+    def n_theta(self) -> int:
+        return len(self.names)
+
+    @classmethod
+    def from_system(cls, system: System) -> Parameterization:
+        spec = system.mpc_spec
+        nx, nu = system.nx, system.nu
+        xs, us = system.state_names, system.input_names
+        Q0 = system.Q if spec.Q0 is None else np.asarray(spec.Q0, float)
+        R0 = system.R if spec.R0 is None else np.asarray(spec.R0, float)
+        T0 = Q0 if spec.T0 is None else np.asarray(spec.T0, float)
+        if np.any(Q0 <= 0) or np.any(R0 <= 0) or np.any(T0 <= 0):
+            raise ValueError(
+                "MPC weights Q0, R0, T0 must be positive (they are searched in log scale)"
+            )
+        if spec.G_bound is None:
+            # a linear term that moves the optimum by about one constraint half-width
+            G_bound = np.concatenate([2 * Q0 * system.x_scale, 2 * R0 * system.u_scale])
+        else:
+            G_bound = np.asarray(spec.G_bound, float)
+        r = spec.weight_log_range
+        names: list[str] = []
+        theta0: list[np.ndarray] = []
+        lo: list[np.ndarray] = []
+        hi: list[np.ndarray] = []
+        log: list[np.ndarray] = []
+        fixed: list[np.ndarray] = []
+        blocks: dict[str, slice] = {}
+
+        def add(block, nm, v0, l, h, lg, fx):
+            start = len(names)
+            names.extend(nm)
+            theta0.append(np.asarray(v0, float))
+            lo.append(np.asarray(l, float))
+            hi.append(np.asarray(h, float))
+            log.append(np.full(len(nm), lg))
+            fixed.append(np.full(len(nm), fx))
+            blocks[block] = slice(start, len(names))
+
+        add(
+            "theta_c",
+            ["theta_c"],
+            [0.0],
+            [-spec.theta_c_bound],
+            [spec.theta_c_bound],
+            False,
+            not spec.learn_theta_c,
+        )
+        add("T", [f"T_{s}" for s in xs], T0, T0 * np.exp(-r), T0 * np.exp(r), True, False)
+        add("G", [f"G_{s}" for s in (*xs, *us)], np.zeros(nx + nu), -G_bound, G_bound, False, False)
+        add("Q", [f"Q_{s}" for s in xs], Q0, Q0 * np.exp(-r), Q0 * np.exp(r), True, False)
+        add("R", [f"R_{s}" for s in us], R0, R0 * np.exp(-r), R0 * np.exp(r), True, False)
+        idx = []
+        if spec.learn_model:
+            pnames = list(system.param_names)
+            for n in spec.learn_model:
+                if n not in pnames:
+                    raise ValueError(f"unknown model parameter '{n}'; known: {pnames}")
+                idx.append(pnames.index(n))
+            p0 = system.models.get("imperfect", system.true_params)[idx]
+            m = spec.model_log_range
+            pos = p0 > 0
+            lo_m = np.where(pos, p0 * np.exp(-m), p0 - m * np.abs(p0) - 1)
+            hi_m = np.where(pos, p0 * np.exp(m), p0 + m * np.abs(p0) + 1)
+            add("model", [f"model_{n}" for n in spec.learn_model], p0, lo_m, hi_m, False, False)
+            log[-1] = pos.copy()
+        if spec.learn_backoff:
+            bmax = (
+                0.25 * (system.x_ub - system.x_lb)
+                if spec.backoff_max is None
+                else np.asarray(spec.backoff_max, float)
+            )
+            bmax = np.where(np.isfinite(bmax), bmax, 0.0)
+            add(
+                "backoff",
+                [f"b_lb_{s}" for s in xs] + [f"b_ub_{s}" for s in xs],
+                np.zeros(2 * nx),
+                np.zeros(2 * nx),
+                np.concatenate([bmax, bmax]),
+                False,
+                False,
+            )
+        space = SearchSpace(
+            names,
+            np.concatenate(lo),
+            np.concatenate(hi),
+            np.concatenate(log),
+            np.concatenate(fixed),
+        )
+        return cls(tuple(names), np.concatenate(theta0), blocks, space, tuple(idx))

@@ -1,0 +1,29 @@
+"""Named systems: ``get_system("cstr")`` and ``register_system`` for user-defined ones."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from mpcmobo.systems.base import System
+
+_REGISTRY: dict[str, Callable[..., System]] = {}
+
+
+def register_system(name: str, factory: Callable[..., System], *, overwrite: bool = False) -> None:
+    """Make ``get_system(name)`` build a system with ``factory(**options)``."""
+    if not isinstance(name, str) or not name:
+        raise ValueError("a system name must be a non-empty string")
+    if name in _REGISTRY and not overwrite:
+        raise ValueError(f"a system named '{name}' is already registered")
+    _REGISTRY[name] = factory
+
+
+def available_systems() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def get_system(name: str, **options) -> System:
+    """Build the registered system ``name`` (options go to its factory)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown system '{name}'; available: {', '.join(available_systems())}")
+    return _REGISTRY[name](**options)

@@ -1,0 +1,129 @@
+"""The parametric MPC: sensitivities vs finite differences, closed loop, fallback, errors."""
+
+import numpy as np
+import pytest
+
+from mpcmobo.mpc import rollout
+from mpcmobo.rl import GaussianExploration
+
+
+def _random_theta(mpc, rng):
+    th = mpc.theta0 * np.exp(rng.normal(0, 0.3, mpc.n_theta))
+    th[0] = 0.0
+    th[4:9] = rng.normal(0, 3, 5)
+    return th
+
+
+@pytest.fixture(scope="module")
+def fd_mpc(cstr):
+    # a tight tolerance and no warm start make the solver's output a smooth function of theta
+    return cstr.make_mpc(model="imperfect", warm_start=False, tol=1e-10)
+
+
+@pytest.mark.parametrize("trial", range(3))
+def test_sensitivities_match_central_differences(cstr, fd_mpc, trial):
+    rng = np.random.default_rng(100 + trial)
+    mpc = fd_mpc
+    x = cstr.sample_initial_state(rng)
+    th = _random_theta(mpc, rng)
+    sol = mpc.solve(x, th)
+    assert sol.success
+    dpi = np.zeros((mpc.n_theta, cstr.nu))
+    dV = np.zeros(mpc.n_theta)
+    for i in range(mpc.n_theta):
+        h = 1e-5 * max(1.0, abs(th[i]))
+        tp, tm = th.copy(), th.copy()
+        tp[i] += h
+        tm[i] -= h
+        sp, sm = mpc.solve(x, tp, False), mpc.solve(x, tm, False)
+        # same active set on both sides: nothing crosses a bound by more than the barrier
+        dpi[i] = (sp.action - sm.action) / (2 * h)
+        dV[i] = (sp.value - sm.value) / (2 * h)
+    scale_pi = np.abs(dpi).max(axis=0)
+    assert np.all(np.abs(sol.dpi_dtheta - dpi) <= 1e-4 * scale_pi + 1e-10)
+    assert np.all(np.abs(sol.dV_dtheta - dV) <= 1e-4 * np.abs(dV) + 1e-6 * np.abs(dV).max())
+    # theta_c changes the value by one and the policy not at all
+    assert sol.dV_dtheta[0] == pytest.approx(1.0)
+    np.testing.assert_allclose(sol.dpi_dtheta[0], 0.0, atol=1e-12)
+
+
+def test_learnable_model_sensitivities(cstr):
+    s = cstr.with_spec(learn_model=("k0", "k2"))
+    mpc = s.make_mpc(warm_start=False, tol=1e-10)
+    rng = np.random.default_rng(7)
+    x = s.sample_initial_state(rng)
+    th = mpc.theta0.copy()
+    sol = mpc.solve(x, th)
+    for i in (-2, -1):
+        h = 1e-6
+        tp, tm = th.copy(), th.copy()
+        tp[i] += h
+        tm[i] -= h
+        fd = (mpc.solve(x, tp, False).action - mpc.solve(x, tm, False).action) / (2 * h)
+        np.testing.assert_allclose(sol.dpi_dtheta[i], fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+
+
+def test_perfect_model_beats_imperfect_in_closed_loop(cstr, cstr_mpc, cstr_perfect_mpc):
+    rng = np.random.default_rng(0)
+    starts = [cstr.sample_initial_state(rng) for _ in range(3)]
+    cost = {}
+    for name, mpc in (("imperfect", cstr_mpc), ("perfect", cstr_perfect_mpc)):
+        cost[name] = np.mean(
+            [rollout(cstr, mpc, None, x0, 60, sensitivities=False).L.mean() for x0 in starts]
+        )
+    assert cost["perfect"] < 0.5 * cost["imperfect"]
+
+
+def test_solution_fields_and_shapes(cstr, cstr_mpc):
+    sol = cstr_mpc.solve(cstr.x_ref, cstr_mpc.theta0)
+    assert sol.success and sol.action.shape == (2,)
+    assert sol.dpi_dtheta.shape == (14, 2) and sol.dV_dtheta.shape == (14,)
+    assert np.all(sol.action >= cstr.u_lb) and np.all(sol.action <= cstr.u_ub)
+    assert np.isfinite(sol.value) and sol.plan_u.shape == (10, 2)
+    assert cstr_mpc.theta_names[0] == "theta_c" and cstr_mpc.theta0.shape == (14,)
+
+
+def test_fallback_on_forced_solver_failure(cstr):
+    mpc = cstr.make_mpc(solver_options={"max_iter": 1}, warm_start=False)
+    sol = mpc.solve(np.array([100.0, 0.2, 420.0]), mpc.theta0)
+    assert not sol.success and sol.fallback
+    np.testing.assert_allclose(sol.action, cstr.u_ref)  # no plan yet: the reference input
+    assert np.isnan(sol.value) and np.all(np.isnan(sol.dpi_dtheta))
+
+    # after a good solve, a failure applies the shifted previous plan
+    good = cstr.make_mpc()
+    x = np.array([100.0, 0.2, 420.0])
+    first = good.solve(x, good.theta0)
+    good._run_solver = lambda *a, **k: (False, "forced", 0, None, None)
+    failed = good.solve(x, good.theta0)
+    assert not failed.success
+    np.testing.assert_allclose(failed.action, first.plan_u[1])
+
+    # and an episode survives a solver that always fails
+    rec = rollout(cstr, mpc, None, x, 5)
+    assert rec.failures == 6 and np.all(np.isfinite(rec.x)) and np.all(np.isfinite(rec.L))
+
+
+def test_episode_is_reproducible_with_a_seed(cstr, cstr_mpc):
+    x0 = np.array([98.0, 0.15, 425.0])
+    expl = GaussianExploration(std=np.array([2.0, 2.0]))
+    a = rollout(cstr, cstr_mpc, None, x0, 15, rng=np.random.default_rng(5), exploration=expl)
+    b = rollout(cstr, cstr_mpc, None, x0, 15, rng=np.random.default_rng(5), exploration=expl)
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.u, b.u)
+    np.testing.assert_allclose(a.dpi, b.dpi)
+    assert not np.allclose(a.u, a.pi)  # exploration was applied
+    assert a.x.shape == (16, 3) and a.dV.shape == (16, 14) and a.dpi.shape == (15, 14, 2)
+
+
+def test_bad_inputs(cstr, cstr_mpc):
+    with pytest.raises(ValueError, match="shape"):
+        cstr_mpc.solve(np.zeros(2), cstr_mpc.theta0)
+    with pytest.raises(ValueError, match="NaN"):
+        cstr_mpc.solve(np.array([100, np.nan, 430]), cstr_mpc.theta0)
+    with pytest.raises(ValueError, match=r"theta has shape \(13,\)"):
+        cstr_mpc.solve(cstr.x_ref, np.ones(13))
+    with pytest.raises(ValueError, match="NaN"):
+        cstr_mpc.solve(cstr.x_ref, np.full(14, np.nan))
+    with pytest.raises(ValueError, match="rng"):
+        rollout(cstr, cstr_mpc, None, cstr.x_ref, 3, exploration=GaussianExploration(std=[1, 1]))
