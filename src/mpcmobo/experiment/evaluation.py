@@ -1,0 +1,62 @@
+"""The evaluation protocol used wherever results are compared: J_eval(theta) and J*.
+
+``J_eval(theta)`` is the mean, over a fixed seeded set of initial states, of the mean RL stage
+cost of a ``T_f``-step closed-loop episode of the imperfect-model MPC with parameters ``theta``,
+without exploration. ``J*`` is the same for the perfect-model MPC with ``theta0``: the closed-loop
+performance the learning should reach (the blue dashed line of Fig. 1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
+from mpcmobo.systems.base import System
+
+
+class Evaluator:
+    """Deterministic closed-loop evaluation of theta on a fixed set of initial states."""
+
+    def __init__(
+        self,
+        system: System,
+        n_starts: int = 10,
+        seed: int = 2025,
+        steps: int | None = None,
+        mpc_options: dict | None = None,
+    ) -> None:
+        if n_starts < 1:
+            raise ValueError(f"the evaluation needs at least one initial state, got {n_starts}")
+        self.system = system
+        self.steps = int(system.episode_steps if steps is None else steps)
+        self.seed = int(seed)
+        rng = np.random.default_rng(self.seed)
+        self.starts = np.array([system.sample_initial_state(rng) for _ in range(n_starts)])
+        self._mpc_options = dict(mpc_options or {})
+        self._mpcs: dict[str, ParametricMPC] = {}
+        self._cache: dict[tuple[str, bytes], float] = {}
+
+    def mpc(self, model: str = "imperfect") -> ParametricMPC:
+        if model not in self._mpcs:
+            self._mpcs[model] = self.system.make_mpc(model=model, **self._mpc_options)
+        return self._mpcs[model]
+
+    def episodes(self, theta: np.ndarray | None, model: str = "imperfect") -> list[EpisodeRecord]:
+        """The evaluation episodes of ``theta`` (no exploration, no sensitivities)."""
+        mpc = self.mpc(model)
+        return [
+            rollout(self.system, mpc, theta, x0, self.steps, sensitivities=False)
+            for x0 in self.starts
+        ]
+
+    def J_eval(self, theta: np.ndarray | None, model: str = "imperfect") -> float:
+        """Mean over the fixed starts of the mean stage cost (cached per theta)."""
+        theta = self.mpc(model).check_theta(theta)
+        key = (model, theta.tobytes())
+        if key not in self._cache:
+            self._cache[key] = float(np.mean([r.L.mean() for r in self.episodes(theta, model)]))
+        return self._cache[key]
+
+    def J_star(self) -> float:
+        """J*: the perfect-model MPC with theta0 on the same starts."""
+        return self.J_eval(None, model="perfect")

@@ -1,0 +1,143 @@
+"""One learning run: a learner, a seed, episodes on the plant, one record per episode."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
+from mpcmobo.rl import CompatibleCritic, GaussianExploration
+from mpcmobo.systems.base import System
+
+START_MODES = ("random", "cycle")
+
+
+class LearningRun:
+    """Episodes of one learner on one seed; resumable through ``state_dict``.
+
+    Each episode: the learner proposes theta, the MPC with theta runs ``steps`` steps on the
+    true plant with exploration noise, the compatible critic is fitted to the episode, the four
+    objectives are computed, and the learner observes them. Initial states are drawn at random
+    (``start_mode="random"``, the paper's setting) or cycle through a fixed seeded set
+    (``"cycle"``) so that candidates are compared on common starts.
+    """
+
+    def __init__(
+        self,
+        system: System,
+        learner: Learner,
+        mpc: ParametricMPC,
+        *,
+        seed: int = 0,
+        steps: int | None = None,
+        exploration_std: Sequence[float] | None = None,
+        exploration_decay: float = 1.0,
+        start_mode: str = "random",
+        n_cycle_starts: int = 6,
+        critic_ridge: float = 1e-6,
+        critic_method: str = "lstd",
+        beta: float = 1.0,
+    ) -> None:
+        if start_mode not in START_MODES:
+            raise ValueError(f"start_mode must be one of {START_MODES}, got '{start_mode}'")
+        self.system, self.learner, self.mpc = system, learner, mpc
+        self.seed = int(seed)
+        self.steps = int(system.episode_steps if steps is None else steps)
+        std = np.zeros(system.nu) if exploration_std is None else exploration_std
+        self.exploration = GaussianExploration(std=np.asarray(std, float), decay=exploration_decay)
+        self.critic = CompatibleCritic(gamma=mpc.gamma, ridge=critic_ridge, method=critic_method)
+        self.beta = float(beta)
+        self.start_mode = start_mode
+        # separate streams: initial states, exploration noise
+        ss = np.random.SeedSequence([self.seed, 7])
+        s_start, s_noise, s_cycle = ss.spawn(3)
+        self.rng_start = np.random.default_rng(s_start)
+        self.rng_noise = np.random.default_rng(s_noise)
+        crng = np.random.default_rng(s_cycle)
+        self.cycle_starts = np.array(
+            [system.sample_initial_state(crng) for _ in range(max(1, n_cycle_starts))]
+        )
+        self.episode = 0
+        self.previous_Vc: float | None = None
+
+    def next_start(self) -> np.ndarray:
+        if self.start_mode == "cycle":
+            return self.cycle_starts[self.episode % len(self.cycle_starts)].copy()
+        return self.system.sample_initial_state(self.rng_start)
+
+    def run_episode(self) -> tuple[dict, EpisodeRecord | None]:
+        """Run one episode; return its row of records and the episode itself."""
+        t0 = time.perf_counter()
+        theta = np.asarray(self.learner.propose(), dtype=float)
+        t_prop = time.perf_counter() - t0
+        x0 = self.next_start()
+        self.exploration.episode = self.episode
+        t1 = time.perf_counter()
+        error = ""
+        try:
+            record = rollout(
+                self.system,
+                self.mpc,
+                theta,
+                x0,
+                self.steps,
+                rng=self.rng_noise,
+                exploration=self.exploration,
+            )
+            result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
+        except (FloatingPointError, ValueError, RuntimeError) as err:
+            # a diverged plant or a broken episode: recorded as NaN, the run goes on
+            record, error = None, f"{type(err).__name__}: {err}"
+            result = EpisodeResult(
+                objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
+            )
+        t_mpc = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        self.learner.observe(theta, result)
+        incumbent = np.asarray(self.learner.incumbent(), dtype=float)
+        t_learn = t_prop + time.perf_counter() - t2
+        if np.isfinite(result.Vc):
+            self.previous_Vc = result.Vc
+        f = result.objectives
+        row = {
+            "learner": self.learner.name,
+            "seed": self.seed,
+            "episode": self.episode,
+            "theta": theta.tolist(),
+            "f1": float(f[0]),
+            "f2": float(f[1]),
+            "f3": float(f[2]),
+            "f4": float(f[3]),
+            "J_tilde": float(f[0]),
+            "mean_stage_cost": float(np.mean(record.L)) if record is not None else np.nan,
+            "mean_abs_A": float(result.mean_abs_advantage),
+            "critic_ok": bool(result.critic_ok),
+            "violation": float(np.sum(record.violation)) if record is not None else np.nan,
+            "solver_failures": int(result.failures) if record is not None else self.steps + 1,
+            "x0": x0.tolist(),
+            "mpc_time_s": t_mpc,
+            "learner_time_s": t_learn,
+            "incumbent": incumbent.tolist(),
+            "error": error,
+        }
+        self.episode += 1
+        return row, record
+
+    def state_dict(self) -> dict:
+        return {
+            "episode": self.episode,
+            "previous_Vc": self.previous_Vc,
+            "rng_start": self.rng_start.bit_generator.state,
+            "rng_noise": self.rng_noise.bit_generator.state,
+            "learner": self.learner.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.episode = int(state["episode"])
+        self.previous_Vc = state["previous_Vc"]
+        self.rng_start.bit_generator.state = state["rng_start"]
+        self.rng_noise.bit_generator.state = state["rng_noise"]
+        self.learner.load_state_dict(state["learner"])

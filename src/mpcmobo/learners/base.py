@@ -1,0 +1,99 @@
+"""One interface for every learner: propose the next theta, observe the finished episode."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from mpcmobo.mpc.records import EpisodeRecord
+from mpcmobo.rl import CompatibleCritic, CriticResult, objectives
+from mpcmobo.systems.space import SearchSpace
+
+
+@dataclass
+class EpisodeResult:
+    """What a learner observes of one episode: the objectives f1..f4 and the CDPG gradient."""
+
+    objectives: np.ndarray  # (4,) f1..f4 (NaN where undefined, e.g. a diverged episode)
+    grad: np.ndarray  # (n_theta,) CDPG policy gradient (eq. DPG), zeros if the critic failed
+    critic_ok: bool
+    Vc: float = float("nan")  # sum_k V^nu(x_k), for f3 of the next episode
+    mean_abs_advantage: float = float("nan")
+    failures: int = 0  # failed MPC solves in the episode
+
+    @property
+    def f1(self) -> float:
+        return float(self.objectives[0])
+
+    @property
+    def valid(self) -> bool:
+        return bool(np.all(np.isfinite(self.objectives)))
+
+
+def episode_result(
+    record: EpisodeRecord,
+    critic: CompatibleCritic,
+    previous_Vc: float | None,
+    beta: float = 1.0,
+) -> tuple[EpisodeResult, CriticResult]:
+    """Fit the compatible critic to a record and compute the four objectives of section 4."""
+    cr = critic.fit(record)
+    f = np.asarray(objectives(record, cr, previous_Vc, beta), dtype=float)
+    res = EpisodeResult(
+        objectives=f,
+        grad=np.where(np.isfinite(cr.grad), cr.grad, 0.0) if cr.ok else np.zeros_like(cr.grad),
+        critic_ok=bool(cr.ok),
+        Vc=float(cr.Vc),
+        mean_abs_advantage=float(cr.mean_abs_advantage),
+        failures=record.failures,
+    )
+    return res, cr
+
+
+class Learner(ABC):
+    """A learner of the MPC parameters theta over a declared :class:`SearchSpace`.
+
+    The loop is ``theta = learner.propose(); ...run an episode...; learner.observe(theta, result)``.
+    ``incumbent()`` is the learner's current best guess, the theta that is evaluated and deployed.
+    ``state_dict()`` holds the whole state (random generators included) as plain Python and NumPy
+    objects, and ``load_state_dict`` restores it so that the next proposal is exactly the same.
+    """
+
+    name: str = "learner"
+
+    def __init__(self, space: SearchSpace, theta0: np.ndarray, seed: int = 0) -> None:
+        self.space = space
+        self.theta0 = space.clip(np.asarray(theta0, dtype=float))
+        self.seed = int(seed)
+        self.rng = np.random.default_rng(self.seed)
+        self.n_observed = 0
+
+    @abstractmethod
+    def propose(self) -> np.ndarray:
+        """The next theta to run (full vector, inside the bounds)."""
+
+    @abstractmethod
+    def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """Take the result of the episode run with ``theta``."""
+
+    @abstractmethod
+    def incumbent(self) -> np.ndarray:
+        """The current best theta."""
+
+    def state_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "seed": self.seed,
+            "rng": self.rng.bit_generator.state,
+            "n_observed": self.n_observed,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if state.get("name") != self.name:
+            raise ValueError(f"state of learner '{state.get('name')}' given to '{self.name}'")
+        self.seed = int(state["seed"])
+        self.rng = np.random.default_rng()
+        self.rng.bit_generator.state = state["rng"]
+        self.n_observed = int(state["n_observed"])
