@@ -1,0 +1,354 @@
+"""The settings of a study: one validated model, loaded from TOML, saved with every default.
+
+A study is described by a :class:`Settings` object. ``load_settings(path, **overrides)`` reads a
+TOML file (optional), applies overrides (``episodes=5``, ``mpc={"horizon": 8}`` or
+``mpc__horizon=8``) and validates the result. Every problem is reported as a
+:class:`SettingsError` whose message names the key as a dotted path (``mpc.horizon``) and what is
+allowed there. Unknown keys are errors at every level.
+
+``settings.resolved()`` fills the defaults that depend on the system (horizon, discount, episode
+length, exploration noise, search-space options) so that ``DIR/config.toml`` of a run holds every
+value that was used.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from mpcmobo.systems import available_systems, get_system
+
+# learners the settings accept by name; whether each is installed is checked when a study starts
+KNOWN_LEARNERS = ("mpc-rl", "bo", "mobo", "hybrid")
+PAPER_LEARNERS = ("mpc-rl", "bo", "mobo")
+
+
+class SettingsError(ValueError):
+    """Invalid settings: the message names the key (dotted path) and what is allowed."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(
+        extra="forbid", strict=True, allow_inf_nan=False, validate_assignment=True
+    )
+
+
+class SystemSettings(_Section):
+    """Which system, and how its MPC is parameterised (overrides of ``System.mpc_spec``)."""
+
+    name: str = Field("cstr", description="registered system name (`mpcmobo systems`)")
+    learn_model: list[str] = Field(
+        default_factory=list, description="model parameters made learnable"
+    )
+    learn_backoff: bool = False
+    learn_theta_c: bool = False
+    weight_log_range: float | None = Field(None, gt=0, le=20)
+    model_log_range: float | None = Field(None, gt=0, le=10)
+
+    @field_validator("name")
+    @classmethod
+    def _known_system(cls, v: str) -> str:
+        if v not in available_systems():
+            raise ValueError(f"unknown system '{v}'; allowed: {', '.join(available_systems())}")
+        return v
+
+    def spec_overrides(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.learn_model:
+            out["learn_model"] = tuple(self.learn_model)
+        if self.learn_backoff:
+            out["learn_backoff"] = True
+        if self.learn_theta_c:
+            out["learn_theta_c"] = True
+        for k in ("weight_log_range", "model_log_range"):
+            if getattr(self, k) is not None:
+                out[k] = getattr(self, k)
+        return out
+
+
+class MPCSettings(_Section):
+    """Horizon, discount and solver options of the parametric MPC."""
+
+    horizon: int | None = Field(None, ge=1, le=500)
+    gamma: float | None = Field(None, gt=0, le=1)
+    tau: float = Field(1e-6, gt=0, lt=1)
+    tol: float = Field(1e-8, gt=0, lt=1)
+    max_iter: int = Field(150, ge=1, le=100_000)
+    warm_start: bool = True
+
+    def options(self) -> dict[str, Any]:
+        d = self.model_dump()
+        return {k: v for k, v in d.items() if v is not None}
+
+
+class ExplorationSettings(_Section):
+    """Gaussian input noise of the learning episodes (per input; decay per episode)."""
+
+    std: list[float] | None = Field(
+        None, description="standard deviation per input; default 2% of each input's range"
+    )
+    decay: float = Field(1.0, gt=0, le=1)
+
+    @field_validator("std")
+    @classmethod
+    def _nonnegative(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and (len(v) == 0 or any(s < 0 for s in v)):
+            raise ValueError("must be a non-empty list of numbers >= 0 (one per input)")
+        return v
+
+
+class CriticSettings(_Section):
+    ridge: float = Field(1e-6, ge=0)
+    method: Literal["lstd", "paper"] = "lstd"
+
+
+class EvaluationSettings(_Section):
+    """The evaluation protocol: J_eval on ``n_starts`` seeded initial states."""
+
+    n_starts: int = Field(10, ge=1, le=10_000)
+    seed: int = Field(2025, ge=0)
+    steps: int | None = Field(None, ge=1, le=1_000_000, description="default: settings.steps")
+    eval_every: int = Field(10, ge=1)
+
+
+class RecordsSettings(_Section):
+    """What is stored besides the per-episode rows."""
+
+    trajectory_every: int = Field(
+        20, ge=1, description="store the learning episode's states/inputs every N episodes"
+    )
+
+
+class Settings(_Section):
+    """Everything a study needs. See ``docs`` and ``mpcmobo run --help``."""
+
+    system: SystemSettings = Field(default_factory=SystemSettings)
+    mpc: MPCSettings = Field(default_factory=MPCSettings)
+    exploration: ExplorationSettings = Field(default_factory=ExplorationSettings)
+    episodes: int = Field(600, ge=1, le=1_000_000)
+    steps: int | None = Field(None, ge=1, le=1_000_000)
+    start_mode: Literal["random", "cycle"] = "random"
+    n_cycle_starts: int = Field(6, ge=1, le=100_000)
+    critic: CriticSettings = Field(default_factory=CriticSettings)
+    beta: float = 1.0
+    learners: list[str] = Field(default_factory=lambda: list(PAPER_LEARNERS), min_length=1)
+    learner_options: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    evaluation: EvaluationSettings = Field(default_factory=EvaluationSettings)
+    records: RecordsSettings = Field(default_factory=RecordsSettings)
+    seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
+    workers: int = Field(2, ge=1, le=1024)
+    backend: Literal["process", "ray"] = "process"
+
+    @field_validator("learners")
+    @classmethod
+    def _known_learners(cls, v: list[str]) -> list[str]:
+        from mpcmobo.learners import LEARNERS
+
+        allowed = list(dict.fromkeys([*KNOWN_LEARNERS, *LEARNERS]))
+        for name in v:
+            if name not in allowed:
+                raise ValueError(f"unknown learner '{name}'; allowed: {', '.join(allowed)}")
+        if len(set(v)) != len(v):
+            raise ValueError("each learner may appear only once")
+        return v
+
+    @field_validator("learner_options")
+    @classmethod
+    def _options_tables(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+        from mpcmobo.learners import LEARNERS
+
+        allowed = list(dict.fromkeys([*KNOWN_LEARNERS, *LEARNERS]))
+        for name in v:
+            if name not in allowed:
+                raise ValueError(f"options for unknown learner '{name}'; allowed: {allowed}")
+        return v
+
+    @field_validator("seeds")
+    @classmethod
+    def _seeds(cls, v: list[int]) -> list[int]:
+        if any(s < 0 or s >= 2**63 for s in v):
+            raise ValueError("seeds must be integers in [0, 2**63)")
+        if len(set(v)) != len(v):
+            raise ValueError("each seed may appear only once")
+        return v
+
+    @field_validator("beta")
+    @classmethod
+    def _beta(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("must be a finite number")
+        return v
+
+    @model_validator(mode="after")
+    def _fits_system(self) -> Settings:
+        if self.exploration.std is None and not self.system.learn_model:
+            return self  # nothing system-specific to check; avoid building the system
+        try:
+            system = build_system(self)
+        except SettingsError:
+            raise
+        except Exception as err:  # noqa: BLE001 - reported as a settings problem
+            raise ValueError(f"system settings: {err}") from None
+        std = self.exploration.std
+        if std is not None and len(std) != system.nu:
+            raise ValueError(
+                f"exploration.std has {len(std)} entries; the system '{system.name}' has "
+                f"{system.nu} inputs {list(system.input_names)}"
+            )
+        return self
+
+    # ------------------------------------------------------------------ derived
+    def resolved(self) -> Settings:
+        """A copy with the system-dependent defaults filled in (what ``config.toml`` stores)."""
+        system = build_system(self)
+        spec = system.mpc_spec
+        d = self.model_dump()
+        d["system"]["weight_log_range"] = float(spec.weight_log_range)
+        d["system"]["model_log_range"] = float(spec.model_log_range)
+        d["mpc"]["horizon"] = int(spec.horizon if self.mpc.horizon is None else self.mpc.horizon)
+        d["mpc"]["gamma"] = float(spec.gamma if self.mpc.gamma is None else self.mpc.gamma)
+        d["steps"] = int(system.episode_steps if self.steps is None else self.steps)
+        if self.exploration.std is None:
+            span = system.u_ub - system.u_lb
+            d["exploration"]["std"] = [
+                float(0.02 * s) if math.isfinite(s) else 0.1 for s in span.tolist()
+            ]
+        if self.evaluation.steps is None:
+            d["evaluation"]["steps"] = d["steps"]
+        return validate_settings(d)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict without ``None`` values (TOML has no null)."""
+        return _drop_none(self.model_dump())
+
+
+def _drop_none(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _drop_none(v) for k, v in d.items() if v is not None}
+    if isinstance(d, list):
+        return [_drop_none(v) for v in d]
+    return d
+
+
+def build_system(settings: Settings):
+    """The system of the settings, with its MPC-spec overrides applied."""
+    spec = settings.system.spec_overrides()
+    return get_system(settings.system.name, **spec)
+
+
+# ---------------------------------------------------------------------- errors and loading
+def _field_names(model: type[BaseModel], loc: tuple) -> list[str] | None:
+    """The allowed keys of the section at ``loc`` (for unknown-key messages)."""
+    cls: Any = model
+    for part in loc:
+        if not (isinstance(cls, type) and issubclass(cls, BaseModel)):
+            return None
+        field = cls.model_fields.get(str(part))
+        if field is None:
+            return None
+        cls = field.annotation
+    if isinstance(cls, type) and issubclass(cls, BaseModel):
+        return list(cls.model_fields)
+    return None
+
+
+def _format_error(err: dict) -> str:
+    loc = tuple(err.get("loc", ()))
+    key = ".".join(str(p) for p in loc) or "(top level)"
+    typ = err.get("type", "")
+    if typ == "extra_forbidden":
+        allowed = _field_names(Settings, loc[:-1])
+        hint = f"; allowed keys here: {', '.join(allowed)}" if allowed else ""
+        return f"{key}: unknown key{hint}"
+    msg = str(err.get("msg", "invalid value"))
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    value = err.get("input")
+    shown = repr(value)
+    if len(shown) > 60:
+        shown = shown[:57] + "..."
+    if not loc:  # a check across sections: its message names the keys itself
+        return msg
+    if typ in ("missing",):
+        return f"{key}: {msg}"
+    return f"{key}: {msg} (got {shown})"
+
+
+def validate_settings(data: Any) -> Settings:
+    """Validate a TOML-like dict; any problem is a :class:`SettingsError`."""
+    if not isinstance(data, dict):
+        raise SettingsError(f"settings must be a table of keys, got {type(data).__name__}")
+    try:
+        return Settings.model_validate(data)
+    except ValidationError as err:
+        lines = [_format_error(e) for e in err.errors()]
+        raise SettingsError("invalid settings:\n  " + "\n  ".join(lines)) from None
+    except SettingsError:
+        raise
+    except (ValueError, TypeError, KeyError, OverflowError, RecursionError) as err:
+        raise SettingsError(f"invalid settings: {err}") from None
+
+
+def _merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def _nest(overrides: dict[str, Any]) -> dict[str, Any]:
+    """``{"mpc__horizon": 8, "episodes": 5}`` -> ``{"mpc": {"horizon": 8}, "episodes": 5}``."""
+    out: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        parts = key.replace(".", "__").split("__")
+        node = out
+        for p in parts[:-1]:
+            nxt = node.setdefault(p, {})
+            if not isinstance(nxt, dict):
+                raise SettingsError(f"{key}: cannot set a key inside a non-table value")
+            node = nxt
+        last = parts[-1]
+        if isinstance(value, dict) and isinstance(node.get(last), dict):
+            node[last] = _merge(node[last], value)
+        else:
+            node[last] = value
+    return out
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise SettingsError(f"settings file not found: {path}") from None
+    except tomllib.TOMLDecodeError as err:
+        raise SettingsError(f"{path}: not valid TOML: {err}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise SettingsError(f"{path}: cannot read: {err}") from None
+
+
+def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
+    """Settings from an optional TOML file plus overrides (``None`` overrides are ignored).
+
+    Overrides are top-level keys (``episodes=5``), section tables (``mpc={"horizon": 8}``, merged
+    into the file's table) or double-underscore paths (``mpc__horizon=8``).
+    """
+    data: dict[str, Any] = read_toml(path) if path is not None else {}
+    data = _merge(data, _nest(overrides))
+    return validate_settings(data)
+
+
+def settings_to_toml(settings: Settings) -> str:
+    import tomli_w
+
+    return tomli_w.dumps(settings.to_dict())

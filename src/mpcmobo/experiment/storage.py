@@ -1,0 +1,264 @@
+"""Results on disk that survive a crash: atomic files, job checkpoints, Parquet records.
+
+Layout of a study directory ``DIR``::
+
+    config.toml                      every setting used (written first)
+    reference.pkl                    J*, J_eval(theta0), evaluation episodes of theta0 / perfect MPC
+    jobs/<learner>-s<seed>/checkpoint.pkl
+                                     LearningRun state + all rows + stored trajectories of one job,
+                                     rewritten atomically after every episode
+    episodes.parquet                 per-episode rows of all jobs (rebuilt from the checkpoints)
+    trajectories.parquet             states/inputs, long format (rebuilt from the checkpoints)
+    summary.json                     per-learner results
+    figures/                         ``mpcmobo plot DIR``
+
+Every file is written to a temporary file in the same directory, flushed, fsync'ed and moved
+over the target with ``os.replace``, so a reader sees the old or the new file, never a torn one.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import pickle
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+CHECKPOINT_VERSION = 1
+EPISODE_COLUMNS = [
+    "learner",
+    "seed",
+    "episode",
+    "theta",
+    "f1",
+    "f2",
+    "f3",
+    "f4",
+    "J_tilde",
+    "mean_stage_cost",
+    "mean_abs_A",
+    "critic_ok",
+    "violation",
+    "solver_failures",
+    "x0",
+    "incumbent",
+    "J_eval_incumbent",
+    "error",
+    "mpc_time_s",
+    "learner_time_s",
+    "eval_time_s",
+]
+WALL_TIME_COLUMNS = ("mpc_time_s", "learner_time_s", "eval_time_s")
+
+
+# ---------------------------------------------------------------------- atomic files
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # pragma: no cover - e.g. platforms without directory fds
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (temp file in the same dir, fsync, os.replace)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    _fsync_dir(path.parent)
+    return path
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _json_safe(obj: Any) -> Any:
+    """NaN/inf -> None, numpy -> Python, so the JSON is standard."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_safe(obj.tolist())
+    if isinstance(obj, np.bool_ | bool):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, float | np.floating):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    return obj
+
+
+def write_json(path: str | Path, obj: Any) -> Path:
+    text = json.dumps(_json_safe(obj), indent=2, allow_nan=False)
+    return atomic_write_text(path, text + "\n")
+
+
+def read_json(path: str | Path) -> Any:
+    return json.loads(Path(path).read_text(encoding="utf-8"))
+
+
+def write_toml(path: str | Path, obj: dict) -> Path:
+    import tomli_w
+
+    return atomic_write_text(path, tomli_w.dumps(obj))
+
+
+def write_pickle(path: str | Path, obj: Any) -> Path:
+    return atomic_write_bytes(path, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def read_pickle(path: str | Path) -> Any:
+    with Path(path).open("rb") as fh:
+        return pickle.load(fh)
+
+
+def write_parquet(path: str | Path, df: pd.DataFrame) -> Path:
+    buf = io.BytesIO()
+    df.to_parquet(buf, index=False, engine="pyarrow")
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+# ---------------------------------------------------------------------- study layout
+def job_name(learner: str, seed: int) -> str:
+    return f"{learner}-s{int(seed)}"
+
+
+def checkpoint_path(out_dir: str | Path, learner: str, seed: int) -> Path:
+    return Path(out_dir) / "jobs" / job_name(learner, seed) / "checkpoint.pkl"
+
+
+def save_checkpoint(out_dir: str | Path, learner: str, seed: int, ckpt: dict) -> Path:
+    ckpt = dict(ckpt, version=CHECKPOINT_VERSION, learner=learner, seed=int(seed))
+    return write_pickle(checkpoint_path(out_dir, learner, seed), ckpt)
+
+
+def load_checkpoint(out_dir: str | Path, learner: str, seed: int) -> dict | None:
+    path = checkpoint_path(out_dir, learner, seed)
+    if not path.exists():
+        return None
+    ckpt = read_pickle(path)
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: checkpoint version {ckpt.get('version')} is not supported")
+    return ckpt
+
+
+def load_checkpoints(out_dir: str | Path, jobs: Iterable[tuple[str, int]]) -> list[dict]:
+    out = []
+    for learner, seed in jobs:
+        ckpt = load_checkpoint(out_dir, learner, seed)
+        if ckpt is not None:
+            out.append(ckpt)
+    return out
+
+
+def episodes_frame(checkpoints: list[dict]) -> pd.DataFrame:
+    """All rows of the checkpoints, ordered by learner (as given), seed and episode."""
+    rows = [r for c in checkpoints for r in c["rows"]]
+    if not rows:
+        return pd.DataFrame({c: pd.Series(dtype=object) for c in EPISODE_COLUMNS})
+    df = pd.DataFrame(rows)
+    cols = [c for c in EPISODE_COLUMNS if c in df.columns]
+    cols += [c for c in df.columns if c not in cols]
+    df = df[cols]
+    order = {c["learner"]: i for i, c in reversed(list(enumerate(checkpoints)))}
+    df["_o"] = df["learner"].map(order)
+    df = df.sort_values(["_o", "seed", "episode"], kind="stable").drop(columns="_o")
+    return df.reset_index(drop=True)
+
+
+def trajectory_rows(
+    learner: str,
+    seed: int,
+    phase: str,
+    episode: int,
+    start: int,
+    x: np.ndarray,
+    u: np.ndarray,
+    state_names: Iterable[str],
+    input_names: Iterable[str],
+    dt: float,
+) -> pd.DataFrame:
+    """Long format: one row per time index k of one trajectory (u is NaN at k = T)."""
+    x, u = np.asarray(x, float), np.asarray(u, float)
+    T1 = x.shape[0]
+    d: dict[str, Any] = {
+        "learner": [learner] * T1,
+        "seed": np.full(T1, int(seed)),
+        "phase": [phase] * T1,
+        "episode": np.full(T1, int(episode)),
+        "start": np.full(T1, int(start)),
+        "k": np.arange(T1),
+        "t": np.arange(T1) * float(dt),
+    }
+    for i, n in enumerate(state_names):
+        d[f"x_{n}"] = x[:, i]
+    upad = np.full((T1, u.shape[1]), np.nan)
+    upad[: u.shape[0]] = u
+    for i, n in enumerate(input_names):
+        d[f"u_{n}"] = upad[:, i]
+    return pd.DataFrame(d)
+
+
+def trajectories_frame(
+    reference: dict | None, checkpoints: list[dict], state_names, input_names, dt: float
+) -> pd.DataFrame:
+    """The study-level (learner "", seed -1) and per-job stored trajectories, long format."""
+    parts = []
+    items: list[tuple[str, int, dict]] = []
+    if reference is not None:
+        items += [("", -1, t) for t in reference.get("trajectories", [])]
+    for c in checkpoints:
+        items += [(c["learner"], c["seed"], t) for t in c.get("trajectories", [])]
+    for learner, seed, t in items:
+        parts.append(
+            trajectory_rows(
+                learner,
+                seed,
+                t["phase"],
+                t["episode"],
+                t["start"],
+                t["x"],
+                t["u"],
+                state_names,
+                input_names,
+                dt,
+            )
+        )
+    if not parts:
+        return pd.DataFrame(columns=["learner", "seed", "phase", "episode", "start", "k", "t"])
+    return pd.concat(parts, ignore_index=True)
+
+
+def read_episodes(out_dir: str | Path) -> pd.DataFrame:
+    return pd.read_parquet(Path(out_dir) / "episodes.parquet")
+
+
+def read_trajectories(out_dir: str | Path) -> pd.DataFrame:
+    return pd.read_parquet(Path(out_dir) / "trajectories.parquet")
