@@ -114,6 +114,8 @@ class OptiBaseline:
 # name -> ParametricMPC options; the first one drives the closed loop.
 VARIANTS: dict[str, dict] = {
     "default": {},
+    "sens_splu": {"linsol": "splu"},
+    "jit": {"jit": True},
 }
 
 

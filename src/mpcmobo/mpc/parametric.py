@@ -99,6 +99,8 @@ class ParametricMPC:
         solver_options: dict | None = None,
         cost_scale: float | None = None,
         jit: bool = False,
+        warm_options: dict | None = None,
+        linsol: str = "qr",
     ) -> None:
         spec = system.mpc_spec
         self.system = system
@@ -128,6 +130,7 @@ class ParametricMPC:
                 nx + nu
             )
         self.cost_scale = float(cost_scale)
+        self._linsol = linsol
         self._build()
         opts = {
             "ipopt.print_level": 0,
@@ -162,6 +165,8 @@ class ParametricMPC:
                 "ipopt.max_iter": min(max_iter, 50),
             }
         )
+        for k, v in (warm_options or {}).items():
+            warm_opts[k if k.startswith("ipopt.") else f"ipopt.{k}"] = v
         self._solver_warm = (
             ca.nlpsol("mpc_warm", "ipopt", self._nlp, warm_opts) if self.warm_start else None
         )
@@ -250,6 +255,20 @@ class ParametricMPC:
         self._iu_flat = np.array(sum(self._iu, []))
         self._ix_flat = np.array(sum(self._ix, []))
         self._ie_flat = np.array(sum(self._ie, []))
+        # one-stage shift of w and of the constraint rows (the last stage is repeated)
+        self._wshift = np.arange(self.nw)
+        for lst in (self._iu, self._ix, self._ie):
+            for i in range(len(lst) - 1):
+                self._wshift[lst[i]] = lst[i + 1]
+        m = self.nin // (N + 1)  # inequality rows per stage
+        eq_rows = np.arange(self.neq).reshape(N, nx)
+        in_rows = self.neq + np.arange(self.nin).reshape(N + 1, m)
+        self._gshift = np.concatenate(
+            [
+                np.vstack([eq_rows[1:], eq_rows[-1:]]).reshape(-1),
+                np.vstack([in_rows[1:], in_rows[-1:]]).reshape(-1),
+            ]
+        )
 
         # ---------------- barrier-relaxed KKT system (eq. nabla_pi)
         lb_idx = np.flatnonzero(np.isfinite(self._lbw))
@@ -276,6 +295,30 @@ class ParametricMPC:
         self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw])
         self._ny = y.numel()
         self._Jy_sp = self._kkt.sparsity_out(0)
+        self._sens = self._sensitivity_function(
+            "csparse" if self._linsol == "splu" else self._linsol
+        )
+
+    def _sensitivity_function(self, linsol: str) -> ca.Function:
+        """(w, lam, mu, p) -> (dpi/dtheta, dV/dtheta), one call, one sparse factorisation.
+
+        Adjoint form: with ``dy/dtheta = -(dR/dy)^-1 dR/dtheta``, only ``nu + 1`` linear
+        functionals of ``dy`` are needed (the first input and ``grad_w f . dw``), so one solve
+        with the transposed KKT matrix and ``nu + 1`` right-hand sides gives both gradients.
+        """
+        nu, n_th = self.nu, self.n_theta
+        w = ca.MX.sym("w", self.nw)
+        lam = ca.MX.sym("lam", self.neq)
+        mu = ca.MX.sym("mu", self.nH)
+        p = ca.MX.sym("p", self.nx + n_th)
+        Jy, Jth, dfdth, dfdw = self._kkt(w, lam, mu, p)
+        E = np.zeros((self._ny, nu))
+        E[self._iu[0], np.arange(nu)] = self.Su
+        B = ca.horzcat(ca.DM(E), ca.vertcat(dfdw, ca.DM.zeros(self._ny - self.nw)))
+        L = ca.solve(Jy.T, B, linsol)
+        dpi = -ca.mtimes(Jth.T, L[:, :nu])  # (eq. nabla_pi), physical, (n_theta, nu)
+        dV = self.cost_scale * (dfdth - ca.mtimes(Jth.T, L[:, nu]))
+        return ca.Function("sens", [w, lam, mu, p], [dpi, dV])
 
     # ------------------------------------------------------------------ validation
     def check_theta(self, theta) -> np.ndarray:
@@ -397,14 +440,14 @@ class ParametricMPC:
         return ok, status, iters, out, wopt
 
     def _remember(self, w, lam_g, lam_x, plan_u) -> None:
-        """Store the solution, shifted by one stage, as the next warm start."""
-        ws = w.copy()
-        for lst in (self._iu, self._ix):
-            for i in range(len(lst) - 1):
-                ws[lst[i]] = w[lst[i + 1]]
-        for i in range(len(self._ie) - 1):
-            ws[self._ie[i]] = w[self._ie[i + 1]]
-        self._prev = {"w_shift": ws, "lam_g": lam_g, "lam_x": lam_x, "plan_u": plan_u, "age": 0}
+        """Store the solution and its multipliers, shifted by one stage, as the next warm start."""
+        self._prev = {
+            "w_shift": w[self._wshift],
+            "lam_g": lam_g[self._gshift],
+            "lam_x": lam_x[self._wshift],
+            "plan_u": plan_u,
+            "age": 0,
+        }
 
     def _multipliers(self, w, lam_g, lam_x):
         """Split CasADi's multipliers into (lambda for G, mu >= 0 for every row of H)."""
@@ -431,6 +474,12 @@ class ParametricMPC:
 
     def _sensitivities(self, w, lam_g, lam_x, p):
         lam, mu = self._multipliers(w, lam_g, lam_x)
+        if self._linsol != "splu":
+            dpi, dV = self._sens(w, lam, mu, p)
+            dpi, dV = np.asarray(dpi), np.asarray(dV).reshape(-1)
+            if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
+                raise ValueError("non-finite sensitivity (singular KKT matrix)")
+            return dpi, dV
         Jy, Jth, dfdth, dfdw = self._kkt(w, lam, mu, p)
         Jy = _to_csc(Jy, self._Jy_sp)
         Jth = np.asarray(ca.DM(Jth).full())
