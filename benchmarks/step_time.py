@@ -113,9 +113,12 @@ class OptiBaseline:
 
 # name -> ParametricMPC options; the first one drives the closed loop.
 VARIANTS: dict[str, dict] = {
-    "default": {},
-    "sens_splu": {"linsol": "splu"},
-    "jit": {"jit": True},
+    "default": {},  # IPOPT, shifted primal-dual warm start, adjoint sensitivities (sparse QR)
+    "sens_splu": {"linsol": "splu"},  # the former sensitivity path: scipy splu, 14 RHS
+    "cold": {"warm_start": False},  # no warm start
+    "warm_mu_init_1e-5": {"warm_options": {"mu_init": 1e-5}},
+    "warm_mu_adaptive": {"warm_options": {"mu_strategy": "adaptive"}},
+    "jit": {"jit": True},  # generated, compiled C for the NLP and KKT functions
 }
 
 

@@ -127,3 +127,30 @@ def test_bad_inputs(cstr, cstr_mpc):
         cstr_mpc.solve(cstr.x_ref, np.full(14, np.nan))
     with pytest.raises(ValueError, match="rng"):
         rollout(cstr, cstr_mpc, None, cstr.x_ref, 3, exploration=GaussianExploration(std=[1, 1]))
+
+
+@pytest.mark.parametrize("linsol", ["splu", "csparse"])
+def test_sensitivity_linear_solvers_agree(cstr, fd_mpc, linsol):
+    # the default adjoint sparse-QR path and the alternatives give the same gradients
+    other = cstr.make_mpc(model="imperfect", warm_start=False, tol=1e-10, linsol=linsol)
+    rng = np.random.default_rng(11)
+    x = cstr.sample_initial_state(rng)
+    th = _random_theta(fd_mpc, rng)
+    a, b = fd_mpc.solve(x, th), other.solve(x, th)
+    assert a.success and b.success
+    np.testing.assert_allclose(b.action, a.action, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(b.dpi_dtheta, a.dpi_dtheta, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(b.dV_dtheta, a.dV_dtheta, rtol=1e-7, atol=1e-9)
+
+
+def test_warm_start_shifts_primal_and_dual(cstr):
+    mpc = cstr.make_mpc()
+    x = np.array([100.0, 0.2, 420.0])
+    first = mpc.solve(x, mpc.theta0, False)
+    prev = mpc._prev
+    np.testing.assert_allclose(
+        mpc.system.u_ref + mpc.Su * prev["w_shift"][mpc._iu[0]], first.plan_u[1]
+    )
+    assert prev["lam_g"].shape == (mpc.neq + mpc.nin,) and prev["lam_x"].shape == (mpc.nw,)
+    second = mpc.solve(cstr.plant_step(x, first.action), mpc.theta0)
+    assert second.success and second.iterations < 12

@@ -45,6 +45,7 @@ from mpcmobo.systems.base import System, rk4_step
 from mpcmobo.systems.parameterization import Parameterization
 
 _SUCCESS = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
+_JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
 
 
 @dataclass
@@ -82,7 +83,16 @@ class ParametricMPC:
     warm_start:
         Initialise each solve from the shifted previous solution.
     solver_options:
-        Extra IPOPT options (``{"max_iter": 200}``, ...).
+        Extra IPOPT options (``{"max_iter": 200}``, ...), for the cold and the warm solver.
+    jit:
+        Compile generated C code of the NLP and KKT functions (needs a C compiler; building
+        takes 10-20 s, a step is then about 1.5x faster, see ``docs/benchmarks_step.md``).
+    warm_options:
+        IPOPT options of the warm-started solver only (after the built-in warm-start settings).
+    linsol:
+        Linear solver of the sensitivity system: a CasADi linsol plugin (``"qr"``, the default
+        and fastest measured, ``"csparse"``, ...) used in one adjoint solve inside a single
+        CasADi function, or ``"splu"`` (SciPy sparse LU on the forward system).
     """
 
     def __init__(
@@ -131,6 +141,7 @@ class ParametricMPC:
             )
         self.cost_scale = float(cost_scale)
         self._linsol = linsol
+        self._jit = bool(jit)
         self._build()
         opts = {
             "ipopt.print_level": 0,
@@ -149,7 +160,7 @@ class ParametricMPC:
                 {
                     "jit": True,
                     "compiler": "shell",
-                    "jit_options": {"flags": ["-O2"], "verbose": False},
+                    "jit_options": _JIT_OPTIONS,
                 }
             )
         for k, v in (solver_options or {}).items():
@@ -292,7 +303,10 @@ class ParametricMPC:
         # barrier solution the solver returns.
         dfdth = ca.gradient(f, th)
         dfdw = ca.gradient(f, wv)
-        self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw])
+        kkt_opts = {}
+        if self._jit:  # the exact Hessian inside dR/dy dominates this evaluation
+            kkt_opts = {"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS}
+        self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw], kkt_opts)
         self._ny = y.numel()
         self._Jy_sp = self._kkt.sparsity_out(0)
         self._sens = self._sensitivity_function(
