@@ -57,6 +57,15 @@ class Evaluator:
             self._cache[key] = float(np.mean([r.L.mean() for r in self.episodes(theta, model)]))
         return self._cache[key]
 
+    def remember(self, theta: np.ndarray | None, value: float, model: str = "imperfect") -> None:
+        """Store a J_eval computed elsewhere (e.g. from :meth:`episodes`) in the cache."""
+        theta = self.mpc(model).check_theta(theta)
+        self._cache[(model, theta.tobytes())] = float(value)
+
+    def is_cached(self, theta: np.ndarray | None, model: str = "imperfect") -> bool:
+        theta = self.mpc(model).check_theta(theta)
+        return (model, theta.tobytes()) in self._cache
+
     def J_star(self) -> float:
         """J*: the perfect-model MPC with theta0 on the same starts."""
         return self.J_eval(None, model="perfect")

@@ -59,6 +59,15 @@ WALL_TIME_COLUMNS = ("mpc_time_s", "learner_time_s", "eval_time_s")
 
 
 # ---------------------------------------------------------------------- atomic files
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_FILE_MODE = 0o666 & ~_umask()
+
+
 def _fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -79,6 +88,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
+            os.fchmod(fh.fileno(), _FILE_MODE)  # mkstemp creates 0600; use the usual mode
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())

@@ -1,0 +1,137 @@
+"""The study runner: records, checkpoints, resume after an interruption, summary."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from mpcmobo.experiment import storage
+from mpcmobo.experiment.settings import SettingsError, load_settings
+from mpcmobo.experiment.study import StudyError, run_study
+
+WALL = ["mpc_time_s", "learner_time_s", "eval_time_s"]
+
+
+def small(**kw):
+    base = dict(
+        system={"name": "lq"},
+        learners=["mpc-rl"],
+        episodes=7,
+        steps=10,
+        seeds=[0, 1],
+        evaluation={"n_starts": 2, "eval_every": 3},
+        records={"trajectory_every": 3},
+        workers=1,
+    )
+    base.update(kw)
+    return load_settings(None, **base)
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("study") / "full"
+    events = []
+    summary = run_study(small(), out, progress=events.append)
+    return out, summary, events
+
+
+def test_records_layout_and_eval_policy(full_run):
+    out, summary, events = full_run
+    for name in ("config.toml", "reference.pkl", "episodes.parquet", "trajectories.parquet"):
+        assert (out / name).exists()
+    assert (out / "jobs" / "mpc-rl-s1" / "checkpoint.pkl").exists()
+    df = storage.read_episodes(out)
+    assert len(df) == 14
+    for col in ("theta", "f1", "f4", "J_tilde", "mean_abs_A", "violation", "solver_failures",
+                "mpc_time_s", "learner_time_s", "incumbent", "J_eval_incumbent"):  # fmt: skip
+        assert col in df.columns
+    s0 = df[df.seed == 0].set_index("episode")
+    evaluated = sorted(s0.index[np.isfinite(s0["J_eval_incumbent"])])
+    # the MPC-RL incumbent changes every episode: evaluated at 0, every 3, and the last
+    assert evaluated == [0, 3, 6]
+    assert [e for e in events if e["kind"] == "episode"][-1]["episode"] == 7
+    tr = storage.read_trajectories(out)
+    assert set(tr.phase) == {"initial", "perfect", "learning", "final"}
+    assert set(tr[tr.phase == "learning"].episode) == {0, 3, 6}
+    assert len(tr[(tr.phase == "final") & (tr.seed == 0)]) == 2 * 11  # n_starts x (steps + 1)
+    assert {"x_p", "x_v", "u_f"} <= set(tr.columns)
+    assert summary["complete"] is True
+
+
+def test_summary_matches_records(full_run):
+    out, summary, _ = full_run
+    on_disk = json.loads((out / "summary.json").read_text())
+    assert on_disk["learners"].keys() == summary["learners"].keys()
+    df = storage.read_episodes(out)
+    J_star = on_disk["J_star"]
+    s = on_disk["learners"]["mpc-rl"]
+    finals = []
+    for seed in (0, 1):
+        sub = df[df.seed == seed].sort_values("episode")
+        last = sub.iloc[-1]
+        assert math.isfinite(last.J_eval_incumbent)
+        per = s["per_seed"][str(seed)]
+        assert per["J_final"] == pytest.approx(last.J_eval_incumbent, rel=0, abs=0)
+        assert per["theta_final"] == pytest.approx(list(last.incumbent))
+        ok = sub[sub.J_eval_incumbent - J_star <= 0.02 * abs(J_star)]
+        assert per["episodes_to_2pct"] == (int(ok.episode.min()) if len(ok) else None)
+        finals.append(last.J_eval_incumbent)
+    assert s["J_final"] == pytest.approx(float(np.median(finals)))
+    assert s["J_star"] == J_star and s["J_initial"] == on_disk["J_initial"]
+    assert s["theta_names"][0] == "theta_c" and len(s["theta_names"]) == len(s["theta_final"])
+    assert s["wall_time_s"] > 0
+    assert on_disk["settings"]["episodes"] == 7 and on_disk["system"] == "lq"
+    # J_initial is J_eval(theta0): the mean stage cost of the "initial" evaluation episodes
+    assert J_star < on_disk["J_initial"]
+
+
+def test_interrupted_then_resumed_equals_uninterrupted(full_run, tmp_path):
+    out_full, _, _ = full_run
+    out = tmp_path / "resumed"
+    part = run_study(small(), out, max_episodes_this_call=2)
+    assert part["complete"] is False
+    assert len(storage.read_episodes(out)) == 4
+    # simulate a kill while writing: a stray temporary file next to the checkpoint
+    ck = storage.checkpoint_path(out, "mpc-rl", 0)
+    (ck.parent / ".checkpoint.pkl.abc.tmp").write_bytes(b"partial")
+    run_study(None, out, resume=True, max_episodes_this_call=3)
+    done = run_study(None, out, resume=True)
+    assert done["complete"] is True
+    a = storage.read_episodes(out_full).drop(columns=WALL)
+    b = storage.read_episodes(out).drop(columns=WALL)
+    pd.testing.assert_frame_equal(a, b)
+    ta, tb = storage.read_trajectories(out_full), storage.read_trajectories(out)
+    pd.testing.assert_frame_equal(ta, tb)
+    # resuming a finished study changes nothing
+    run_study(None, out, resume=True)
+    pd.testing.assert_frame_equal(a, storage.read_episodes(out).drop(columns=WALL))
+
+
+def test_parallel_workers_match_serial(full_run, tmp_path):
+    out_full, _, _ = full_run
+    out = tmp_path / "par"
+    run_study(small(workers=2), out)
+    a = storage.read_episodes(out_full).drop(columns=WALL)
+    b = storage.read_episodes(out).drop(columns=WALL)
+    pd.testing.assert_frame_equal(a, b)
+
+
+def test_refuses_to_overwrite_and_checks_learners(full_run, tmp_path):
+    out_full, _, _ = full_run
+    with pytest.raises(StudyError, match="not empty"):
+        run_study(small(), out_full)
+    with pytest.raises(StudyError, match="nothing to resume"):
+        run_study(None, tmp_path / "empty", resume=True)
+    with pytest.raises(SettingsError, match="learner_options.mpc-rl"):
+        run_study(small(learner_options={"mpc-rl": {"lr": -1.0}}), tmp_path / "bad")
+    with pytest.raises(SettingsError, match="backend"):
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            run_study(small(backend="ray", workers=2), tmp_path / "ray")
+        else:  # pragma: no cover
+            raise SettingsError("backend: ray installed, nothing to check")
