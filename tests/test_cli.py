@@ -1,0 +1,116 @@
+"""The command line: run, resume, evaluate, systems; invalid settings exit with code 2."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from typer.testing import CliRunner
+
+from mpcmobo.cli import app
+from mpcmobo.experiment import storage
+
+runner = CliRunner()
+SMALL = ["--system", "lq", "--learner", "mpc-rl", "--episodes", "3", "--steps", "8",
+         "--workers", "1"]  # fmt: skip
+
+
+def test_systems_lists_cstr():
+    res = runner.invoke(app, ["systems"])
+    assert res.exit_code == 0
+    assert "cstr" in res.output and "lq" in res.output
+
+
+@pytest.mark.parametrize(
+    "args, key",
+    [
+        (["run", "--episodes", "0"], "episodes"),
+        (["run", "--system", "nope"], "system.name"),
+        (["run", "--learner", "sgd"], "learners"),
+        (["run", "--seeds", "0", "x"], "seeds"),
+        (["run", "--workers", "0"], "workers"),
+    ],
+)
+def test_invalid_settings_exit_2_naming_the_key(args, key, tmp_path):
+    res = runner.invoke(app, [*args, "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    assert key in res.output
+    assert "Traceback" not in res.output
+    assert not (tmp_path / "o" / "config.toml").exists()
+
+
+def test_invalid_config_file_exit_2(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[mpc]\nhorizn = 3\n[exploration]\nstd = "big"\n')
+    res = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2
+    assert "mpc.horizn" in res.output and "horizon" in res.output
+    assert "exploration.std" in res.output
+    res = runner.invoke(app, ["run", "--config", str(tmp_path / "missing.toml")])
+    assert res.exit_code == 2 and "not found" in res.output
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    st.dictionaries(
+        st.sampled_from(["episodes", "mpc", "seeds", "learners", "beta", "system", "zz"]),
+        st.one_of(
+            st.integers(-5, 5),
+            st.text(max_size=4),
+            st.lists(st.integers(-2, 2), max_size=3),
+            st.floats(allow_nan=False, allow_infinity=False),
+        ),  # fmt: skip
+        min_size=1,
+        max_size=3,
+    )
+)
+def test_malformed_config_files_never_traceback(tmp_path_factory, data):
+    import tomli_w
+
+    d = tmp_path_factory.mktemp("h")
+    cfg = d / "c.toml"
+    cfg.write_text(tomli_w.dumps(data))
+    # --episodes 0 guarantees nothing runs even when the file happens to be valid
+    res = runner.invoke(
+        app, ["run", "--config", str(cfg), "--episodes", "0", "--out", str(d / "o")]
+    )
+    assert res.exit_code == 2, res.output
+    assert res.exception is None or isinstance(res.exception, SystemExit)
+    assert "Error:" in res.output
+
+
+def test_run_seeds_forms_resume_and_evaluate(tmp_path):
+    out = tmp_path / "run"
+    res = runner.invoke(app, ["run", *SMALL, "--seeds", "0", "1", "--out", str(out), "-q"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["seeds"] == [0, 1]
+    assert summary["learners"]["mpc-rl"]["complete"] is True
+    out2 = tmp_path / "run2"
+    res = runner.invoke(app, ["run", *SMALL, "--seeds", "3,4", "--out", str(out2), "-q"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((out2 / "summary.json").read_text())["settings"]["seeds"] == [3, 4]
+    # resume of a finished run: nothing changes, exit 0; options other than --workers refused
+    before = storage.read_episodes(out)
+    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "-q"])
+    assert res.exit_code == 0, res.output
+    assert storage.read_episodes(out).equals(before)
+    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--episodes", "9"])
+    assert res.exit_code == 2 and "--episodes" in res.output
+    res = runner.invoke(app, ["run", *SMALL, "--out", str(out)])
+    assert res.exit_code == 1 and "not empty" in res.output
+    res = runner.invoke(app, ["evaluate", str(out), "--n-starts", "2"])
+    assert res.exit_code == 0, res.output
+    assert "mpc-rl" in res.output and "J_eval" in res.output
+
+
+def test_run_with_progress_bars(tmp_path):
+    out = tmp_path / "bars"
+    res = runner.invoke(app, ["run", *SMALL, "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "mpc-rl s0" in res.output and "best J_eval" in res.output
+    assert "J_final" in res.output
