@@ -1,0 +1,190 @@
+"""Figures 1-4 of the paper, drawn from a run's records only (no re-simulation).
+
+Inputs: ``DIR/episodes.parquet``, ``DIR/trajectories.parquet`` and ``DIR/summary.json`` (J* and
+the system's names, references and limits). Outputs: ``DIR/figures/fig{1..4}_*.{png,pdf}``.
+With several seeds, per-episode curves are the median over seeds with the interquartile band.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+COLORS = {"mpc-rl": "tab:green", "bo": "grey", "mobo": "tab:red", "hybrid": "tab:purple"}
+LABELS = {"mpc-rl": "MPC-RL", "bo": "BO", "mobo": "MPC-RL-MOBO", "hybrid": "hybrid"}
+FIGURES = ("fig1_performance", "fig2_advantage_pareto", "fig3_states", "fig4_inputs")
+
+
+def pareto_mask(Y: np.ndarray) -> np.ndarray:
+    """Non-dominated rows of Y (minimisation); rows with NaN are never Pareto points."""
+    try:
+        from mpcmobo.bo.pareto import pareto_mask as _mask
+
+        return np.asarray(_mask(Y), dtype=bool)
+    except Exception:  # noqa: BLE001 - the bo package is optional here
+        pass
+    Y = np.asarray(Y, float)
+    ok = np.all(np.isfinite(Y), axis=1)
+    mask = np.zeros(len(Y), bool)
+    F = Y[ok]
+    le = np.all(F[None, :, :] <= F[:, None, :], axis=2)
+    lt = np.any(F[None, :, :] < F[:, None, :], axis=2)
+    mask[np.flatnonzero(ok)] = ~np.any(le & lt, axis=1)
+    return mask
+
+
+def _band(df: pd.DataFrame, col: str) -> pd.DataFrame:
+    """Median and quartiles over seeds of ``col`` per episode."""
+    g = df.groupby("episode")[col]
+    return pd.DataFrame({"med": g.median(), "q1": g.quantile(0.25), "q3": g.quantile(0.75)})
+
+
+def _curve(ax, df: pd.DataFrame, col: str, color: str, label: str, n_seeds: int, **kw) -> None:
+    b = _band(df, col).dropna(subset=["med"])
+    ax.plot(b.index, b["med"], color=color, label=label, **kw)
+    if n_seeds > 1:
+        ax.fill_between(b.index, b["q1"], b["q3"], color=color, alpha=0.25, linewidth=0)
+
+
+def _save(fig, out: Path, name: str) -> list[Path]:
+    paths = []
+    for ext in ("png", "pdf"):
+        p = out / f"{name}.{ext}"
+        fig.savefig(p, dpi=150, bbox_inches="tight")
+        paths.append(p)
+    plt.close(fig)
+    return paths
+
+
+def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
+    n = len(learners)
+    fig, axes = plt.subplots(n, 1, figsize=(7, 2.4 * n), sharex=True, squeeze=False)
+    J_star = summary["J_star"]
+    for ax, name in zip(axes[:, 0], learners):
+        d = ep[ep.learner == name]
+        ns = d.seed.nunique()
+        c = COLORS.get(name, "tab:orange")
+        _curve(ax, d, "J_tilde", c, rf"$\tilde J$ {LABELS.get(name, name)}", ns, lw=1)
+        ev = d[np.isfinite(d["J_eval_incumbent"])]
+        if len(ev):
+            _curve(ax, ev, "J_eval_incumbent", "black", r"$J_{eval}$ incumbent", ns, lw=1.2,
+                   marker=".", ms=3)  # fmt: skip
+        if J_star is not None:
+            ax.axhline(J_star, color="tab:blue", ls="--", label=r"$J^\star$")
+        ax.set_ylabel(r"$\tilde J$")
+        ax.legend(loc="upper right", fontsize=7)
+    axes[-1, 0].set_xlabel("episode")
+    fig.suptitle("Closed-loop performance per episode")
+    return fig
+
+
+def fig2(ep: pd.DataFrame, learners: list[str]):
+    fig = plt.figure(figsize=(11, 4.2))
+    ax = fig.add_subplot(1, 2, 1)
+    shown = [n for n in ("mpc-rl", "mobo") if n in learners] or learners
+    for name in shown:
+        d = ep[ep.learner == name]
+        _curve(ax, d, "mean_abs_A", COLORS.get(name, "tab:orange"), LABELS.get(name, name),
+               d.seed.nunique(), lw=1)  # fmt: skip
+    ax.set_xlabel("episode")
+    ax.set_ylabel(r"mean $|A^{w}|$")
+    vals = ep.loc[ep.learner.isin(shown), "mean_abs_A"].to_numpy(float)
+    if np.any(np.isfinite(vals)) and np.nanmin(vals) > 0:
+        ax.set_yscale("log")
+    ax.legend(fontsize=8)
+    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+    src = "mobo" if "mobo" in learners else learners[-1]
+    d = ep[ep.learner == src]
+    d = d[d.seed == d.seed.min()]
+    cols = ["f1", "f2", "f4"] if np.isfinite(d["f4"]).any() else ["f1", "f2", "f3"]
+    Y = d[cols].to_numpy(float)
+    ok = np.all(np.isfinite(Y), axis=1)
+    if ok.any():
+        mask = pareto_mask(Y)
+        sc = ax3.scatter(*Y[ok & ~mask].T, c=d["episode"].to_numpy()[ok & ~mask], cmap="Greys",
+                         s=8, alpha=0.7, label="observations")  # fmt: skip
+        ax3.scatter(*Y[mask].T, marker="*", color="red", s=60, label="Pareto front")
+        if (ok & ~mask).any():
+            fig.colorbar(sc, ax=ax3, shrink=0.6, pad=0.1, label="episode")
+        ax3.legend(fontsize=7)
+    ax3.set_xlabel(cols[0])
+    ax3.set_ylabel(cols[1])
+    ax3.set_zlabel(cols[2])
+    ax3.set_title(f"Pareto front of the {LABELS.get(src, src)} observations", fontsize=9)
+    return fig
+
+
+def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
+    names = info["state_names"] if kind == "x" else info["input_names"]
+    ref = info["x_ref"] if kind == "x" else info["u_ref"]
+    lb = info["x_lb"] if kind == "x" else info["u_lb"]
+    ub = info["x_ub"] if kind == "x" else info["u_ub"]
+    fig, axes = plt.subplots(len(names), 1, figsize=(7, 2.2 * len(names)), sharex=True,
+                             squeeze=False)  # fmt: skip
+    initial = tr[(tr.phase == "initial")]
+    learning = tr[(tr.phase == "learning") & (tr.learner == learner)]
+    final = tr[(tr.phase == "final") & (tr.learner == learner)]
+    for i, (ax, n) in enumerate(zip(axes[:, 0], names)):
+        col = f"{kind}_{n}"
+        for (_s, _e, _st), g in learning.groupby(["seed", "episode", "start"]):
+            ax.plot(g.t, g[col], color="grey", lw=0.6, alpha=0.5)
+        for _, g in initial.groupby("start"):
+            ax.plot(g.t, g[col], color="tab:green", lw=1)
+        if final.seed.nunique() > 1:
+            for _, g in final.groupby("start"):
+                q = g.groupby("t")[col].quantile([0.25, 0.5, 0.75]).unstack()
+                ax.plot(q.index, q[0.5], color="tab:blue", lw=1.2)
+                ax.fill_between(q.index, q[0.25], q[0.75], color="tab:blue", alpha=0.25, lw=0)
+        else:
+            for _, g in final.groupby("start"):
+                ax.plot(g.t, g[col], color="tab:blue", lw=1.2)
+        ax.axhline(ref[i], color="tab:orange", ls="--", lw=1)
+        for lim in (lb[i], ub[i]):
+            if lim is not None and np.isfinite(lim):
+                ax.axhline(lim, color="red", ls="--", lw=1)
+        ax.set_ylabel(n)
+    from matplotlib.lines import Line2D
+
+    handles = [
+        Line2D([], [], color="tab:green", label="imperfect MPC"),
+        Line2D([], [], color="grey", label="during learning"),
+        Line2D([], [], color="tab:blue", label=f"learned MPC ({LABELS.get(learner, learner)})"),
+        Line2D([], [], color="tab:orange", ls="--", label="reference"),
+        Line2D([], [], color="red", ls="--", label="limits"),
+    ]
+    axes[0, 0].legend(handles=handles, fontsize=7, loc="upper right", ncol=2)
+    axes[-1, 0].set_xlabel("time [min]" if info.get("name") == "cstr" else "time")
+    fig.suptitle("States" if kind == "x" else "Control inputs")
+    return fig
+
+
+def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:
+    """Write figures 1-4 (PNG and PDF) into ``run_dir/figures``; return the paths."""
+    run_dir = Path(run_dir)
+    ep = pd.read_parquet(run_dir / "episodes.parquet")
+    tr = pd.read_parquet(run_dir / "trajectories.parquet")
+    summary = json.loads((run_dir / "summary.json").read_text())
+    info = summary["system_info"]
+    present = list(dict.fromkeys(ep["learner"]))
+    learners = [n for n in summary["learners"] if n in present] or present
+    if not learners:
+        raise ValueError(f"{run_dir} has no episodes to plot yet")
+    if learner is None:
+        learner = "mobo" if "mobo" in learners else learners[-1]
+    elif learner not in learners:
+        raise ValueError(f"learner '{learner}' is not in this run; allowed: {learners}")
+    out = run_dir / "figures"
+    out.mkdir(exist_ok=True)
+    with plt.rc_context({"figure.max_open_warning": 0}):
+        paths = _save(fig1(ep, summary, learners), out, FIGURES[0])
+        paths += _save(fig2(ep, learners), out, FIGURES[1])
+        paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2])
+        paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3])
+    return paths
