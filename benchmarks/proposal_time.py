@@ -1,0 +1,128 @@
+"""Wall time of one EHVI proposal (GP fit + acquisition optimisation), 4 objectives, d = 13.
+
+Compares ``GPSurrogate.fit`` + ``propose_ehvi`` (warm-started state, as inside a learner loop)
+with a plain BoTorch loop: a fresh ``fit_gpytorch_mll`` of a ``ModelListGP`` of default
+``SingleTaskGP``s, ``qLogNoisyExpectedHypervolumeImprovement`` with default settings except
+``prune_baseline=True`` (as in BoTorch's tutorials; it makes the plain loop faster, not slower)
+and ``optimize_acqf(num_restarts=10, raw_samples=512)``.
+
+Synthetic data: ``f_j(x) = |x - a_j|^2 + 0.3 sin(3 w_j . x) + 0.05 eps`` with random anchors
+``a_j`` (conflicting objectives) on uniform random x in [0,1]^13, costs minimised.
+
+    .venv/bin/python benchmarks/proposal_time.py            # full: n in {50, 200, 600}
+    .venv/bin/python benchmarks/proposal_time.py --quick    # n in {50, 200}, fewer repetitions
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+
+import numpy as np
+import torch
+from botorch.acquisition.multi_objective.logei import qLogNoisyExpectedHypervolumeImprovement
+from botorch.fit import fit_gpytorch_mll
+from botorch.models import ModelListGP, SingleTaskGP
+from botorch.optim import optimize_acqf
+from gpytorch.mlls import SumMarginalLogLikelihood
+
+from mpcmobo.bo import GPSurrogate, propose_ehvi, reference_point
+
+D, M = 13, 4
+
+
+def make_problem(seed: int = 0):
+    rng = np.random.default_rng(seed)
+    A = rng.uniform(0.2, 0.8, size=(M, D))
+    W = rng.normal(size=(M, D))
+
+    def f(X: np.ndarray) -> np.ndarray:
+        Y = np.stack([((X - A[j]) ** 2).sum(1) + 0.3 * np.sin(3 * X @ W[j]) for j in range(M)], 1)
+        return Y + 0.05 * rng.normal(size=Y.shape)
+
+    return f, rng
+
+
+def time_fast(X, Y, ref, n, warmup, reps):
+    """Consecutive proposals at n, n+1, ... as in a loop; returns the timed ones (s)."""
+    sur = GPSurrogate(M)
+    times, full = [], []
+    for i in range(warmup + reps):
+        Xi, Yi = X[: n + i], Y[: n + i]
+        t0 = time.perf_counter()
+        sur.fit(Xi, Yi)
+        x = propose_ehvi(sur, Xi, Yi, ref, seed=i)
+        dt = time.perf_counter() - t0
+        assert x.shape == (D,) and np.all((x >= 0) & (x <= 1))
+        if i >= warmup:
+            times.append(dt)
+            full.append(sur.last_fit_was_full)
+    return times, sum(full)
+
+
+def time_plain(X, Y, ref, n, reps):
+    times = []
+    bounds = torch.stack([torch.zeros(D), torch.ones(D)]).double()
+    for i in range(reps):
+        tX = torch.as_tensor(X[: n + i])
+        tY = -torch.as_tensor(Y[: n + i])  # BoTorch maximises
+        t0 = time.perf_counter()
+        model = ModelListGP(*[SingleTaskGP(tX, tY[:, j : j + 1]) for j in range(M)])
+        fit_gpytorch_mll(SumMarginalLogLikelihood(model.likelihood, model))
+        acq = qLogNoisyExpectedHypervolumeImprovement(
+            model, ref_point=(-torch.as_tensor(ref)).tolist(), X_baseline=tX, prune_baseline=True
+        )
+        optimize_acqf(acq, bounds=bounds, q=1, num_restarts=10, raw_samples=512)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="n in {50, 200}, fewer repetitions")
+    p.add_argument("--sizes", type=int, nargs="*", default=None)
+    p.add_argument("--reps", type=int, default=None, help="timed fast proposals per n")
+    p.add_argument("--warmup", type=int, default=2)
+    p.add_argument("--plain-reps", type=int, default=None)
+    args = p.parse_args()
+    sizes = args.sizes or ([50, 200] if args.quick else [50, 200, 600])
+    reps = args.reps or (4 if args.quick else 10)
+    plain_reps = args.plain_reps or (1 if args.quick else 2)
+
+    f, rng = make_problem(0)
+    nmax = max(sizes) + args.warmup + reps + plain_reps + 1
+    X = rng.uniform(size=(nmax, D))
+    Y = f(X)
+    ref = reference_point(Y[:20])  # fixed rule: from the initial design only
+
+    print(
+        f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
+        f"{os.cpu_count()} cpus, {platform.processor() or platform.machine()}, "
+        f"load avg {os.getloadavg()[0]:.1f}"
+    )
+    rows = []
+    for n in sizes:
+        ft, nfull = time_fast(X, Y, ref, n, args.warmup, reps)
+        pt = time_plain(X, Y, ref, n, plain_reps)
+        fmed, pmed = statistics.median(ft), statistics.median(pt)
+        rows.append((n, fmed, statistics.mean(ft), max(ft), len(ft), nfull, pmed, len(pt)))
+        print(f"n={n}: fast {ft}  plain {pt}  load {os.getloadavg()[0]:.1f}", flush=True)
+
+    print()
+    print(
+        "| n | mpcmobo median [s] | mpcmobo mean [s] | mpcmobo max [s] | timed (full refits) "
+        "| plain BoTorch median [s] | plain reps | speed-up (median) |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for n, fmed, fmean, fmax, k, nfull, pmed, kp in rows:
+        print(
+            f"| {n} | {fmed:.2f} | {fmean:.2f} | {fmax:.2f} | {k} ({nfull}) | {pmed:.1f} | {kp} "
+            f"| {pmed / fmed:.0f}x |"
+        )
+
+
+if __name__ == "__main__":
+    main()

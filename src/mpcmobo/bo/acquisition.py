@@ -1,0 +1,241 @@
+"""Acquisition functions and their optimisation on the unit cube (eq. EI, acq_EI, EHVI).
+
+Both proposers take a :class:`~mpcmobo.bo.surrogate.GPSurrogate` and the data ``(X, Y)`` in
+minimisation units. If the surrogate was not fitted on exactly the finite rows of ``(X, Y)``
+it is fitted first (``surrogate.fit(X, Y)``), so a caller may either fit then propose, or
+just propose. The acquisition works on the surrogate's model, which maximises
+``t = -g(y)`` (see ``surrogate``); maximising EI/EHVI of ``t`` is minimising the costs.
+
+Determinism: the result is a function of (data, surrogate state, seed). The torch RNG is
+seeded with ``seed`` (in a forked RNG state, the caller's stream is untouched) for the raw
+samples of ``optimize_acqf`` and the quasi-MC sampler is ``SobolQMCNormalSampler(seed=seed)``.
+"""
+
+from __future__ import annotations
+
+import gpytorch
+import moocore
+import numpy as np
+import torch
+from botorch.acquisition.analytic import LogExpectedImprovement
+from botorch.acquisition.multi_objective.logei import (
+    qLogExpectedHypervolumeImprovement,
+    qLogNoisyExpectedHypervolumeImprovement,
+)
+from botorch.optim import optimize_acqf
+from botorch.sampling.normal import SobolQMCNormalSampler
+from botorch.utils.multi_objective.box_decompositions.non_dominated import (
+    FastNondominatedPartitioning,
+    NondominatedPartitioning,
+)
+
+from mpcmobo.bo.pareto import pareto_mask
+from mpcmobo.bo.surrogate import DTYPE, MAX_CHOLESKY, GPSurrogate, torch_threads
+
+__all__ = ["posterior_front", "propose_ehvi", "propose_ei"]
+
+
+def _prepare(surrogate: GPSurrogate, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Fit if needed; return the finite-row inputs used by the model."""
+    X = np.asarray(X, dtype=np.float64)
+    Y = np.asarray(Y, dtype=np.float64)
+    if Y.ndim == 1:
+        Y = Y[:, None]
+    if not surrogate.is_fitted_on(X, Y):
+        surrogate.fit(X, Y)
+    return surrogate.train_X
+
+
+def _optimize(acq, d: int, seed: int, num_restarts: int, raw_samples: int, maxiter: int):
+    bounds = torch.stack([torch.zeros(d, dtype=DTYPE), torch.ones(d, dtype=DTYPE)])
+    with torch.random.fork_rng(), gpytorch.settings.max_cholesky_size(MAX_CHOLESKY):
+        torch.manual_seed(seed)
+        cand, _ = optimize_acqf(
+            acq,
+            bounds=bounds,
+            q=1,
+            num_restarts=num_restarts,
+            raw_samples=raw_samples,
+            options={
+                "maxiter": maxiter,
+                "seed": seed,
+                "batch_limit": num_restarts,
+                "init_batch_limit": 128,
+            },
+        )
+    return np.clip(cand.detach().numpy().reshape(d).astype(np.float64), 0.0, 1.0)
+
+
+def propose_ei(
+    surrogate: GPSurrogate,
+    X: np.ndarray,
+    y: np.ndarray,
+    *,
+    seed: int,
+    num_restarts: int = 4,
+    raw_samples: int = 256,
+    maxiter: int = 100,
+    num_threads: int | None = 1,
+) -> np.ndarray:
+    """Next point (d,) in [0,1]^d maximising log expected improvement of one cost.
+
+    eq. EI / acq_EI, written for the maximised target ``t = -g(y)`` with ``Z = (mu - t*)/sigma``:
+    ``EI = sigma (Z Phi(Z) + phi(Z))``, optimised as ``log EI`` (BoTorch's
+    ``LogExpectedImprovement``, numerically stable where EI underflows). Noisy setting: the
+    incumbent ``t*`` is the best posterior mean at the observed points, not the best noisy
+    observation.
+    """
+    with torch_threads(num_threads):
+        return _propose_ei(surrogate, X, y, seed, num_restarts, raw_samples, maxiter)
+
+
+def _propose_ei(surrogate, X, y, seed, num_restarts, raw_samples, maxiter) -> np.ndarray:
+    Xf = _prepare(surrogate, X, y)
+    if surrogate.num_outputs != 1:
+        raise ValueError("propose_ei needs a single-output surrogate")
+    mt, _ = surrogate.posterior_model_space(Xf)
+    best_f = float(mt[:, 0].max())  # incumbent: best posterior mean (noisy EI)
+    model = surrogate.fast_model  # same posterior, faster
+    acq = LogExpectedImprovement(model, best_f=best_f)  # eq. acq_EI (log form)
+    return _optimize(acq, Xf.shape[1], seed, num_restarts, raw_samples, maxiter)
+
+
+def posterior_front(
+    surrogate: GPSurrogate, Xf: np.ndarray, ref_t: np.ndarray, max_baseline: int
+) -> np.ndarray:
+    """Indices into ``Xf`` of the pruned baseline: the points whose posterior mean is
+    non-dominated (maximisation of ``t``) and better than the reference point in every
+    objective, at most ``max_baseline`` of them.
+
+    If more remain, the point with the smallest exclusive hypervolume contribution (of the
+    posterior means, w.r.t. ``ref_t``) is removed, repeatedly, until ``max_baseline`` are
+    left: the kept set is the one that best preserves the front's hypervolume.
+    """
+    mt, _ = surrogate.posterior_model_space(Xf)
+    C = -mt  # minimisation view of the posterior means
+    r = -np.asarray(ref_t, dtype=np.float64)
+    idx = np.flatnonzero(pareto_mask(C) & np.all(C < r, axis=1))
+    # duplicates of one mean add nothing: keep the first of each
+    _, first = np.unique(C[idx], axis=0, return_index=True)
+    idx = idx[np.sort(first)]
+    while idx.size > max_baseline:
+        contrib = moocore.hv_contributions(C[idx], ref=r)
+        excess = idx.size - max_baseline
+        # drop several of the smallest at once when far above the cap (contributions change
+        # little for points far apart), one at a time near the cap
+        k = max(1, excess // 4)
+        drop = np.argsort(contrib, kind="stable")[:k]
+        idx = np.delete(idx, drop)
+    return idx
+
+
+def propose_ehvi(
+    surrogate: GPSurrogate,
+    X: np.ndarray,
+    Y: np.ndarray,
+    ref_point: np.ndarray,
+    *,
+    seed: int,
+    num_restarts: int = 4,
+    raw_samples: int = 256,
+    mc_samples: int = 64,
+    max_baseline: int = 32,
+    alpha: float | None = None,
+    method: str = "logehvi",
+    maxiter: int = 100,
+    num_threads: int | None = 1,
+) -> np.ndarray:
+    """Next point (d,) in [0,1]^d maximising (log) expected hypervolume improvement (eq. EHVI).
+
+    ``alpha_EHVI(theta) = E[ V(P u {f(theta)}) - V(P) ]`` with ``P`` the current front and
+    ``V`` the hypervolume w.r.t. ``ref_point`` (minimisation units, mapped to the model's
+    maximisation space with the surrogate's outcome transform; fix it once per run, see
+    :func:`~mpcmobo.bo.pareto.reference_point`). Computed in log form by quasi-MC with
+    ``mc_samples`` Sobol base samples.
+
+    ``method``:
+      * ``"logehvi"`` (default, fast): ``P`` = the posterior-mean Pareto front at the observed
+        points (pruned by :func:`posterior_front`), one box decomposition of the region it
+        dominates (``FastNondominatedPartitioning``, or the approximate
+        ``NondominatedPartitioning(alpha)`` when ``alpha > 0``), then
+        ``qLogExpectedHypervolumeImprovement``.
+      * ``"lognehvi"``: ``qLogNoisyExpectedHypervolumeImprovement`` with the same pruned
+        baseline points ``X_baseline`` (the front is then integrated over the joint posterior
+        at the baseline, one decomposition per MC sample: slower, accounts for noise).
+
+    ``num_restarts`` and ``maxiter`` bound the L-BFGS-B restarts and iterations;
+    ``num_threads`` is torch's thread count during the call (restored afterwards, and the
+    surrogate's own fit uses ``surrogate.num_threads``).
+    """
+    with torch_threads(num_threads):
+        return _propose_ehvi(
+            surrogate,
+            X,
+            Y,
+            ref_point,
+            seed,
+            num_restarts,
+            raw_samples,
+            mc_samples,
+            max_baseline,
+            alpha,
+            method,
+            maxiter,
+        )
+
+
+def _propose_ehvi(
+    surrogate,
+    X,
+    Y,
+    ref_point,
+    seed,
+    num_restarts,
+    raw_samples,
+    mc_samples,
+    max_baseline,
+    alpha,
+    method,
+    maxiter,
+) -> np.ndarray:
+    Xf = _prepare(surrogate, X, Y)
+    m = surrogate.num_outputs
+    ref = np.asarray(ref_point, dtype=np.float64).reshape(-1)
+    if ref.shape[0] != m or not np.all(np.isfinite(ref)):
+        raise ValueError("ref_point must be a finite vector with one entry per output")
+    ref_t = surrogate.to_model_space(ref[None, :])[0]
+    base = posterior_front(surrogate, Xf, ref_t, max_baseline)
+    tref = torch.as_tensor(ref_t, dtype=DTYPE)
+    sampler = SobolQMCNormalSampler(sample_shape=torch.Size([mc_samples]), seed=seed)
+    a = 0.0 if alpha is None else float(alpha)
+    if method == "logehvi":
+        mt, _ = surrogate.posterior_model_space(Xf[base])
+        front = torch.as_tensor(mt.reshape(-1, m), dtype=DTYPE)
+        if a > 0:
+            part = NondominatedPartitioning(ref_point=tref, Y=front, alpha=a)
+        else:
+            part = FastNondominatedPartitioning(ref_point=tref, Y=front)
+        acq = qLogExpectedHypervolumeImprovement(  # eq. EHVI (log, MC)
+            surrogate.fast_model,  # same posterior, faster
+            ref_point=tref,
+            partitioning=part,
+            sampler=sampler,
+        )
+    elif method == "lognehvi":
+        if base.size == 0:  # nothing better than ref yet: fall back to the best point per objective
+            mt, _ = surrogate.posterior_model_space(Xf)
+            base = np.unique(np.argmax(mt, axis=0))
+        with torch.random.fork_rng():
+            torch.manual_seed(seed)
+            acq = qLogNoisyExpectedHypervolumeImprovement(  # eq. EHVI (log, noisy, MC)
+                surrogate.model,
+                ref_point=tref,
+                X_baseline=torch.as_tensor(Xf[base], dtype=DTYPE),
+                sampler=sampler,
+                prune_baseline=False,
+                alpha=a,
+                cache_root=True,
+            )
+    else:
+        raise ValueError(f"unknown method {method!r}")
+    return _optimize(acq, Xf.shape[1], seed, num_restarts, raw_samples, maxiter)

@@ -1,0 +1,351 @@
+"""Gaussian-process surrogates of the costs (eq. GP, post, mean_var).
+
+One GP per output (eq. GP), ``J_j(theta) ~ GP(mu_j, k_j)``, with the squared-exponential
+kernel of the paper generalised to one length scale per input (ARD), BoTorch's default
+``SingleTaskGP`` priors, a constant mean and a Gaussian likelihood with inferred noise
+``sigma_n^2``. The ``m`` GPs are held as one batched multi-output ``SingleTaskGP`` (batch
+shape ``[m]``, independent outputs, same training inputs), which is numerically the same as a
+``ModelListGP`` of ``m`` models but fits and predicts in one batched call.
+
+Conventions
+-----------
+* Inputs ``X`` (n, d) already lie in the unit cube of the free coordinates of the search
+  space: no input transform.
+* Outcomes ``Y`` (n, m) are COSTS to be MINIMISED. BoTorch maximises, so the model is trained
+  on ``t = -g(y)``: the fitted ``.model`` lives in the *maximisation* convention. ``g`` is the
+  identity, or for outputs flagged in ``log_outcomes`` the log transform below. A
+  ``Standardize`` outcome transform then maps each ``t_j`` to zero mean / unit variance.
+* Rows of ``Y`` (or ``X``) containing NaN or inf are dropped before fitting: a failed episode
+  is never fitted as a number.
+* Everything is float64.
+
+Log transform (for costs spanning orders of magnitude, e.g. the CSTR's f1)
+-------------------------------------------------------------------------
+``g(y) = log(y + c)`` with the offset ``c`` recomputed on each fit from the finite data:
+``c = 0`` if ``min y > 0`` (plain ``log y``); otherwise ``c = -min y + 0.01 (max y - min y)``
+(or ``+1e-6`` if the range is zero), so the smallest cost maps to ``log(1% of the range)``
+rather than to ``-inf`` (the objectives f3, f4 are exactly 0 for many episodes).
+
+Posterior (eq. mean_var) and back transform
+-------------------------------------------
+``predict`` returns the latent-function posterior (no observation noise) in the original
+minimisation units. For identity outputs that is ``(-mu_t, sigma_t)``. For log outputs the
+posterior of ``g(y)`` is ``N(m, s^2)`` with ``m = -mu_t``, ``s = sigma_t``, so ``y + c`` is
+log-normal and we return its mean and standard deviation:
+``E[y] = exp(m + s^2/2) - c``, ``Std[y] = exp(m + s^2/2) sqrt(exp(s^2) - 1)``.
+
+Hyperparameter warm start
+-------------------------
+A full type-II maximum-likelihood fit (``fit_gpytorch_mll``, L-BFGS-B) starts from the previous
+hyperparameters and runs while ``n < min_refit_n`` and otherwise once every ``refit_every``
+calls; in between, the previous hyperparameters (in standardised units) are reused and the
+GP is only conditioned on the new data (a new exact GP on all data, no optimisation). Above
+``fit_subsample`` points the full fit maximises the marginal likelihood of a seeded random
+subset (O(k^3) per iteration), and the GP on all points takes those hyperparameters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import gpytorch
+import numpy as np
+import torch
+from botorch.fit import fit_gpytorch_mll
+from botorch.models import SingleTaskGP
+from botorch.models.transforms.outcome import Standardize
+from gpytorch.mlls import ExactMarginalLogLikelihood
+
+from mpcmobo.bo.fastpost import ExactIndependentGP
+from mpcmobo.bo.pareto import finite_rows
+
+__all__ = ["GPSurrogate", "fit_gp"]
+
+DTYPE = torch.float64
+# Exact Cholesky up to this many training points (gpytorch switches to CG above 800 by default).
+MAX_CHOLESKY = 5000
+
+
+@contextmanager
+def torch_threads(n: int | None):
+    """Temporarily set ``torch.set_num_threads(n)`` (None: leave as is). The GP matrices here
+    are small (n <= a few thousand); one thread avoids synchronisation overhead, which on a
+    shared 2-core machine dominates the many small tensor operations of the acquisition."""
+    if n is None:
+        yield
+        return
+    old = torch.get_num_threads()
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _as_2d(a: np.ndarray) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    return a[:, None] if a.ndim == 1 else a
+
+
+class GPSurrogate:
+    """Independent GPs on ``num_outputs`` costs, minimisation units outside, maximisation inside.
+
+    Parameters
+    ----------
+    num_outputs: number of cost columns ``m`` of ``Y``.
+    refit_every: a full marginal-likelihood fit every ``refit_every`` calls to :meth:`fit`
+        (1 = always). In between, hyperparameters are reused.
+    log_outcomes: per output, whether to model ``log(y + c)`` (see module docstring).
+    min_refit_n: while the number of finite observations is below this, always refit.
+    fit_maxiter: L-BFGS-B iteration cap of a full fit.
+    fit_subsample: a full fit maximises the marginal likelihood of a seeded random subset of
+        at most this many points (None: all points); the GP is then conditioned on all.
+    num_threads: torch threads during fits (None: leave torch's setting).
+    """
+
+    def __init__(
+        self,
+        num_outputs: int,
+        refit_every: int = 10,
+        log_outcomes: Sequence[bool] | None = None,
+        *,
+        min_refit_n: int = 20,
+        fit_maxiter: int = 200,
+        fit_subsample: int | None = 300,
+        num_threads: int | None = 1,
+    ) -> None:
+        if num_outputs < 1:
+            raise ValueError("num_outputs must be >= 1")
+        if refit_every < 1:
+            raise ValueError("refit_every must be >= 1")
+        self.num_outputs = int(num_outputs)
+        self.refit_every = int(refit_every)
+        log = (
+            [False] * self.num_outputs if log_outcomes is None else [bool(b) for b in log_outcomes]
+        )
+        if len(log) != self.num_outputs:
+            raise ValueError("log_outcomes must have one flag per output")
+        self.log_outcomes = log
+        self.min_refit_n = int(min_refit_n)
+        self.fit_maxiter = int(fit_maxiter)
+        self.num_threads = num_threads
+        self.fit_subsample = None if fit_subsample is None else int(fit_subsample)
+        self.model: SingleTaskGP | None = None
+        self._fast: ExactIndependentGP | None = None
+        self.offsets = np.zeros(self.num_outputs)
+        self.train_X: np.ndarray | None = None  # finite rows used in the last fit
+        self.train_Y: np.ndarray | None = None
+        self.last_fit_was_full = False
+        self._hyper: dict[str, np.ndarray] | None = None
+        self._calls_since_refit = 0
+        self._n_fits = 0
+
+    # ------------------------------------------------------------------ transforms
+    def _compute_offsets(self, Y: np.ndarray) -> np.ndarray:
+        c = np.zeros(self.num_outputs)
+        for j, use_log in enumerate(self.log_outcomes):
+            if not use_log:
+                continue
+            lo, hi = Y[:, j].min(), Y[:, j].max()
+            if lo > 0:
+                c[j] = 0.0
+            else:
+                c[j] = -lo + (0.01 * (hi - lo) if hi > lo else 1e-6)
+        return c
+
+    def to_model_space(self, Y: np.ndarray) -> np.ndarray:
+        """Map costs ``Y`` (n, m) to the model's maximisation targets ``t = -g(y)``.
+
+        Log outputs are clamped at ``y + c >= 1e-300`` (only matters for points below the
+        training data, e.g. a reference point).
+        """
+        Y = _as_2d(Y).copy()
+        for j, use_log in enumerate(self.log_outcomes):
+            if use_log:
+                Y[:, j] = np.log(np.maximum(Y[:, j] + self.offsets[j], 1e-300))
+        return -Y
+
+    # ------------------------------------------------------------------ fitting
+    def _hyper_from_model(self, model: SingleTaskGP) -> dict[str, np.ndarray]:
+        return {
+            k: v.detach().cpu().numpy().copy()
+            for k, v in model.state_dict().items()
+            if not k.startswith("outcome_transform")
+        }
+
+    @staticmethod
+    def _hyper_tensors(model: SingleTaskGP) -> dict[str, torch.Tensor]:
+        return {
+            k: v.detach().clone()
+            for k, v in model.state_dict().items()
+            if not k.startswith("outcome_transform")
+        }
+
+    def _refit_due(self, n: int) -> bool:
+        return (
+            self._hyper is None
+            or n < self.min_refit_n
+            or self._calls_since_refit >= self.refit_every - 1
+        )
+
+    def fit(self, X: np.ndarray, Y: np.ndarray) -> GPSurrogate:
+        """Fit (or condition) the GPs on the finite rows of ``(X, Y)``; returns ``self``."""
+        X = _as_2d(X)
+        Y = _as_2d(Y)
+        if Y.shape[1] != self.num_outputs:
+            raise ValueError(f"Y has {Y.shape[1]} columns, expected {self.num_outputs}")
+        if X.shape[0] != Y.shape[0]:
+            raise ValueError("X and Y must have the same number of rows")
+        ok = finite_rows(Y) & finite_rows(X)
+        Xf, Yf = X[ok], Y[ok]
+        if Xf.shape[0] == 0:
+            raise ValueError("no finite observations to fit")
+        self.train_X, self.train_Y = Xf.copy(), Yf.copy()
+        self.offsets = self._compute_offsets(Yf)
+        T = self.to_model_space(Yf)
+
+        tX = torch.as_tensor(Xf, dtype=DTYPE)
+        tY = torch.as_tensor(T, dtype=DTYPE)
+        model = SingleTaskGP(tX, tY, outcome_transform=Standardize(m=self.num_outputs))
+        model = model.to(DTYPE)
+        if self._hyper is not None:
+            hyper = {k: torch.as_tensor(v) for k, v in self._hyper.items()}
+            model.load_state_dict(hyper, strict=False)
+
+        n = Xf.shape[0]
+        full = self._refit_due(n)
+        if full:
+            target = model
+            if self.fit_subsample is not None and n > self.fit_subsample:
+                # type-II ML on a seeded random subset (cost O(k^3) instead of O(n^3)), then
+                # the hyperparameters are copied into the GP on all n points
+                sub = np.sort(np.random.default_rng(n).choice(n, self.fit_subsample, replace=False))
+                target = SingleTaskGP(
+                    tX[sub], tY[sub], outcome_transform=Standardize(m=self.num_outputs)
+                ).to(DTYPE)
+                target.load_state_dict(self._hyper_tensors(model), strict=False)
+            mll = ExactMarginalLogLikelihood(target.likelihood, target)
+            # fit_gpytorch_mll may resample hyperparameters from their priors after a failed
+            # attempt: seed that so a fit is a deterministic function of (data, state).
+            with (
+                torch.random.fork_rng(),
+                gpytorch.settings.max_cholesky_size(MAX_CHOLESKY),
+                torch_threads(self.num_threads),
+            ):
+                torch.manual_seed(1234 + n)
+                fit_gpytorch_mll(mll, optimizer_kwargs={"options": {"maxiter": self.fit_maxiter}})
+            if target is not model:
+                model.load_state_dict(self._hyper_tensors(target), strict=False)
+            self._calls_since_refit = 0
+        else:
+            self._calls_since_refit += 1
+        model.eval()
+        self.last_fit_was_full = full
+        self._hyper = self._hyper_from_model(model)
+        self._n_fits += 1
+        self.model = model
+        self._fast = None
+        return self
+
+    @property
+    def fast_model(self):
+        """:class:`~mpcmobo.bo.fastpost.ExactIndependentGP` with ``.model``'s exact posterior
+        (cached per fit): used for predictions and acquisition evaluation."""
+        if self.model is None:
+            raise RuntimeError("fit() first")
+        if self._fast is None:
+            with torch_threads(self.num_threads):
+                self._fast = ExactIndependentGP.from_singletask(self.model)
+        return self._fast
+
+    def is_fitted_on(self, X: np.ndarray, Y: np.ndarray) -> bool:
+        """True if the last fit used exactly the finite rows of ``(X, Y)``."""
+        if self.model is None or self.train_X is None:
+            return False
+        X, Y = _as_2d(X), _as_2d(Y)
+        ok = finite_rows(Y) & finite_rows(X)
+        return np.array_equal(X[ok], self.train_X) and np.array_equal(Y[ok], self.train_Y)
+
+    # ------------------------------------------------------------------ prediction
+    def posterior_model_space(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Latent posterior mean and std (n, m) of the maximisation targets ``t = -g(y)``
+        (eq. mean_var, after undoing the standardisation)."""
+        if self.model is None:
+            raise RuntimeError("fit() first")
+        tX = torch.as_tensor(_as_2d(X), dtype=DTYPE).unsqueeze(-2)  # (n, 1, d)
+        with torch.no_grad(), torch_threads(self.num_threads):
+            post = self.fast_model.posterior(tX)
+            mean = post.mean.squeeze(-2).numpy().copy()
+            var = post.variance.squeeze(-2).clamp_min(0.0).numpy().copy()
+        return mean, np.sqrt(var)
+
+    def predict(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean and std (n, m) of the costs in the original minimisation units.
+
+        Log outputs: mean and std of the back-transformed (log-normal) value, see module
+        docstring.
+        """
+        mt, st = self.posterior_model_space(X)
+        mean, std = -mt, st.copy()
+        for j, use_log in enumerate(self.log_outcomes):
+            if use_log:
+                m, s2 = mean[:, j], st[:, j] ** 2
+                scale = np.exp(m + 0.5 * s2)
+                mean[:, j] = scale - self.offsets[j]
+                std[:, j] = scale * np.sqrt(np.expm1(s2))
+        return mean, std
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict[str, Any]:
+        """Plain-python/numpy, picklable state: settings, counters, hyperparameters.
+
+        Restoring it and calling ``fit`` on the same data rebuilds exactly the same model.
+        """
+        return {
+            "version": 1,
+            "num_outputs": self.num_outputs,
+            "refit_every": self.refit_every,
+            "log_outcomes": list(self.log_outcomes),
+            "min_refit_n": self.min_refit_n,
+            "fit_maxiter": self.fit_maxiter,
+            "fit_subsample": self.fit_subsample,
+            "num_threads": self.num_threads,
+            "calls_since_refit": self._calls_since_refit,
+            "n_fits": self._n_fits,
+            "hyper": None if self._hyper is None else {k: v.copy() for k, v in self._hyper.items()},
+        }
+
+    def load_state_dict(self, d: dict[str, Any]) -> None:
+        self.num_outputs = int(d["num_outputs"])
+        self.refit_every = int(d["refit_every"])
+        self.log_outcomes = [bool(b) for b in d["log_outcomes"]]
+        self.min_refit_n = int(d["min_refit_n"])
+        self.fit_maxiter = int(d["fit_maxiter"])
+        fs = d.get("fit_subsample")
+        self.fit_subsample = None if fs is None else int(fs)
+        self.num_threads = d.get("num_threads", 1)
+        self._calls_since_refit = int(d["calls_since_refit"])
+        self._n_fits = int(d["n_fits"])
+        h = d["hyper"]
+        self._hyper = None if h is None else {k: np.array(v) for k, v in h.items()}
+        self.model = None
+        self._fast = None
+        self.train_X = self.train_Y = None
+        self.offsets = np.zeros(self.num_outputs)
+
+
+def fit_gp(
+    X: np.ndarray,
+    Y: np.ndarray,
+    state: dict[str, Any] | None = None,
+    **kwargs: Any,
+) -> GPSurrogate:
+    """Functional form: a :class:`GPSurrogate` (restored from ``state`` if given) fitted on
+    ``(X, Y)``. ``kwargs`` go to the constructor when ``state`` is None."""
+    Y2 = _as_2d(Y)
+    sur = GPSurrogate(Y2.shape[1], **kwargs)
+    if state is not None:
+        sur.load_state_dict(state)
+    return sur.fit(X, Y2)
