@@ -167,7 +167,8 @@ def test_ehvi_increases_hypervolume():
         assert x.shape == (2,) and np.all((x >= 0) & (x <= 1))
         X = np.vstack([X, x])
         Y = np.vstack([Y, branin_currin(x[None])])
-    assert hypervolume(Y, ref) > 1.05 * hv0
+    # seeded run: ~1.77 hv0; 10 uniform random points give ~1.04 hv0
+    assert hypervolume(Y, ref) > 1.3 * hv0
     assert pareto_mask(Y)[8:].any()  # new Pareto points were found
 
 
@@ -197,3 +198,13 @@ def test_state_dict_reproduces_next_proposal():
     s2.load_state_dict(st)
     e2 = propose_ei(s2, X, Y[:, 0], seed=3, raw_samples=32, num_restarts=2)
     np.testing.assert_array_equal(e1, e2)
+
+
+@pytest.mark.parametrize("opts", [{"method": "lognehvi"}, {"alpha": 0.01}, {"max_baseline": 2}])
+def test_ehvi_variants_propose_in_cube(opts):
+    X = sobol(10, 2, seed=6)
+    Y = branin_currin(X)
+    sur = GPSurrogate(2)
+    kw = dict(seed=0, raw_samples=32, num_restarts=2, mc_samples=16)
+    x = propose_ehvi(sur, X, Y, reference_point(Y), **kw, **opts)
+    assert x.shape == (2,) and np.all((x >= 0) & (x <= 1))
