@@ -5,10 +5,16 @@ from __future__ import annotations
 import numpy as np
 
 from mpcmobo.learners.base import Learner
+from mpcmobo.learners.bo import BOLearner, HybridLearner, MOBOLearner
 from mpcmobo.learners.mpc_rl import MPCRL
 from mpcmobo.systems.space import SearchSpace
 
-LEARNERS: dict[str, type[Learner]] = {"mpc-rl": MPCRL}
+LEARNERS: dict[str, type[Learner]] = {
+    "mpc-rl": MPCRL,
+    "bo": BOLearner,
+    "mobo": MOBOLearner,
+    "hybrid": HybridLearner,
+}
 
 
 def make_learner(

@@ -232,7 +232,11 @@ class CompatibleCritic:
         method: str = "lstd",
         q_target: str | None = None,
         min_valid_steps: int = 2,
+        weighting: str = "uniform",
     ) -> None:
+        if weighting not in ("uniform", "discounted"):
+            raise ValueError(f"weighting must be 'uniform' or 'discounted', got {weighting!r}")
+        self.weighting = weighting
         if method not in _METHODS:
             raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
         if q_target is None:
@@ -308,7 +312,16 @@ class CompatibleCritic:
             "kpa,kqa,q->kp", dpi[policy_mask], dpi[policy_mask], w, optimize=True
         )
         # (1/T) sum_k over steps with a sensitivity; the actor descends it (eq. theta)
-        grad = g_k[policy_mask].mean(axis=0) if np.any(policy_mask) else np.zeros(n_theta)
+        # weighting="discounted": sum_k gamma^k g_k / sum_k gamma^k, the deterministic policy
+        # gradient theorem's discounted state distribution, i.e. the gradient of the discounted
+        # closed-loop cost f1 from the episode's start (the paper's rule is the uniform mean).
+        if not np.any(policy_mask):
+            grad = np.zeros(n_theta)
+        elif self.weighting == "discounted":
+            wk = gamma ** np.arange(T, dtype=float) * policy_mask
+            grad = (wk @ g_k) / wk.sum()
+        else:
+            grad = g_k[policy_mask].mean(axis=0)
         grad_norms = np.linalg.norm(g_k, axis=1)
         if not (np.all(np.isfinite(grad)) and np.all(np.isfinite(advantage))):
             # overflow in the products: treat as a failed fit rather than leak inf / NaN

@@ -1,0 +1,273 @@
+"""Bayesian-optimisation learners: BO on f1 (EI) and MPC-RL-MOBO on f1..f4 (EHVI).
+
+Both search the unit cube of the declared search space (log coordinates for the weights), start
+from theta0 (the imperfect MPC) plus a small seeded Sobol design, never fit a NaN objective, and
+save and restore their whole state exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import qmc
+
+from mpcmobo.bo import GPSurrogate, pareto_mask, propose_ehvi, propose_ei, reference_point
+from mpcmobo.learners.base import EpisodeResult, Learner
+from mpcmobo.systems.space import SearchSpace
+
+OBJECTIVES = ("f1", "f2", "f3", "f4")
+
+
+class _GPLearner(Learner):
+    """Shared machinery: design, data, surrogate fit after each episode, incumbent."""
+
+    outputs: tuple[int, ...] = (0,)
+
+    def __init__(
+        self,
+        space: SearchSpace,
+        theta0: np.ndarray,
+        seed: int = 0,
+        *,
+        n_init: int = 5,
+        refit_every: int = 10,
+        log_outcomes: tuple[bool, ...] | None = None,
+        num_restarts: int = 4,
+        raw_samples: int = 256,
+        maxiter: int = 100,
+    ) -> None:
+        super().__init__(space, theta0, seed)
+        if n_init < 1:
+            raise ValueError(f"n_init must be at least 1, got {n_init}")
+        self.n_init = int(n_init)
+        self.num_restarts, self.raw_samples, self.maxiter = num_restarts, raw_samples, maxiter
+        m = len(self.outputs)
+        log = (True,) * m if log_outcomes is None else tuple(log_outcomes)
+        if len(log) != m:
+            raise ValueError(f"log_outcomes needs {m} entries, got {len(log)}")
+        self.surrogate = GPSurrogate(m, refit_every=refit_every, log_outcomes=log)
+        # initial design: theta0, then scrambled Sobol points (seeded)
+        z0 = space.to_unit(self.theta0)
+        sob = qmc.Sobol(d=space.dim, scramble=True, seed=self.seed).random(
+            max(1, 2 ** int(np.ceil(np.log2(max(1, n_init)))))
+        )
+        self.design = np.vstack([z0, sob])[: self.n_init]
+        self.Z = np.zeros((0, space.dim))
+        self.Y = np.zeros((0, m))
+        self.grads = np.zeros((0, space.n_theta))
+        self._pre_fit_state: dict | None = None
+        self._fitted = False
+        self._incumbent_z = z0.copy()
+
+    # -------------------------------------------------------------- data
+    def _theta(self, z: np.ndarray) -> np.ndarray:
+        return self.space.from_unit(z, base=self.theta0)
+
+    def _finite(self) -> np.ndarray:
+        return np.all(np.isfinite(self.Y), axis=1)
+
+    def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        z = self.space.to_unit(self.space.clip(theta))
+        y = np.asarray(result.objectives, dtype=float)[list(self.outputs)]
+        self.Z = np.vstack([self.Z, z])
+        self.Y = np.vstack([self.Y, y])  # NaN rows stay in the log, never in the fit
+        g = np.asarray(result.grad, dtype=float)
+        self.grads = np.vstack([self.grads, np.where(np.isfinite(g), g, 0.0)])
+        self.n_observed += 1
+        self._fit()
+
+    def _fit(self) -> None:
+        """Fit the GP(s) on the finite observations; the pre-fit state makes resume exact."""
+        self._pre_fit_state = self.surrogate.state_dict()
+        if np.count_nonzero(self._finite()) < 2:
+            self._fitted = False
+            return
+        self.surrogate.fit(self.Z, self.Y)
+        self._fitted = True
+        self._update_incumbent()
+
+    def _update_incumbent(self) -> None:
+        """The observed point with the lowest predicted f1 among the Pareto points of the
+        posterior means (for one objective: simply the lowest predicted f1)."""
+        ok = self._finite()
+        Zf = self.Z[ok]
+        mean, _ = self.surrogate.predict(Zf)
+        cand = np.flatnonzero(pareto_mask(mean)) if mean.shape[1] > 1 else np.arange(len(Zf))
+        best = cand[np.argmin(mean[cand, 0])]
+        self._incumbent_z = Zf[best].copy()
+
+    def incumbent(self) -> np.ndarray:
+        return self._theta(self._incumbent_z)
+
+    def _next_seed(self) -> int:
+        return int(self.rng.integers(2**31 - 1))
+
+    def propose(self) -> np.ndarray:
+        n = self.Z.shape[0]
+        if n < self.n_init:
+            return self._theta(self.design[n])
+        if not self._fitted:  # every observation so far failed: keep exploring the design
+            return self._theta(self.rng.uniform(size=self.space.dim))
+        return self._theta(self._acquire(self._next_seed()))
+
+    def _acquire(self, seed: int) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    # -------------------------------------------------------------- state
+    def state_dict(self) -> dict:
+        d = super().state_dict()
+        d.update(
+            {
+                "Z": self.Z.copy(),
+                "Y": self.Y.copy(),
+                "grads": self.grads.copy(),
+                "surrogate_pre_fit": self._pre_fit_state,
+                "incumbent_z": self._incumbent_z.copy(),
+            }
+        )
+        return d
+
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)
+        self.Z, self.Y = np.array(state["Z"], float), np.array(state["Y"], float)
+        self.grads = np.array(state["grads"], float)
+        self._incumbent_z = np.array(state["incumbent_z"], float)
+        self._fitted = False
+        if state["surrogate_pre_fit"] is not None:
+            # replay the last fit from the state it started from: same model, same counters
+            self.surrogate.load_state_dict(state["surrogate_pre_fit"])
+            self._fit()
+
+
+class BOLearner(_GPLearner):
+    """Single-objective BO: a GP on f1 (eq. GP, mean_var) and log expected improvement (eq. EI)."""
+
+    name = "bo"
+    outputs = (0,)
+
+    def _acquire(self, seed: int) -> np.ndarray:
+        return propose_ei(
+            self.surrogate,
+            self.Z,
+            self.Y,
+            seed=seed,
+            num_restarts=self.num_restarts,
+            raw_samples=self.raw_samples,
+            maxiter=self.maxiter,
+        )
+
+
+class MOBOLearner(_GPLearner):
+    """MPC-RL-MOBO: one GP per objective f1..f4 and expected hypervolume improvement (eq. EHVI).
+
+    The reference point is fixed once, from the initial design (its nadir plus ``ref_margin``
+    times its range per objective, :func:`mpcmobo.bo.reference_point`), and never moves.
+    ``hybrid_every = k > 0`` makes every k-th proposal a CDPG gradient step from the incumbent
+    (the gradient observed in the incumbent's episode), uniting BO's global search with the
+    gradient's local refinement (remark of section 4).
+    """
+
+    name = "mobo"
+    outputs = (0, 1, 2, 3)
+
+    def __init__(
+        self,
+        space: SearchSpace,
+        theta0: np.ndarray,
+        seed: int = 0,
+        *,
+        ref_margin: float = 0.1,
+        mc_samples: int = 64,
+        max_baseline: int = 32,
+        method: str = "logehvi",
+        hybrid_every: int = 0,
+        hybrid_step: float = 0.05,
+        log_outcomes: tuple[bool, ...] | None = (True, True, False, False),
+        **options,
+    ) -> None:
+        super().__init__(space, theta0, seed, log_outcomes=log_outcomes, **options)
+        if hybrid_every < 0:
+            raise ValueError(f"hybrid_every must be >= 0, got {hybrid_every}")
+        self.ref_margin, self.mc_samples, self.max_baseline = ref_margin, mc_samples, max_baseline
+        self.method = method
+        self.hybrid_every, self.hybrid_step = int(hybrid_every), float(hybrid_step)
+        self.ref_point: np.ndarray | None = None
+        self.n_proposals = 0
+
+    def _fit(self) -> None:
+        if self.ref_point is None and self.Z.shape[0] >= self.n_init:
+            ok = self._finite()
+            if np.any(ok):
+                self.ref_point = reference_point(self.Y[ok], margin=self.ref_margin)
+        super()._fit()
+
+    def propose(self) -> np.ndarray:
+        n = self.Z.shape[0]
+        self.n_proposals += 1
+        if (
+            n >= self.n_init
+            and self._fitted
+            and self.hybrid_every > 0
+            and self.n_proposals % self.hybrid_every == 0
+        ):
+            step = self._gradient_step()
+            if step is not None:
+                return step
+        return super().propose()
+
+    def _gradient_step(self) -> np.ndarray | None:
+        """A normalised CDPG step (eq. theta) from the incumbent, in unit coordinates."""
+        dist = np.linalg.norm(self.Z - self._incumbent_z, axis=1)
+        i = int(np.argmin(dist))
+        g = self.grads[i]
+        if not np.any(g):
+            return None
+        theta = self._theta(self._incumbent_z)
+        s, f = self.space, self.space.free
+        lo, hi, lg = s.lower[f], s.upper[f], s.log[f]
+        span = hi - lo
+        span[lg] = np.log(hi[lg]) - np.log(lo[lg])
+        dz = span.copy()
+        dz[lg] = theta[f][lg] * span[lg]
+        gz = g[f] * dz
+        norm = np.max(np.abs(gz))
+        if not np.isfinite(norm) or norm == 0:
+            return None
+        return self._theta(np.clip(self._incumbent_z - self.hybrid_step * gz / norm, 0, 1))
+
+    def _acquire(self, seed: int) -> np.ndarray:
+        ref = self.ref_point
+        if ref is None:
+            ref = reference_point(self.Y[self._finite()], margin=self.ref_margin)
+        return propose_ehvi(
+            self.surrogate,
+            self.Z,
+            self.Y,
+            ref,
+            seed=seed,
+            num_restarts=self.num_restarts,
+            raw_samples=self.raw_samples,
+            mc_samples=self.mc_samples,
+            max_baseline=self.max_baseline,
+            method=self.method,
+            maxiter=self.maxiter,
+        )
+
+    def state_dict(self) -> dict:
+        d = super().state_dict()
+        d["ref_point"] = None if self.ref_point is None else self.ref_point.copy()
+        d["n_proposals"] = self.n_proposals
+        return d
+
+    def load_state_dict(self, state: dict) -> None:
+        self.ref_point = None if state["ref_point"] is None else np.array(state["ref_point"])
+        self.n_proposals = int(state["n_proposals"])
+        super().load_state_dict(state)
+
+
+class HybridLearner(MOBOLearner):
+    """MOBO with every ``hybrid_every``-th proposal a CDPG step from the incumbent (default 3)."""
+
+    name = "hybrid"
+
+    def __init__(self, space, theta0, seed=0, *, hybrid_every: int = 3, **options) -> None:
+        super().__init__(space, theta0, seed, hybrid_every=hybrid_every, **options)
