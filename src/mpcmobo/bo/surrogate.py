@@ -208,6 +208,7 @@ class GPSurrogate:
 
         tX = torch.as_tensor(Xf, dtype=DTYPE)
         tY = torch.as_tensor(T, dtype=DTYPE)
+        # eq. GP: one independent GP per output (batched), SE-ARD kernel, Gaussian noise
         model = SingleTaskGP(tX, tY, outcome_transform=Standardize(m=self.num_outputs))
         model = model.to(DTYPE)
         if self._hyper is not None:
@@ -276,7 +277,7 @@ class GPSurrogate:
             raise RuntimeError("fit() first")
         tX = torch.as_tensor(_as_2d(X), dtype=DTYPE).unsqueeze(-2)  # (n, 1, d)
         with torch.no_grad(), torch_threads(self.num_threads):
-            post = self.fast_model.posterior(tX)
+            post = self.fast_model.posterior(tX)  # eq. post / mean_var
             mean = post.mean.squeeze(-2).numpy().copy()
             var = post.variance.squeeze(-2).clamp_min(0.0).numpy().copy()
         return mean, np.sqrt(var)
