@@ -154,3 +154,16 @@ def test_register_user_system():
     assert sol.success and sol.action[0] > 1.0  # pushes the level up towards 1
     with pytest.raises(ValueError, match="already registered"):
         register_system("tank-test", factory)
+
+
+def test_dtheta_dz_matches_finite_differences(cstr):
+    space, th0 = cstr.search_space, cstr.parameterization.theta0
+    z = space.to_unit(th0)
+    J = space.dtheta_dz(th0)
+    for j in range(space.dim):
+        h = 1e-6
+        zp, zm = z.copy(), z.copy()
+        zp[j] += h
+        zm[j] -= h
+        fd = (space.from_unit(zp, th0) - space.from_unit(zm, th0))[space.free][j] / (2 * h)
+        assert fd == pytest.approx(J[j], rel=1e-5)

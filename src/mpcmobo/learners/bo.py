@@ -222,13 +222,7 @@ class MOBOLearner(_GPLearner):
         if not np.any(g):
             return None
         theta = self._theta(self._incumbent_z)
-        s, f = self.space, self.space.free
-        lo, hi, lg = s.lower[f], s.upper[f], s.log[f]
-        span = hi - lo
-        span[lg] = np.log(hi[lg]) - np.log(lo[lg])
-        dz = span.copy()
-        dz[lg] = theta[f][lg] * span[lg]
-        gz = g[f] * dz
+        gz = g[self.space.free] * self.space.dtheta_dz(theta)
         norm = np.max(np.abs(gz))
         if not np.isfinite(norm) or norm == 0:
             return None

@@ -55,23 +55,13 @@ class MPCRL(Learner):
     def incumbent(self) -> np.ndarray:
         return self._theta()
 
-    def dtheta_dz(self, theta: np.ndarray) -> np.ndarray:
-        s, f = self.space, self.space.free
-        lo, hi = s.lower[f], s.upper[f]
-        lg = s.log[f]
-        span = hi - lo
-        span[lg] = np.log(hi[lg]) - np.log(lo[lg])
-        out = span.copy()
-        out[lg] = theta[f][lg] * span[lg]
-        return out
-
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
         self.n_observed += 1
         g = np.asarray(result.grad, dtype=float)
         if not result.critic_ok or not np.all(np.isfinite(g)) or not result.valid:
             return
         theta = self.space.clip(theta)
-        gz = g[self.space.free] * self.dtheta_dz(theta)
+        gz = g[self.space.free] * self.space.dtheta_dz(theta)
         if self.optimizer == "adam":
             self.t += 1
             self.m = self.beta1 * self.m + (1 - self.beta1) * gz

@@ -58,10 +58,7 @@ def make_cstr(**spec_overrides) -> System:
         Gamma=np.full(3, 1e5),
         Gamma_f=np.full(3, 1e5),
     )
-    for k, v in spec_overrides.items():
-        if not hasattr(spec, k):
-            raise ValueError(f"unknown MPC setting '{k}' for the CSTR")
-        setattr(spec, k, v)
+    spec = spec.with_overrides("CSTR", **spec_overrides)
     return System(
         name="cstr",
         description="Continuous stirred tank reactor (A -> B, exothermic), paper section 5",

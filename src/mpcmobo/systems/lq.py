@@ -19,10 +19,7 @@ def lq_dynamics(x, u, p):
 
 def make_lq(**spec_overrides) -> System:
     spec = MPCSpec(horizon=8, gamma=0.95, Gamma=np.full(2, 1e3), Gamma_f=np.full(2, 1e3))
-    for k, v in spec_overrides.items():
-        if not hasattr(spec, k):
-            raise ValueError(f"unknown MPC setting '{k}' for the LQ system")
-        setattr(spec, k, v)
+    spec = spec.with_overrides("LQ system", **spec_overrides)
     return System(
         name="lq",
         description="Linear damped oscillator with quadratic cost (test bed)",

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -40,6 +40,13 @@ class MPCSpec:
     model_log_range: float = 0.7
     learn_backoff: bool = False
     backoff_max: np.ndarray | None = None  # upper bound of each back-off (nx,)
+
+    def with_overrides(self, owner: str = "system", **overrides) -> MPCSpec:
+        """A copy with some settings changed; an unknown setting is a ValueError."""
+        for k in overrides:
+            if not hasattr(self, k):
+                raise ValueError(f"unknown MPC setting '{k}' for the {owner}")
+        return replace(self, **overrides)
 
 
 @dataclass(frozen=True)

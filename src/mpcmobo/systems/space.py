@@ -126,6 +126,19 @@ class SearchSpace:
         out[..., f] = v
         return np.clip(out, self.lower, self.upper)
 
+    def dtheta_dz(self, theta: np.ndarray) -> np.ndarray:
+        """Jacobian (diagonal) of ``from_unit`` at ``theta``, free coordinates only.
+
+        ``dtheta/dz = hi - lo`` for a linear coordinate and ``theta (log hi - log lo)`` for a
+        log one: the chain rule that turns a gradient in theta into one in the unit cube.
+        """
+        theta = self._check(theta)
+        f = self.free
+        lo, hi, lg = self.lower[f], self.upper[f], self.log[f]
+        out = hi - lo
+        out[lg] = theta[f][lg] * (np.log(hi[lg]) - np.log(lo[lg]))
+        return out
+
     def to_dict(self) -> dict:
         return {
             "names": list(self.names),
