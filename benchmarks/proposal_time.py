@@ -7,7 +7,10 @@ with a plain BoTorch loop: a fresh ``fit_gpytorch_mll`` of a ``ModelListGP`` of 
 and ``optimize_acqf(num_restarts=10, raw_samples=512)``.
 
 Synthetic data: ``f_j(x) = |x - a_j|^2 + 0.3 sin(3 w_j . x) + 0.05 eps`` with random anchors
-``a_j`` (conflicting objectives) on uniform random x in [0,1]^13, costs minimised.
+``a_j`` (conflicting objectives) on uniform random x in [0,1]^13, costs minimised. With
+``--starts K`` (default 6, as the learners' default cycle of starts) the rows cycle through K
+groups, f1 and f2 get one offset per group, and our surrogate fits those offsets (start effects,
+as inside ``mobo``); the plain loop gets the same data without groups. ``--starts 0``: none.
 
     .venv/bin/python benchmarks/proposal_time.py            # full: n in {50, 200, 600}
     .venv/bin/python benchmarks/proposal_time.py --quick    # n in {50, 200}, fewer repetitions
@@ -46,14 +49,15 @@ def make_problem(seed: int = 0):
     return f, rng
 
 
-def time_fast(X, Y, ref, n, warmup, reps):
+def time_fast(X, Y, ref, n, warmup, reps, groups=None):
     """Consecutive proposals at n, n+1, ... as in a loop; returns the timed ones (s)."""
-    sur = GPSurrogate(M)
+    flags = None if groups is None else [True, True, False, False]
+    sur = GPSurrogate(M, group_outputs=flags)
     times, full = [], []
     for i in range(warmup + reps):
         Xi, Yi = X[: n + i], Y[: n + i]
         t0 = time.perf_counter()
-        sur.fit(Xi, Yi)
+        sur.fit(Xi, Yi, groups=None if groups is None else groups[: n + i])
         x = propose_ehvi(sur, Xi, Yi, ref, seed=i)
         dt = time.perf_counter() - t0
         assert x.shape == (D,) and np.all((x >= 0) & (x <= 1))
@@ -87,6 +91,7 @@ def main() -> None:
     p.add_argument("--reps", type=int, default=None, help="timed fast proposals per n")
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--plain-reps", type=int, default=None)
+    p.add_argument("--starts", type=int, default=6, help="groups (cycled starts); 0: none")
     args = p.parse_args()
     sizes = args.sizes or ([50, 200] if args.quick else [50, 200, 600])
     reps = args.reps or (4 if args.quick else 10)
@@ -96,16 +101,20 @@ def main() -> None:
     nmax = max(sizes) + args.warmup + reps + plain_reps + 1
     X = rng.uniform(size=(nmax, D))
     Y = f(X)
+    groups = None
+    if args.starts > 0:
+        groups = np.arange(nmax) % args.starts
+        Y[:, :2] += rng.normal(scale=0.5, size=(args.starts, 2))[groups]
     ref = reference_point(Y[:20])  # fixed rule: from the initial design only
 
     print(
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
         f"{os.cpu_count()} cpus, {platform.processor() or platform.machine()}, "
-        f"load avg {os.getloadavg()[0]:.1f}"
+        f"load avg {os.getloadavg()[0]:.1f}, starts {args.starts}"
     )
     rows = []
     for n in sizes:
-        ft, nfull = time_fast(X, Y, ref, n, args.warmup, reps)
+        ft, nfull = time_fast(X, Y, ref, n, args.warmup, reps, groups)
         pt = time_plain(X, Y, ref, n, plain_reps)
         fmed, pmed = statistics.median(ft), statistics.median(pt)
         rows.append((n, fmed, statistics.mean(ft), max(ft), len(ft), nfull, pmed, len(pt)))

@@ -104,6 +104,43 @@ def test_log_outcome_predicts_original_units():
     assert sur0.offsets[0] == pytest.approx(0.01 * (z.max() - z.min()))
 
 
+def test_group_offsets_recover_the_start_free_cost():
+    """Six 'starts' shift the log cost by up to +-3: with groups the GP sees through them."""
+    rng = np.random.default_rng(3)
+    X = rng.uniform(size=(60, 2))
+    h = 2.0 * ((X - 0.5) ** 2).sum(1)  # start-free log cost, range ~1
+    b = np.array([-3.0, -1.0, 0.0, 0.5, 1.5, 2.0])
+    g = np.arange(60) % 6
+    y = np.exp(h + b[g] + 0.05 * rng.normal(size=60))
+    Xt = rng.uniform(size=(200, 2))
+    ht = 2.0 * ((Xt - 0.5) ** 2).sum(1)
+
+    def error(sur):
+        m, _ = sur.posterior_model_space(Xt)
+        m = -m[:, 0]
+        return np.sqrt(np.mean((m - m.mean() - (ht - ht.mean())) ** 2))
+
+    plain = GPSurrogate(1, log_outcomes=[True]).fit(X, y)
+    grouped = GPSurrogate(1, log_outcomes=[True], group_outputs=[True]).fit(X, y, groups=g)
+    est = np.array([grouped.group_offsets[k][0] for k in range(6)])
+    # model space is -log y: the offsets come out negated, centred
+    np.testing.assert_allclose(-est, b - b.mean(), atol=0.25)
+    assert error(grouped) < 0.1 < error(plain)
+    # state round trip: restored before a fit, the same data give the same fit
+    a = GPSurrogate(1, log_outcomes=[True], group_outputs=[True], refit_every=2, min_refit_n=5)
+    a.fit(X[:54], y[:54], groups=g[:54])
+    state = pickle.loads(pickle.dumps(a.state_dict()))
+    a.fit(X, y, groups=g)
+    b2 = GPSurrogate(1)
+    b2.load_state_dict(state)
+    b2.fit(X, y, groups=g)
+    assert error(b2) == error(a)
+    assert b2.group_offsets.keys() == a.group_offsets.keys()
+    # no group information (-1 everywhere): plain model
+    none = GPSurrogate(1, log_outcomes=[True], group_outputs=[True]).fit(X, y, groups=-np.ones(60))
+    assert none.group_offsets == {}
+
+
 def test_fast_posterior_matches_botorch():
     rng = np.random.default_rng(0)
     X = rng.uniform(size=(15, 3))

@@ -134,3 +134,48 @@ def test_learner_lowers_f1_on_short_cstr_run(cstr, cstr_mpc, name):
     assert best_late < first, (first, f1)
     for r in rows:
         assert cstr.search_space.contains(np.array(r["theta"]))
+    if name == "mobo":  # cycled starts reach the GP as groups: one f1 offset per start
+        np.testing.assert_array_equal(learner.starts, np.arange(16) % 2)
+        offsets = learner.surrogate.group_offsets
+        assert sorted(offsets) == [0, 1]
+        assert offsets[0][0] == pytest.approx(-offsets[1][0]) and offsets[0][0] != 0
+
+
+def test_incumbent_prefers_supported_points_when_risk_averse(cstr):
+    """Ten noisy episodes of one theta (z = 0.3) against one lucky episode elsewhere: with
+    kappa = 0 the incumbent is the lowest predicted f1, with kappa = 3 the well-supported
+    point."""
+    space = cstr.search_space
+    rng = np.random.default_rng(0)
+    a = np.full(space.dim, 0.3)
+    Z = np.vstack([np.tile(a, (10, 1)), np.full(space.dim, 0.9)])
+    f1 = np.r_[1000 * np.exp(0.5 * rng.normal(size=10)), 700.0]
+    picks = {}
+    for kappa in (0.0, 3.0):
+        bo = make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa)
+        for z, f in zip(Z, f1, strict=True):
+            bo.observe(space.from_unit(z, base=bo.theta0), _result([f, 0, 0, 0]))
+        picks[kappa] = space.to_unit(bo.incumbent())
+    np.testing.assert_allclose(picks[0.0], Z[-1], atol=1e-9)
+    np.testing.assert_allclose(picks[3.0], a, atol=1e-9)
+    with pytest.raises(ValueError, match="incumbent_kappa"):
+        make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=-1)
+
+
+def test_replication_reruns_the_incumbent_until_confirmed(cstr):
+    space = cstr.search_space
+    kw = {"n_init": 2, "num_restarts": 2, "raw_samples": 32, "maxiter": 10}
+    bo = make_learner("bo", space, cstr.parameterization.theta0, replicate_every=2, **kw)
+    proposals, incumbents = [], []
+    for k in range(7):
+        th = bo.propose()
+        proposals.append(space.to_unit(th))
+        incumbents.append(space.to_unit(bo.incumbent()))
+        bo.observe(th, _result([1000.0 + 100 * k, 0, 0, 0]))
+    # after the design (n = 2), every 2nd proposal (n = 3, 5) repeats the incumbent of then
+    for n in (3, 5):
+        np.testing.assert_array_equal(proposals[n], incumbents[n])
+    assert not np.array_equal(proposals[4], incumbents[4])
+    # once it has max_replicates (3) episodes the incumbent is not re-run
+    runs = np.count_nonzero(np.all(bo.Z == bo._incumbent_z, axis=1))
+    assert runs <= 3

@@ -30,7 +30,7 @@ def test_defaults_are_the_paper_study():
     s = Settings()
     assert s.system.name == "cstr"
     assert s.episodes == 600
-    assert s.start_mode == "random"
+    assert s.start_mode == "cycle"
     assert s.learners == ["mpc-rl", "bo", "mobo"]
     assert s.seeds == [0]
     assert s.evaluation.n_starts == 10 and s.evaluation.eval_every == 10

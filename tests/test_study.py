@@ -135,3 +135,18 @@ def test_refuses_to_overwrite_and_checks_learners(full_run, tmp_path):
             run_study(small(backend="ray", workers=2), tmp_path / "ray")
         else:  # pragma: no cover
             raise SettingsError("backend: ray installed, nothing to check")
+
+
+def test_orphaned_worker_stops_after_its_checkpoint(tmp_path):
+    """A worker whose study process is gone (parent pid changed) stops after one episode's
+    checkpoint; resuming then completes the job as usual."""
+    from mpcmobo.experiment.study import run_job
+
+    s = small(seeds=[0])
+    out = tmp_path / "orphan"
+    run_study(s, out, max_episodes_this_call=0)  # the study directory, config and J*
+    res = run_job(s.to_dict(), str(out), "mpc-rl", 0, parent_pid=-12345)
+    assert res == {"learner": "mpc-rl", "seed": 0, "episodes": 1, "done": False}
+    done = run_study(None, out, resume=True)
+    assert done["complete"] is True
+    assert len(storage.read_episodes(out)) == 7

@@ -42,6 +42,26 @@ calls; in between, the previous hyperparameters (in standardised units) are reus
 GP is only conditioned on the new data (a new exact GP on all data, no optimisation). Above
 ``fit_subsample`` points the full fit maximises the marginal likelihood of a seeded random
 subset (O(k^3) per iteration), and the GP on all points takes those hyperparameters.
+
+Start effects (an additive offset per group of observations)
+------------------------------------------------------------
+When episodes cycle through a fixed set of initial states, the start explains much of an
+episode's cost (on the CSTR the log cost of one theta spans a factor of e^5 across starts).
+``fit(X, Y, groups)`` with an integer group per row (the start's index; -1 = no group) fits,
+for the outputs flagged in ``group_outputs``, the additive model
+``t_i = h(x_i) + b_{g_i} + eps_i`` in the model space: ``h`` is the GP, ``b`` one offset per
+group with a Gaussian prior ``b_s ~ N(0, tau^2)`` (``group_prior_std`` times the output's
+standard deviation). At a full fit the offsets are maximised together with the GP's
+hyperparameters (:func:`mpcmobo.bo.groups.fit_group_offsets`). Between full fits, with the
+hyperparameters fixed, the offsets are the random-effects (GLS) posterior mean
+
+``(H^T A H + I / tau^2) b = H^T A (t - mean(t))``,  ``A = (s^2 (K + sigma_n^2 I))^-1``,
+
+``H`` the (n, G) group indicator matrix and ``s`` the outcome scale of the standardised GP;
+this is also the fixed point of backfitting ``h = S (t - H b)``, ``b = D^-1 H^T (t - h)``.
+The offsets are centred and the GP is conditioned on ``t - b_g``. The GP then models the
+start-free cost ``h``: predictions, EI and EHVI see the cost of an average start, so
+candidates run on different starts are compared fairly.
 """
 
 from __future__ import annotations
@@ -59,6 +79,7 @@ from botorch.models.transforms.outcome import Standardize
 from gpytorch.mlls import ExactMarginalLogLikelihood
 
 from mpcmobo.bo.fastpost import ExactIndependentGP
+from mpcmobo.bo.groups import fit_group_offsets
 from mpcmobo.bo.pareto import finite_rows
 
 __all__ = ["GPSurrogate", "fit_gp"]
@@ -103,6 +124,10 @@ class GPSurrogate:
     fit_subsample: a full fit maximises the marginal likelihood of a seeded random subset of
         at most this many points (None: all points); the GP is then conditioned on all.
     num_threads: torch threads during fits (None: leave torch's setting).
+    group_outputs: per output, whether ``fit(..., groups=...)`` estimates an offset per group
+        (see "Start effects" in the module docstring). None: no output.
+    group_prior_std: prior standard deviation ``tau`` of a group offset, in units of the
+        output's standard deviation.
     """
 
     def __init__(
@@ -115,6 +140,8 @@ class GPSurrogate:
         fit_maxiter: int = 200,
         fit_subsample: int | None = 300,
         num_threads: int | None = 1,
+        group_outputs: Sequence[bool] | None = None,
+        group_prior_std: float = 1.0,
     ) -> None:
         if num_outputs < 1:
             raise ValueError("num_outputs must be >= 1")
@@ -128,6 +155,18 @@ class GPSurrogate:
         if len(log) != self.num_outputs:
             raise ValueError("log_outcomes must have one flag per output")
         self.log_outcomes = log
+        grp = (
+            [False] * self.num_outputs
+            if group_outputs is None
+            else [bool(b) for b in group_outputs]
+        )
+        if len(grp) != self.num_outputs:
+            raise ValueError("group_outputs must have one flag per output")
+        self.group_outputs = grp
+        if not group_prior_std > 0:
+            raise ValueError("group_prior_std must be > 0")
+        self.group_prior_std = float(group_prior_std)
+        self.group_offsets: dict[int, np.ndarray] = {}  # group -> (m,) offsets in model space
         self.min_refit_n = int(min_refit_n)
         self.fit_maxiter = int(fit_maxiter)
         self.num_threads = num_threads
@@ -190,14 +229,83 @@ class GPSurrogate:
             or self._calls_since_refit >= self.refit_every - 1
         )
 
-    def fit(self, X: np.ndarray, Y: np.ndarray) -> GPSurrogate:
-        """Fit (or condition) the GPs on the finite rows of ``(X, Y)``; returns ``self``."""
+    def _make_model(self, tX: torch.Tensor, tY: torch.Tensor) -> SingleTaskGP:
+        """A GP on ``(tX, tY)`` with the current hyperparameters (BoTorch's initial ones if
+        there are none yet)."""
+        model = SingleTaskGP(tX, tY, outcome_transform=Standardize(m=self.num_outputs))
+        model = model.to(DTYPE)
+        if self._hyper is not None:
+            hyper = {k: torch.as_tensor(v) for k, v in self._hyper.items()}
+            model.load_state_dict(hyper, strict=False)
+        return model
+
+    def _group_matrix(self, groups: np.ndarray) -> np.ndarray:
+        """(n, m) offsets of each row's group (0 for group -1 and for unflagged outputs)."""
+        cols = np.asarray(self.group_outputs, dtype=float)
+        zero = np.zeros(self.num_outputs)
+        return np.array([self.group_offsets.get(int(g), zero) for g in groups]) * cols
+
+    def _fit_group_offsets(
+        self, X: np.ndarray, T: np.ndarray, groups: np.ndarray, seed: int
+    ) -> dict[int, np.ndarray]:
+        ids = np.unique(groups[groups >= 0])
+        b = {int(g): np.zeros(self.num_outputs) for g in ids}
+        n = len(X)
+        rows = np.arange(n)
+        if self.fit_subsample is not None and n > self.fit_subsample:
+            # as for the hyperparameters: a seeded subset; the GLS step of the next fits then
+            # refines the offsets with all the data
+            rows = np.sort(np.random.default_rng(n).choice(n, self.fit_subsample, replace=False))
+        with torch_threads(self.num_threads):
+            for j in np.flatnonzero(self.group_outputs):
+                bj = fit_group_offsets(
+                    X[rows], T[rows, j], groups[rows], prior_std=self.group_prior_std, seed=seed
+                )
+                for g, v in bj.items():
+                    b[g][j] = v
+        return b
+
+    def _estimate_group_offsets(self, X: np.ndarray, T: np.ndarray, groups: np.ndarray) -> None:
+        """Random-effects estimate of the group offsets with the current hyperparameters
+        (module docstring, "Start effects"); sets ``self.group_offsets``."""
+        ids = np.unique(groups[groups >= 0])
+        H = (groups[:, None] == ids[None, :]).astype(float)  # (n, G)
+        T_adj = T - self._group_matrix(groups)  # scale of the GP's (adjusted) targets
+        model = self._make_model(
+            torch.as_tensor(X, dtype=DTYPE), torch.as_tensor(T_adj, dtype=DTYPE)
+        )
+        m = self.num_outputs
+        with torch.no_grad(), torch_threads(self.num_threads):
+            Xin = model.train_inputs[0]
+            K = model.covar_module(Xin).to_dense().reshape(m, len(X), len(X)).numpy()
+            noise = model.likelihood.noise.reshape(m, -1)[:, 0].numpy()
+        b = np.zeros((len(ids), m))
+        for j in np.flatnonzero(self.group_outputs):
+            s2 = max(float(np.var(T_adj[:, j])), 1e-12)
+            C = s2 * (K[j] + noise[j] * np.eye(len(X)))
+            L = np.linalg.cholesky(C)
+            AH = np.linalg.solve(L.T, np.linalg.solve(L, H))  # A H
+            t = T[:, j] - T[:, j].mean()
+            tau2 = self.group_prior_std**2 * max(float(np.var(T[:, j])), 1e-12)
+            lhs = H.T @ AH + np.eye(len(ids)) / tau2
+            b[:, j] = np.linalg.solve(lhs, AH.T @ t)
+        b -= b.mean(axis=0)  # centred: h is the cost of an average start
+        self.group_offsets = {int(g): b[k].copy() for k, g in enumerate(ids)}
+
+    def fit(self, X: np.ndarray, Y: np.ndarray, groups: np.ndarray | None = None) -> GPSurrogate:
+        """Fit (or condition) the GPs on the finite rows of ``(X, Y)``; returns ``self``.
+
+        ``groups`` (n,) integers, optional: the group (start index) of each row, -1 for none;
+        offsets per group are then estimated for the outputs flagged in ``group_outputs``.
+        """
         X = _as_2d(X)
         Y = _as_2d(Y)
         if Y.shape[1] != self.num_outputs:
             raise ValueError(f"Y has {Y.shape[1]} columns, expected {self.num_outputs}")
         if X.shape[0] != Y.shape[0]:
             raise ValueError("X and Y must have the same number of rows")
+        if groups is not None and np.shape(groups) != (X.shape[0],):
+            raise ValueError("groups must have one entry per row of X")
         ok = finite_rows(Y) & finite_rows(X)
         Xf, Yf = X[ok], Y[ok]
         if Xf.shape[0] == 0:
@@ -205,40 +313,29 @@ class GPSurrogate:
         self.train_X, self.train_Y = Xf.copy(), Yf.copy()
         self.offsets = self._compute_offsets(Yf)
         T = self.to_model_space(Yf)
-
-        tX = torch.as_tensor(Xf, dtype=DTYPE)
-        tY = torch.as_tensor(T, dtype=DTYPE)
-        # eq. GP: one independent GP per output (batched), SE-ARD kernel, Gaussian noise
-        model = SingleTaskGP(tX, tY, outcome_transform=Standardize(m=self.num_outputs))
-        model = model.to(DTYPE)
-        if self._hyper is not None:
-            hyper = {k: torch.as_tensor(v) for k, v in self._hyper.items()}
-            model.load_state_dict(hyper, strict=False)
-
         n = Xf.shape[0]
+        tX = torch.as_tensor(Xf, dtype=DTYPE)
+        gf = None
+        if groups is not None and any(self.group_outputs):
+            gf = np.asarray(groups, dtype=int)[ok]
+            if not np.any(gf >= 0):
+                gf = None
         full = self._refit_due(n)
+        if gf is None:
+            self.group_offsets = {}
+        elif full:  # offsets and hyperparameters together (mpcmobo.bo.groups)
+            self.group_offsets = self._fit_group_offsets(Xf, T, gf, seed=1234 + n)
+        else:  # the posterior mean of the offsets under the current hyperparameters
+            self._estimate_group_offsets(Xf, T, gf)
+
+        def adjusted() -> torch.Tensor:
+            return torch.as_tensor(T if gf is None else T - self._group_matrix(gf), dtype=DTYPE)
+
+        tY = adjusted()
+        # eq. GP: one independent GP per output (batched), SE-ARD kernel, Gaussian noise
+        model = self._make_model(tX, tY)
         if full:
-            target = model
-            if self.fit_subsample is not None and n > self.fit_subsample:
-                # type-II ML on a seeded random subset (cost O(k^3) instead of O(n^3)), then
-                # the hyperparameters are copied into the GP on all n points
-                sub = np.sort(np.random.default_rng(n).choice(n, self.fit_subsample, replace=False))
-                target = SingleTaskGP(
-                    tX[sub], tY[sub], outcome_transform=Standardize(m=self.num_outputs)
-                ).to(DTYPE)
-                target.load_state_dict(self._hyper_tensors(model), strict=False)
-            mll = ExactMarginalLogLikelihood(target.likelihood, target)
-            # fit_gpytorch_mll may resample hyperparameters from their priors after a failed
-            # attempt: seed that so a fit is a deterministic function of (data, state).
-            with (
-                torch.random.fork_rng(),
-                gpytorch.settings.max_cholesky_size(MAX_CHOLESKY),
-                torch_threads(self.num_threads),
-            ):
-                torch.manual_seed(1234 + n)
-                fit_gpytorch_mll(mll, optimizer_kwargs={"options": {"maxiter": self.fit_maxiter}})
-            if target is not model:
-                model.load_state_dict(self._hyper_tensors(target), strict=False)
+            self._ml_fit(model, tX, tY, n)
             self._calls_since_refit = 0
         else:
             self._calls_since_refit += 1
@@ -249,6 +346,30 @@ class GPSurrogate:
         self.model = model
         self._fast = None
         return self
+
+    def _ml_fit(self, model: SingleTaskGP, tX: torch.Tensor, tY: torch.Tensor, n: int) -> None:
+        """Type-II maximum likelihood of ``model``'s hyperparameters, in place."""
+        target = model
+        if self.fit_subsample is not None and n > self.fit_subsample:
+            # type-II ML on a seeded random subset (cost O(k^3) instead of O(n^3)), then
+            # the hyperparameters are copied into the GP on all n points
+            sub = np.sort(np.random.default_rng(n).choice(n, self.fit_subsample, replace=False))
+            target = SingleTaskGP(
+                tX[sub], tY[sub], outcome_transform=Standardize(m=self.num_outputs)
+            ).to(DTYPE)
+            target.load_state_dict(self._hyper_tensors(model), strict=False)
+        mll = ExactMarginalLogLikelihood(target.likelihood, target)
+        # fit_gpytorch_mll may resample hyperparameters from their priors after a failed
+        # attempt: seed that so a fit is a deterministic function of (data, state).
+        with (
+            torch.random.fork_rng(),
+            gpytorch.settings.max_cholesky_size(MAX_CHOLESKY),
+            torch_threads(self.num_threads),
+        ):
+            torch.manual_seed(1234 + n)
+            fit_gpytorch_mll(mll, optimizer_kwargs={"options": {"maxiter": self.fit_maxiter}})
+        if target is not model:
+            model.load_state_dict(self._hyper_tensors(target), strict=False)
 
     @property
     def fast_model(self):
@@ -316,6 +437,9 @@ class GPSurrogate:
             "calls_since_refit": self._calls_since_refit,
             "n_fits": self._n_fits,
             "hyper": None if self._hyper is None else {k: v.copy() for k, v in self._hyper.items()},
+            "group_outputs": list(self.group_outputs),
+            "group_prior_std": self.group_prior_std,
+            "group_offsets": {int(g): v.copy() for g, v in self.group_offsets.items()},
         }
 
     def load_state_dict(self, d: dict[str, Any]) -> None:
@@ -331,6 +455,9 @@ class GPSurrogate:
         self._n_fits = int(d["n_fits"])
         h = d["hyper"]
         self._hyper = None if h is None else {k: np.array(v) for k, v in h.items()}
+        self.group_outputs = [bool(b) for b in d.get("group_outputs", [False] * self.num_outputs)]
+        self.group_prior_std = float(d.get("group_prior_std", 1.0))
+        self.group_offsets = {int(g): np.array(v) for g, v in d.get("group_offsets", {}).items()}
         self.model = None
         self._fast = None
         self.train_X = self.train_Y = None

@@ -95,6 +95,8 @@ class LearningRun:
                 objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
             )
         t_mpc = time.perf_counter() - t1
+        if self.start_mode == "cycle":
+            result.start_id = self.episode % len(self.cycle_starts)
         t2 = time.perf_counter()
         self.learner.observe(theta, result)
         incumbent = np.asarray(self.learner.incumbent(), dtype=float)

@@ -131,7 +131,7 @@ class Settings(_Section):
     exploration: ExplorationSettings = Field(default_factory=ExplorationSettings)
     episodes: int = Field(600, ge=1, le=1_000_000)
     steps: int | None = Field(None, ge=1, le=1_000_000)
-    start_mode: Literal["random", "cycle"] = "random"
+    start_mode: Literal["random", "cycle"] = "cycle"
     n_cycle_starts: int = Field(6, ge=1, le=100_000)
     critic: CriticSettings = Field(default_factory=CriticSettings)
     beta: float = 1.0

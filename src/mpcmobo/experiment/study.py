@@ -140,8 +140,14 @@ def run_job(
     J_initial: float | None = None,
     max_episodes: int | None = None,
     on_episode: Progress | None = None,
+    parent_pid: int | None = None,
 ) -> dict:
-    """Run (or continue) the job (learner, seed) until its budget; checkpoint every episode."""
+    """Run (or continue) the job (learner, seed) until its budget; checkpoint every episode.
+
+    ``parent_pid``: in a worker process, the pid of the study's process. If that process dies
+    (killed, not interrupted), the job stops after its current episode's checkpoint instead of
+    running on as an orphan that a later ``--resume`` would race with.
+    """
     _limit_threads()
     from mpcmobo.experiment.loop import LearningRun
     from mpcmobo.learners import make_learner
@@ -230,6 +236,8 @@ def run_job(
         done_now += 1
         if on_episode is not None:
             on_episode(_progress_event(learner_name, seed, rows, total))
+        if parent_pid is not None and os.getppid() != parent_pid:
+            break  # orphaned: the study is gone; everything so far is checkpointed
     return {
         "learner": learner_name,
         "seed": seed,
@@ -459,7 +467,10 @@ def _run_processes(jobs, args, workers, out, total, emit) -> None:
     ctx = mp.get_context("spawn")  # no CasADi / torch state is inherited through fork
     seen: dict = {}
     with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
-        futures = {pool.submit(run_job, learner_name=n, seed=s, **args): (n, s) for n, s in jobs}
+        futures = {
+            pool.submit(run_job, learner_name=n, seed=s, parent_pid=os.getpid(), **args): (n, s)
+            for n, s in jobs
+        }
         remaining = set(futures)
         try:
             while remaining:

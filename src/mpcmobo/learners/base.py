@@ -22,6 +22,7 @@ class EpisodeResult:
     Vc: float = float("nan")  # sum_k V^nu(x_k), for f3 of the next episode
     mean_abs_advantage: float = float("nan")
     failures: int = 0  # failed MPC solves in the episode
+    start_id: int = -1  # index of the initial state in a fixed cycled set; -1: a random start
 
     @property
     def f1(self) -> float:

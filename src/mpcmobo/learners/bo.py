@@ -3,6 +3,17 @@
 Both search the unit cube of the declared search space (log coordinates for the weights), start
 from theta0 (the imperfect MPC) plus a small seeded Sobol design, never fit a NaN objective, and
 save and restore their whole state exactly.
+
+Three choices make them work from single noisy episodes (each one a setting, measured in
+``docs/benchmarks.md``):
+
+* start effects: with cycled starts (``EpisodeResult.start_id >= 0``) the GP of each
+  log-modelled cost carries one offset per start (``start_effects``, see
+  :mod:`mpcmobo.bo.groups`), so candidates run on different starts are compared fairly;
+* a risk-averse incumbent: the lowest ``m + kappa s`` of the modelled f1 (``incumbent_kappa``;
+  0 gives the plain lowest predicted f1);
+* replication: every ``replicate_every``-th proposal re-runs the incumbent until it has
+  ``max_replicates`` episodes, so a lucky episode has to be confirmed.
 """
 
 from __future__ import annotations
@@ -34,8 +45,21 @@ class _GPLearner(Learner):
         num_restarts: int = 4,
         raw_samples: int = 256,
         maxiter: int = 100,
+        start_effects: bool = True,
+        incumbent_kappa: float = 1.0,
+        replicate_every: int = 0,
+        max_replicates: int = 3,
     ) -> None:
         super().__init__(space, theta0, seed)
+        if replicate_every < 0 or max_replicates < 1:
+            raise ValueError(
+                "replicate_every must be >= 0 and max_replicates >= 1, got "
+                f"{replicate_every} and {max_replicates}"
+            )
+        self.replicate_every, self.max_replicates = int(replicate_every), int(max_replicates)
+        if not np.isfinite(incumbent_kappa) or incumbent_kappa < 0:
+            raise ValueError(f"incumbent_kappa must be a finite number >= 0, got {incumbent_kappa}")
+        self.incumbent_kappa = float(incumbent_kappa)
         if n_init < 1:
             raise ValueError(f"n_init must be at least 1, got {n_init}")
         self.n_init = int(n_init)
@@ -44,7 +68,15 @@ class _GPLearner(Learner):
         log = (True,) * m if log_outcomes is None else tuple(log_outcomes)
         if len(log) != m:
             raise ValueError(f"log_outcomes needs {m} entries, got {len(log)}")
-        self.surrogate = GPSurrogate(m, refit_every=refit_every, log_outcomes=log)
+        # per-start offsets on the log-modelled costs, used when episodes cycle through fixed
+        # starts (EpisodeResult.start_id >= 0); see "Start effects" in mpcmobo.bo.surrogate
+        self.start_effects = bool(start_effects)
+        self.surrogate = GPSurrogate(
+            m,
+            refit_every=refit_every,
+            log_outcomes=log,
+            group_outputs=log if self.start_effects else None,
+        )
         # initial design: theta0, then scrambled Sobol points (seeded)
         z0 = space.to_unit(self.theta0)
         sob = qmc.Sobol(d=space.dim, scramble=True, seed=self.seed).random(
@@ -54,6 +86,7 @@ class _GPLearner(Learner):
         self.Z = np.zeros((0, space.dim))
         self.Y = np.zeros((0, m))
         self.grads = np.zeros((0, space.n_theta))
+        self.starts = np.zeros(0, dtype=int)  # start index of each observation (-1: random)
         self._pre_fit_state: dict | None = None
         self._fitted = False
         self._incumbent_z = z0.copy()
@@ -72,6 +105,7 @@ class _GPLearner(Learner):
         self.Y = np.vstack([self.Y, y])  # NaN rows stay in the log, never in the fit
         g = np.asarray(result.grad, dtype=float)
         self.grads = np.vstack([self.grads, np.where(np.isfinite(g), g, 0.0)])
+        self.starts = np.append(self.starts, int(result.start_id))
         self.n_observed += 1
         self._fit()
 
@@ -81,19 +115,23 @@ class _GPLearner(Learner):
         if np.count_nonzero(self._finite()) < 2:
             self._fitted = False
             return
-        self.surrogate.fit(self.Z, self.Y)
+        self.surrogate.fit(self.Z, self.Y, groups=self.starts)
         self._fitted = True
         self._update_incumbent()
 
     def _update_incumbent(self) -> None:
-        """The observed point with the lowest predicted f1 among the Pareto points of the
-        posterior means (for one objective: simply the lowest predicted f1)."""
+        """Among the observed points whose posterior means are Pareto-optimal (for one
+        objective: all observed points), the one with the lowest predicted f1, judged
+        risk-aversely by ``m + kappa * s`` with ``m, s`` the posterior mean and standard
+        deviation of the modelled f1 (log f1 for a log output): a point seen once with a lucky
+        cost does not beat one the data support (``kappa = 0``: the lowest predicted mean)."""
         ok = self._finite()
         Zf = self.Z[ok]
         mean, _ = self.surrogate.predict(Zf)
         cand = np.flatnonzero(pareto_mask(mean)) if mean.shape[1] > 1 else np.arange(len(Zf))
-        best = cand[np.argmin(mean[cand, 0])]
-        self._incumbent_z = Zf[best].copy()
+        mt, st = self.surrogate.posterior_model_space(Zf[cand])
+        score = -mt[:, 0] + self.incumbent_kappa * st[:, 0]  # model space is maximised: -mt
+        self._incumbent_z = Zf[cand[int(np.argmin(score))]].copy()
 
     def incumbent(self) -> np.ndarray:
         return self._theta(self._incumbent_z)
@@ -107,7 +145,19 @@ class _GPLearner(Learner):
             return self._theta(self.design[n])
         if not self._fitted:  # every observation so far failed: keep exploring the design
             return self._theta(self.rng.uniform(size=self.space.dim))
+        if self._replicate_due(n):
+            return self._theta(self._incumbent_z)
         return self._theta(self._acquire(self._next_seed()))
+
+    def _replicate_due(self, n: int) -> bool:
+        """Every ``replicate_every``-th proposal after the design re-runs the incumbent (on the
+        next start) while it has fewer than ``max_replicates`` episodes: one lucky episode
+        cannot stay the incumbent without confirmation (replication in noisy BO)."""
+        k = self.replicate_every
+        if k == 0 or (n - self.n_init) % k != k - 1:
+            return False
+        runs = np.count_nonzero(np.all(self.Z == self._incumbent_z, axis=1) & self._finite())
+        return runs < self.max_replicates
 
     def _acquire(self, seed: int) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -120,6 +170,7 @@ class _GPLearner(Learner):
                 "Z": self.Z.copy(),
                 "Y": self.Y.copy(),
                 "grads": self.grads.copy(),
+                "starts": self.starts.copy(),
                 "surrogate_pre_fit": self._pre_fit_state,
                 "incumbent_z": self._incumbent_z.copy(),
             }
@@ -130,6 +181,7 @@ class _GPLearner(Learner):
         super().load_state_dict(state)
         self.Z, self.Y = np.array(state["Z"], float), np.array(state["Y"], float)
         self.grads = np.array(state["grads"], float)
+        self.starts = np.array(state.get("starts", np.full(len(self.Z), -1)), dtype=int)
         self._incumbent_z = np.array(state["incumbent_z"], float)
         self._fitted = False
         if state["surrogate_pre_fit"] is not None:
