@@ -152,12 +152,22 @@ def test_incumbent_prefers_supported_points_when_risk_averse(cstr):
     f1 = np.r_[1000 * np.exp(0.5 * rng.normal(size=10)), 700.0]
     picks = {}
     for kappa in (0.0, 3.0):
-        bo = make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa)
+        bo = make_learner(
+            "bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa, confirm_runs=1
+        )
         for z, f in zip(Z, f1, strict=True):
             bo.observe(space.from_unit(z, base=bo.theta0), _result([f, 0, 0, 0]))
         picks[kappa] = space.to_unit(bo.incumbent())
     np.testing.assert_allclose(picks[0.0], Z[-1], atol=1e-9)
     np.testing.assert_allclose(picks[3.0], a, atol=1e-9)
+    # with confirmation (default: 2 runs) the lone point is a challenger: re-run, not deployed
+    bo = make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=0.0)
+    for z, f in zip(Z, f1, strict=True):
+        bo.observe(space.from_unit(z, base=bo.theta0), _result([f, 0, 0, 0]))
+    np.testing.assert_allclose(space.to_unit(bo.incumbent()), a, atol=1e-9)
+    np.testing.assert_allclose(space.to_unit(bo.propose()), Z[-1], atol=1e-9)
+    bo.observe(bo.propose(), _result([650.0, 0, 0, 0]))  # confirmed: now the incumbent
+    np.testing.assert_allclose(space.to_unit(bo.incumbent()), Z[-1], atol=1e-9)
     with pytest.raises(ValueError, match="incumbent_kappa"):
         make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=-1)
 

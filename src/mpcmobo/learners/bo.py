@@ -49,6 +49,7 @@ class _GPLearner(Learner):
         incumbent_kappa: float = 1.0,
         replicate_every: int = 0,
         max_replicates: int = 3,
+        confirm_runs: int = 2,
     ) -> None:
         super().__init__(space, theta0, seed)
         if replicate_every < 0 or max_replicates < 1:
@@ -57,6 +58,10 @@ class _GPLearner(Learner):
                 f"{replicate_every} and {max_replicates}"
             )
         self.replicate_every, self.max_replicates = int(replicate_every), int(max_replicates)
+        if confirm_runs < 1:
+            raise ValueError(f"confirm_runs must be >= 1, got {confirm_runs}")
+        self.confirm_runs = int(confirm_runs)
+        self._challenger_z: np.ndarray | None = None
         if not np.isfinite(incumbent_kappa) or incumbent_kappa < 0:
             raise ValueError(f"incumbent_kappa must be a finite number >= 0, got {incumbent_kappa}")
         self.incumbent_kappa = float(incumbent_kappa)
@@ -90,6 +95,7 @@ class _GPLearner(Learner):
         self._pre_fit_state: dict | None = None
         self._fitted = False
         self._incumbent_z = z0.copy()
+        self._pre_fit_incumbent = z0.copy()
 
     # -------------------------------------------------------------- data
     def _theta(self, z: np.ndarray) -> np.ndarray:
@@ -112,6 +118,7 @@ class _GPLearner(Learner):
     def _fit(self) -> None:
         """Fit the GP(s) on the finite observations; the pre-fit state makes resume exact."""
         self._pre_fit_state = self.surrogate.state_dict()
+        self._pre_fit_incumbent = self._incumbent_z.copy()
         if np.count_nonzero(self._finite()) < 2:
             self._fitted = False
             return
@@ -119,19 +126,42 @@ class _GPLearner(Learner):
         self._fitted = True
         self._update_incumbent()
 
+    def _runs(self, z: np.ndarray) -> int:
+        """Number of finite episodes run with exactly ``z``."""
+        return int(np.count_nonzero(np.all(self.Z == z, axis=1) & self._finite()))
+
     def _update_incumbent(self) -> None:
         """Among the observed points whose posterior means are Pareto-optimal (for one
         objective: all observed points), the one with the lowest predicted f1, judged
         risk-aversely by ``m + kappa * s`` with ``m, s`` the posterior mean and standard
-        deviation of the modelled f1 (log f1 for a log output): a point seen once with a lucky
-        cost does not beat one the data support (``kappa = 0``: the lowest predicted mean)."""
+        deviation of the modelled f1 (log f1 for a log output; ``kappa = 0``: the lowest
+        predicted mean).
+
+        Confirmation (``confirm_runs = r > 1``): a best point with fewer than ``r`` episodes is
+        a *challenger*; the next proposal re-runs it (on the next start), and until then the
+        incumbent is the best point that has ``r`` episodes, or the current incumbent. One
+        lucky episode thus never becomes the deployed controller on its own.
+        """
         ok = self._finite()
         Zf = self.Z[ok]
         mean, _ = self.surrogate.predict(Zf)
         cand = np.flatnonzero(pareto_mask(mean)) if mean.shape[1] > 1 else np.arange(len(Zf))
-        mt, st = self.surrogate.posterior_model_space(Zf[cand])
+        mt, st = self.surrogate.posterior_model_space(Zf)
         score = -mt[:, 0] + self.incumbent_kappa * st[:, 0]  # model space is maximised: -mt
-        self._incumbent_z = Zf[cand[int(np.argmin(score))]].copy()
+        best = cand[int(np.argmin(score[cand]))]
+        self._challenger_z = None
+        if self.confirm_runs > 1 and self._runs(Zf[best]) < self.confirm_runs:
+            self._challenger_z = Zf[best].copy()
+            current = self._incumbent_z
+            eligible = np.flatnonzero(
+                np.array([self._runs(z) >= self.confirm_runs for z in Zf])
+                | np.all(Zf == current, axis=1)
+            )
+            if eligible.size:
+                best = eligible[int(np.argmin(score[eligible]))]
+            else:
+                return  # keep the current incumbent (it has no finite episode yet)
+        self._incumbent_z = Zf[best].copy()
 
     def incumbent(self) -> np.ndarray:
         return self._theta(self._incumbent_z)
@@ -145,6 +175,8 @@ class _GPLearner(Learner):
             return self._theta(self.design[n])
         if not self._fitted:  # every observation so far failed: keep exploring the design
             return self._theta(self.rng.uniform(size=self.space.dim))
+        if self._challenger_z is not None:
+            return self._theta(self._challenger_z)
         if self._replicate_due(n):
             return self._theta(self._incumbent_z)
         return self._theta(self._acquire(self._next_seed()))
@@ -173,6 +205,7 @@ class _GPLearner(Learner):
                 "starts": self.starts.copy(),
                 "surrogate_pre_fit": self._pre_fit_state,
                 "incumbent_z": self._incumbent_z.copy(),
+                "incumbent_pre_fit": self._pre_fit_incumbent.copy(),
             }
         )
         return d
@@ -183,10 +216,13 @@ class _GPLearner(Learner):
         self.grads = np.array(state["grads"], float)
         self.starts = np.array(state.get("starts", np.full(len(self.Z), -1)), dtype=int)
         self._incumbent_z = np.array(state["incumbent_z"], float)
+        self._pre_fit_incumbent = np.array(state["incumbent_pre_fit"], float)
+        self._challenger_z = None
         self._fitted = False
         if state["surrogate_pre_fit"] is not None:
             # replay the last fit from the state it started from: same model, same counters
             self.surrogate.load_state_dict(state["surrogate_pre_fit"])
+            self._incumbent_z = self._pre_fit_incumbent.copy()
             self._fit()
 
 
