@@ -114,3 +114,8 @@ def test_run_with_progress_bars(tmp_path):
     assert res.exit_code == 0, res.output
     assert "mpc-rl s0" in res.output and "best J_eval" in res.output
     assert "J_final" in res.output
+    # a complete run draws figures 1-4 unless told not to
+    assert len(list((out / "figures").glob("fig*.png"))) == 4
+    res = runner.invoke(app, ["run", *SMALL, "--out", str(tmp_path / "np"), "-q", "--no-plot"])
+    assert res.exit_code == 0, res.output
+    assert not (tmp_path / "np" / "figures").exists()

@@ -115,8 +115,9 @@ def run(
     resume: bool = typer.Option(False, "--resume", help="continue the run recorded in --out"),
     workers: int | None = typer.Option(None, "--workers", "-w", help="parallel processes"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
+    no_plot: bool = typer.Option(False, "--no-plot", help="do not draw figures 1-4 at the end"),
 ) -> None:
-    """Run a study (learners x seeds) and write its records, summary and figures' data."""
+    """Run a study (learners x seeds): records, summary and, once complete, figures 1-4."""
     from mpcmobo.experiment.study import StudyError, run_study
 
     seed_list = _parse_seeds(seeds, list(ctx.args))
@@ -168,6 +169,11 @@ def run(
     console.print(f"records in [bold]{out}[/] ({time.perf_counter() - t0:.1f} s)")
     if not summary["complete"]:
         console.print(f"incomplete; continue with: mpcmobo run --resume --out {out}")
+    elif not no_plot:
+        from mpcmobo.plots import make_figures
+
+        paths = make_figures(out)
+        console.print(f"figures in [bold]{paths[0].parent}[/] (mpcmobo plot {out} redraws them)")
 
 
 def _summary_table(summary: dict) -> Table:
