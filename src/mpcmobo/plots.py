@@ -79,6 +79,9 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
         if J_star is not None:
             ax.axhline(J_star, color="tab:blue", ls="--", label=r"$J^\star$")
         ax.set_ylabel(r"$\tilde J$")
+        vals = d["J_tilde"].to_numpy(float)
+        if np.any(np.isfinite(vals)) and np.nanmin(vals) > 0:
+            ax.set_yscale("log")  # episode costs span orders of magnitude
         ax.legend(loc="upper right", fontsize=7)
     axes[-1, 0].set_xlabel("episode")
     fig.suptitle("Closed-loop performance per episode")
@@ -106,17 +109,26 @@ def fig2(ep: pd.DataFrame, learners: list[str]):
     cols = ["f1", "f2", "f4"] if np.isfinite(d["f4"]).any() else ["f1", "f2", "f3"]
     Y = d[cols].to_numpy(float)
     ok = np.all(np.isfinite(Y), axis=1)
+    labels = list(cols)
     if ok.any():
         mask = pareto_mask(Y)
+        Y = Y.copy()
+        for j, c in enumerate(cols):  # objectives span decades: log axes (log10(1 + f) if f hits 0)
+            v = Y[ok, j]
+            if v.min() > 0:
+                Y[:, j], labels[j] = np.log10(Y[:, j]), f"log10 {c}"
+            elif v.min() >= 0:
+                Y[:, j], labels[j] = np.log10(1.0 + Y[:, j]), f"log10(1+{c})"
         sc = ax3.scatter(*Y[ok & ~mask].T, c=d["episode"].to_numpy()[ok & ~mask], cmap="Greys",
                          s=8, alpha=0.7, label="observations")  # fmt: skip
         ax3.scatter(*Y[mask].T, marker="*", color="red", s=60, label="Pareto front")
         if (ok & ~mask).any():
             fig.colorbar(sc, ax=ax3, shrink=0.6, pad=0.1, label="episode")
         ax3.legend(fontsize=7)
-    ax3.set_xlabel(cols[0])
-    ax3.set_ylabel(cols[1])
-    ax3.set_zlabel(cols[2])
+    ax3.set_xlabel(labels[0])
+    ax3.set_ylabel(labels[1])
+    ax3.set_zlabel(labels[2])
+    ax3.set_box_aspect(None, zoom=0.85)  # room for the z label
     ax3.set_title(f"Pareto front of the {LABELS.get(src, src)} observations", fontsize=9)
     return fig
 
