@@ -150,3 +150,17 @@ def test_orphaned_worker_stops_after_its_checkpoint(tmp_path):
     done = run_study(None, out, resume=True)
     assert done["complete"] is True
     assert len(storage.read_episodes(out)) == 7
+
+
+def test_ray_backend_matches_serial(full_run, tmp_path):
+    """The optional Ray backend (pip install 'mpcmobo[ray]') gives the serial records."""
+    ray = pytest.importorskip("ray")
+    out_full, _, _ = full_run
+    out = tmp_path / "ray"
+    try:
+        run_study(small(workers=2, backend="ray"), out)
+    finally:
+        ray.shutdown()
+    a = storage.read_episodes(out_full).drop(columns=WALL)
+    b = storage.read_episodes(out).drop(columns=WALL)
+    pd.testing.assert_frame_equal(a, b)
