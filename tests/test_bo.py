@@ -209,6 +209,16 @@ def test_ehvi_increases_hypervolume():
     assert pareto_mask(Y)[8:].any()  # new Pareto points were found
 
 
+def test_ehvi_with_nothing_better_than_the_reference_point():
+    """A reference point that no posterior mean beats (e.g. fixed from an early design that the
+    model now judges worse) still gives a proposal: the whole box counts as improvement."""
+    X = sobol(12, 3, seed=5)
+    Y = np.stack([(X**2).sum(1), ((1 - X) ** 2).sum(1)], 1)
+    ref = Y.min(axis=0) - 1.0
+    x = propose_ehvi(GPSurrogate(2), X, Y, ref, seed=0, num_restarts=2, raw_samples=32)
+    assert x.shape == (3,) and np.all((x >= 0) & (x <= 1))
+
+
 def test_state_dict_reproduces_next_proposal():
     X = sobol(25, 3, seed=5)
     Y = np.column_stack([((X - 0.2) ** 2).sum(1), ((X - 0.8) ** 2).sum(1)])

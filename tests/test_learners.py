@@ -153,15 +153,18 @@ def test_incumbent_prefers_supported_points_when_risk_averse(cstr):
     picks = {}
     for kappa in (0.0, 3.0):
         bo = make_learner(
-            "bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa, confirm_runs=1
+            "bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa, noise_floor=None
         )
         for z, f in zip(Z, f1, strict=True):
             bo.observe(space.from_unit(z, base=bo.theta0), _result([f, 0, 0, 0]))
         picks[kappa] = space.to_unit(bo.incumbent())
     np.testing.assert_allclose(picks[0.0], Z[-1], atol=1e-9)
     np.testing.assert_allclose(picks[3.0], a, atol=1e-9)
-    # with confirmation (default: 2 runs) the lone point is a challenger: re-run, not deployed
-    bo = make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=0.0)
+    # with confirmation (confirm_runs=2) the lone point is a challenger: re-run, not deployed
+    bo = make_learner(
+        "bo", space, cstr.parameterization.theta0, incumbent_kappa=0.0, noise_floor=None,
+        confirm_runs=2,
+    )  # fmt: skip
     for z, f in zip(Z, f1, strict=True):
         bo.observe(space.from_unit(z, base=bo.theta0), _result([f, 0, 0, 0]))
     np.testing.assert_allclose(space.to_unit(bo.incumbent()), a, atol=1e-9)

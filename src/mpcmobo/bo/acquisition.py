@@ -209,8 +209,11 @@ def _propose_ehvi(
     sampler = SobolQMCNormalSampler(sample_shape=torch.Size([mc_samples]), seed=seed)
     a = 0.0 if alpha is None else float(alpha)
     if method == "logehvi":
-        mt, _ = surrogate.posterior_model_space(Xf[base])
-        front = torch.as_tensor(mt.reshape(-1, m), dtype=DTYPE)
+        if base.size:
+            mt, _ = surrogate.posterior_model_space(Xf[base])
+            front = torch.as_tensor(mt.reshape(-1, m), dtype=DTYPE)
+        else:  # no posterior mean beats the reference point yet: the whole box is improvement
+            front = torch.empty((0, m), dtype=DTYPE)
         if a > 0:
             part = NondominatedPartitioning(ref_point=tref, Y=front, alpha=a)
         else:

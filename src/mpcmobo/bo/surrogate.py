@@ -79,7 +79,7 @@ from botorch.models.transforms.outcome import Standardize
 from gpytorch.mlls import ExactMarginalLogLikelihood
 
 from mpcmobo.bo.fastpost import ExactIndependentGP
-from mpcmobo.bo.groups import fit_group_offsets
+from mpcmobo.bo.groups import fit_group_offsets, noise_floor_likelihood
 from mpcmobo.bo.pareto import finite_rows
 
 __all__ = ["GPSurrogate", "fit_gp"]
@@ -128,6 +128,10 @@ class GPSurrogate:
         (see "Start effects" in the module docstring). None: no output.
     group_prior_std: prior standard deviation ``tau`` of a group offset, in units of the
         output's standard deviation.
+    noise_floor: lower bound of the noise variance in standardised units (a fraction of the
+        outcome variance); None: BoTorch's 1e-4. Episode costs are noisy by nature: without a
+        floor, 13 inputs and a few dozen points let the marginal likelihood explain the noise by
+        short length scales, and the GP then trusts single lucky episodes.
     """
 
     def __init__(
@@ -142,6 +146,7 @@ class GPSurrogate:
         num_threads: int | None = 1,
         group_outputs: Sequence[bool] | None = None,
         group_prior_std: float = 1.0,
+        noise_floor: float | None = None,
     ) -> None:
         if num_outputs < 1:
             raise ValueError("num_outputs must be >= 1")
@@ -166,6 +171,9 @@ class GPSurrogate:
         if not group_prior_std > 0:
             raise ValueError("group_prior_std must be > 0")
         self.group_prior_std = float(group_prior_std)
+        if noise_floor is not None and not 0 < noise_floor < 1:
+            raise ValueError("noise_floor must be in (0, 1) (a fraction of the outcome variance)")
+        self.noise_floor = None if noise_floor is None else float(noise_floor)
         self.group_offsets: dict[int, np.ndarray] = {}  # group -> (m,) offsets in model space
         self.min_refit_n = int(min_refit_n)
         self.fit_maxiter = int(fit_maxiter)
@@ -229,11 +237,23 @@ class GPSurrogate:
             or self._calls_since_refit >= self.refit_every - 1
         )
 
+    def _new_gp(self, tX: torch.Tensor, tY: torch.Tensor) -> SingleTaskGP:
+        """BoTorch's default ``SingleTaskGP`` (standardised outcomes), with the noise variance
+        bounded below by ``noise_floor`` if one is set."""
+        likelihood = None
+        if self.noise_floor is not None:
+            likelihood = noise_floor_likelihood(
+                self.noise_floor, torch.Size([self.num_outputs]) if self.num_outputs > 1 else None
+            )
+        model = SingleTaskGP(
+            tX, tY, likelihood=likelihood, outcome_transform=Standardize(m=self.num_outputs)
+        )
+        return model.to(DTYPE)
+
     def _make_model(self, tX: torch.Tensor, tY: torch.Tensor) -> SingleTaskGP:
         """A GP on ``(tX, tY)`` with the current hyperparameters (BoTorch's initial ones if
         there are none yet)."""
-        model = SingleTaskGP(tX, tY, outcome_transform=Standardize(m=self.num_outputs))
-        model = model.to(DTYPE)
+        model = self._new_gp(tX, tY)
         if self._hyper is not None:
             hyper = {k: torch.as_tensor(v) for k, v in self._hyper.items()}
             model.load_state_dict(hyper, strict=False)
@@ -259,7 +279,12 @@ class GPSurrogate:
         with torch_threads(self.num_threads):
             for j in np.flatnonzero(self.group_outputs):
                 bj = fit_group_offsets(
-                    X[rows], T[rows, j], groups[rows], prior_std=self.group_prior_std, seed=seed
+                    X[rows],
+                    T[rows, j],
+                    groups[rows],
+                    prior_std=self.group_prior_std,
+                    noise_floor=self.noise_floor,
+                    seed=seed,
                 )
                 for g, v in bj.items():
                     b[g][j] = v
@@ -354,9 +379,7 @@ class GPSurrogate:
             # type-II ML on a seeded random subset (cost O(k^3) instead of O(n^3)), then
             # the hyperparameters are copied into the GP on all n points
             sub = np.sort(np.random.default_rng(n).choice(n, self.fit_subsample, replace=False))
-            target = SingleTaskGP(
-                tX[sub], tY[sub], outcome_transform=Standardize(m=self.num_outputs)
-            ).to(DTYPE)
+            target = self._new_gp(tX[sub], tY[sub])
             target.load_state_dict(self._hyper_tensors(model), strict=False)
         mll = ExactMarginalLogLikelihood(target.likelihood, target)
         # fit_gpytorch_mll may resample hyperparameters from their priors after a failed
@@ -439,6 +462,7 @@ class GPSurrogate:
             "hyper": None if self._hyper is None else {k: v.copy() for k, v in self._hyper.items()},
             "group_outputs": list(self.group_outputs),
             "group_prior_std": self.group_prior_std,
+            "noise_floor": self.noise_floor,
             "group_offsets": {int(g): v.copy() for g, v in self.group_offsets.items()},
         }
 
@@ -457,6 +481,8 @@ class GPSurrogate:
         self._hyper = None if h is None else {k: np.array(v) for k, v in h.items()}
         self.group_outputs = [bool(b) for b in d.get("group_outputs", [False] * self.num_outputs)]
         self.group_prior_std = float(d.get("group_prior_std", 1.0))
+        nf = d.get("noise_floor")
+        self.noise_floor = None if nf is None else float(nf)
         self.group_offsets = {int(g): np.array(v) for g, v in d.get("group_offsets", {}).items()}
         self.model = None
         self._fast = None
