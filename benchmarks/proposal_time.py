@@ -52,7 +52,7 @@ def make_problem(seed: int = 0):
 def time_fast(X, Y, ref, n, warmup, reps, groups=None):
     """Consecutive proposals at n, n+1, ... as in a loop; returns the timed ones (s)."""
     flags = None if groups is None else [True, True, False, False]
-    sur = GPSurrogate(M, group_outputs=flags)
+    sur = GPSurrogate(M, group_outputs=flags)  # as in the mobo learner
     times, full = [], []
     for i in range(warmup + reps):
         Xi, Yi = X[: n + i], Y[: n + i]
