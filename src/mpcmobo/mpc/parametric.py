@@ -146,6 +146,10 @@ class ParametricMPC:
         opts = {
             "ipopt.print_level": 0,
             "print_time": False,
+            # IPOPT may probe wild iterates (Inf/NaN in the model, see NOTES): it backtracks by
+            # itself, and a failed solve is reported in MPCSolution, so CasADi's per-evaluation
+            # warnings on stderr are only noise that would bury the progress bars
+            "show_eval_warnings": False,
             "ipopt.sb": "yes",
             "ipopt.tol": tol,
             "ipopt.acceptable_tol": max(1e-6, 100 * tol),
@@ -164,7 +168,8 @@ class ParametricMPC:
                 }
             )
         for k, v in (solver_options or {}).items():
-            opts[k if k.startswith("ipopt.") or k in ("print_time",) else f"ipopt.{k}"] = v
+            casadi_key = k.startswith("ipopt.") or k in ("print_time", "show_eval_warnings")
+            opts[k if casadi_key else f"ipopt.{k}"] = v
         self._solver = ca.nlpsol("mpc", "ipopt", self._nlp, opts)
         warm_opts = dict(opts)
         warm_opts.update(
