@@ -132,6 +132,11 @@ def _should_evaluate(episode: int, last: int, incumbent: np.ndarray, state: dict
     return changed and episode - state.get("episode", -(10**9)) >= every
 
 
+# relative cost per episode of a learner's job, for scheduling only (measured in
+# docs/benchmarks.md: the EHVI learners spend the most per episode, MPC-RL the least)
+JOB_COST = {"mobo": 4, "hybrid": 4, "bo": 3, "mpc-rl": 1}
+
+
 def run_job(
     settings_dict: dict,
     out_dir: str,
@@ -422,6 +427,9 @@ def run_study(
             emit(_progress_event(n, s, ckpt["rows"], settings.episodes))
         if ckpt is None or not ckpt["done"]:
             pending.append((n, s))
+    # longest jobs first (the GP learners' proposals cost more per episode than a gradient
+    # step): with fewer workers than jobs, the slowest job does not start last
+    pending.sort(key=lambda job: -JOB_COST.get(job[0], 2))
     args = dict(
         settings_dict=settings.to_dict(),
         out_dir=str(out),
