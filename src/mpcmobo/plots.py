@@ -65,7 +65,7 @@ def _save(fig, out: Path, name: str) -> list[Path]:
 
 def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
     n = len(learners)
-    fig, axes = plt.subplots(n, 1, figsize=(7, 2.4 * n), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(n, 1, figsize=(8.5, 2.4 * n), sharex=True, squeeze=False)
     J_star = summary["J_star"]
     for ax, name in zip(axes[:, 0], learners):
         d = ep[ep.learner == name]
@@ -82,7 +82,7 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
         vals = d["J_tilde"].to_numpy(float)
         if np.any(np.isfinite(vals)) and np.nanmin(vals) > 0:
             ax.set_yscale("log")  # episode costs span orders of magnitude
-        ax.legend(loc="upper right", fontsize=7)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
     axes[-1, 0].set_xlabel("episode")
     fig.suptitle("Closed-loop performance per episode")
     return fig
