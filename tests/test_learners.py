@@ -192,3 +192,21 @@ def test_replication_reruns_the_incumbent_until_confirmed(cstr):
     # once it has max_replicates (3) episodes the incumbent is not re-run
     runs = np.count_nonzero(np.all(bo.Z == bo._incumbent_z, axis=1))
     assert runs <= 3
+
+
+def test_mpc_rl_learning_rate_decay(cstr):
+    """lr_decay = c: the k-th step (k = 0, 1, ...) is lr / (1 + c k) times the gradient."""
+    space = cstr.search_space
+    g = np.zeros(14)
+    g[2] = 1e-6  # a small gradient on one weight: no clipping, no bound reached
+    lr = make_learner("mpc-rl", space, cstr.parameterization.theta0, optimizer="sgd",
+                      lr=0.01, lr_decay=1.0)  # fmt: skip
+    zs = [space.to_unit(lr.propose())]
+    for _ in range(3):
+        lr.observe(lr.propose(), _result([1, 1, 1, 1], grad=g))
+        zs.append(space.to_unit(lr.propose()))
+    steps = np.linalg.norm(np.diff(zs, axis=0), axis=1)
+    # (d theta / d z changes slightly as the log-scaled weight moves: 1% tolerance)
+    np.testing.assert_allclose(steps / steps[0], [1, 1 / 2, 1 / 3], rtol=1e-2)
+    with pytest.raises(ValueError, match="lr_decay"):
+        make_learner("mpc-rl", space, cstr.parameterization.theta0, lr_decay=-1)

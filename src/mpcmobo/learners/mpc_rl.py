@@ -16,6 +16,8 @@ class MPCRL(Learner):
     ``grad_z J = grad_theta J * d theta / d z``, so that one learning rate suits weights of 10 and
     of 5000 alike. ``optimizer="adam"`` (default) rescales each coordinate by its running RMS;
     ``"sgd"`` is the plain rule with the gradient norm clipped to ``max_step / alpha``.
+    ``lr_decay = c > 0`` makes the step size ``alpha / (1 + c t)`` after ``t`` steps (a
+    Robbins-Monro schedule; 0, the default, is the paper's constant step).
     Episodes whose critic failed (or whose objectives are NaN) make no step.
     """
 
@@ -33,13 +35,16 @@ class MPCRL(Learner):
         beta2: float = 0.999,
         eps: float = 1e-8,
         max_step: float = 0.1,
+        lr_decay: float = 0.0,
     ) -> None:
         super().__init__(space, theta0, seed)
         if optimizer not in ("adam", "sgd"):
             raise ValueError(f"optimizer must be 'adam' or 'sgd', got '{optimizer}'")
         if lr <= 0:
             raise ValueError(f"learning rate must be positive, got {lr}")
-        self.lr, self.optimizer = float(lr), optimizer
+        if not lr_decay >= 0:
+            raise ValueError(f"lr_decay must be >= 0, got {lr_decay}")
+        self.lr, self.optimizer, self.lr_decay = float(lr), optimizer, float(lr_decay)
         self.beta1, self.beta2, self.eps, self.max_step = beta1, beta2, eps, max_step
         self.z = space.to_unit(self.theta0)
         self.m = np.zeros(space.dim)
@@ -62,15 +67,17 @@ class MPCRL(Learner):
             return
         theta = self.space.clip(theta)
         gz = g[self.space.free] * self.space.dtheta_dz(theta)
+        lr = self.lr / (1.0 + self.lr_decay * self.t)
         if self.optimizer == "adam":
             self.t += 1
             self.m = self.beta1 * self.m + (1 - self.beta1) * gz
             self.v = self.beta2 * self.v + (1 - self.beta2) * gz**2
             mh = self.m / (1 - self.beta1**self.t)
             vh = self.v / (1 - self.beta2**self.t)
-            step = self.lr * mh / (np.sqrt(vh) + self.eps)
+            step = lr * mh / (np.sqrt(vh) + self.eps)
         else:
-            step = self.lr * gz
+            self.t += 1
+            step = lr * gz
         norm = np.linalg.norm(step)
         if norm > self.max_step:
             step *= self.max_step / norm
