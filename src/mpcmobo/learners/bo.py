@@ -194,8 +194,7 @@ class _GPLearner(Learner):
         k = self.replicate_every
         if k == 0 or (n - self.n_init) % k != k - 1:
             return False
-        runs = np.count_nonzero(np.all(self.Z == self._incumbent_z, axis=1) & self._finite())
-        return runs < self.max_replicates
+        return self._runs(self._incumbent_z) < self.max_replicates
 
     def _acquire(self, seed: int) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
