@@ -86,18 +86,14 @@ def propose_ei(
     observation.
     """
     with torch_threads(num_threads):
-        return _propose_ei(surrogate, X, y, seed, num_restarts, raw_samples, maxiter)
-
-
-def _propose_ei(surrogate, X, y, seed, num_restarts, raw_samples, maxiter) -> np.ndarray:
-    Xf = _prepare(surrogate, X, y)
-    if surrogate.num_outputs != 1:
-        raise ValueError("propose_ei needs a single-output surrogate")
-    mt, _ = surrogate.posterior_model_space(Xf)
-    best_f = float(mt[:, 0].max())  # incumbent: best posterior mean (noisy EI)
-    model = surrogate.fast_model  # same posterior, faster
-    acq = LogExpectedImprovement(model, best_f=best_f)  # eq. acq_EI (log form)
-    return _optimize(acq, Xf.shape[1], seed, num_restarts, raw_samples, maxiter)
+        Xf = _prepare(surrogate, X, y)
+        if surrogate.num_outputs != 1:
+            raise ValueError("propose_ei needs a single-output surrogate")
+        mt, _ = surrogate.posterior_model_space(Xf)
+        best_f = float(mt[:, 0].max())  # incumbent: best posterior mean (noisy EI)
+        model = surrogate.fast_model  # same posterior, faster
+        acq = LogExpectedImprovement(model, best_f=best_f)  # eq. acq_EI (log form)
+        return _optimize(acq, Xf.shape[1], seed, num_restarts, raw_samples, maxiter)
 
 
 def posterior_front(
@@ -168,77 +164,49 @@ def propose_ehvi(
     surrogate's own fit uses ``surrogate.num_threads``).
     """
     with torch_threads(num_threads):
-        return _propose_ehvi(
-            surrogate,
-            X,
-            Y,
-            ref_point,
-            seed,
-            num_restarts,
-            raw_samples,
-            mc_samples,
-            max_baseline,
-            alpha,
-            method,
-            maxiter,
-        )
-
-
-def _propose_ehvi(
-    surrogate,
-    X,
-    Y,
-    ref_point,
-    seed,
-    num_restarts,
-    raw_samples,
-    mc_samples,
-    max_baseline,
-    alpha,
-    method,
-    maxiter,
-) -> np.ndarray:
-    Xf = _prepare(surrogate, X, Y)
-    m = surrogate.num_outputs
-    ref = np.asarray(ref_point, dtype=np.float64).reshape(-1)
-    if ref.shape[0] != m or not np.all(np.isfinite(ref)):
-        raise ValueError("ref_point must be a finite vector with one entry per output")
-    ref_t = surrogate.to_model_space(ref[None, :])[0]
-    base = posterior_front(surrogate, Xf, ref_t, max_baseline)
-    tref = torch.as_tensor(ref_t, dtype=DTYPE)
-    sampler = SobolQMCNormalSampler(sample_shape=torch.Size([mc_samples]), seed=seed)
-    a = 0.0 if alpha is None else float(alpha)
-    if method == "logehvi":
-        if base.size:
-            mt, _ = surrogate.posterior_model_space(Xf[base])
-            front = torch.as_tensor(mt.reshape(-1, m), dtype=DTYPE)
-        else:  # no posterior mean beats the reference point yet: the whole box is improvement
-            front = torch.empty((0, m), dtype=DTYPE)
-        if a > 0:
-            part = NondominatedPartitioning(ref_point=tref, Y=front, alpha=a)
-        else:
-            part = FastNondominatedPartitioning(ref_point=tref, Y=front)
-        acq = qLogExpectedHypervolumeImprovement(  # eq. EHVI (log, MC)
-            surrogate.fast_model,  # same posterior, faster
-            ref_point=tref,
-            partitioning=part,
-            sampler=sampler,
-        )
-    elif method == "lognehvi":
-        if base.size == 0:  # nothing better than ref yet: fall back to the best point per objective
-            mt, _ = surrogate.posterior_model_space(Xf)
-            base = np.unique(np.argmax(mt, axis=0))
-        with torch.random.fork_rng():
-            torch.manual_seed(seed)
-            acq = qLogNoisyExpectedHypervolumeImprovement(  # eq. EHVI (log, noisy, MC)
-                surrogate.model,
+        Xf = _prepare(surrogate, X, Y)
+        m = surrogate.num_outputs
+        ref = np.asarray(ref_point, dtype=np.float64).reshape(-1)
+        if ref.shape[0] != m or not np.all(np.isfinite(ref)):
+            raise ValueError("ref_point must be a finite vector with one entry per output")
+        ref_t = surrogate.to_model_space(ref[None, :])[0]
+        base = posterior_front(surrogate, Xf, ref_t, max_baseline)
+        tref = torch.as_tensor(ref_t, dtype=DTYPE)
+        sampler = SobolQMCNormalSampler(sample_shape=torch.Size([mc_samples]), seed=seed)
+        a = 0.0 if alpha is None else float(alpha)
+        if method == "logehvi":
+            if base.size:
+                mt, _ = surrogate.posterior_model_space(Xf[base])
+                front = torch.as_tensor(mt.reshape(-1, m), dtype=DTYPE)
+            else:  # no posterior mean beats the reference point yet: the whole box is improvement
+                front = torch.empty((0, m), dtype=DTYPE)
+            if a > 0:
+                part = NondominatedPartitioning(ref_point=tref, Y=front, alpha=a)
+            else:
+                part = FastNondominatedPartitioning(ref_point=tref, Y=front)
+            acq = qLogExpectedHypervolumeImprovement(  # eq. EHVI (log, MC)
+                surrogate.fast_model,  # same posterior, faster
                 ref_point=tref,
-                X_baseline=torch.as_tensor(Xf[base], dtype=DTYPE),
+                partitioning=part,
                 sampler=sampler,
-                prune_baseline=False,
-                alpha=a,
-                cache_root=True,
             )
-    else:
-        raise ValueError(f"unknown method {method!r}")
-    return _optimize(acq, Xf.shape[1], seed, num_restarts, raw_samples, maxiter)
+        elif method == "lognehvi":
+            if (
+                base.size == 0
+            ):  # nothing better than ref yet: fall back to the best point per objective
+                mt, _ = surrogate.posterior_model_space(Xf)
+                base = np.unique(np.argmax(mt, axis=0))
+            with torch.random.fork_rng():
+                torch.manual_seed(seed)
+                acq = qLogNoisyExpectedHypervolumeImprovement(  # eq. EHVI (log, noisy, MC)
+                    surrogate.model,
+                    ref_point=tref,
+                    X_baseline=torch.as_tensor(Xf[base], dtype=DTYPE),
+                    sampler=sampler,
+                    prune_baseline=False,
+                    alpha=a,
+                    cache_root=True,
+                )
+        else:
+            raise ValueError(f"unknown method {method!r}")
+        return _optimize(acq, Xf.shape[1], seed, num_restarts, raw_samples, maxiter)

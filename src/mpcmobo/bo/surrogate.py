@@ -270,12 +270,10 @@ class GPSurrogate:
     ) -> dict[int, np.ndarray]:
         ids = np.unique(groups[groups >= 0])
         b = {int(g): np.zeros(self.num_outputs) for g in ids}
-        n = len(X)
-        rows = np.arange(n)
-        if self.fit_subsample is not None and n > self.fit_subsample:
-            # as for the hyperparameters: a seeded subset; the GLS step of the next fits then
-            # refines the offsets with all the data
-            rows = np.sort(np.random.default_rng(n).choice(n, self.fit_subsample, replace=False))
+        # as for the hyperparameters: a seeded subset; the GLS step of the next fits then
+        # refines the offsets with all the data
+        rows = self._subsample(len(X))
+        rows = np.arange(len(X)) if rows is None else rows
         with torch_threads(self.num_threads):
             for j in np.flatnonzero(self.group_outputs):
                 bj = fit_group_offsets(
@@ -290,9 +288,11 @@ class GPSurrogate:
                     b[g][j] = v
         return b
 
-    def _estimate_group_offsets(self, X: np.ndarray, T: np.ndarray, groups: np.ndarray) -> None:
+    def _estimate_group_offsets(
+        self, X: np.ndarray, T: np.ndarray, groups: np.ndarray
+    ) -> dict[int, np.ndarray]:
         """Random-effects estimate of the group offsets with the current hyperparameters
-        (module docstring, "Start effects"); sets ``self.group_offsets``."""
+        (module docstring, "Start effects"), from the previous offsets' adjusted targets."""
         ids = np.unique(groups[groups >= 0])
         H = (groups[:, None] == ids[None, :]).astype(float)  # (n, G)
         T_adj = T - self._group_matrix(groups)  # scale of the GP's (adjusted) targets
@@ -315,7 +315,7 @@ class GPSurrogate:
             lhs = H.T @ AH + np.eye(len(ids)) / tau2
             b[:, j] = np.linalg.solve(lhs, AH.T @ t)
         b -= b.mean(axis=0)  # centred: h is the cost of an average start
-        self.group_offsets = {int(g): b[k].copy() for k, g in enumerate(ids)}
+        return {int(g): b[k].copy() for k, g in enumerate(ids)}
 
     def fit(self, X: np.ndarray, Y: np.ndarray, groups: np.ndarray | None = None) -> GPSurrogate:
         """Fit (or condition) the GPs on the finite rows of ``(X, Y)``; returns ``self``.
@@ -351,12 +351,8 @@ class GPSurrogate:
         elif full:  # offsets and hyperparameters together (mpcmobo.bo.groups)
             self.group_offsets = self._fit_group_offsets(Xf, T, gf, seed=1234 + n)
         else:  # the posterior mean of the offsets under the current hyperparameters
-            self._estimate_group_offsets(Xf, T, gf)
-
-        def adjusted() -> torch.Tensor:
-            return torch.as_tensor(T if gf is None else T - self._group_matrix(gf), dtype=DTYPE)
-
-        tY = adjusted()
+            self.group_offsets = self._estimate_group_offsets(Xf, T, gf)
+        tY = torch.as_tensor(T if gf is None else T - self._group_matrix(gf), dtype=DTYPE)
         # eq. GP: one independent GP per output (batched), SE-ARD kernel, Gaussian noise
         model = self._make_model(tX, tY)
         if full:
@@ -372,13 +368,19 @@ class GPSurrogate:
         self._fast = None
         return self
 
+    def _subsample(self, n: int) -> np.ndarray | None:
+        """The seeded subset of ``fit_subsample`` rows a full fit uses, or None for all."""
+        if self.fit_subsample is None or n <= self.fit_subsample:
+            return None
+        return np.sort(np.random.default_rng(n).choice(n, self.fit_subsample, replace=False))
+
     def _ml_fit(self, model: SingleTaskGP, tX: torch.Tensor, tY: torch.Tensor, n: int) -> None:
         """Type-II maximum likelihood of ``model``'s hyperparameters, in place."""
         target = model
-        if self.fit_subsample is not None and n > self.fit_subsample:
+        sub = self._subsample(n)
+        if sub is not None:
             # type-II ML on a seeded random subset (cost O(k^3) instead of O(n^3)), then
             # the hyperparameters are copied into the GP on all n points
-            sub = np.sort(np.random.default_rng(n).choice(n, self.fit_subsample, replace=False))
             target = self._new_gp(tX[sub], tY[sub])
             target.load_state_dict(self._hyper_tensors(model), strict=False)
         mll = ExactMarginalLogLikelihood(target.likelihood, target)
@@ -432,7 +434,11 @@ class GPSurrogate:
         Log outputs: mean and std of the back-transformed (log-normal) value, see module
         docstring.
         """
-        mt, st = self.posterior_model_space(X)
+        return self.to_cost_space(*self.posterior_model_space(X))
+
+    def to_cost_space(self, mt: np.ndarray, st: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The back transform of :meth:`predict`: a model-space posterior ``(mt, st)`` (from
+        :meth:`posterior_model_space`) as mean and std of the costs."""
         mean, std = -mt, st.copy()
         for j, use_log in enumerate(self.log_outcomes):
             if use_log:

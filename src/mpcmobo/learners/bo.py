@@ -150,9 +150,9 @@ class _GPLearner(Learner):
         """
         ok = self._finite()
         Zf = self.Z[ok]
-        mean, _ = self.surrogate.predict(Zf)
-        cand = np.flatnonzero(pareto_mask(mean)) if mean.shape[1] > 1 else np.arange(len(Zf))
         mt, st = self.surrogate.posterior_model_space(Zf)
+        mean, _ = self.surrogate.to_cost_space(mt, st)
+        cand = np.flatnonzero(pareto_mask(mean)) if mean.shape[1] > 1 else np.arange(len(Zf))
         score = -mt[:, 0] + self.incumbent_kappa * st[:, 0]  # model space is maximised: -mt
         best = cand[int(np.argmin(score[cand]))]
         self._challenger_z = None

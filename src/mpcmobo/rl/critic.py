@@ -163,20 +163,11 @@ def ridge_lstsq(F: np.ndarray, y: np.ndarray, ridge: float) -> np.ndarray | None
     :math:`[F D^{-1}; \sqrt{\rho n} I] z = [y; 0]` is solved by ``lstsq`` and ``p = D^{-1} z`` is
     returned; ``None`` if degenerate (no rows, all-zero features) or non-finite.
     """
-    n, m = F.shape
+    n = F.shape[0]
     if n == 0 or not np.any(F):
         return None
     s = _column_scale(F)
-    Fs = F / s
-    if ridge > 0:
-        Fs = np.vstack([Fs, np.sqrt(ridge * n) * np.eye(m)])
-        y = np.concatenate([y, np.zeros(m)])
-    try:
-        z = scipy.linalg.lstsq(Fs, y, lapack_driver="gelsd")[0]
-    except (np.linalg.LinAlgError, ValueError):
-        return None
-    p = z / s
-    return p if np.all(np.isfinite(p)) else None
+    return _ridge_gelsd(F / s, y, np.sqrt(ridge * n), s)
 
 
 def lstd_solve(
@@ -189,22 +180,31 @@ def lstd_solve(
     ``nu = D^{-1} z``), by ``lstsq`` on :math:`[A_s; \sqrt{\rho} n I] z = [b_s; 0]`.
     Returns ``None`` if degenerate or non-finite.
     """
-    n, m = Phi.shape
+    n = Phi.shape[0]
     if n == 0 or not np.any(Phi):
         return None
     s = _column_scale(np.vstack([Phi, Phi_next]))
     Ps, Pns = Phi / s, Phi_next / s
     A = Ps.T @ (Ps - gamma * Pns)
     b = Ps.T @ delta
-    if ridge > 0:
-        A = np.vstack([A, np.sqrt(ridge) * n * np.eye(m)])
+    return _ridge_gelsd(A, b, np.sqrt(ridge) * n, s)
+
+
+def _ridge_gelsd(A: np.ndarray, b: np.ndarray, weight: float, s: np.ndarray) -> np.ndarray | None:
+    """``z / s`` for ``z`` the least-squares solution (LAPACK gelsd) of ``[A; w I] z = [b; 0]``
+    (no ridge rows when ``w = 0``): the shared last step of :func:`ridge_lstsq` and
+    :func:`lstd_solve`, whose columns were scaled by ``s``. ``None`` if it fails or is not
+    finite."""
+    m = A.shape[1]
+    if weight > 0:
+        A = np.vstack([A, weight * np.eye(m)])
         b = np.concatenate([b, np.zeros(m)])
     try:
         z = scipy.linalg.lstsq(A, b, lapack_driver="gelsd")[0]
     except (np.linalg.LinAlgError, ValueError):
         return None
-    nu = z / s
-    return nu if np.all(np.isfinite(nu)) else None
+    p = z / s
+    return p if np.all(np.isfinite(p)) else None
 
 
 class CompatibleCritic:
