@@ -166,6 +166,21 @@ def test_warm_start_refit_schedule():
     assert full == [True, True, False, False, True, False, False, True]
 
 
+def test_refit_period_grows_with_the_data():
+    X = sobol(64, 2, seed=2)
+    Y = (X**2).sum(1, keepdims=True)
+    sur = GPSurrogate(1, refit_every=3, refit_fraction=0.1, min_refit_n=5)
+    full = [n for n in range(40, 60) if sur.fit(X[:n], Y[:n]).last_fit_was_full]
+    # period max(3, ceil(0.1 n)): 4 calls up to n = 40, 5 up to 50, then 6
+    assert full == [40, 45, 50, 56]
+    # a checkpoint written before refit_fraction existed keeps the fixed period
+    state = sur.state_dict()
+    del state["refit_fraction"]
+    old = GPSurrogate(1)
+    old.load_state_dict(state)
+    assert old.refit_fraction == 0.0
+
+
 # ----------------------------------------------------------------------------- proposals
 def toy_ei(X: np.ndarray) -> np.ndarray:
     """Cost with minimum 0 at (0.7, 0.3), min of the initial design well above it."""

@@ -37,8 +37,9 @@ log-normal and we return its mean and standard deviation:
 Hyperparameter warm start
 -------------------------
 A full type-II maximum-likelihood fit (``fit_gpytorch_mll``, L-BFGS-B) starts from the previous
-hyperparameters and runs while ``n < min_refit_n`` and otherwise once every ``refit_every``
-calls; in between, the previous hyperparameters (in standardised units) are reused and the
+hyperparameters and runs while ``n < min_refit_n`` and otherwise once every
+``max(refit_every, ceil(refit_fraction n))`` calls (every 10 up to 100 points, then after every
+10% growth of the data: hyperparameters of a large data set move little per point); in between, the previous hyperparameters (in standardised units) are reused and the
 GP is only conditioned on the new data (a new exact GP on all data, no optimisation). Above
 ``fit_subsample`` points the full fit maximises the marginal likelihood of a seeded random
 subset (O(k^3) per iteration), and the GP on all points takes those hyperparameters.
@@ -117,7 +118,10 @@ class GPSurrogate:
     ----------
     num_outputs: number of cost columns ``m`` of ``Y``.
     refit_every: a full marginal-likelihood fit every ``refit_every`` calls to :meth:`fit`
-        (1 = always). In between, hyperparameters are reused.
+        (1 = always), or less often with ``refit_fraction``. In between, hyperparameters are
+        reused.
+    refit_fraction: with ``n`` finite observations, a full fit is due after
+        ``max(refit_every, ceil(refit_fraction n))`` calls (0: every ``refit_every`` calls).
     log_outcomes: per output, whether to model ``log(y + c)`` (see module docstring).
     min_refit_n: while the number of finite observations is below this, always refit.
     fit_maxiter: L-BFGS-B iteration cap of a full fit.
@@ -147,6 +151,7 @@ class GPSurrogate:
         group_outputs: Sequence[bool] | None = None,
         group_prior_std: float = 1.0,
         noise_floor: float | None = None,
+        refit_fraction: float = 0.1,
     ) -> None:
         if num_outputs < 1:
             raise ValueError("num_outputs must be >= 1")
@@ -154,6 +159,9 @@ class GPSurrogate:
             raise ValueError("refit_every must be >= 1")
         self.num_outputs = int(num_outputs)
         self.refit_every = int(refit_every)
+        if not 0 <= refit_fraction <= 1:
+            raise ValueError("refit_fraction must be in [0, 1]")
+        self.refit_fraction = float(refit_fraction)
         log = (
             [False] * self.num_outputs if log_outcomes is None else [bool(b) for b in log_outcomes]
         )
@@ -231,11 +239,8 @@ class GPSurrogate:
         }
 
     def _refit_due(self, n: int) -> bool:
-        return (
-            self._hyper is None
-            or n < self.min_refit_n
-            or self._calls_since_refit >= self.refit_every - 1
-        )
+        period = max(self.refit_every, int(np.ceil(self.refit_fraction * n)))
+        return self._hyper is None or n < self.min_refit_n or self._calls_since_refit >= period - 1
 
     def _new_gp(self, tX: torch.Tensor, tY: torch.Tensor) -> SingleTaskGP:
         """BoTorch's default ``SingleTaskGP`` (standardised outcomes), with the noise variance
@@ -458,6 +463,7 @@ class GPSurrogate:
             "version": 1,
             "num_outputs": self.num_outputs,
             "refit_every": self.refit_every,
+            "refit_fraction": self.refit_fraction,
             "log_outcomes": list(self.log_outcomes),
             "min_refit_n": self.min_refit_n,
             "fit_maxiter": self.fit_maxiter,
@@ -475,6 +481,8 @@ class GPSurrogate:
     def load_state_dict(self, d: dict[str, Any]) -> None:
         self.num_outputs = int(d["num_outputs"])
         self.refit_every = int(d["refit_every"])
+        # checkpoints written before refit_fraction existed refit every refit_every calls
+        self.refit_fraction = float(d.get("refit_fraction", 0.0))
         self.log_outcomes = [bool(b) for b in d["log_outcomes"]]
         self.min_refit_n = int(d["min_refit_n"])
         self.fit_maxiter = int(d["fit_maxiter"])

@@ -45,6 +45,7 @@ class _GPLearner(Learner):
         *,
         n_init: int = 5,
         refit_every: int = 10,
+        refit_fraction: float = 0.1,
         log_outcomes: tuple[bool, ...] | None = None,
         num_restarts: int = 4,
         raw_samples: int = 256,
@@ -84,6 +85,7 @@ class _GPLearner(Learner):
         self.surrogate = GPSurrogate(
             m,
             refit_every=refit_every,
+            refit_fraction=refit_fraction,
             log_outcomes=log,
             group_outputs=log if self.start_effects else None,
             noise_floor=noise_floor,
@@ -271,7 +273,9 @@ class MOBOLearner(_GPLearner):
         seed: int = 0,
         *,
         ref_margin: float = 0.1,
-        mc_samples: int = 64,
+        mc_samples: int = 32,
+        num_restarts: int = 2,
+        raw_samples: int = 128,
         max_baseline: int = 32,
         method: str = "logehvi",
         hybrid_every: int = 0,
@@ -279,7 +283,18 @@ class MOBOLearner(_GPLearner):
         log_outcomes: tuple[bool, ...] | None = (True, True, False, False),
         **options,
     ) -> None:
-        super().__init__(space, theta0, seed, log_outcomes=log_outcomes, **options)
+        # a cheaper EHVI search than BO's EI (32 quasi-MC samples, 2 restarts, 128 raw
+        # samples instead of 64, 4, 256): 2.6x faster per proposal, no measurable loss
+        # (docs/benchmarks.md, "EHVI effort"); it keeps the 600-episode study under 30 min
+        super().__init__(
+            space,
+            theta0,
+            seed,
+            log_outcomes=log_outcomes,
+            num_restarts=num_restarts,
+            raw_samples=raw_samples,
+            **options,
+        )
         if hybrid_every < 0:
             raise ValueError(f"hybrid_every must be >= 0, got {hybrid_every}")
         self.ref_margin, self.mc_samples, self.max_baseline = ref_margin, mc_samples, max_baseline
