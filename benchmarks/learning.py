@@ -5,6 +5,7 @@ episodes until the evaluated incumbent is within 5% and 2% of J*, the final J_ev
 constraint violation during learning, and wall time per episode split into MPC and learner.
 
     .venv/bin/python benchmarks/learning.py --episodes 50 --seeds 0 1 2 3 4 --out runs/bench-learning
+    .venv/bin/python benchmarks/learning.py --table-only --out runs/a runs/b   # seeds pooled
 """
 
 from __future__ import annotations
@@ -20,35 +21,48 @@ from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 
 
-def table(out: Path) -> str:
-    summary = json.loads((out / "summary.json").read_text())
-    df = pd.read_parquet(out / "episodes.parquet")
-    J_star = summary["J_star"]
+def _median_episodes(values: list) -> str:
+    """Median of episode counts, a None (never reached) counting as infinitely many."""
+    m = float(np.median([np.inf if v is None else v for v in values]))
+    return "-" if not np.isfinite(m) else f"{m:g}"
+
+
+def table(outs: list[Path]) -> str:
+    """One markdown row per learner; with several run directories (same J*) the seeds of a
+    learner are pooled, in the order given."""
+    summaries = [json.loads((out / "summary.json").read_text()) for out in outs]
+    J_star = summaries[0]["J_star"]
+    if any(not np.isclose(s["J_star"], J_star) for s in summaries):
+        raise SystemExit("the run directories have different J*: their seeds cannot be pooled")
+    df = pd.concat([pd.read_parquet(out / "episodes.parquet") for out in outs])
     lines = [
-        f"J* = {J_star:.1f}, J_eval(theta0) = {summary['J_initial']:.1f} "
-        f"(ratio {summary['J_initial'] / J_star:.2f})",
+        f"J* = {J_star:.1f}, J_eval(theta0) = {summaries[0]['J_initial']:.1f} "
+        f"(ratio {summaries[0]['J_initial'] / J_star:.2f})",
         "",
         "| learner | seeds | episodes to 5% (median, per seed) | episodes to 2% (median, per seed) "
         "| final J_eval/J* (median, per seed) | violation per episode (mean) "
         "| MPC s/episode | learner s/episode |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for name, s in summary["learners"].items():
-        per = s["per_seed"]
-        seeds = sorted(per, key=int)
-        to5 = [per[k]["episodes_to_5pct"] for k in seeds]
-        to2 = [per[k]["episodes_to_2pct"] for k in seeds]
-        ratio = [
-            per[k]["J_final"] / J_star if per[k]["J_final"] is not None else np.nan for k in seeds
+    names = list(dict.fromkeys(n for s in summaries for n in s["learners"]))
+    for name in names:
+        per = [
+            s["learners"][name]["per_seed"][k]
+            for s in summaries
+            if name in s["learners"]
+            for k in sorted(s["learners"][name]["per_seed"], key=int)
         ]
+        to5 = [p["episodes_to_5pct"] for p in per]
+        to2 = [p["episodes_to_2pct"] for p in per]
+        ratio = [p["J_final"] / J_star if p["J_final"] is not None else np.nan for p in per]
         d = df[df["learner"] == name]
 
         def fmt(v):
             return "-" if v is None else str(v)
 
         lines.append(
-            f"| {name} | {len(seeds)} | {fmt(s['episodes_to_5pct'])} ({', '.join(map(fmt, to5))}) "
-            f"| {fmt(s['episodes_to_2pct'])} ({', '.join(map(fmt, to2))}) "
+            f"| {name} | {len(per)} | {_median_episodes(to5)} ({', '.join(map(fmt, to5))}) "
+            f"| {_median_episodes(to2)} ({', '.join(map(fmt, to2))}) "
             f"| {np.nanmedian(ratio):.3f} ({', '.join(f'{r:.2f}' for r in ratio)}) "
             f"| {d['violation'].mean():.3g} | {d['mpc_time_s'].mean():.2f} "
             f"| {d['learner_time_s'].mean():.2f} |"
@@ -64,10 +78,18 @@ def main() -> None:
     ap.add_argument("--eval-every", type=int, default=5)
     ap.add_argument("--start-mode", default="random", choices=["random", "cycle"])
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=Path("runs/bench-learning"))
+    ap.add_argument(
+        "--out",
+        type=Path,
+        nargs="+",
+        default=[Path("runs/bench-learning")],
+        help="run directory; with --table-only, several directories pool their seeds",
+    )
     ap.add_argument("--table-only", action="store_true", help="only print the table of --out")
     args = ap.parse_args()
     if not args.table_only:
+        if len(args.out) != 1:
+            raise SystemExit("one --out directory per run (several only with --table-only)")
         settings = load_settings(
             None,
             learners=args.learners,
@@ -77,8 +99,8 @@ def main() -> None:
             start_mode=args.start_mode,
             evaluation={"eval_every": args.eval_every},
         )
-        resume = (args.out / "config.toml").exists()
-        run_study(None if resume else settings, args.out, resume=resume)
+        resume = (args.out[0] / "config.toml").exists()
+        run_study(None if resume else settings, args.out[0], resume=resume)
     print(table(args.out))
 
 

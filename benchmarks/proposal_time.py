@@ -19,6 +19,7 @@ as inside ``mobo``); the plain loop gets the same data without groups. ``--start
 from __future__ import annotations
 
 import argparse
+import inspect
 import os
 import platform
 import statistics
@@ -33,8 +34,23 @@ from botorch.optim import optimize_acqf
 from gpytorch.mlls import SumMarginalLogLikelihood
 
 from mpcmobo.bo import GPSurrogate, propose_ehvi, reference_point
+from mpcmobo.learners.bo import MOBOLearner, _GPLearner, reduced_effort
 
 D, M = 13, 4
+# the EHVI search effort of the mobo learner (its constructors' defaults), halved from
+# REDUCE_AFTER observations on, as in MOBOLearner.search_effort
+_MOBO = inspect.signature(MOBOLearner.__init__).parameters
+_GP = inspect.signature(_GPLearner.__init__).parameters
+EFFORT = {
+    "mc_samples": _MOBO["mc_samples"].default,
+    "num_restarts": _GP["num_restarts"].default,
+    "raw_samples": _GP["raw_samples"].default,
+}
+REDUCE_AFTER = _MOBO["reduce_effort_after"].default
+
+
+def effort(n: int) -> dict[str, int]:
+    return reduced_effort(**EFFORT) if REDUCE_AFTER is not None and n >= REDUCE_AFTER else EFFORT
 
 
 def make_problem(seed: int = 0):
@@ -58,7 +74,7 @@ def time_fast(X, Y, ref, n, warmup, reps, groups=None):
         Xi, Yi = X[: n + i], Y[: n + i]
         t0 = time.perf_counter()
         sur.fit(Xi, Yi, groups=None if groups is None else groups[: n + i])
-        x = propose_ehvi(sur, Xi, Yi, ref, seed=i)
+        x = propose_ehvi(sur, Xi, Yi, ref, seed=i, **effort(n + i))
         dt = time.perf_counter() - t0
         assert x.shape == (D,) and np.all((x >= 0) & (x <= 1))
         if i >= warmup:
@@ -110,7 +126,7 @@ def main() -> None:
     print(
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
         f"{os.cpu_count()} cpus, {platform.processor() or platform.machine()}, "
-        f"load avg {os.getloadavg()[0]:.1f}, starts {args.starts}"
+        f"load avg {os.getloadavg()[0]:.1f}, starts {args.starts}, mobo effort {EFFORT}, halved from n = {REDUCE_AFTER}"
     )
     rows = []
     for n in sizes:

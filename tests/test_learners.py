@@ -210,3 +210,27 @@ def test_mpc_rl_learning_rate_decay(cstr):
     np.testing.assert_allclose(steps / steps[0], [1, 1 / 2, 1 / 3], rtol=1e-2)
     with pytest.raises(ValueError, match="lr_decay"):
         make_learner("mpc-rl", space, cstr.parameterization.theta0, lr_decay=-1)
+
+
+def test_mobo_halves_its_ehvi_search_after_reduce_effort_after(cstr, monkeypatch):
+    import mpcmobo.learners.bo as bo_module
+
+    seen = []
+
+    def fake_ehvi(surrogate, X, Y, ref, *, seed, **kw):
+        seen.append((X.shape[0], kw["mc_samples"], kw["num_restarts"], kw["raw_samples"]))
+        return np.full(X.shape[1], 0.5)
+
+    monkeypatch.setattr(bo_module, "propose_ehvi", fake_ehvi)
+    space = cstr.search_space
+    mobo = make_learner("mobo", space, cstr.parameterization.theta0, n_init=2,
+                        reduce_effort_after=4)  # fmt: skip
+    for k in range(6):
+        th = mobo.propose()
+        mobo.observe(th, _result([1000.0 + 100 * k, 10.0 - k, k % 2, 0]))
+    # the design (n < 2) needs no search; full effort at n = 2, 3; halved from n = 4
+    assert seen == [(2, 64, 4, 256), (3, 64, 4, 256), (4, 32, 2, 128), (5, 32, 2, 128)]
+    assert bo_module.reduced_effort(1, 1, 1) == {"mc_samples": 1, "num_restarts": 1,
+                                                 "raw_samples": 1}  # fmt: skip
+    with pytest.raises(ValueError, match="reduce_effort_after"):
+        make_learner("mobo", space, cstr.parameterization.theta0, reduce_effort_after=-1)

@@ -128,6 +128,7 @@ def test_refuses_to_overwrite_and_checks_learners(full_run, tmp_path):
         run_study(None, tmp_path / "empty", resume=True)
     with pytest.raises(SettingsError, match="learner_options.mpc-rl"):
         run_study(small(learner_options={"mpc-rl": {"lr": -1.0}}), tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()  # nothing written: the fixed settings can use it
     with pytest.raises(SettingsError, match="backend"):
         try:
             import ray  # noqa: F401

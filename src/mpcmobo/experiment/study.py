@@ -405,9 +405,12 @@ def run_study(
     simulate an interruption); the summary then has ``complete: false``.
     """
     out = Path(out_dir)
+    if settings is not None and not resume:
+        check_learners(settings)  # a bad learner option fails before anything is written
     out.mkdir(parents=True, exist_ok=True)
     settings = _prepare_dir(settings, out, resume)
-    check_learners(settings)
+    if resume:
+        check_learners(settings)
     emit = progress or (lambda event: None)
     jobs = [(n, s) for n in settings.learners for s in settings.seeds]
     emit({"kind": "start", "jobs": jobs, "episodes": settings.episodes, "out_dir": str(out)})
