@@ -38,9 +38,10 @@ Hyperparameter warm start
 -------------------------
 A full type-II maximum-likelihood fit (``fit_gpytorch_mll``, L-BFGS-B) starts from the previous
 hyperparameters and runs while ``n < min_refit_n`` and otherwise once every
-``max(refit_every, ceil(refit_fraction n))`` calls (every 10 up to 100 points, then after every
-10% growth of the data: hyperparameters of a large data set move little per point); in between, the previous hyperparameters (in standardised units) are reused and the
-GP is only conditioned on the new data (a new exact GP on all data, no optimisation). Above
+``max(refit_every, ceil(refit_fraction n))`` calls (by default every 10 up to 100 points, then
+after every 10% growth of the data: hyperparameters of a large data set move little per point);
+in between, the previous hyperparameters (in standardised units) are reused and the GP is only
+conditioned on the new data (a new exact GP on all data, no optimisation). Above
 ``fit_subsample`` points the full fit maximises the marginal likelihood of a seeded random
 subset (O(k^3) per iteration), and the GP on all points takes those hyperparameters.
 
