@@ -99,8 +99,15 @@ def test_run_seeds_forms_resume_and_evaluate(tmp_path):
     res = runner.invoke(app, ["run", "--resume", "--out", str(out), "-q"])
     assert res.exit_code == 0, res.output
     assert storage.read_episodes(out).equals(before)
-    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--episodes", "9"])
-    assert res.exit_code == 2 and "--episodes" in res.output
+    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--steps", "9"])
+    assert res.exit_code == 2 and "--steps" in res.output
+    # --episodes extends the budget of a resumed run, never shortens it
+    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--episodes", "2"])
+    assert res.exit_code == 1 and "extended, not shortened" in res.output
+    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--episodes", "4", "-q"])
+    assert res.exit_code == 0, res.output
+    assert len(storage.read_episodes(out)) == 2 * 4
+    assert json.loads((out / "summary.json").read_text())["settings"]["episodes"] == 4
     res = runner.invoke(app, ["run", *SMALL, "--out", str(out)])
     assert res.exit_code == 1 and "not empty" in res.output
     res = runner.invoke(app, ["evaluate", str(out), "--n-starts", "2"])

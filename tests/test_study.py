@@ -111,6 +111,26 @@ def test_interrupted_then_resumed_equals_uninterrupted(full_run, tmp_path):
     pd.testing.assert_frame_equal(a, storage.read_episodes(out).drop(columns=WALL))
 
 
+def test_extended_budget_equals_a_run_with_that_budget(full_run, tmp_path):
+    out_full, _, _ = full_run
+    out = tmp_path / "extended"
+    run_study(small(episodes=5), out)
+    short = storage.read_episodes(out)
+    # the old last episode (4) had the final evaluation and trajectories of a 5-episode run
+    assert np.isfinite(short[short.episode == 4].J_eval_incumbent).all()
+    with pytest.raises(StudyError, match="extended, not shortened"):
+        run_study(small(episodes=3), out, resume=True)
+    done = run_study(small(episodes=7), out, resume=True)
+    assert done["complete"] is True
+    assert load_settings(out / "config.toml").episodes == 7
+    a = storage.read_episodes(out_full).drop(columns=WALL)
+    b = storage.read_episodes(out).drop(columns=WALL)
+    pd.testing.assert_frame_equal(a, b)
+    pd.testing.assert_frame_equal(
+        storage.read_trajectories(out_full), storage.read_trajectories(out)
+    )
+
+
 def test_parallel_workers_match_serial(full_run, tmp_path):
     out_full, _, _ = full_run
     out = tmp_path / "par"

@@ -112,7 +112,11 @@ def run(
         None, "--seeds", "-s", help="seeds: --seeds 0 1 2, --seeds 0,1,2 or repeated --seeds"
     ),
     out: Path | None = typer.Option(None, "--out", "-o", help="output directory"),
-    resume: bool = typer.Option(False, "--resume", help="continue the run recorded in --out"),
+    resume: bool = typer.Option(
+        False,
+        "--resume",
+        help="continue the run recorded in --out (with --episodes N: extend its budget to N)",
+    ),
     workers: int | None = typer.Option(None, "--workers", "-w", help="parallel processes"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
     no_plot: bool = typer.Option(False, "--no-plot", help="do not draw figures 1-4 at the end"),
@@ -126,13 +130,19 @@ def run(
             if out is None:
                 _fail("--resume needs --out DIR (the run to continue)", 2)
             given = [n for n, v in (("--config", config), ("--system", system),
-                     ("--learner", learner), ("--episodes", episodes), ("--steps", steps),
+                     ("--learner", learner), ("--steps", steps),
                      ("--seeds", seed_list)) if v is not None]  # fmt: skip
             if given:
-                _fail(f"--resume uses the saved DIR/config.toml; drop {', '.join(given)}", 2)
+                _fail(
+                    f"--resume uses the saved DIR/config.toml (only --workers, and --episodes "
+                    f"to extend the budget, may change); drop {', '.join(given)}",
+                    2,
+                )
             settings = None
-            if workers is not None:
-                settings = load_settings(out / "config.toml", workers=workers)
+            if workers is not None or episodes is not None:
+                if not (out / "config.toml").exists():
+                    _fail(f"nothing to resume: {out / 'config.toml'} does not exist", 1)
+                settings = load_settings(out / "config.toml", workers=workers, episodes=episodes)
         else:
             settings = load_settings(
                 config,

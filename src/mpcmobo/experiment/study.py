@@ -7,7 +7,9 @@ object crosses a process boundary) and, after every episode, rewrites its checkp
 the :class:`LearningRun` state (learner and random generators), every row so far, the stored
 trajectories and the evaluation-policy state. ``run_study(..., resume=True)`` continues each job
 from its checkpoint with the saved ``config.toml``; since an episode depends only on that state,
-the records equal those of an uninterrupted run (wall-time columns aside).
+the records equal those of an uninterrupted run (wall-time columns aside). Resumed with settings
+whose ``episodes`` is larger, a run is extended to that budget, and its records equal those of a
+run started with it (:func:`_reopen` undoes what only the old last episode recorded).
 
 Evaluation policy: the incumbent's J_eval is computed at episode 0, at the last episode, and
 whenever the incumbent differs from the last evaluated one and at least ``eval_every`` episodes
@@ -196,6 +198,8 @@ def run_job(
         if len(rows) != run.episode:
             raise StudyError(f"checkpoint of {learner_name}-s{seed} is inconsistent")
     total, last = settings.episodes, settings.episodes - 1
+    if ckpt is not None and int(ckpt["episodes"]) < total:  # the budget was extended
+        eval_state = _reopen(rows, trajectories, settings)
     every_traj = settings.records.trajectory_every
     done_now = 0
     while run.episode < total and (max_episodes is None or done_now < max_episodes):
@@ -249,6 +253,34 @@ def run_job(
         "episodes": run.episode,
         "done": run.episode >= total,
     }
+
+
+def _reopen(rows: list[dict], trajectories: list[dict], settings: Settings) -> dict:
+    """Undo, in place, what only the end of the old budget recorded, so that a run extended
+    to ``settings.episodes`` has the records of a run started with that budget: the final
+    evaluation of the old last episode (kept only if the evaluation policy would have made it
+    anyway), its "final" trajectories, and its off-grid "learning" trajectory. Returns the
+    evaluation state as of the end of ``rows``."""
+    state: dict = {}
+    for row in rows[:-1]:
+        if math.isfinite(row.get("J_eval_incumbent", math.nan)):
+            state = {"theta": np.asarray(row["incumbent"], dtype=float), "episode": row["episode"]}
+    if not rows:
+        return state
+    end = rows[-1]
+    e, incumbent = end["episode"], np.asarray(end["incumbent"], dtype=float)
+    if _should_evaluate(e, settings.episodes - 1, incumbent, state, settings.evaluation.eval_every):
+        state = {"theta": incumbent.copy(), "episode": e}
+    else:
+        end["J_eval_incumbent"] = math.nan
+    keep = [
+        t
+        for t in trajectories
+        if not (t["episode"] == e and (t["phase"] == "final" or (
+            t["phase"] == "learning" and e % settings.records.trajectory_every != 0)))
+    ]  # fmt: skip
+    trajectories[:] = keep
+    return state
 
 
 def _limit_threads() -> None:
@@ -376,10 +408,22 @@ def _prepare_dir(settings: Settings | None, out: Path, resume: bool) -> Settings
         if not config.exists():
             raise StudyError(f"nothing to resume: {config} does not exist")
         saved = load_settings(config)
-        if settings is not None:  # only how the work is spread may change on resume
+        if settings is not None:  # how the work is spread, and a larger budget, may change
+            if settings.episodes < saved.episodes:
+                raise StudyError(
+                    f"episodes: the run in {out} has a budget of {saved.episodes}; a resumed "
+                    f"run can be extended, not shortened (got {settings.episodes})"
+                )
+            extended = settings.episodes > saved.episodes
             saved = saved.model_copy(
-                update={"workers": settings.workers, "backend": settings.backend}
+                update={
+                    "workers": settings.workers,
+                    "backend": settings.backend,
+                    "episodes": settings.episodes,
+                }
             )
+            if extended:  # the saved settings are those of the run from now on
+                storage.atomic_write_text(config, settings_to_toml(saved))
         return saved
     if settings is None:
         raise StudyError("settings are required for a new study")
@@ -428,7 +472,7 @@ def run_study(
         ckpt = storage.load_checkpoint(out, n, s)
         if ckpt is not None:
             emit(_progress_event(n, s, ckpt["rows"], settings.episodes))
-        if ckpt is None or not ckpt["done"]:
+        if ckpt is None or not ckpt["done"] or len(ckpt["rows"]) < settings.episodes:
             pending.append((n, s))
     # longest jobs first (the GP learners' proposals cost more per episode than a gradient
     # step): with fewer workers than jobs, the slowest job does not start last
