@@ -34,23 +34,19 @@ from botorch.optim import optimize_acqf
 from gpytorch.mlls import SumMarginalLogLikelihood
 
 from mpcmobo.bo import GPSurrogate, propose_ehvi, reference_point
-from mpcmobo.learners.bo import MOBOLearner, _GPLearner, reduced_effort
+from mpcmobo.learners.bo import MOBOLearner, _GPLearner, search_effort
 
 D, M = 13, 4
 # the EHVI search effort of the mobo learner (its constructors' defaults), halved from
-# REDUCE_AFTER observations on, as in MOBOLearner.search_effort
+# reduce_effort_after observations on, as in MOBOLearner.search_effort
 _MOBO = inspect.signature(MOBOLearner.__init__).parameters
 _GP = inspect.signature(_GPLearner.__init__).parameters
 EFFORT = {
     "mc_samples": _MOBO["mc_samples"].default,
     "num_restarts": _GP["num_restarts"].default,
     "raw_samples": _GP["raw_samples"].default,
+    "reduce_effort_after": _MOBO["reduce_effort_after"].default,
 }
-REDUCE_AFTER = _MOBO["reduce_effort_after"].default
-
-
-def effort(n: int) -> dict[str, int]:
-    return reduced_effort(**EFFORT) if REDUCE_AFTER is not None and n >= REDUCE_AFTER else EFFORT
 
 
 def make_problem(seed: int = 0):
@@ -74,7 +70,7 @@ def time_fast(X, Y, ref, n, warmup, reps, groups=None):
         Xi, Yi = X[: n + i], Y[: n + i]
         t0 = time.perf_counter()
         sur.fit(Xi, Yi, groups=None if groups is None else groups[: n + i])
-        x = propose_ehvi(sur, Xi, Yi, ref, seed=i, **effort(n + i))
+        x = propose_ehvi(sur, Xi, Yi, ref, seed=i, **search_effort(n + i, **EFFORT))
         dt = time.perf_counter() - t0
         assert x.shape == (D,) and np.all((x >= 0) & (x <= 1))
         if i >= warmup:
@@ -126,7 +122,7 @@ def main() -> None:
     print(
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
         f"{os.cpu_count()} cpus, {platform.processor() or platform.machine()}, "
-        f"load avg {os.getloadavg()[0]:.1f}, starts {args.starts}, mobo effort {EFFORT}, halved from n = {REDUCE_AFTER}"
+        f"load avg {os.getloadavg()[0]:.1f}, starts {args.starts}, mobo effort {EFFORT}"
     )
     rows = []
     for n in sizes:

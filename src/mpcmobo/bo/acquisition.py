@@ -191,9 +191,8 @@ def propose_ehvi(
                 sampler=sampler,
             )
         elif method == "lognehvi":
-            if (
-                base.size == 0
-            ):  # nothing better than ref yet: fall back to the best point per objective
+            # nothing better than ref yet: fall back to the best point per objective
+            if base.size == 0:
                 mt, _ = surrogate.posterior_model_space(Xf)
                 base = np.unique(np.argmax(mt, axis=0))
             with torch.random.fork_rng():

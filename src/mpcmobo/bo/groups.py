@@ -26,9 +26,17 @@ from gpytorch.means import Mean
 from gpytorch.mlls import ExactMarginalLogLikelihood
 from gpytorch.priors import NormalPrior
 
-__all__ = ["GroupOffsetMean", "fit_group_offsets", "noise_floor_likelihood"]
+__all__ = [
+    "DTYPE",
+    "MAX_CHOLESKY",
+    "GroupOffsetMean",
+    "fit_group_offsets",
+    "noise_floor_likelihood",
+]
 
 DTYPE = torch.float64
+# Exact Cholesky up to this many training points (gpytorch switches to CG above 800 by default).
+MAX_CHOLESKY = 5000
 
 
 def noise_floor_likelihood(floor: float, batch_shape: torch.Size | None = None):
@@ -97,7 +105,7 @@ def fit_group_offsets(
         outcome_transform=Standardize(m=1),
     ).to(DTYPE)
     mll = ExactMarginalLogLikelihood(model.likelihood, model)
-    with torch.random.fork_rng(), gpytorch.settings.max_cholesky_size(5000):
+    with torch.random.fork_rng(), gpytorch.settings.max_cholesky_size(MAX_CHOLESKY):
         torch.manual_seed(seed)
         fit_gpytorch_mll(mll, optimizer_kwargs={"options": {"maxiter": maxiter}})
     b = model.mean_module.offsets.detach().numpy().copy()

@@ -81,14 +81,10 @@ from botorch.models.transforms.outcome import Standardize
 from gpytorch.mlls import ExactMarginalLogLikelihood
 
 from mpcmobo.bo.fastpost import ExactIndependentGP
-from mpcmobo.bo.groups import fit_group_offsets, noise_floor_likelihood
+from mpcmobo.bo.groups import DTYPE, MAX_CHOLESKY, fit_group_offsets, noise_floor_likelihood
 from mpcmobo.bo.pareto import finite_rows
 
 __all__ = ["GPSurrogate", "fit_gp"]
-
-DTYPE = torch.float64
-# Exact Cholesky up to this many training points (gpytorch switches to CG above 800 by default).
-MAX_CHOLESKY = 5000
 
 
 @contextmanager

@@ -472,7 +472,7 @@ def run_study(
         ckpt = storage.load_checkpoint(out, n, s)
         if ckpt is not None:
             emit(_progress_event(n, s, ckpt["rows"], settings.episodes))
-        if ckpt is None or not ckpt["done"] or len(ckpt["rows"]) < settings.episodes:
+        if ckpt is None or len(ckpt["rows"]) < settings.episodes:  # unfinished or extended
             pending.append((n, s))
     # longest jobs first (the GP learners' proposals cost more per episode than a gradient
     # step): with fewer workers than jobs, the slowest job does not start last

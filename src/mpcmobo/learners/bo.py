@@ -49,6 +49,18 @@ def reduced_effort(mc_samples: int, num_restarts: int, raw_samples: int) -> dict
     }
 
 
+def search_effort(
+    n: int, *, mc_samples: int, num_restarts: int, raw_samples: int, reduce_effort_after: int | None
+) -> dict[str, int]:
+    """The EHVI search settings of a proposal after ``n`` observations: ``mc_samples``,
+    ``num_restarts`` and ``raw_samples`` as given, halved (:func:`reduced_effort`) from
+    ``reduce_effort_after`` observations on (None: never)."""
+    effort = {"mc_samples": mc_samples, "num_restarts": num_restarts, "raw_samples": raw_samples}
+    if reduce_effort_after is not None and n >= reduce_effort_after:
+        return reduced_effort(**effort)
+    return effort
+
+
 class _GPLearner(Learner):
     """Shared machinery: design, data, surrogate fit after each episode, incumbent."""
 
@@ -175,13 +187,16 @@ class _GPLearner(Learner):
         score = -mt[:, 0] + self.incumbent_kappa * st[:, 0]  # model space is maximised: -mt
         best = cand[int(np.argmin(score[cand]))]
         self._challenger_z = None
-        if self.confirm_runs > 1 and self._runs(Zf[best]) < self.confirm_runs:
+        if self.confirm_runs == 1:
+            self._incumbent_z = Zf[best].copy()
+            return
+        # finite episodes run with each row's point (as _runs, for all rows at once)
+        _, inverse, counts = np.unique(Zf, axis=0, return_inverse=True, return_counts=True)
+        runs = counts[inverse.reshape(-1)]
+        if runs[best] < self.confirm_runs:
             self._challenger_z = Zf[best].copy()
             current = self._incumbent_z
-            eligible = np.flatnonzero(
-                np.array([self._runs(z) >= self.confirm_runs for z in Zf])
-                | np.all(Zf == current, axis=1)
-            )
+            eligible = np.flatnonzero((runs >= self.confirm_runs) | np.all(Zf == current, axis=1))
             if eligible.size:
                 best = eligible[int(np.argmin(score[eligible]))]
             else:
@@ -351,17 +366,15 @@ class MOBOLearner(_GPLearner):
         return self._theta(np.clip(self._incumbent_z - self.hybrid_step * gz / norm, 0, 1))
 
     def search_effort(self, n: int) -> dict[str, int]:
-        """The EHVI search settings of a proposal after ``n`` observations: ``mc_samples``,
-        ``num_restarts`` and ``raw_samples`` as set, halved from ``reduce_effort_after``
-        observations on (:func:`reduced_effort`)."""
-        effort = {
-            "mc_samples": self.mc_samples,
-            "num_restarts": self.num_restarts,
-            "raw_samples": self.raw_samples,
-        }
-        if self.reduce_effort_after is not None and n >= self.reduce_effort_after:
-            effort = reduced_effort(**effort)
-        return effort
+        """The EHVI search settings of this learner's proposal after ``n`` observations
+        (:func:`search_effort`)."""
+        return search_effort(
+            n,
+            mc_samples=self.mc_samples,
+            num_restarts=self.num_restarts,
+            raw_samples=self.raw_samples,
+            reduce_effort_after=self.reduce_effort_after,
+        )
 
     def _acquire(self, seed: int) -> np.ndarray:
         ref = self.ref_point
