@@ -46,6 +46,7 @@ def main() -> None:
         **settings.learner_options.get("mobo", {}),
     )
     learner.load_state_dict(state)
+    learner.reduce_effort_after = None  # time each effort as given, never its halved form
     sur = learner.surrogate
     n = learner.Z.shape[0]
     print(f"{args.run}/{args.job}: {n} observations, load avg {os.getloadavg()[0]:.1f}")

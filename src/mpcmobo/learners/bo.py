@@ -36,7 +36,7 @@ def reduced_effort(mc_samples: int, num_restarts: int, raw_samples: int) -> dict
     """Half the quasi-MC samples, restarts and raw samples of an EHVI search (at least 1
     each, and at least as many raw samples as restarts).
 
-    On the CSTR's 600-observation data this makes a proposal 1.9x faster; over the first 50
+    On the CSTR's 600-observation data this makes a proposal 2.9x faster; over the first 50
     episodes of 10 seeds the halved search learned worse than the full one
     (``docs/benchmarks.md``, "EHVI effort"). The mobo learner therefore searches in full
     while data are few and switches after ``reduce_effort_after`` observations.
