@@ -3,6 +3,8 @@
 Inputs: ``DIR/episodes.parquet``, ``DIR/trajectories.parquet`` and ``DIR/summary.json`` (J* and
 the system's names, references and limits). Outputs: ``DIR/figures/fig{1..4}_*.{png,pdf}``.
 With several seeds, per-episode curves are the median over seeds with the interquartile band.
+Figures are plain :class:`matplotlib.figure.Figure` objects (no pyplot, no global backend): each is
+saved with the Agg canvas that ``savefig`` picks for PNG and PDF.
 """
 
 from __future__ import annotations
@@ -10,34 +12,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+from mpcmobo.bo.pareto import pareto_mask
+from mpcmobo.learners.registry import LEARNER_SPECS
 
-COLORS = {"mpc-rl": "tab:green", "bo": "grey", "mobo": "tab:red", "hybrid": "tab:purple"}
-LABELS = {"mpc-rl": "MPC-RL", "bo": "BO", "mobo": "MPC-RL-MOBO", "hybrid": "hybrid"}
+COLORS = {name: spec.color for name, spec in LEARNER_SPECS.items()}
+LABELS = {name: spec.label for name, spec in LEARNER_SPECS.items()}
 FIGURES = ("fig1_performance", "fig2_advantage_pareto", "fig3_states", "fig4_inputs")
-
-
-def pareto_mask(Y: np.ndarray) -> np.ndarray:
-    """Non-dominated rows of Y (minimisation); rows with NaN are never Pareto points."""
-    try:
-        from mpcmobo.bo.pareto import pareto_mask as _mask
-
-        return np.asarray(_mask(Y), dtype=bool)
-    except Exception:  # noqa: BLE001 - the bo package is optional here
-        pass
-    Y = np.asarray(Y, float)
-    ok = np.all(np.isfinite(Y), axis=1)
-    mask = np.zeros(len(Y), bool)
-    F = Y[ok]
-    le = np.all(F[None, :, :] <= F[:, None, :], axis=2)
-    lt = np.any(F[None, :, :] < F[:, None, :], axis=2)
-    mask[np.flatnonzero(ok)] = ~np.any(le & lt, axis=1)
-    return mask
 
 
 def _band(df: pd.DataFrame, col: str) -> pd.DataFrame:
@@ -59,13 +44,13 @@ def _save(fig, out: Path, name: str) -> list[Path]:
         p = out / f"{name}.{ext}"
         fig.savefig(p, dpi=150, bbox_inches="tight")
         paths.append(p)
-    plt.close(fig)
     return paths
 
 
 def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
     n = len(learners)
-    fig, axes = plt.subplots(n, 1, figsize=(8.5, 2.4 * n), sharex=True, squeeze=False)
+    fig = Figure(figsize=(8.5, 2.4 * n))
+    axes = fig.subplots(n, 1, sharex=True, squeeze=False)
     J_star = summary["J_star"]
     for ax, name in zip(axes[:, 0], learners):
         d = ep[ep.learner == name]
@@ -89,7 +74,7 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
 
 
 def fig2(ep: pd.DataFrame, learners: list[str]):
-    fig = plt.figure(figsize=(11, 4.2))
+    fig = Figure(figsize=(11, 4.2))
     ax = fig.add_subplot(1, 2, 1)
     shown = [n for n in ("mpc-rl", "mobo") if n in learners] or learners
     for name in shown:
@@ -138,8 +123,8 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
     ref = info["x_ref"] if kind == "x" else info["u_ref"]
     lb = info["x_lb"] if kind == "x" else info["u_lb"]
     ub = info["x_ub"] if kind == "x" else info["u_ub"]
-    fig, axes = plt.subplots(len(names), 1, figsize=(7, 2.2 * len(names)), sharex=True,
-                             squeeze=False)  # fmt: skip
+    fig = Figure(figsize=(7, 2.2 * len(names)))
+    axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)
     initial = tr[(tr.phase == "initial")]
     learning = tr[(tr.phase == "learning") & (tr.learner == learner)]
     final = tr[(tr.phase == "final") & (tr.learner == learner)]
@@ -162,8 +147,6 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
             if lim is not None and np.isfinite(lim):
                 ax.axhline(lim, color="red", ls="--", lw=1)
         ax.set_ylabel(n)
-    from matplotlib.lines import Line2D
-
     handles = [
         Line2D([], [], color="tab:green", label="imperfect MPC"),
         Line2D([], [], color="grey", label="during learning"),
@@ -194,9 +177,8 @@ def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:
         raise ValueError(f"learner '{learner}' is not in this run; allowed: {learners}")
     out = run_dir / "figures"
     out.mkdir(exist_ok=True)
-    with plt.rc_context({"figure.max_open_warning": 0}):
-        paths = _save(fig1(ep, summary, learners), out, FIGURES[0])
-        paths += _save(fig2(ep, learners), out, FIGURES[1])
-        paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2])
-        paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3])
+    paths = _save(fig1(ep, summary, learners), out, FIGURES[0])
+    paths += _save(fig2(ep, learners), out, FIGURES[1])
+    paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2])
+    paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3])
     return paths
