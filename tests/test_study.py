@@ -185,3 +185,29 @@ def test_ray_backend_matches_serial(full_run, tmp_path):
     a = storage.read_episodes(out_full).drop(columns=WALL)
     b = storage.read_episodes(out).drop(columns=WALL)
     pd.testing.assert_frame_equal(a, b)
+
+
+def tiny_lq(**options):
+    """A user-defined system: defined at module level, registered only inside the test below
+    (a worker process that imports this module does not register it by itself)."""
+    from mpcmobo.systems import make_lq
+
+    return make_lq(**options)
+
+
+def test_user_registered_system_runs_in_worker_processes(tmp_path):
+    from mpcmobo.systems import register_system
+
+    register_system("tiny-lq", tiny_lq, overwrite=True)
+    s = small(system={"name": "tiny-lq"}, episodes=2, workers=2)
+    done = run_study(s, tmp_path / "tiny")
+    assert done["complete"] is True
+    assert len(storage.read_episodes(tmp_path / "tiny")) == 4  # two seeds, two jobs in workers
+
+
+def test_unsendable_system_factory_is_a_study_error(tmp_path):
+    from mpcmobo.systems import make_lq, register_system
+
+    register_system("lambda-lq", lambda **o: make_lq(**o), overwrite=True)
+    with pytest.raises(StudyError, match="cannot be sent to worker processes"):
+        run_study(small(system={"name": "lambda-lq"}, episodes=2, workers=2), tmp_path / "x")
