@@ -62,6 +62,19 @@ def test_records_layout_and_eval_policy(full_run):
     assert summary["complete"] is True
 
 
+def test_checkpoints_are_plain_dicts_that_round_trip(full_run):
+    """A checkpoint on disk is a plain dict (no class of the package inside, so that files of
+    older versions load and new files stay readable); its typed form gives it back unchanged."""
+    from mpcmobo.experiment.records import Checkpoint
+
+    out, _, _ = full_run
+    d = storage.load_checkpoint(out, "mpc-rl", 0)
+    assert type(d) is dict and all(type(r) is dict for r in d["rows"])
+    again = dict(Checkpoint.from_dict(d).to_dict(), version=d["version"], learner="mpc-rl", seed=0)
+    assert list(again) == list(d) and list(again["rows"][0]) == list(d["rows"][0])
+    np.testing.assert_equal(again, d)  # nested: arrays, lists, NaN equal to NaN
+
+
 def test_summary_matches_records(full_run):
     out, summary, _ = full_run
     on_disk = json.loads((out / "summary.json").read_text())

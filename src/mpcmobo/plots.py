@@ -75,7 +75,13 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
 
 def fig2(ep: pd.DataFrame, learners: list[str]):
     fig = Figure(figsize=(11, 4.2))
-    ax = fig.add_subplot(1, 2, 1)
+    _advantage_panel(fig.add_subplot(1, 2, 1), ep, learners)
+    _pareto_panel(fig, fig.add_subplot(1, 2, 2, projection="3d"), ep, learners)
+    return fig
+
+
+def _advantage_panel(ax, ep: pd.DataFrame, learners: list[str]) -> None:
+    """Mean |A^w| per episode of the critic-based learners (median and IQR over seeds)."""
     shown = [n for n in ("mpc-rl", "mobo") if n in learners] or learners
     for name in shown:
         d = ep[ep.learner == name]
@@ -87,7 +93,11 @@ def fig2(ep: pd.DataFrame, learners: list[str]):
     if np.any(np.isfinite(vals)) and np.nanmin(vals) > 0:
         ax.set_yscale("log")
     ax.legend(fontsize=8)
-    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+
+
+def _pareto_panel(fig, ax3, ep: pd.DataFrame, learners: list[str]) -> None:
+    """The observed objectives (f1, f2, f4, or f3 without f4) of the first seed of MOBO (else
+    the last learner), with their Pareto front."""
     src = "mobo" if "mobo" in learners else learners[-1]
     d = ep[ep.learner == src]
     d = d[d.seed == d.seed.min()]
@@ -115,7 +125,6 @@ def fig2(ep: pd.DataFrame, learners: list[str]):
     ax3.set_zlabel(labels[2])
     ax3.set_box_aspect(None, zoom=0.85)  # room for the z label
     ax3.set_title(f"Pareto front of the {LABELS.get(src, src)} observations", fontsize=9)
-    return fig
 
 
 def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
@@ -134,14 +143,7 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
             ax.plot(g.t, g[col], color="grey", lw=0.6, alpha=0.5)
         for _, g in initial.groupby("start"):
             ax.plot(g.t, g[col], color="tab:green", lw=1)
-        if final.seed.nunique() > 1:
-            for _, g in final.groupby("start"):
-                q = g.groupby("t")[col].quantile([0.25, 0.5, 0.75]).unstack()
-                ax.plot(q.index, q[0.5], color="tab:blue", lw=1.2)
-                ax.fill_between(q.index, q[0.25], q[0.75], color="tab:blue", alpha=0.25, lw=0)
-        else:
-            for _, g in final.groupby("start"):
-                ax.plot(g.t, g[col], color="tab:blue", lw=1.2)
+        _final_lines(ax, final, col)
         ax.axhline(ref[i], color="tab:orange", ls="--", lw=1)
         for lim in (lb[i], ub[i]):
             if lim is not None and np.isfinite(lim):
@@ -158,6 +160,18 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
     axes[-1, 0].set_xlabel("time [min]" if info.get("name") == "cstr" else "time")
     fig.suptitle("States" if kind == "x" else "Control inputs")
     return fig
+
+
+def _final_lines(ax, final: pd.DataFrame, col: str) -> None:
+    """The final incumbent's evaluation episodes, one line per start (with several seeds: the
+    median over seeds and the interquartile band)."""
+    for _, g in final.groupby("start"):
+        if final.seed.nunique() > 1:
+            q = g.groupby("t")[col].quantile([0.25, 0.5, 0.75]).unstack()
+            ax.plot(q.index, q[0.5], color="tab:blue", lw=1.2)
+            ax.fill_between(q.index, q[0.25], q[0.75], color="tab:blue", alpha=0.25, lw=0)
+        else:
+            ax.plot(g.t, g[col], color="tab:blue", lw=1.2)
 
 
 def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:

@@ -118,11 +118,8 @@ class Job:
         if ckpt is None:
             return
         self.run.load_state_dict(ckpt.state)
-        self.rows, self.trajectories, self.wall_time_s = (
-            ckpt.rows,
-            ckpt.trajectories,
-            ckpt.wall_time_s,
-        )
+        self.rows, self.trajectories = ckpt.rows, ckpt.trajectories
+        self.wall_time_s = ckpt.wall_time_s
         if len(self.rows) != self.run.episode:
             raise StudyError(f"checkpoint of {self.learner}-s{self.seed} is inconsistent")
         if ckpt.episodes < self.settings.episodes:
