@@ -178,3 +178,15 @@ def test_atomic_writes(tmp_path):
         atomic_write_bytes(target, object())  # type: ignore[arg-type]
     assert target.read_bytes() == b"old"
     assert sorted(os.listdir(tmp_path)) == ["keep.bin", "p.pkl", "x.json"]
+
+
+def test_atomic_writes_follow_the_umask_without_changing_it(tmp_path):
+    """Files get the mode of any new file (0o666 less the umask), not mkstemp's 0o600, and
+    neither importing nor writing changes the process umask."""
+    old = os.umask(0o027)
+    try:
+        atomic_write_bytes(tmp_path / "a.bin", b"x")
+        assert os.stat(tmp_path / "a.bin").st_mode & 0o777 == 0o640
+        assert os.umask(0o027) == 0o027  # still the one set above
+    finally:
+        os.umask(old)

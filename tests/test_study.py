@@ -62,6 +62,19 @@ def test_records_layout_and_eval_policy(full_run):
     assert summary["complete"] is True
 
 
+def test_checkpoints_are_plain_dicts_that_round_trip(full_run):
+    """A checkpoint on disk is a plain dict (no class of the package inside, so that files of
+    older versions load and new files stay readable); its typed form gives it back unchanged."""
+    from mpcmobo.experiment.records import Checkpoint
+
+    out, _, _ = full_run
+    d = storage.load_checkpoint(out, "mpc-rl", 0)
+    assert type(d) is dict and all(type(r) is dict for r in d["rows"])
+    again = dict(Checkpoint.from_dict(d).to_dict(), version=d["version"], learner="mpc-rl", seed=0)
+    assert list(again) == list(d) and list(again["rows"][0]) == list(d["rows"][0])
+    np.testing.assert_equal(again, d)  # nested: arrays, lists, NaN equal to NaN
+
+
 def test_summary_matches_records(full_run):
     out, summary, _ = full_run
     on_disk = json.loads((out / "summary.json").read_text())
@@ -185,3 +198,29 @@ def test_ray_backend_matches_serial(full_run, tmp_path):
     a = storage.read_episodes(out_full).drop(columns=WALL)
     b = storage.read_episodes(out).drop(columns=WALL)
     pd.testing.assert_frame_equal(a, b)
+
+
+def tiny_lq(**options):
+    """A user-defined system: defined at module level, registered only inside the test below
+    (a worker process that imports this module does not register it by itself)."""
+    from mpcmobo.systems import make_lq
+
+    return make_lq(**options)
+
+
+def test_user_registered_system_runs_in_worker_processes(tmp_path):
+    from mpcmobo.systems import register_system
+
+    register_system("tiny-lq", tiny_lq, overwrite=True)
+    s = small(system={"name": "tiny-lq"}, episodes=2, workers=2)
+    done = run_study(s, tmp_path / "tiny")
+    assert done["complete"] is True
+    assert len(storage.read_episodes(tmp_path / "tiny")) == 4  # two seeds, two jobs in workers
+
+
+def test_unsendable_system_factory_is_a_study_error(tmp_path):
+    from mpcmobo.systems import make_lq, register_system
+
+    register_system("lambda-lq", lambda **o: make_lq(**o), overwrite=True)
+    with pytest.raises(StudyError, match="cannot be sent to worker processes"):
+        run_study(small(system={"name": "lambda-lq"}, episodes=2, workers=2), tmp_path / "x")

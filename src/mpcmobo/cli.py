@@ -18,7 +18,9 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mpcmobo.experiment.settings import KNOWN_LEARNERS, SettingsError, load_settings
+from mpcmobo.experiment.rundir import RunDirectory, StudyError
+from mpcmobo.experiment.settings import Settings, SettingsError, load_settings
+from mpcmobo.learners.registry import LEARNER_SPECS
 
 app = typer.Typer(
     name="mpcmobo",
@@ -55,9 +57,7 @@ def _learners(option: str | None) -> list[str] | None:
     if option is None:
         return None
     if option == "all":
-        from mpcmobo.learners import LEARNERS
-
-        return [n for n in dict.fromkeys([*KNOWN_LEARNERS, *LEARNERS]) if n in LEARNERS]
+        return list(LEARNER_SPECS)
     return [p for p in option.replace(",", " ").split() if p]
 
 
@@ -65,6 +65,20 @@ def _fmt(x: float | None, digits: int = 5) -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "-"
     return f"{x:.{digits}g}"
+
+
+def _progress() -> Progress:
+    """Progress bars, one line per job (fed by :class:`_Bars`)."""
+    return Progress(
+        TextColumn("{task.description:<14}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("f1 {task.fields[f1]:>10}"),
+        TextColumn("best J_eval {task.fields[best]:>10}"),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
+    )
 
 
 class _Bars:
@@ -104,7 +118,7 @@ def run(
     config: Path | None = typer.Option(None, "--config", "-c", help="settings file (TOML)"),
     system: str | None = typer.Option(None, "--system", help="system name (`mpcmobo systems`)"),
     learner: str | None = typer.Option(
-        None, "--learner", "-l", help="mpc-rl | bo | mobo | hybrid | all (or a comma list)"
+        None, "--learner", "-l", help=f"{' | '.join([*LEARNER_SPECS, 'all'])} (or a comma list)"
     ),
     episodes: int | None = typer.Option(None, "--episodes", "-n", help="episodes per job"),
     steps: int | None = typer.Option(None, "--steps", help="time steps per episode"),
@@ -122,27 +136,14 @@ def run(
     no_plot: bool = typer.Option(False, "--no-plot", help="do not draw figures 1-4 at the end"),
 ) -> None:
     """Run a study (learners x seeds): records, summary and, once complete, figures 1-4."""
-    from mpcmobo.experiment.study import StudyError, run_study
+    from mpcmobo.experiment.study import run_study
 
     seed_list = _parse_seeds(seeds, list(ctx.args))
     try:
         if resume:
-            if out is None:
-                _fail("--resume needs --out DIR (the run to continue)", 2)
-            given = [n for n, v in (("--config", config), ("--system", system),
-                     ("--learner", learner), ("--steps", steps),
-                     ("--seeds", seed_list)) if v is not None]  # fmt: skip
-            if given:
-                _fail(
-                    f"--resume uses the saved DIR/config.toml (only --workers, and --episodes "
-                    f"to extend the budget, may change); drop {', '.join(given)}",
-                    2,
-                )
-            settings = None
-            if workers is not None or episodes is not None:
-                if not (out / "config.toml").exists():
-                    _fail(f"nothing to resume: {out / 'config.toml'} does not exist", 1)
-                settings = load_settings(out / "config.toml", workers=workers, episodes=episodes)
+            fixed = {"--config": config, "--system": system, "--learner": learner,
+                     "--steps": steps, "--seeds": seed_list}  # fmt: skip
+            settings = _resumed_settings(out, fixed, workers=workers, episodes=episodes)
         else:
             settings = load_settings(
                 config,
@@ -153,21 +154,12 @@ def run(
                 seeds=seed_list,
                 workers=workers,
             )
-            if out is None:
-                out = Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+            out = out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")
         t0 = time.perf_counter()
-        columns = [
-            TextColumn("{task.description:<14}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("f1 {task.fields[f1]:>10}"),
-            TextColumn("best J_eval {task.fields[best]:>10}"),
-            TimeElapsedColumn(),
-        ]
         if quiet:
             summary = run_study(settings, out, resume=resume)
         else:
-            with Progress(*columns, console=console, transient=False) as progress:
+            with _progress() as progress:
                 summary = run_study(settings, out, resume=resume, progress=_Bars(progress))
     except SettingsError as err:
         _fail(str(err), 2)
@@ -175,8 +167,32 @@ def run(
         _fail(str(err), 1)
     except KeyboardInterrupt:
         _fail(f"interrupted; continue with: mpcmobo run --resume --out {out}", 130)
+    _report(summary, out, time.perf_counter() - t0, no_plot)
+
+
+def _resumed_settings(
+    out: Path | None, fixed: dict[str, object], workers: int | None, episodes: int | None
+) -> Settings | None:
+    """What ``--resume`` changes in the saved run: None, or its settings with ``--workers`` and
+    ``--episodes``; the options in ``fixed`` may not be given."""
+    if out is None:
+        _fail("--resume needs --out DIR (the run to continue)", 2)
+    given = [flag for flag, value in fixed.items() if value is not None]
+    if given:
+        _fail(
+            f"--resume uses the saved DIR/config.toml (only --workers, and --episodes "
+            f"to extend the budget, may change); drop {', '.join(given)}",
+            2,
+        )
+    if workers is None and episodes is None:
+        return None
+    return RunDirectory(out).saved_settings(workers=workers, episodes=episodes)
+
+
+def _report(summary: dict, out: Path, seconds: float, no_plot: bool) -> None:
+    """The summary table, where the records are, and the figures of a complete run."""
     console.print(_summary_table(summary))
-    console.print(f"records in [bold]{out}[/] ({time.perf_counter() - t0:.1f} s)")
+    console.print(f"records in [bold]{out}[/] ({seconds:.1f} s)")
     if not summary["complete"]:
         console.print(f"incomplete; continue with: mpcmobo run --resume --out {out}")
     elif not no_plot:
@@ -202,9 +218,11 @@ def _summary_table(summary: dict) -> Table:
     return table
 
 
-def _require_run(directory: Path) -> None:
-    if not (directory / "config.toml").exists():
+def _require_run(directory: Path) -> RunDirectory:
+    run_dir = RunDirectory(directory)
+    if not run_dir.holds_run():
         _fail(f"{directory} does not hold a run (no config.toml)", 2)
+    return run_dir
 
 
 @app.command()
@@ -233,39 +251,24 @@ def evaluate(
     seed: int | None = typer.Option(None, help="seed of the initial states (default: the run's)"),
 ) -> None:
     """J_eval of the saved incumbents (last episode of every job), as a table."""
-    import numpy as np
-
-    from mpcmobo.experiment import storage
+    from mpcmobo.experiment.evaluation import make_evaluator
     from mpcmobo.experiment.settings import build_system
-    from mpcmobo.experiment.study import make_evaluator
 
-    _require_run(directory)
+    run_dir = _require_run(directory)
     try:
-        settings = load_settings(
-            directory / "config.toml", evaluation__n_starts=n_starts, evaluation__seed=seed
-        )
+        settings = run_dir.saved_settings(evaluation__n_starts=n_starts, evaluation__seed=seed)
     except SettingsError as err:
         _fail(str(err), 2)
-    system = build_system(settings)
-    evaluator = make_evaluator(settings, system)
+    evaluator = make_evaluator(settings, build_system(settings))
     J_star = evaluator.J_star()
     J0 = evaluator.J_eval(None)
     table = Table(title=f"{settings.system.name}: J* = {_fmt(J_star)}, J(theta0) = {_fmt(J0)}")
     for col in ("learner", "seed", "episodes", "J_eval", "gap to J* [%]"):
         table.add_column(col, justify="right")
-    jobs = [(n, s) for n in settings.learners for s in settings.seeds]
-    for ck in storage.load_checkpoints(directory, jobs):
-        if not ck["rows"]:
-            continue
-        inc = np.asarray(ck["rows"][-1]["incumbent"], dtype=float)
-        J = evaluator.J_eval(inc)
-        table.add_row(
-            ck["learner"],
-            str(ck["seed"]),
-            str(len(ck["rows"])),
-            _fmt(J),
-            f"{100 * (J - J_star) / abs(J_star):.2f}",
-        )
+    for learner, s, episodes, incumbent in run_dir.incumbents(settings):
+        J = evaluator.J_eval(incumbent)
+        gap = f"{100 * (J - J_star) / abs(J_star):.2f}"
+        table.add_row(learner, str(s), str(episodes), _fmt(J), gap)
     console.print(table)
 
 

@@ -3,6 +3,8 @@
 Inputs: ``DIR/episodes.parquet``, ``DIR/trajectories.parquet`` and ``DIR/summary.json`` (J* and
 the system's names, references and limits). Outputs: ``DIR/figures/fig{1..4}_*.{png,pdf}``.
 With several seeds, per-episode curves are the median over seeds with the interquartile band.
+Figures are plain :class:`matplotlib.figure.Figure` objects (no pyplot, no global backend): each is
+saved with the Agg canvas that ``savefig`` picks for PNG and PDF.
 """
 
 from __future__ import annotations
@@ -10,34 +12,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+from mpcmobo.bo.pareto import pareto_mask
+from mpcmobo.learners.registry import LEARNER_SPECS
 
-COLORS = {"mpc-rl": "tab:green", "bo": "grey", "mobo": "tab:red", "hybrid": "tab:purple"}
-LABELS = {"mpc-rl": "MPC-RL", "bo": "BO", "mobo": "MPC-RL-MOBO", "hybrid": "hybrid"}
+COLORS = {name: spec.color for name, spec in LEARNER_SPECS.items()}
+LABELS = {name: spec.label for name, spec in LEARNER_SPECS.items()}
 FIGURES = ("fig1_performance", "fig2_advantage_pareto", "fig3_states", "fig4_inputs")
-
-
-def pareto_mask(Y: np.ndarray) -> np.ndarray:
-    """Non-dominated rows of Y (minimisation); rows with NaN are never Pareto points."""
-    try:
-        from mpcmobo.bo.pareto import pareto_mask as _mask
-
-        return np.asarray(_mask(Y), dtype=bool)
-    except Exception:  # noqa: BLE001 - the bo package is optional here
-        pass
-    Y = np.asarray(Y, float)
-    ok = np.all(np.isfinite(Y), axis=1)
-    mask = np.zeros(len(Y), bool)
-    F = Y[ok]
-    le = np.all(F[None, :, :] <= F[:, None, :], axis=2)
-    lt = np.any(F[None, :, :] < F[:, None, :], axis=2)
-    mask[np.flatnonzero(ok)] = ~np.any(le & lt, axis=1)
-    return mask
 
 
 def _band(df: pd.DataFrame, col: str) -> pd.DataFrame:
@@ -59,13 +44,13 @@ def _save(fig, out: Path, name: str) -> list[Path]:
         p = out / f"{name}.{ext}"
         fig.savefig(p, dpi=150, bbox_inches="tight")
         paths.append(p)
-    plt.close(fig)
     return paths
 
 
 def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
     n = len(learners)
-    fig, axes = plt.subplots(n, 1, figsize=(8.5, 2.4 * n), sharex=True, squeeze=False)
+    fig = Figure(figsize=(8.5, 2.4 * n))
+    axes = fig.subplots(n, 1, sharex=True, squeeze=False)
     J_star = summary["J_star"]
     for ax, name in zip(axes[:, 0], learners):
         d = ep[ep.learner == name]
@@ -89,8 +74,14 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
 
 
 def fig2(ep: pd.DataFrame, learners: list[str]):
-    fig = plt.figure(figsize=(11, 4.2))
-    ax = fig.add_subplot(1, 2, 1)
+    fig = Figure(figsize=(11, 4.2))
+    _advantage_panel(fig.add_subplot(1, 2, 1), ep, learners)
+    _pareto_panel(fig, fig.add_subplot(1, 2, 2, projection="3d"), ep, learners)
+    return fig
+
+
+def _advantage_panel(ax, ep: pd.DataFrame, learners: list[str]) -> None:
+    """Mean |A^w| per episode of the critic-based learners (median and IQR over seeds)."""
     shown = [n for n in ("mpc-rl", "mobo") if n in learners] or learners
     for name in shown:
         d = ep[ep.learner == name]
@@ -102,7 +93,11 @@ def fig2(ep: pd.DataFrame, learners: list[str]):
     if np.any(np.isfinite(vals)) and np.nanmin(vals) > 0:
         ax.set_yscale("log")
     ax.legend(fontsize=8)
-    ax3 = fig.add_subplot(1, 2, 2, projection="3d")
+
+
+def _pareto_panel(fig, ax3, ep: pd.DataFrame, learners: list[str]) -> None:
+    """The observed objectives (f1, f2, f4, or f3 without f4) of the first seed of MOBO (else
+    the last learner), with their Pareto front."""
     src = "mobo" if "mobo" in learners else learners[-1]
     d = ep[ep.learner == src]
     d = d[d.seed == d.seed.min()]
@@ -130,7 +125,6 @@ def fig2(ep: pd.DataFrame, learners: list[str]):
     ax3.set_zlabel(labels[2])
     ax3.set_box_aspect(None, zoom=0.85)  # room for the z label
     ax3.set_title(f"Pareto front of the {LABELS.get(src, src)} observations", fontsize=9)
-    return fig
 
 
 def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
@@ -138,8 +132,8 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
     ref = info["x_ref"] if kind == "x" else info["u_ref"]
     lb = info["x_lb"] if kind == "x" else info["u_lb"]
     ub = info["x_ub"] if kind == "x" else info["u_ub"]
-    fig, axes = plt.subplots(len(names), 1, figsize=(7, 2.2 * len(names)), sharex=True,
-                             squeeze=False)  # fmt: skip
+    fig = Figure(figsize=(7, 2.2 * len(names)))
+    axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)
     initial = tr[(tr.phase == "initial")]
     learning = tr[(tr.phase == "learning") & (tr.learner == learner)]
     final = tr[(tr.phase == "final") & (tr.learner == learner)]
@@ -149,21 +143,12 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
             ax.plot(g.t, g[col], color="grey", lw=0.6, alpha=0.5)
         for _, g in initial.groupby("start"):
             ax.plot(g.t, g[col], color="tab:green", lw=1)
-        if final.seed.nunique() > 1:
-            for _, g in final.groupby("start"):
-                q = g.groupby("t")[col].quantile([0.25, 0.5, 0.75]).unstack()
-                ax.plot(q.index, q[0.5], color="tab:blue", lw=1.2)
-                ax.fill_between(q.index, q[0.25], q[0.75], color="tab:blue", alpha=0.25, lw=0)
-        else:
-            for _, g in final.groupby("start"):
-                ax.plot(g.t, g[col], color="tab:blue", lw=1.2)
+        _final_lines(ax, final, col)
         ax.axhline(ref[i], color="tab:orange", ls="--", lw=1)
         for lim in (lb[i], ub[i]):
             if lim is not None and np.isfinite(lim):
                 ax.axhline(lim, color="red", ls="--", lw=1)
         ax.set_ylabel(n)
-    from matplotlib.lines import Line2D
-
     handles = [
         Line2D([], [], color="tab:green", label="imperfect MPC"),
         Line2D([], [], color="grey", label="during learning"),
@@ -175,6 +160,18 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
     axes[-1, 0].set_xlabel("time [min]" if info.get("name") == "cstr" else "time")
     fig.suptitle("States" if kind == "x" else "Control inputs")
     return fig
+
+
+def _final_lines(ax, final: pd.DataFrame, col: str) -> None:
+    """The final incumbent's evaluation episodes, one line per start (with several seeds: the
+    median over seeds and the interquartile band)."""
+    for _, g in final.groupby("start"):
+        if final.seed.nunique() > 1:
+            q = g.groupby("t")[col].quantile([0.25, 0.5, 0.75]).unstack()
+            ax.plot(q.index, q[0.5], color="tab:blue", lw=1.2)
+            ax.fill_between(q.index, q[0.25], q[0.75], color="tab:blue", alpha=0.25, lw=0)
+        else:
+            ax.plot(g.t, g[col], color="tab:blue", lw=1.2)
 
 
 def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:
@@ -194,9 +191,8 @@ def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:
         raise ValueError(f"learner '{learner}' is not in this run; allowed: {learners}")
     out = run_dir / "figures"
     out.mkdir(exist_ok=True)
-    with plt.rc_context({"figure.max_open_warning": 0}):
-        paths = _save(fig1(ep, summary, learners), out, FIGURES[0])
-        paths += _save(fig2(ep, learners), out, FIGURES[1])
-        paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2])
-        paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3])
+    paths = _save(fig1(ep, summary, learners), out, FIGURES[0])
+    paths += _save(fig2(ep, learners), out, FIGURES[1])
+    paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2])
+    paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3])
     return paths

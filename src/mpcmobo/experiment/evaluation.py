@@ -10,8 +10,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from mpcmobo.experiment.settings import Settings
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
+from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
+
+
+def mean_cost(episodes: list[EpisodeRecord]) -> float:
+    """The mean over episodes of each episode's mean stage cost: J_eval of their theta."""
+    return float(np.mean([mean_stage_cost(r) for r in episodes]))
 
 
 class Evaluator:
@@ -54,7 +61,7 @@ class Evaluator:
         theta = self.mpc(model).check_theta(theta)
         key = (model, theta.tobytes())
         if key not in self._cache:
-            self._cache[key] = float(np.mean([r.L.mean() for r in self.episodes(theta, model)]))
+            self._cache[key] = mean_cost(self.episodes(theta, model))
         return self._cache[key]
 
     def remember(self, theta: np.ndarray | None, value: float, model: str = "imperfect") -> None:
@@ -69,3 +76,15 @@ class Evaluator:
     def J_star(self) -> float:
         """J*: the perfect-model MPC with theta0 on the same starts."""
         return self.J_eval(None, model="perfect")
+
+
+def make_evaluator(settings: Settings, system: System) -> Evaluator:
+    """The evaluator of a study's settings (``[evaluation]`` and the MPC options)."""
+    ev = settings.evaluation
+    return Evaluator(
+        system,
+        n_starts=ev.n_starts,
+        seed=ev.seed,
+        steps=ev.steps if ev.steps is not None else settings.steps,
+        mpc_options=settings.mpc.options(),
+    )

@@ -10,6 +10,7 @@ import numpy as np
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
+from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
 
 START_MODES = ("random", "cycle")
@@ -69,31 +70,14 @@ class LearningRun:
         return self.system.sample_initial_state(self.rng_start)
 
     def run_episode(self) -> tuple[dict, EpisodeRecord | None]:
-        """Run one episode; return its row of records and the episode itself."""
+        """Run one episode; return its row of records (the fields of :class:`EpisodeRow` except
+        ``J_eval_incumbent`` and ``eval_time_s``, which the study's job adds) and the episode."""
         t0 = time.perf_counter()
         theta = np.asarray(self.learner.propose(), dtype=float)
         t_prop = time.perf_counter() - t0
         x0 = self.next_start()
-        self.exploration.episode = self.episode
         t1 = time.perf_counter()
-        error = ""
-        try:
-            record = rollout(
-                self.system,
-                self.mpc,
-                theta,
-                x0,
-                self.steps,
-                rng=self.rng_noise,
-                exploration=self.exploration,
-            )
-            result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
-        except (FloatingPointError, ValueError, RuntimeError) as err:
-            # a diverged plant or a broken episode: recorded as NaN, the run goes on
-            record, error = None, f"{type(err).__name__}: {err}"
-            result = EpisodeResult(
-                objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
-            )
+        record, result, error = self._on_plant(theta, x0)
         t_mpc = time.perf_counter() - t1
         if self.start_mode == "cycle":
             result.start_id = self.episode % len(self.cycle_starts)
@@ -114,7 +98,7 @@ class LearningRun:
             "f3": float(f[2]),
             "f4": float(f[3]),
             "J_tilde": float(f[0]),
-            "mean_stage_cost": float(np.mean(record.L)) if record is not None else np.nan,
+            "mean_stage_cost": mean_stage_cost(record) if record is not None else np.nan,
             "mean_abs_A": float(result.mean_abs_advantage),
             "critic_ok": bool(result.critic_ok),
             "violation": float(np.sum(record.violation)) if record is not None else np.nan,
@@ -127,6 +111,30 @@ class LearningRun:
         }
         self.episode += 1
         return row, record
+
+    def _on_plant(
+        self, theta: np.ndarray, x0: np.ndarray
+    ) -> tuple[EpisodeRecord | None, EpisodeResult, str]:
+        """The episode of ``theta`` from ``x0`` with exploration, and what the learner observes
+        of it; a diverged plant or a broken episode is recorded as NaN (and its error)."""
+        self.exploration.episode = self.episode
+        try:
+            record = rollout(
+                self.system,
+                self.mpc,
+                theta,
+                x0,
+                self.steps,
+                rng=self.rng_noise,
+                exploration=self.exploration,
+            )
+            result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
+        except (FloatingPointError, ValueError, RuntimeError) as err:
+            result = EpisodeResult(
+                objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
+            )
+            return None, result, f"{type(err).__name__}: {err}"
+        return record, result, ""
 
     def state_dict(self) -> dict:
         return {

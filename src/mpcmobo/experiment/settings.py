@@ -20,11 +20,12 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems import available_systems, get_system
 
-# learners the settings accept by name; whether each is installed is checked when a study starts
-KNOWN_LEARNERS = ("mpc-rl", "bo", "mobo", "hybrid")
-PAPER_LEARNERS = ("mpc-rl", "bo", "mobo")
+# the learners the settings accept by name, and those the paper's study runs (the default)
+KNOWN_LEARNERS = tuple(LEARNER_SPECS)
+PAPER_LEARNERS = tuple(name for name, spec in LEARNER_SPECS.items() if spec.in_paper)
 
 
 class SettingsError(ValueError):
@@ -146,12 +147,9 @@ class Settings(_Section):
     @field_validator("learners")
     @classmethod
     def _known_learners(cls, v: list[str]) -> list[str]:
-        from mpcmobo.learners import LEARNERS
-
-        allowed = list(dict.fromkeys([*KNOWN_LEARNERS, *LEARNERS]))
         for name in v:
-            if name not in allowed:
-                raise ValueError(f"unknown learner '{name}'; allowed: {', '.join(allowed)}")
+            if name not in KNOWN_LEARNERS:
+                raise ValueError(f"unknown learner '{name}'; allowed: {', '.join(KNOWN_LEARNERS)}")
         if len(set(v)) != len(v):
             raise ValueError("each learner may appear only once")
         return v
@@ -159,12 +157,11 @@ class Settings(_Section):
     @field_validator("learner_options")
     @classmethod
     def _options_tables(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-        from mpcmobo.learners import LEARNERS
-
-        allowed = list(dict.fromkeys([*KNOWN_LEARNERS, *LEARNERS]))
         for name in v:
-            if name not in allowed:
-                raise ValueError(f"options for unknown learner '{name}'; allowed: {allowed}")
+            if name not in KNOWN_LEARNERS:
+                raise ValueError(
+                    f"options for unknown learner '{name}'; allowed: {list(KNOWN_LEARNERS)}"
+                )
         return v
 
     @field_validator("seeds")

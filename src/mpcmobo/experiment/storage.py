@@ -23,7 +23,7 @@ import json
 import math
 import os
 import pickle
-import tempfile
+import secrets
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -31,41 +31,22 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from mpcmobo.experiment.records import ROW_FIELDS
+
 CHECKPOINT_VERSION = 1
-EPISODE_COLUMNS = [
-    "learner",
-    "seed",
-    "episode",
-    "theta",
-    "f1",
-    "f2",
-    "f3",
-    "f4",
-    "J_tilde",
-    "mean_stage_cost",
-    "mean_abs_A",
-    "critic_ok",
-    "violation",
-    "solver_failures",
-    "x0",
-    "incumbent",
-    "J_eval_incumbent",
-    "error",
-    "mpc_time_s",
-    "learner_time_s",
-    "eval_time_s",
-]
+EPISODE_COLUMNS = list(ROW_FIELDS)
 WALL_TIME_COLUMNS = ("mpc_time_s", "learner_time_s", "eval_time_s")
 
 
 # ---------------------------------------------------------------------- atomic files
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
+def _create_temp(directory: Path, name: str) -> tuple[int, Path]:
+    """A new, empty temporary file next to ``directory/name``, open for writing.
 
-
-_FILE_MODE = 0o666 & ~_umask()
+    Created with mode 0o666 so that the kernel applies the process umask, as for any file the
+    user creates (``tempfile.mkstemp`` would force 0o600); the umask is never read or changed.
+    """
+    tmp = directory / f".{name}.{secrets.token_hex(6)}.tmp"
+    return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), tmp
 
 
 def _fsync_dir(path: Path) -> None:
@@ -85,10 +66,9 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically (temp file in the same dir, fsync, os.replace)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = _create_temp(path.parent, path.name)
     try:
         with os.fdopen(fd, "wb") as fh:
-            os.fchmod(fh.fileno(), _FILE_MODE)  # mkstemp creates 0600; use the usual mode
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())

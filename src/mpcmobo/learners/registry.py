@@ -1,6 +1,10 @@
-"""Learners by name."""
+"""Learners by name: one :class:`LearnerSpec` per learner carries everything the package knows
+about it (class, label and colour in the figures, scheduling cost, whether the paper runs it).
+Adding a learner is one entry in ``LEARNER_SPECS``."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -9,12 +13,32 @@ from mpcmobo.learners.bo import BOLearner, HybridLearner, MOBOLearner
 from mpcmobo.learners.mpc_rl import MPCRL
 from mpcmobo.systems.space import SearchSpace
 
-LEARNERS: dict[str, type[Learner]] = {
-    "mpc-rl": MPCRL,
-    "bo": BOLearner,
-    "mobo": MOBOLearner,
-    "hybrid": HybridLearner,
+
+@dataclass(frozen=True)
+class LearnerSpec:
+    """One learner: its settings name, class, figure label and colour, its relative cost per
+    episode (used only to start the slowest jobs first; measured in docs/benchmarks.md: the
+    EHVI learners spend the most per episode, MPC-RL the least), and whether the paper's
+    study runs it (the default ``learners`` of the settings)."""
+
+    name: str
+    cls: type[Learner]
+    label: str
+    color: str
+    job_cost: int
+    in_paper: bool
+
+
+LEARNER_SPECS: dict[str, LearnerSpec] = {
+    spec.name: spec
+    for spec in (
+        LearnerSpec("mpc-rl", MPCRL, "MPC-RL", "tab:green", job_cost=1, in_paper=True),
+        LearnerSpec("bo", BOLearner, "BO", "grey", job_cost=3, in_paper=True),
+        LearnerSpec("mobo", MOBOLearner, "MPC-RL-MOBO", "tab:red", job_cost=4, in_paper=True),
+        LearnerSpec("hybrid", HybridLearner, "hybrid", "tab:purple", job_cost=4, in_paper=False),
+    )
 }
+LEARNERS: dict[str, type[Learner]] = {name: spec.cls for name, spec in LEARNER_SPECS.items()}
 
 
 def make_learner(

@@ -1,4 +1,9 @@
-"""Named systems: ``get_system("cstr")`` and ``register_system`` for user-defined ones."""
+"""Named systems: ``get_system("cstr")`` and ``register_system`` for user-defined ones.
+
+The registry lives in the process. A study's worker processes receive the factory of their
+system (``system_factory(name)``, pickled by reference) and register it again, so a system
+registered by the user's script is also known to the workers.
+"""
 
 from __future__ import annotations
 
@@ -22,8 +27,13 @@ def available_systems() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def get_system(name: str, **options) -> System:
-    """Build the registered system ``name`` (options go to its factory)."""
+def system_factory(name: str) -> Callable[..., System]:
+    """The factory registered as ``name``."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown system '{name}'; available: {', '.join(available_systems())}")
-    return _REGISTRY[name](**options)
+    return _REGISTRY[name]
+
+
+def get_system(name: str, **options) -> System:
+    """Build the registered system ``name`` (options go to its factory)."""
+    return system_factory(name)(**options)

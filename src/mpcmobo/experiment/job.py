@@ -1,0 +1,291 @@
+"""One job of a study: a learner on a seed, run episode by episode, resumable exactly.
+
+A :class:`Job` builds its own system, MPC (eq. V0), learner and evaluator (no CasADi object
+crosses a process boundary); :meth:`Job.restore` continues from its checkpoint, :meth:`Job.step`
+runs one episode and :meth:`Job.save` writes its :class:`Checkpoint`. What a job records follows
+one :class:`EvaluationSchedule`, also when a run's budget is extended. :func:`run_job` runs a job
+in the study's process or in a worker: checkpointing, progress and the watch for an orphaned
+worker hang on the job's episodes (:meth:`Job.episodes`), outside the learning loop.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import numpy as np
+import torch
+from threadpoolctl import threadpool_limits
+
+from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
+from mpcmobo.experiment.loop import LearningRun
+from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
+from mpcmobo.experiment.rundir import RunDirectory, StudyError
+from mpcmobo.experiment.settings import Settings, build_system, validate_settings
+from mpcmobo.learners import make_learner
+from mpcmobo.mpc import ParametricMPC
+from mpcmobo.systems.base import System
+from mpcmobo.systems.registry import register_system
+
+Progress = Callable[[dict], None]
+
+
+class EvaluationSchedule:
+    """When a job evaluates its incumbent and which of its episodes it stores.
+
+    The incumbent's J_eval is computed at episode 0, at the last episode of the budget, and
+    whenever the incumbent differs from the last evaluated one and at least ``eval_every``
+    episodes have passed since that evaluation (``J_eval_incumbent`` is NaN in the other rows).
+    The last episode also stores the final incumbent's evaluation episodes ("final"); a learning
+    episode's states and inputs are stored every ``trajectory_every`` episodes and at the last.
+    """
+
+    def __init__(self, episodes: int, eval_every: int, trajectory_every: int) -> None:
+        self.last = episodes - 1
+        self.eval_every = eval_every
+        self.trajectory_every = trajectory_every
+        self.theta: np.ndarray | None = None  # the last evaluated incumbent
+        self.episode: int | None = None  # and its episode
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> EvaluationSchedule:
+        return cls(
+            settings.episodes, settings.evaluation.eval_every, settings.records.trajectory_every
+        )
+
+    def step(self, episode: int, incumbent: np.ndarray) -> bool:
+        """Whether the incumbent after ``episode`` is evaluated (then it is the last evaluated)."""
+        due = episode in (0, self.last) or (
+            (self.theta is None or not np.array_equal(self.theta, incumbent))
+            and (self.episode is None or episode - self.episode >= self.eval_every)
+        )
+        if due:
+            self.theta, self.episode = incumbent.copy(), episode
+        return due
+
+    def keeps_learning(self, episode: int) -> bool:
+        """Whether the learning episode's trajectory is stored."""
+        return episode % self.trajectory_every == 0 or episode == self.last
+
+    def state_dict(self) -> dict:
+        """The checkpoint's ``eval_state``: empty before the first evaluation."""
+        return {} if self.theta is None else {"theta": self.theta, "episode": self.episode}
+
+    def load_state_dict(self, state: dict) -> None:
+        theta = state.get("theta")
+        self.theta = None if theta is None else np.asarray(theta, dtype=float)
+        self.episode = state.get("episode")
+
+
+class Job:
+    """The job (learner, seed) of a study with ``settings``, recorded in ``run_dir``.
+
+    ``J_initial``: J_eval(theta0) of the study's reference, so that it is not recomputed.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        run_dir: RunDirectory,
+        learner: str,
+        seed: int,
+        J_initial: float | None = None,
+    ) -> None:
+        self.settings, self.run_dir = settings, run_dir
+        self.learner, self.seed = learner, seed
+        system = build_system(settings)
+        self.run = _learning_run(settings, system, learner, seed)
+        self.evaluator = make_evaluator(settings, system)
+        if J_initial is not None:
+            self.evaluator.remember(self.run.mpc.theta0, J_initial)
+        self.schedule = EvaluationSchedule.from_settings(settings)
+        self.rows: list[EpisodeRow] = []
+        self.trajectories: list[Trajectory] = []
+        self.wall_time_s = 0.0
+
+    @property
+    def done(self) -> bool:
+        return self.run.episode >= self.settings.episodes
+
+    # ------------------------------------------------------------------ restore / save
+    def restore(self) -> None:
+        """Continue from the job's checkpoint, if any; a checkpoint of a smaller budget is
+        extended to this one (:meth:`_extend`)."""
+        ckpt = self.run_dir.checkpoint(self.learner, self.seed)
+        if ckpt is None:
+            return
+        self.run.load_state_dict(ckpt.state)
+        self.rows, self.trajectories = ckpt.rows, ckpt.trajectories
+        self.wall_time_s = ckpt.wall_time_s
+        if len(self.rows) != self.run.episode:
+            raise StudyError(f"checkpoint of {self.learner}-s{self.seed} is inconsistent")
+        if ckpt.episodes < self.settings.episodes:
+            self._extend()
+        else:
+            self.schedule.load_state_dict(ckpt.eval_state)
+
+    def _extend(self) -> None:
+        """Undo what only the end of the old budget recorded, so that the records equal those
+        of a run started with this budget: the schedule is replayed over the rows; the old last
+        episode keeps its evaluation only if the schedule makes it anyway, and loses its "final"
+        trajectories and its learning trajectory if that was off the schedule."""
+        *before, end = self.rows
+        for row in before:
+            self.schedule.step(row.episode, np.asarray(row.incumbent, dtype=float))
+        if not self.schedule.step(end.episode, np.asarray(end.incumbent, dtype=float)):
+            end.J_eval_incumbent = math.nan
+        self.trajectories = [
+            t
+            for t in self.trajectories
+            if t.episode != end.episode
+            or (t.phase == "learning" and self.schedule.keeps_learning(t.episode))
+        ]
+
+    def checkpoint(self) -> Checkpoint:
+        return Checkpoint(
+            learner=self.learner,
+            seed=self.seed,
+            state=self.run.state_dict(),
+            rows=self.rows,
+            trajectories=self.trajectories,
+            eval_state=self.schedule.state_dict(),
+            wall_time_s=self.wall_time_s,
+            episodes=self.settings.episodes,
+            done=self.done,
+        )
+
+    def save(self) -> None:
+        self.run_dir.save_checkpoint(self.checkpoint())
+
+    # ------------------------------------------------------------------ episodes
+    def step(self) -> EpisodeRow:
+        """Run the next episode, evaluate its incumbent and store its trajectories as the
+        schedule says; return its row."""
+        t_start = time.perf_counter()
+        out, record = self.run.run_episode()
+        row = EpisodeRow.from_dict(out)
+        t_eval = time.perf_counter()
+        row.J_eval_incumbent = self._evaluate(row.episode, np.asarray(row.incumbent, dtype=float))
+        row.eval_time_s = time.perf_counter() - t_eval
+        if record is not None and self.schedule.keeps_learning(row.episode):
+            self.trajectories.append(Trajectory("learning", row.episode, 0, record.x, record.u))
+        self.rows.append(row)
+        self.wall_time_s += time.perf_counter() - t_start
+        return row
+
+    def _evaluate(self, episode: int, incumbent: np.ndarray) -> float:
+        """J_eval of the incumbent if the schedule evaluates it, else NaN; at the last episode
+        the final incumbent's evaluation episodes are stored."""
+        if not self.schedule.step(episode, incumbent):
+            return math.nan
+        if episode == self.schedule.last:
+            eps = self.evaluator.episodes(incumbent)
+            if not self.evaluator.is_cached(incumbent):
+                self.evaluator.remember(incumbent, mean_cost(eps))
+            self.trajectories += [
+                Trajectory("final", episode, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
+            ]
+        return self.evaluator.J_eval(incumbent)
+
+    def episodes(self, max_episodes: int | None = None) -> Iterator[EpisodeRow]:
+        """Step until the budget is done (or ``max_episodes`` more episodes), yielding each
+        episode's row: the events that checkpointing and progress hang on."""
+        remaining = self.settings.episodes - self.run.episode
+        for _ in range(remaining if max_episodes is None else min(remaining, max_episodes)):
+            yield self.step()
+
+    def progress(self) -> dict:
+        return progress_event(self.learner, self.seed, self.rows, self.settings.episodes)
+
+    def result(self) -> dict:
+        return {
+            "learner": self.learner,
+            "seed": self.seed,
+            "episodes": self.run.episode,
+            "done": self.done,
+        }
+
+
+def _learning_run(settings: Settings, system: System, learner: str, seed: int) -> LearningRun:
+    """The job's learning run: the learner tunes the imperfect-model MPC (eq. V0)."""
+    mpc = ParametricMPC(system, model="imperfect", **settings.mpc.options())
+    options = settings.learner_options.get(learner, {})
+    tuner = make_learner(learner, system.search_space, mpc.theta0, seed=seed, **options)
+    return LearningRun(
+        system,
+        tuner,
+        mpc,
+        seed=seed,
+        steps=settings.steps,
+        exploration_std=settings.exploration.std,
+        exploration_decay=settings.exploration.decay,
+        start_mode=settings.start_mode,
+        n_cycle_starts=settings.n_cycle_starts,
+        critic_ridge=settings.critic.ridge,
+        critic_method=settings.critic.method,
+        beta=settings.beta,
+    )
+
+
+def progress_event(learner: str, seed: int, rows: list[EpisodeRow], total: int) -> dict:
+    """The progress event of a job after ``rows``: its last f1 and best evaluated J_eval."""
+    J = [r.J_eval_incumbent for r in rows if math.isfinite(r.J_eval_incumbent)]
+    return {
+        "kind": "episode",
+        "learner": learner,
+        "seed": seed,
+        "episode": len(rows),
+        "episodes": total,
+        "f1": float(rows[-1].f1) if rows else math.nan,
+        "best_J_eval": float(min(J)) if J else math.nan,
+    }
+
+
+@contextmanager
+def single_threaded() -> Iterator[None]:
+    """One BLAS / OpenMP / torch thread while a job runs (the parallelism is across jobs);
+    the thread counts of the calling process are restored afterwards."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+def run_job(
+    settings_dict: dict,
+    out_dir: str,
+    learner_name: str,
+    seed: int,
+    J_initial: float | None = None,
+    max_episodes: int | None = None,
+    on_episode: Progress | None = None,
+    parent_pid: int | None = None,
+    system_factory: Callable[..., System] | None = None,
+) -> dict:
+    """Run (or continue) the job (learner, seed) until its budget; checkpoint every episode.
+
+    ``parent_pid``: in a worker process, the pid of the study's process. If that process dies
+    (killed, not interrupted), the job stops after its current episode's checkpoint instead of
+    running on as an orphan that a later ``--resume`` would race with.
+    ``system_factory``: in a worker process, the factory of the settings' system, registered
+    here under its name (a worker does not see what the study's process registered).
+    """
+    if system_factory is not None:
+        register_system(settings_dict["system"]["name"], system_factory, overwrite=True)
+    settings = validate_settings(settings_dict)
+    with single_threaded():
+        job = Job(settings, RunDirectory(out_dir), learner_name, seed, J_initial)
+        job.restore()
+        for _ in job.episodes(max_episodes):
+            job.save()
+            if on_episode is not None:
+                on_episode(job.progress())
+            if parent_pid is not None and os.getppid() != parent_pid:
+                break  # orphaned: the study is gone; everything so far is checkpointed
+    return job.result()

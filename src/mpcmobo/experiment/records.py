@@ -1,0 +1,169 @@
+"""What a study keeps, as types: episode rows, stored trajectories, job checkpoints, reference.
+
+On disk these are plain pickled dicts and Parquet columns (layout in :mod:`storage`); each type
+converts with ``to_dict`` / ``from_dict``, so that files written before these types existed
+still load and files written now hold the same keys and values.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(kw_only=True)
+class EpisodeRow:
+    """One row of ``episodes.parquet``: one learning episode of one job (the columns, in order).
+
+    The objectives f1..f4 are those of the paper (eq. cl_perf, f2, f3, f4); ``J_tilde`` is f1;
+    ``mean_stage_cost`` is the undiscounted mean of L over the episode; ``J_eval_incumbent`` is
+    NaN where the job's evaluation schedule did not evaluate the incumbent.
+    """
+
+    learner: str
+    seed: int
+    episode: int
+    theta: list[float]
+    f1: float
+    f2: float
+    f3: float
+    f4: float
+    J_tilde: float
+    mean_stage_cost: float
+    mean_abs_A: float
+    critic_ok: bool
+    violation: float
+    solver_failures: int
+    x0: list[float]
+    incumbent: list[float]
+    J_eval_incumbent: float = math.nan  # set by the job (NaN: not evaluated)
+    error: str
+    mpc_time_s: float
+    learner_time_s: float
+    eval_time_s: float = math.nan  # set by the job
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> EpisodeRow:
+        return cls(**d)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {name: getattr(self, name) for name in ROW_FIELDS}
+
+
+ROW_FIELDS = tuple(f.name for f in fields(EpisodeRow))
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """States (T+1, nx) and inputs (T, nu) of one stored episode.
+
+    ``phase``: "initial" / "perfect" (the reference's evaluation episodes of theta0 with the
+    imperfect and the perfect model, episode -1), "learning" (a learning episode, start 0) or
+    "final" (the evaluation episodes of the final incumbent); ``start`` indexes the initial state.
+    """
+
+    phase: str
+    episode: int
+    start: int
+    x: np.ndarray
+    u: np.ndarray
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Trajectory:
+        return cls(d["phase"], d["episode"], d["start"], d["x"], d["u"])
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "phase": self.phase,
+            "episode": self.episode,
+            "start": self.start,
+            "x": self.x,
+            "u": self.u,
+        }
+
+
+@dataclass
+class Checkpoint:
+    """What a job saves after every episode: everything needed to continue it exactly.
+
+    ``state`` is the :class:`LearningRun` state (learner and random generators), ``eval_state``
+    the :class:`EvaluationSchedule` state, ``episodes`` the budget the job was run with.
+    """
+
+    learner: str
+    seed: int
+    state: dict
+    rows: list[EpisodeRow]
+    trajectories: list[Trajectory]
+    eval_state: dict
+    wall_time_s: float
+    episodes: int
+    done: bool
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Checkpoint:
+        return cls(
+            learner=d["learner"],
+            seed=int(d["seed"]),
+            state=d["state"],
+            rows=[EpisodeRow.from_dict(r) for r in d["rows"]],
+            trajectories=[Trajectory.from_dict(t) for t in d["trajectories"]],
+            eval_state=dict(d["eval_state"]),
+            wall_time_s=float(d["wall_time_s"]),
+            episodes=int(d["episodes"]),
+            done=bool(d["done"]),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "state": self.state,
+            "rows": [r.to_dict() for r in self.rows],
+            "trajectories": [t.to_dict() for t in self.trajectories],
+            "eval_state": self.eval_state,
+            "wall_time_s": self.wall_time_s,
+            "episodes": self.episodes,
+            "done": self.done,
+        }  # storage.save_checkpoint adds the version, learner and seed
+
+    @property
+    def incumbent(self) -> np.ndarray | None:
+        """The incumbent after the last episode (None before the first)."""
+        return np.asarray(self.rows[-1].incumbent, dtype=float) if self.rows else None
+
+
+@dataclass
+class Reference:
+    """The study-level reference (``reference.pkl``), computed once per study: J* (the
+    perfect-model MPC with theta0), J_eval(theta0), their evaluation episodes and what the
+    figures need to know about the system (``study.system_info``)."""
+
+    J_star: float
+    J_initial: float
+    theta0: np.ndarray
+    system: dict
+    trajectories: list[Trajectory] = field(default_factory=list)
+    wall_time_s: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Reference:
+        return cls(
+            J_star=d["J_star"],
+            J_initial=d["J_initial"],
+            theta0=d["theta0"],
+            system=d["system"],
+            trajectories=[Trajectory.from_dict(t) for t in d.get("trajectories", [])],
+            wall_time_s=d.get("wall_time_s"),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "J_star": self.J_star,
+            "J_initial": self.J_initial,
+            "theta0": self.theta0,
+            "system": self.system,
+            "trajectories": [t.to_dict() for t in self.trajectories],
+            "wall_time_s": self.wall_time_s,
+        }
