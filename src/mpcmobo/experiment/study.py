@@ -158,10 +158,11 @@ def run_job(
     _limit_threads()
     from mpcmobo.experiment.loop import LearningRun
     from mpcmobo.learners import make_learner
+    from mpcmobo.mpc import ParametricMPC
 
     settings = validate_settings(settings_dict)
     system = build_system(settings)
-    mpc = system.make_mpc(model="imperfect", **_mpc_options(settings))
+    mpc = ParametricMPC(system, model="imperfect", **_mpc_options(settings))
     learner = make_learner(
         learner_name,
         system.search_space,
