@@ -139,6 +139,8 @@ def test_derived_parts_are_built_once_and_follow_copies(cstr):
     assert t.parameterization.names == s.parameterization.names
     x, u = cstr.x_ref, cstr.u_ref
     np.testing.assert_array_equal(t.plant_step(x, u), cstr.plant_step(x, u))
+    # each system owns its arrays (none aliases the module constants of cstr.py)
+    assert not np.shares_memory(s.true_params, cstr.true_params)
     # the one RK4 function: the plant with p = true_params, the model with p = models[...]
     F = cstr.discrete_step
     np.testing.assert_array_equal(F(x, u, cstr.true_params).full().ravel(), cstr.plant_step(x, u))

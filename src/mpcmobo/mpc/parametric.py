@@ -43,7 +43,7 @@ import numpy as np
 from mpcmobo.systems.base import System
 from mpcmobo.systems.parameterization import Parameterization
 
-_SUCCESS = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
+_SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
 _JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
 
 

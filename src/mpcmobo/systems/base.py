@@ -41,7 +41,9 @@ def _half_span(lb: np.ndarray, ub: np.ndarray) -> np.ndarray:
 
 
 def _vec(a, n: int, label: str) -> np.ndarray:
-    a = np.asarray(a, dtype=float).reshape(-1)
+    """A float copy of ``a`` with ``n`` entries (a copy: a system never aliases its caller's
+    arrays, e.g. the module constants ``cstr.TRUE_PARAMS``)."""
+    a = np.array(a, dtype=float).reshape(-1)
     if a.shape != (n,):
         raise ValueError(f"{label} has {a.shape[0]} entries, expected {n}")
     return a
@@ -51,9 +53,10 @@ def _vec(a, n: int, label: str) -> np.ndarray:
 class System:
     """A discrete-time control problem built from continuous dynamics and RK4.
 
-    Frozen: the derived :attr:`discrete_step` and :attr:`parameterization` are computed once per
-    instance and cannot go stale; :meth:`with_spec` (``dataclasses.replace``) makes a new
-    instance that derives them afresh, and a pickled system carries them along.
+    Frozen (fields cannot be reassigned, the arrays are the system's own copies): the derived
+    :attr:`discrete_step` and :attr:`parameterization` are computed once per instance;
+    :meth:`with_spec` (``dataclasses.replace``) makes a new instance that derives them afresh,
+    and a pickled system carries them along.
 
     Parameters
     ----------
