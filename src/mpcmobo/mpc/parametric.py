@@ -348,22 +348,33 @@ class ParametricMPC:
             ok, status, iters2, out, wopt = self._run_solver(x, p, False)
             iters += iters2
         if not ok:
-            act = self.fallback_action()
-            if self._prev is not None:
-                self._prev["age"] += 1
-            nan = np.full(self.n_theta, np.nan)
-            return MPCSolution(
-                action=act,
-                value=np.nan,
-                dpi_dtheta=np.full((self.n_theta, self.nu), np.nan) if sensitivities else None,
-                dV_dtheta=nan if sensitivities else None,
-                success=False,
-                status=status,
-                slack=np.nan,
-                iterations=iters,
-                solve_time=time.perf_counter() - t0,
-                fallback=True,
-            )
+            sol = self._failed_solution(status, iters, sensitivities)
+        else:
+            sol = self._solution(x, p, out, wopt, status, iters, sensitivities)
+        sol.solve_time = time.perf_counter() - t0
+        return sol
+
+    def _failed_solution(self, status: str, iters: int, sensitivities: bool) -> MPCSolution:
+        """The fallback input (the previous plan, one step older) and NaN value and gradients."""
+        act = self.fallback_action()
+        if self._prev is not None:
+            self._prev["age"] += 1
+        nan = np.full(self.n_theta, np.nan)
+        return MPCSolution(
+            action=act,
+            value=np.nan,
+            dpi_dtheta=np.full((self.n_theta, self.nu), np.nan) if sensitivities else None,
+            dV_dtheta=nan if sensitivities else None,
+            success=False,
+            status=status,
+            slack=np.nan,
+            iterations=iters,
+            fallback=True,
+        )
+
+    def _solution(self, x, p, out, wopt, status, iters, sensitivities: bool) -> MPCSolution:
+        """pi_theta(x) (eq. Policy), V_theta(x), the plan and, if asked, the sensitivities;
+        the solution, shifted, is the next warm start."""
         lam_g = np.asarray(out["lam_g"]).reshape(-1)
         lam_x = np.asarray(out["lam_x"]).reshape(-1)
         plan_u = self.system.u_ref + self.Su * wopt[self._iu_flat].reshape(self.N, self.nu)
@@ -393,7 +404,6 @@ class ParametricMPC:
                 sol.dV_dtheta = np.full(self.n_theta, np.nan)
                 sol.info["sensitivity_error"] = str(err)
         self._remember(wopt, lam_g, lam_x, plan_u)
-        sol.solve_time = time.perf_counter() - t0
         return sol
 
     def _run_solver(self, x: np.ndarray, p: np.ndarray, warm: bool):
