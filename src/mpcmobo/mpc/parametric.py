@@ -88,7 +88,7 @@ class ParametricMPC:
         Extra IPOPT options (``{"max_iter": 200}``, ...), for the cold and the warm solver.
     jit:
         Compile generated C code of the NLP and KKT functions (needs a C compiler; building
-        takes 10-20 s, a step is then about 1.5x faster, see ``docs/benchmarks_step.md``).
+        takes 10-20 s, a step is then about 1.5x faster, see ``docs/benchmarks.md``, step time).
     warm_options:
         IPOPT options of the warm-started solver only (after the built-in warm-start settings).
     linsol:
