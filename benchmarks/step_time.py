@@ -31,6 +31,7 @@ import time
 import casadi as ca
 import numpy as np
 
+from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import get_system
 from mpcmobo.systems.base import rk4_step
 
@@ -45,8 +46,7 @@ class OptiBaseline:
         Gamma = np.full(nx, 1e5) if mpc_spec.Gamma is None else np.asarray(mpc_spec.Gamma)
         Gamma_f = Gamma if mpc_spec.Gamma_f is None else np.asarray(mpc_spec.Gamma_f)
         pm = s.model_params(model)
-        mpc0 = s.make_mpc(model)  # only for theta0 (cost weights of section 5)
-        th = mpc0.theta0
+        th = s.parameterization.theta0  # the cost weights of section 5
         b = s.parameterization.blocks
         Tw, G, Qw, Rw = th[b["T"]], th[b["G"]], th[b["Q"]], th[b["R"]]
         theta_c = th[b["theta_c"]][0]
@@ -114,7 +114,6 @@ class OptiBaseline:
 # name -> ParametricMPC options; the first one drives the closed loop.
 VARIANTS: dict[str, dict] = {
     "default": {},  # IPOPT, shifted primal-dual warm start, adjoint sensitivities (sparse QR)
-    "sens_splu": {"linsol": "splu"},  # the former sensitivity path: scipy splu, 14 RHS
     "cold": {"warm_start": False},  # no warm start
     "warm_mu_init_1e-5": {"warm_options": {"mu_init": 1e-5}},
     "warm_mu_adaptive": {"warm_options": {"mu_strategy": "adaptive"}},
@@ -124,7 +123,7 @@ VARIANTS: dict[str, dict] = {
 
 def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> dict:
     s = get_system("cstr")
-    mpcs = {name: s.make_mpc("imperfect", **opts) for name, opts in variants.items()}
+    mpcs = {name: ParametricMPC(s, "imperfect", **opts) for name, opts in variants.items()}
     base = OptiBaseline(s)
     names = [*mpcs, "baseline"]
     times = {n: [] for n in names}

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import get_system
 
 
@@ -11,12 +12,12 @@ def cstr():
 
 @pytest.fixture(scope="session")
 def cstr_mpc(cstr):
-    return cstr.make_mpc(model="imperfect")
+    return ParametricMPC(cstr, model="imperfect")
 
 
 @pytest.fixture(scope="session")
 def cstr_perfect_mpc(cstr):
-    return cstr.make_mpc(model="perfect")
+    return ParametricMPC(cstr, model="perfect")
 
 
 @pytest.fixture

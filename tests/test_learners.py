@@ -5,7 +5,7 @@ import pytest
 
 from mpcmobo.experiment.loop import LearningRun
 from mpcmobo.learners import EpisodeResult, make_learner
-from mpcmobo.mpc import rollout
+from mpcmobo.mpc import ParametricMPC, rollout
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
 from mpcmobo.systems import get_system
 
@@ -14,7 +14,7 @@ def test_cdpg_gradient_direction_matches_finite_differences_on_lq():
     """The compatible DPG estimate (eq. DPG) points where a finite-difference gradient of the
     expected discounted closed-loop cost points (cosine >= 0.9)."""
     s = get_system("lq")
-    mpc = s.make_mpc(warm_start=False, tol=1e-10)
+    mpc = ParametricMPC(s, warm_start=False, tol=1e-10)
     th0 = mpc.theta0.copy()
     rng = np.random.default_rng(0)
     starts = [s.sample_initial_state(rng) for _ in range(8)]

@@ -2,8 +2,9 @@
 
 import numpy as np
 import pytest
+import scipy.sparse.linalg
 
-from mpcmobo.mpc import rollout
+from mpcmobo.mpc import ParametricMPC, rollout
 from mpcmobo.rl import GaussianExploration
 
 
@@ -17,7 +18,7 @@ def _random_theta(mpc, rng):
 @pytest.fixture(scope="module")
 def fd_mpc(cstr):
     # a tight tolerance and no warm start make the solver's output a smooth function of theta
-    return cstr.make_mpc(model="imperfect", warm_start=False, tol=1e-10)
+    return ParametricMPC(cstr, model="imperfect", warm_start=False, tol=1e-10)
 
 
 @pytest.mark.parametrize("trial", range(3))
@@ -49,7 +50,7 @@ def test_sensitivities_match_central_differences(cstr, fd_mpc, trial):
 
 def test_learnable_model_sensitivities(cstr):
     s = cstr.with_spec(learn_model=("k0", "k2"))
-    mpc = s.make_mpc(warm_start=False, tol=1e-10)
+    mpc = ParametricMPC(s, warm_start=False, tol=1e-10)
     rng = np.random.default_rng(7)
     x = s.sample_initial_state(rng)
     th = mpc.theta0.copy()
@@ -84,14 +85,14 @@ def test_solution_fields_and_shapes(cstr, cstr_mpc):
 
 
 def test_fallback_on_forced_solver_failure(cstr):
-    mpc = cstr.make_mpc(solver_options={"max_iter": 1}, warm_start=False)
+    mpc = ParametricMPC(cstr, solver_options={"max_iter": 1}, warm_start=False)
     sol = mpc.solve(np.array([100.0, 0.2, 420.0]), mpc.theta0)
     assert not sol.success and sol.fallback
     np.testing.assert_allclose(sol.action, cstr.u_ref)  # no plan yet: the reference input
     assert np.isnan(sol.value) and np.all(np.isnan(sol.dpi_dtheta))
 
     # after a good solve, a failure applies the shifted previous plan
-    good = cstr.make_mpc()
+    good = ParametricMPC(cstr)
     x = np.array([100.0, 0.2, 420.0])
     first = good.solve(x, good.theta0)
     good._run_solver = lambda *a, **k: (False, "forced", 0, None, None)
@@ -129,22 +130,39 @@ def test_bad_inputs(cstr, cstr_mpc):
         rollout(cstr, cstr_mpc, None, cstr.x_ref, 3, exploration=GaussianExploration(std=[1, 1]))
 
 
-@pytest.mark.parametrize("linsol", ["splu", "csparse"])
-def test_sensitivity_linear_solvers_agree(cstr, fd_mpc, linsol):
-    # the default adjoint sparse-QR path and the alternatives give the same gradients
-    other = cstr.make_mpc(model="imperfect", warm_start=False, tol=1e-10, linsol=linsol)
+def _splu_sensitivities(mpc, x, theta):
+    """dpi/dtheta, dV/dtheta by SciPy's sparse LU on the forward KKT system (eq. nabla_pi):
+    dy/dtheta = -(dR/dy)^-1 dR/dtheta, one factorisation, n_theta right-hand sides."""
+    p = np.concatenate([x, theta])
+    ok, _, _, out, w = mpc._run_solver(x, p, False)
+    assert ok
+    lam_g, lam_x = np.asarray(out["lam_g"]).ravel(), np.asarray(out["lam_x"]).ravel()
+    Jy, Jth, dfdth, dfdw = mpc._kkt(w, *mpc._multipliers(w, lam_g, lam_x), p)
+    dw = scipy.sparse.linalg.splu(Jy.sparse()).solve(-Jth.full())[: mpc.nw]
+    dpi = (mpc.Su[:, None] * dw[mpc._iu[0]]).T
+    dV = mpc.cost_scale * (dfdth.full().ravel() + dfdw.full().ravel() @ dw)
+    return dpi, dV
+
+
+def test_sensitivity_linear_solvers_agree(cstr, fd_mpc):
+    # the default adjoint sparse-QR path, CasADi's csparse, and SciPy's LU of the forward system
+    other = ParametricMPC(cstr, model="imperfect", warm_start=False, tol=1e-10, linsol="csparse")
     rng = np.random.default_rng(11)
     x = cstr.sample_initial_state(rng)
     th = _random_theta(fd_mpc, rng)
     a, b = fd_mpc.solve(x, th), other.solve(x, th)
     assert a.success and b.success
     np.testing.assert_allclose(b.action, a.action, rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(b.dpi_dtheta, a.dpi_dtheta, rtol=1e-7, atol=1e-9)
-    np.testing.assert_allclose(b.dV_dtheta, a.dV_dtheta, rtol=1e-7, atol=1e-9)
+    splu_dpi, splu_dV = _splu_sensitivities(fd_mpc, x, th)
+    for dpi, dV in ((b.dpi_dtheta, b.dV_dtheta), (splu_dpi, splu_dV)):
+        np.testing.assert_allclose(dpi, a.dpi_dtheta, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(dV, a.dV_dtheta, rtol=1e-7, atol=1e-9)
+    with pytest.raises(ValueError, match="linsol 'splu'"):
+        ParametricMPC(cstr, linsol="splu")
 
 
 def test_warm_start_shifts_primal_and_dual(cstr):
-    mpc = cstr.make_mpc()
+    mpc = ParametricMPC(cstr)
     x = np.array([100.0, 0.2, 420.0])
     first = mpc.solve(x, mpc.theta0, False)
     prev = mpc._prev

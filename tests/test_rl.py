@@ -6,6 +6,10 @@ import numpy as np
 import pytest
 import scipy.linalg
 
+from mpcmobo.experiment.loop import LearningRun
+from mpcmobo.experiment.settings import SettingsError, load_settings
+from mpcmobo.learners import make_learner
+from mpcmobo.mpc import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
 from mpcmobo.rl import (
     CompatibleCritic,
@@ -14,10 +18,10 @@ from mpcmobo.rl import (
     f2_optimality,
     f3_critic_drift,
     f4_lyapunov,
-    j_tilde,
     mean_stage_cost,
     objectives,
 )
+from mpcmobo.systems import get_system
 
 
 def _record(x=None, u=None, pi=None, V=None, dpi=None, dV=None, L=None, success=None, gamma=0.9):
@@ -270,6 +274,8 @@ def test_bad_arguments():
         CompatibleCritic(gamma=0.9, q_target="nope")
     with pytest.raises(ValueError):
         CompatibleCritic(gamma=0.9, ridge=-1.0)
+    with pytest.raises(ValueError, match="weighting"):
+        CompatibleCritic(gamma=0.9, weighting="nope")
 
 
 # ----------------------------------------------------------------------------- objectives
@@ -279,7 +285,6 @@ def test_f1_discounting_and_means():
     rec = _record(L=[1.0, 2.0, 3.0], gamma=0.5)
     expected = (1.0 + 0.5 * 2.0 + 0.25 * 3.0) / 3
     assert f1_closed_loop_cost(rec) == pytest.approx(expected)
-    assert j_tilde(rec) == pytest.approx(expected)
     assert f1_closed_loop_cost(rec, gamma=1.0) == pytest.approx(2.0)
     assert mean_stage_cost(rec) == pytest.approx(2.0)
     rec.L[1] = np.inf
@@ -406,3 +411,52 @@ def test_default_critic_gradient_is_unbiased_on_lq_problem(K):
         assert res.ok and res.grad[0] < 0 and expected < 0
         ratios.append(res.grad[0] / expected)
     assert 0.9 < np.mean(ratios) < 1.15
+
+
+# ----------------------------------------------------------------------------- critic settings
+
+
+def _critic_of(critic_settings):
+    """The critic of a LearningRun built from ``settings.critic`` (as the study builds it)."""
+    system = get_system("lq")
+    mpc = ParametricMPC(system)
+    learner = make_learner("mpc-rl", system.search_space, mpc.theta0)
+    c = critic_settings
+    run = LearningRun(
+        system,
+        learner,
+        mpc,
+        critic_ridge=c.ridge,
+        critic_method=c.method,
+        critic_q_target=c.q_target,
+        critic_min_valid_steps=c.min_valid_steps,
+        critic_weighting=c.weighting,
+    )
+    return run.critic
+
+
+@pytest.mark.parametrize(
+    "option, value, changed",
+    [
+        ("q_target", "V_theta", "w"),  # the default follows method "lstd": V_nu
+        ("min_valid_steps", 25, "ok"),  # more than the 20 transitions: the fit fails
+        ("weighting", "discounted", "grad"),
+    ],
+)
+def test_critic_settings_reach_the_critic_and_change_its_result(option, value, changed):
+    default = _critic_of(load_settings().critic)
+    critic = _critic_of(load_settings(critic={option: value}).critic)
+    assert getattr(critic, option) == value and getattr(default, option) != value
+    rec, _ = synthetic(NU_TRUE, W_TRUE, rule="lstd", T=20)
+    a, b = default.fit(rec), critic.fit(rec)
+    assert a.ok
+    assert not np.allclose(getattr(a, changed), getattr(b, changed))
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [("q_target", "V"), ("min_valid_steps", 0), ("weighting", "geometric"), ("method", "lstdq")],
+)
+def test_bad_critic_settings_name_the_key(option, value):
+    with pytest.raises(SettingsError, match=f"critic.{option}"):
+        load_settings(critic={option: value})

@@ -1,10 +1,16 @@
 """The CSTR of the paper against an independent hand-written RK4, the stage cost, the registry."""
 
+import ast
+import dataclasses
 import math
+import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import mpcmobo.systems
+from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import SearchSpace, System, get_system, register_system
 
 
@@ -80,7 +86,7 @@ def test_bad_inputs_raise_clear_errors(cstr):
     with pytest.raises(ValueError, match="NaN"):
         cstr.stage_cost(np.array([np.nan, 0.1, 430]), np.zeros(2))
     with pytest.raises(ValueError, match="unknown model"):
-        cstr.make_mpc(model="wrong")
+        ParametricMPC(cstr, model="wrong")
 
 
 def test_parameterization_and_search_space(cstr):
@@ -121,6 +127,50 @@ def test_learnable_model_parameters_and_second_system():
     assert lq.nx == 2 and lq.parameterization.n_theta == 1 + 2 + 3 + 2 + 1
 
 
+def test_derived_parts_are_built_once_and_follow_copies(cstr):
+    assert cstr.parameterization is cstr.parameterization
+    assert cstr.search_space is cstr.parameterization.space
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cstr.mpc_spec = cstr.mpc_spec  # a change would leave the derived parts stale
+    s = cstr.with_spec(learn_backoff=True)
+    assert s.parameterization.n_theta == cstr.parameterization.n_theta + 2 * cstr.nx
+    assert cstr.parameterization.n_theta == 14
+    t = pickle.loads(pickle.dumps(s))
+    assert t.parameterization.names == s.parameterization.names
+    x, u = cstr.x_ref, cstr.u_ref
+    np.testing.assert_array_equal(t.plant_step(x, u), cstr.plant_step(x, u))
+    # each system owns its arrays (none aliases the module constants of cstr.py)
+    assert not np.shares_memory(s.true_params, cstr.true_params)
+    # the one RK4 function: the plant with p = true_params, the model with p = models[...]
+    F = cstr.discrete_step
+    np.testing.assert_array_equal(F(x, u, cstr.true_params).full().ravel(), cstr.plant_step(x, u))
+    np.testing.assert_array_equal(
+        F(x, u, cstr.models["imperfect"]).full().ravel(), cstr.model_step(x, u, "imperfect")
+    )
+
+
+def test_mpc_predicts_with_the_systems_model(cstr, cstr_mpc):
+    x = np.array([100.0, 0.2, 420.0])
+    sol = cstr_mpc.solve(x, cstr_mpc.theta0, sensitivities=False)
+    pred = cstr.model_step(sol.plan_x[0], sol.plan_u[0], "imperfect")
+    np.testing.assert_allclose(sol.plan_x[1], pred, rtol=1e-7, atol=1e-9)
+
+
+def test_systems_do_not_import_downstream_packages():
+    # systems -> mpc -> rl -> ...: one direction (docs/architecture.md), no lazy back-references
+    downstream = ("mpc", "rl", "bo", "learners", "experiment", "cli", "plots")
+    for path in Path(mpcmobo.systems.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                names = [node.module or ""]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                assert name.split(".")[:2] not in [["mpcmobo", d] for d in downstream], path.name
+
+
 def test_register_user_system():
     def factory():
         import casadi as ca
@@ -149,7 +199,7 @@ def test_register_user_system():
 
     register_system("tank-test", factory, overwrite=True)
     tank = get_system("tank-test")
-    mpc = tank.make_mpc()
+    mpc = ParametricMPC(tank)
     sol = mpc.solve(np.array([0.5]), mpc.theta0)
     assert sol.success and sol.action[0] > 1.0  # pushes the level up towards 1
     with pytest.raises(ValueError, match="already registered"):

@@ -45,7 +45,7 @@ class Evaluator:
 
     def mpc(self, model: str = "imperfect") -> ParametricMPC:
         if model not in self._mpcs:
-            self._mpcs[model] = self.system.make_mpc(model=model, **self._mpc_options)
+            self._mpcs[model] = ParametricMPC(self.system, model=model, **self._mpc_options)
         return self._mpcs[model]
 
     def episodes(self, theta: np.ndarray | None, model: str = "imperfect") -> list[EpisodeRecord]:

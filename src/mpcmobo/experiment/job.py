@@ -226,6 +226,9 @@ def _learning_run(settings: Settings, system: System, learner: str, seed: int) -
         n_cycle_starts=settings.n_cycle_starts,
         critic_ridge=settings.critic.ridge,
         critic_method=settings.critic.method,
+        critic_q_target=settings.critic.q_target,
+        critic_min_valid_steps=settings.critic.min_valid_steps,
+        critic_weighting=settings.critic.weighting,
         beta=settings.beta,
     )
 

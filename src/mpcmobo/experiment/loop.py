@@ -40,6 +40,9 @@ class LearningRun:
         n_cycle_starts: int = 6,
         critic_ridge: float = 1e-6,
         critic_method: str = "lstd",
+        critic_q_target: str | None = None,
+        critic_min_valid_steps: int = 2,
+        critic_weighting: str = "uniform",
         beta: float = 1.0,
     ) -> None:
         if start_mode not in START_MODES:
@@ -49,7 +52,14 @@ class LearningRun:
         self.steps = int(system.episode_steps if steps is None else steps)
         std = np.zeros(system.nu) if exploration_std is None else exploration_std
         self.exploration = GaussianExploration(std=np.asarray(std, float), decay=exploration_decay)
-        self.critic = CompatibleCritic(gamma=mpc.gamma, ridge=critic_ridge, method=critic_method)
+        self.critic = CompatibleCritic(
+            gamma=mpc.gamma,
+            ridge=critic_ridge,
+            method=critic_method,
+            q_target=critic_q_target,
+            min_valid_steps=critic_min_valid_steps,
+            weighting=critic_weighting,
+        )
         self.beta = float(beta)
         self.start_mode = start_mode
         # separate streams: initial states, exploration noise

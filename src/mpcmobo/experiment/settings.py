@@ -103,8 +103,17 @@ class ExplorationSettings(_Section):
 
 
 class CriticSettings(_Section):
+    """The compatible critic (``mpcmobo.rl.CompatibleCritic``): LSTDV / LSTDQ and the DPG."""
+
     ridge: float = Field(1e-6, ge=0)
     method: Literal["lstd", "paper"] = "lstd"
+    q_target: Literal["V_theta", "V_nu"] | None = Field(
+        None, description="value of x_{k+1} in the LSTDQ target; default: follows the method"
+    )
+    min_valid_steps: int = Field(2, ge=1, description="fewer usable transitions: the fit fails")
+    weighting: Literal["uniform", "discounted"] = Field(
+        "uniform", description="mean of the per-step DPG terms: uniform (paper) or discounted"
+    )
 
 
 class EvaluationSettings(_Section):

@@ -6,7 +6,7 @@ from typing import Protocol
 
 import numpy as np
 
-from mpcmobo.mpc.parametric import ParametricMPC
+from mpcmobo.mpc.parametric import MPCSolution, ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
 from mpcmobo.systems.base import System
 
@@ -40,54 +40,62 @@ def rollout(
     x = system.check_state(x0)
     if exploration is not None and rng is None:
         raise ValueError("exploration noise needs a random generator (rng)")
-    nx, nu, nth = system.nx, system.nu, mpc.n_theta
-    X = np.empty((steps + 1, nx))
-    U, PI = np.empty((steps, nu)), np.empty((steps, nu))
-    V = np.full(steps + 1, np.nan)
-    dPI = np.full((steps, nth, nu), np.nan)
-    dV = np.full((steps + 1, nth), np.nan)
-    L, viol, slack = np.empty(steps), np.empty(steps), np.full(steps, np.nan)
-    success = np.zeros(steps + 1, bool)
-    times = np.zeros(steps + 1)
-    status: list[str] = []
+    rec = _blank_record(steps, system.nx, system.nu, theta, mpc.gamma)
     mpc.reset()
     for k in range(steps + 1):
-        X[k] = x
+        rec.x[k] = x
         sol = mpc.solve(x, theta, sensitivities=sensitivities)
-        success[k], times[k] = sol.success, sol.solve_time
-        status.append(sol.status)
-        if sol.success:
-            V[k] = sol.value
-            if sensitivities:
-                dV[k] = sol.dV_dtheta
-                if k < steps:
-                    dPI[k] = sol.dpi_dtheta
+        _record_solve(rec, k, sol, sensitivities)
         if k == steps:
             break
-        PI[k] = sol.action
         u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)
-        u = system.clip_input(u)
-        U[k] = u
-        if sol.success:
-            slack[k] = sol.slack
-        L[k] = system.stage_cost(x, u)
-        viol[k] = system.constraint_violation(x, u)
-        x = system.plant_step(x, u)
-        if not np.all(np.isfinite(x)):
-            raise FloatingPointError(f"the plant diverged at step {k}: state {x}")
+        x = _apply(system, rec, k, x, system.clip_input(u))
+    return rec
+
+
+def _blank_record(steps: int, nx: int, nu: int, theta: np.ndarray, gamma: float) -> EpisodeRecord:
+    """An episode of ``steps`` steps to be filled in; MPC quantities NaN until a solve succeeds."""
+    nth = theta.shape[0]
     return EpisodeRecord(
-        x=X,
-        u=U,
-        pi=PI,
-        V=V,
-        dpi=dPI,
-        dV=dV,
-        L=L,
-        violation=viol,
-        slack=slack,
-        success=success,
+        x=np.empty((steps + 1, nx)),
+        u=np.empty((steps, nu)),
+        pi=np.empty((steps, nu)),
+        V=np.full(steps + 1, np.nan),
+        dpi=np.full((steps, nth, nu), np.nan),
+        dV=np.full((steps + 1, nth), np.nan),
+        L=np.empty(steps),
+        violation=np.empty(steps),
+        slack=np.full(steps, np.nan),
+        success=np.zeros(steps + 1, bool),
         theta=theta.copy(),
-        gamma=mpc.gamma,
-        status=status,
-        solve_time=times,
+        gamma=gamma,
+        status=[],
+        solve_time=np.zeros(steps + 1),
     )
+
+
+def _record_solve(rec: EpisodeRecord, k: int, sol: MPCSolution, sensitivities: bool) -> None:
+    """The solve at x_k: success, time, status, V_theta(x_k) and its gradients, pi_theta(x_k)."""
+    rec.success[k], rec.solve_time[k] = sol.success, sol.solve_time
+    rec.status.append(sol.status)
+    if sol.success:
+        rec.V[k] = sol.value
+        if sensitivities:
+            rec.dV[k] = sol.dV_dtheta
+            if k < rec.steps:
+                rec.dpi[k] = sol.dpi_dtheta
+    if k < rec.steps:
+        rec.pi[k] = sol.action
+        if sol.success:
+            rec.slack[k] = sol.slack
+
+
+def _apply(system: System, rec: EpisodeRecord, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Apply ``u`` at ``x`` on the true plant: record u_k, L(x_k, u_k), the violation; x_{k+1}."""
+    rec.u[k] = u
+    rec.L[k] = system.stage_cost(x, u)
+    rec.violation[k] = system.constraint_violation(x, u)
+    x = system.plant_step(x, u)
+    if not np.all(np.isfinite(x)):
+        raise FloatingPointError(f"the plant diverged at step {k}: state {x}")
+    return x

@@ -35,16 +35,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import casadi as ca
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
-from mpcmobo.systems.base import System, rk4_step
+from mpcmobo.systems.base import System
 from mpcmobo.systems.parameterization import Parameterization
 
-_SUCCESS = {"Solve_Succeeded", "Solved_To_Acceptable_Level"}
+_SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
 _JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
 
 
@@ -70,6 +69,9 @@ class MPCSolution:
 class ParametricMPC:
     """The MPC of eq. (V0) for a :class:`~mpcmobo.systems.System`, built once, solved many times.
 
+    ``ParametricMPC(system, model="imperfect", **options)`` is the way to build the MPC of a
+    system.
+
     Parameters
     ----------
     system:
@@ -86,13 +88,13 @@ class ParametricMPC:
         Extra IPOPT options (``{"max_iter": 200}``, ...), for the cold and the warm solver.
     jit:
         Compile generated C code of the NLP and KKT functions (needs a C compiler; building
-        takes 10-20 s, a step is then about 1.5x faster, see ``docs/benchmarks_step.md``).
+        takes 10-20 s, a step is then about 1.5x faster, see ``docs/benchmarks.md``, step time).
     warm_options:
         IPOPT options of the warm-started solver only (after the built-in warm-start settings).
     linsol:
-        Linear solver of the sensitivity system: a CasADi linsol plugin (``"qr"``, the default
-        and fastest measured, ``"csparse"``, ...) used in one adjoint solve inside a single
-        CasADi function, or ``"splu"`` (SciPy sparse LU on the forward system).
+        CasADi linear solver plugin of the sensitivity system (``"qr"``, the default and
+        fastest measured, ``"csparse"``, ...), used in one adjoint solve inside a single CasADi
+        function.
     """
 
     def __init__(
@@ -118,175 +120,140 @@ class ParametricMPC:
         self.model_params = np.array(system.model_params(model), dtype=float)
         self.N = int(spec.horizon if horizon is None else horizon)
         self.gamma = float(spec.gamma if gamma is None else gamma)
-        if self.N < 1:
-            raise ValueError(f"horizon must be at least 1, got {self.N}")
-        if not 0 < self.gamma <= 1:
-            raise ValueError(f"gamma must be in (0, 1], got {self.gamma}")
-        if tau <= 0:
-            raise ValueError(f"tau must be positive, got {tau}")
+        _check_options(self.N, self.gamma, tau, linsol)
         self.tau = float(tau)
         self.warm_start = bool(warm_start)
         self.param: Parameterization = system.parameterization
         self.theta0 = self.param.theta0.copy()
         self.theta_names = list(self.param.names)
         self.n_theta = self.param.n_theta
-        nx, nu = system.nx, system.nu
-        self.nx, self.nu = nx, nu
+        self.nx, self.nu = system.nx, system.nu
         self.Sx, self.Su = np.asarray(system.x_scale, float), np.asarray(system.u_scale, float)
-        self.Gamma = np.full(nx, 1e5) if spec.Gamma is None else np.asarray(spec.Gamma, float)
+        self.Gamma = np.full(self.nx, 1e5) if spec.Gamma is None else np.asarray(spec.Gamma, float)
         self.Gamma_f = self.Gamma if spec.Gamma_f is None else np.asarray(spec.Gamma_f, float)
         if cost_scale is None:
             cost_scale = float(np.sum(system.Q * self.Sx**2) + np.sum(system.R * self.Su**2)) / (
-                nx + nu
+                self.nx + self.nu
             )
         self.cost_scale = float(cost_scale)
         self._linsol = linsol
         self._jit = bool(jit)
         self._build()
-        opts = {
-            "ipopt.print_level": 0,
-            "print_time": False,
-            # IPOPT may probe wild iterates (Inf/NaN in the model, see NOTES): it backtracks by
-            # itself, and a failed solve is reported in MPCSolution, so CasADi's per-evaluation
-            # warnings on stderr are only noise that would bury the progress bars
-            "show_eval_warnings": False,
-            "ipopt.sb": "yes",
-            "ipopt.tol": tol,
-            "ipopt.acceptable_tol": max(1e-6, 100 * tol),
-            "ipopt.mu_target": self.tau,
-            "ipopt.max_iter": max_iter,
-            "ipopt.bound_relax_factor": 0.0,
-            "ipopt.honor_original_bounds": "no",
-            "ipopt.nlp_scaling_method": "none",
-        }
-        if jit:  # generated C code of the NLP functions, compiled once (needs a C compiler)
-            opts.update(
-                {
-                    "jit": True,
-                    "compiler": "shell",
-                    "jit_options": _JIT_OPTIONS,
-                }
-            )
-        for k, v in (solver_options or {}).items():
-            casadi_key = k.startswith("ipopt.") or k in ("print_time", "show_eval_warnings")
-            opts[k if casadi_key else f"ipopt.{k}"] = v
-        self._solver = ca.nlpsol("mpc", "ipopt", self._nlp, opts)
-        warm_opts = dict(opts)
-        warm_opts.update(
-            {
-                "ipopt.warm_start_init_point": "yes",
-                "ipopt.warm_start_bound_push": 1e-6,
-                "ipopt.warm_start_mult_bound_push": 1e-6,
-                "ipopt.mu_init": 1e-3,
-                "ipopt.max_iter": min(max_iter, 50),
-            }
+        cold, warm = _ipopt_options(
+            tol, self.tau, max_iter, jit=self._jit, options=solver_options, warm=warm_options
         )
-        for k, v in (warm_options or {}).items():
-            warm_opts[k if k.startswith("ipopt.") else f"ipopt.{k}"] = v
+        self._solver = ca.nlpsol("mpc", "ipopt", self._nlp, cold)
         self._solver_warm = (
-            ca.nlpsol("mpc_warm", "ipopt", self._nlp, warm_opts) if self.warm_start else None
+            ca.nlpsol("mpc_warm", "ipopt", self._nlp, warm) if self.warm_start else None
         )
         self._prev: dict | None = None
 
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
-        sysm, P = self.system, self.param
-        nx, nu, N = self.nx, self.nu, self.N
-        Sx, Su, xr, ur = self.Sx, self.Su, sysm.x_ref, sysm.u_ref
-        x0 = ca.SX.sym("x0", nx)
+        """The NLP of eq. (V0) in the scaled variables, its warm-start shifts and KKT system."""
+        x0 = ca.SX.sym("x0", self.nx)
         th = ca.SX.sym("theta", self.n_theta)
+        wv, geq, gin, f = self._transcribe(x0, th)
+        p = ca.vertcat(x0, th)
+        self.nw, self.neq, self.nin = wv.numel(), geq.numel(), gin.numel()
+        self._lbg = np.concatenate([np.zeros(self.neq), np.full(self.nin, -np.inf)])
+        self._ubg = np.zeros(self.neq + self.nin)
+        self._nlp = {"x": wv, "p": p, "f": f, "g": ca.vertcat(geq, gin)}
+        self._iu_flat = np.array(sum(self._iu, []))
+        self._ix_flat = np.array(sum(self._ix, []))
+        self._ie_flat = np.array(sum(self._ie, []))
+        self._wshift, self._gshift = self._shift_maps()
+        self._kkt_functions(wv, geq, gin, f, th, p)
+
+    def _theta_terms(self, th: ca.SX) -> _ThetaTerms:
+        """The blocks of theta as the cost weights, model parameters and bounds they set."""
+        sysm, P, nx = self.system, self.param, self.nx
         b = P.blocks
         theta_c = th[b["theta_c"]][0]
         Tw, G, Qw, Rw = th[b["T"]], th[b["G"]], th[b["Q"]], th[b["R"]]
         pm = ca.SX(ca.DM(self.model_params))
-        if "model" in b:
-            pm = ca.SX(pm)
+        if "model" in b:  # learnable model parameters (eq. mpc_model with f_hat_theta)
             mth = th[b["model"]]
             for j, idx in enumerate(P.model_param_index):
                 pm[idx] = mth[j]
         x_lo, x_hi = ca.SX(ca.DM(sysm.x_lb)), ca.SX(ca.DM(sysm.x_ub))
-        if "backoff" in b:
+        if "backoff" in b:  # constraint back-offs b_lb, b_ub (eq. violation)
             bo = th[b["backoff"]]
             x_lo, x_hi = x_lo + bo[:nx], x_hi - bo[nx:]
-        F = _rk4_function(sysm, nx, nu, pm.numel())
+        return _ThetaTerms(theta_c, Tw, G, Qw, Rw, pm, x_lo, x_hi)
 
-        w, lbw, ubw = [], [], []
-        g_eq, g_in = [], []
+    def _transcribe(self, x0: ca.SX, th: ca.SX):
+        """Multiple shooting of eq. (V0) over stages 0..N: (w, G, H, cost / cost_scale).
+
+        Sets the bounds of ``w`` and the index lists of its inputs, states and slacks.
+        """
+        sysm, nx, N = self.system, self.nx, self.N
+        Sx, Su, xr, ur = self.Sx, self.Su, sysm.x_ref, sysm.u_ref
+        t = self._theta_terms(th)
+        F = sysm.discrete_step
+        w = _Decisions()
         self._iu, self._ix, self._ie = [], [], []  # index lists into w
-        pos = 0
         zu_lb, zu_ub = (sysm.u_lb - ur) / Su, (sysm.u_ub - ur) / Su
-        finite_lb, finite_ub = np.isfinite(sysm.x_lb), np.isfinite(sysm.x_ub)
-        cost = theta_c
+        g_eq, g_in = [], []
+        cost = t.theta_c
         x_phys = x0
         for i in range(N + 1):
-            # slacks of stage i (eq. slack)
-            ze = ca.SX.sym(f"eta{i}", nx)
-            w.append(ze)
-            lbw += [0.0] * nx
-            ubw += [np.inf] * nx
-            self._ie.append(list(range(pos, pos + nx)))
-            pos += nx
+            ze = w.add(f"eta{i}", [0.0] * nx, [np.inf] * nx, self._ie)  # slacks (eq. slack)
             eta = Sx * ze
-            # l1-relaxed state constraints (eq. violation), scaled rows H <= 0
-            for j in range(nx):
-                if finite_lb[j]:
-                    g_in.append((x_lo[j] - x_phys[j] - eta[j]) / Sx[j])
-                if finite_ub[j]:
-                    g_in.append((x_phys[j] - x_hi[j] - eta[j]) / Sx[j])
+            g_in += self._state_rows(x_phys, eta, t)
             dx = x_phys - xr
             if i < N:
-                zu = ca.SX.sym(f"u{i}", nu)
-                w.append(zu)
-                lbw += list(zu_lb)
-                ubw += list(zu_ub)
-                self._iu.append(list(range(pos, pos + nu)))
-                pos += nu
+                zu = w.add(f"u{i}", list(zu_lb), list(zu_ub), self._iu)
                 u_phys = ur + Su * zu
                 du = u_phys - ur
                 gi = self.gamma**i
-                cost += gi * (ca.dot(dx, Qw * dx) + ca.dot(du, Rw * du) + ca.dot(self.Gamma, eta))
-                cost += ca.dot(G, ca.vertcat(dx, du))
-                zx = ca.SX.sym(f"x{i + 1}", nx)
-                w.append(zx)
-                lbw += [-np.inf] * nx
-                ubw += [np.inf] * nx
-                self._ix.append(list(range(pos, pos + nx)))
-                pos += nx
+                cost += gi * (ca.dot(dx, t.Q * dx) + ca.dot(du, t.R * du) + ca.dot(self.Gamma, eta))
+                cost += ca.dot(t.G, ca.vertcat(dx, du))
+                zx = w.add(f"x{i + 1}", [-np.inf] * nx, [np.inf] * nx, self._ix)
                 x_next = xr + Sx * zx
-                g_eq.append((F(x_phys, u_phys, pm) - x_next) / Sx)  # (eq. mpc_model)
+                g_eq.append((F(x_phys, u_phys, t.pm) - x_next) / Sx)  # (eq. mpc_model)
                 x_phys = x_next
             else:
-                cost += ca.dot(G[:nx], dx)
-                cost += self.gamma**N * (ca.dot(dx, Tw * dx) + ca.dot(self.Gamma_f, eta))
-        wv = ca.vertcat(*w)
-        geq, gin = ca.vertcat(*g_eq), ca.vertcat(*g_in)
-        g = ca.vertcat(geq, gin)
-        p = ca.vertcat(x0, th)
-        f = cost / self.cost_scale
-        self.nw, self.neq, self.nin = wv.numel(), geq.numel(), gin.numel()
-        self._lbw, self._ubw = np.array(lbw), np.array(ubw)
-        self._lbg = np.concatenate([np.zeros(self.neq), np.full(self.nin, -np.inf)])
-        self._ubg = np.zeros(self.neq + self.nin)
-        self._nlp = {"x": wv, "p": p, "f": f, "g": g}
-        self._iu_flat = np.array(sum(self._iu, []))
-        self._ix_flat = np.array(sum(self._ix, []))
-        self._ie_flat = np.array(sum(self._ie, []))
-        # one-stage shift of w and of the constraint rows (the last stage is repeated)
-        self._wshift = np.arange(self.nw)
+                cost += ca.dot(t.G[:nx], dx)
+                cost += self.gamma**N * (ca.dot(dx, t.T * dx) + ca.dot(self.Gamma_f, eta))
+        self._lbw, self._ubw = np.array(w.lb), np.array(w.ub)
+        return ca.vertcat(*w.w), ca.vertcat(*g_eq), ca.vertcat(*g_in), cost / self.cost_scale
+
+    def _state_rows(self, x_phys, eta, t: _ThetaTerms) -> list:
+        """l1-relaxed state constraints of one stage (eq. violation), scaled rows ``H <= 0``."""
+        sysm, Sx = self.system, self.Sx
+        rows = []
+        for j in range(self.nx):
+            if np.isfinite(sysm.x_lb[j]):
+                rows.append((t.x_lo[j] - x_phys[j] - eta[j]) / Sx[j])
+            if np.isfinite(sysm.x_ub[j]):
+                rows.append((x_phys[j] - t.x_hi[j] - eta[j]) / Sx[j])
+        return rows
+
+    def _shift_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """One-stage shift of ``w`` and of the constraint rows (the last stage is repeated)."""
+        N, nx = self.N, self.nx
+        wshift = np.arange(self.nw)
         for lst in (self._iu, self._ix, self._ie):
             for i in range(len(lst) - 1):
-                self._wshift[lst[i]] = lst[i + 1]
+                wshift[lst[i]] = lst[i + 1]
         m = self.nin // (N + 1)  # inequality rows per stage
         eq_rows = np.arange(self.neq).reshape(N, nx)
         in_rows = self.neq + np.arange(self.nin).reshape(N + 1, m)
-        self._gshift = np.concatenate(
+        gshift = np.concatenate(
             [
                 np.vstack([eq_rows[1:], eq_rows[-1:]]).reshape(-1),
                 np.vstack([in_rows[1:], in_rows[-1:]]).reshape(-1),
             ]
         )
+        return wshift, gshift
 
-        # ---------------- barrier-relaxed KKT system (eq. nabla_pi)
+    def _kkt_functions(self, wv, geq, gin, f, th, p) -> None:
+        """The barrier-relaxed KKT residual R(y, p) and its Jacobians (eq. nabla_pi).
+
+        Sets ``_kkt`` = (w, lam, mu, p) -> (dR/dy, dR/dtheta, df/dtheta, df/dw) and the
+        sensitivity function ``_sens`` built on it.
+        """
         lb_idx = np.flatnonzero(np.isfinite(self._lbw))
         ub_idx = np.flatnonzero(np.isfinite(self._ubw))
         self._lb_idx, self._ub_idx = lb_idx, ub_idx
@@ -313,10 +280,7 @@ class ParametricMPC:
             kkt_opts = {"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS}
         self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw], kkt_opts)
         self._ny = y.numel()
-        self._Jy_sp = self._kkt.sparsity_out(0)
-        self._sens = self._sensitivity_function(
-            "csparse" if self._linsol == "splu" else self._linsol
-        )
+        self._sens = self._sensitivity_function(self._linsol)
 
     def _sensitivity_function(self, linsol: str) -> ca.Function:
         """(w, lam, mu, p) -> (dpi/dtheta, dV/dtheta), one call, one sparse factorisation.
@@ -384,22 +348,33 @@ class ParametricMPC:
             ok, status, iters2, out, wopt = self._run_solver(x, p, False)
             iters += iters2
         if not ok:
-            act = self.fallback_action()
-            if self._prev is not None:
-                self._prev["age"] += 1
-            nan = np.full(self.n_theta, np.nan)
-            return MPCSolution(
-                action=act,
-                value=np.nan,
-                dpi_dtheta=np.full((self.n_theta, self.nu), np.nan) if sensitivities else None,
-                dV_dtheta=nan if sensitivities else None,
-                success=False,
-                status=status,
-                slack=np.nan,
-                iterations=iters,
-                solve_time=time.perf_counter() - t0,
-                fallback=True,
-            )
+            sol = self._failed_solution(status, iters, sensitivities)
+        else:
+            sol = self._solution(x, p, out, wopt, status, iters, sensitivities)
+        sol.solve_time = time.perf_counter() - t0
+        return sol
+
+    def _failed_solution(self, status: str, iters: int, sensitivities: bool) -> MPCSolution:
+        """The fallback input (the previous plan, one step older) and NaN value and gradients."""
+        act = self.fallback_action()
+        if self._prev is not None:
+            self._prev["age"] += 1
+        nan = np.full(self.n_theta, np.nan)
+        return MPCSolution(
+            action=act,
+            value=np.nan,
+            dpi_dtheta=np.full((self.n_theta, self.nu), np.nan) if sensitivities else None,
+            dV_dtheta=nan if sensitivities else None,
+            success=False,
+            status=status,
+            slack=np.nan,
+            iterations=iters,
+            fallback=True,
+        )
+
+    def _solution(self, x, p, out, wopt, status, iters, sensitivities: bool) -> MPCSolution:
+        """pi_theta(x) (eq. Policy), V_theta(x), the plan and, if asked, the sensitivities;
+        the solution, shifted, is the next warm start."""
         lam_g = np.asarray(out["lam_g"]).reshape(-1)
         lam_x = np.asarray(out["lam_x"]).reshape(-1)
         plan_u = self.system.u_ref + self.Su * wopt[self._iu_flat].reshape(self.N, self.nu)
@@ -429,7 +404,6 @@ class ParametricMPC:
                 sol.dV_dtheta = np.full(self.n_theta, np.nan)
                 sol.info["sensitivity_error"] = str(err)
         self._remember(wopt, lam_g, lam_x, plan_u)
-        sol.solve_time = time.perf_counter() - t0
         return sol
 
     def _run_solver(self, x: np.ndarray, p: np.ndarray, warm: bool):
@@ -492,37 +466,108 @@ class ParametricMPC:
         return lam, mu
 
     def _sensitivities(self, w, lam_g, lam_x, p):
+        """(dpi/dtheta, dV/dtheta) at a solution (eq. nabla_pi, grad V)."""
         lam, mu = self._multipliers(w, lam_g, lam_x)
-        if self._linsol != "splu":
-            dpi, dV = self._sens(w, lam, mu, p)
-            dpi, dV = np.asarray(dpi), np.asarray(dV).reshape(-1)
-            if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
-                raise ValueError("non-finite sensitivity (singular KKT matrix)")
-            return dpi, dV
-        Jy, Jth, dfdth, dfdw = self._kkt(w, lam, mu, p)
-        Jy = _to_csc(Jy, self._Jy_sp)
-        Jth = np.asarray(ca.DM(Jth).full())
-        # one factorisation of dR/dy serves both sensitivities: dy/dtheta = -(dR/dy)^-1 dR/dtheta
-        dy = spla.splu(Jy).solve(-Jth)  # (ny, n_theta)
-        dw = dy[: self.nw]
-        dpi = (self.Su[:, None] * dw[self._iu[0]]).T  # (eq. nabla_pi), physical, (n_theta, nu)
-        dV = self.cost_scale * (np.asarray(dfdth).reshape(-1) + np.asarray(dfdw).reshape(-1) @ dw)
+        dpi, dV = self._sens(w, lam, mu, p)
+        dpi, dV = np.asarray(dpi), np.asarray(dV).reshape(-1)
         if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
             raise ValueError("non-finite sensitivity (singular KKT matrix)")
         return dpi, dV
 
 
-def _rk4_function(system: System, nx: int, nu: int, npar: int) -> ca.Function:
-    x, u, p = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("p", npar)
-    xn = rk4_step(system.dynamics, x, u, p, system.dt, system.substeps)
-    return ca.Function("F", [x, u, p], [xn])
+class _ThetaTerms(NamedTuple):
+    """The symbolic pieces of eq. (V0) that theta sets."""
+
+    theta_c: ca.SX  # constant cost offset
+    T: ca.SX  # terminal weights (nx,)
+    G: ca.SX  # linear cost terms (nx + nu,)
+    Q: ca.SX  # stage state weights (nx,)
+    R: ca.SX  # stage input weights (nu,)
+    pm: ca.SX  # model parameters of f_hat_theta, the learnable ones from theta
+    x_lo: ca.SX  # state bounds with the back-offs
+    x_hi: ca.SX
 
 
-def _to_csc(M, sparsity) -> sp.csc_matrix:
-    """A CasADi sparse DM to a SciPy CSC matrix (CasADi stores CCS)."""
-    M = ca.DM(M)
-    nrow, ncol = sparsity.size()
-    colind = np.asarray(sparsity.colind())
-    row = np.asarray(sparsity.row())
-    data = np.asarray(M.nonzeros())
-    return sp.csc_matrix((data, row, colind), shape=(nrow, ncol))
+@dataclass
+class _Decisions:
+    """The decision vector w of the NLP as it is built: symbols and their bounds, in order."""
+
+    w: list = field(default_factory=list)
+    lb: list = field(default_factory=list)
+    ub: list = field(default_factory=list)
+
+    def add(self, name: str, lb: list, ub: list, index: list) -> ca.SX:
+        """A new block of ``len(lb)`` variables; its positions in w are appended to ``index``."""
+        z = ca.SX.sym(name, len(lb))
+        index.append(list(range(len(self.lb), len(self.lb) + len(lb))))
+        self.w.append(z)
+        self.lb += lb
+        self.ub += ub
+        return z
+
+
+def _check_options(horizon: int, gamma: float, tau: float, linsol: str) -> None:
+    if horizon < 1:
+        raise ValueError(f"horizon must be at least 1, got {horizon}")
+    if not 0 < gamma <= 1:
+        raise ValueError(f"gamma must be in (0, 1], got {gamma}")
+    if tau <= 0:
+        raise ValueError(f"tau must be positive, got {tau}")
+    if not ca.has_linsol(linsol):
+        raise ValueError(f"linsol '{linsol}' is not a linear solver plugin of this CasADi")
+
+
+def _ipopt_options(
+    tol: float,
+    tau: float,
+    max_iter: int,
+    *,
+    jit: bool = False,
+    options: dict | None = None,
+    warm: dict | None = None,
+) -> tuple[dict, dict]:
+    """CasADi ``nlpsol`` options of the cold and of the warm-started IPOPT solver.
+
+    IPOPT stops at the barrier parameter ``tau`` (``mu_target``, the point that eq. nabla_pi
+    differentiates). ``options`` go to both solvers, then ``warm`` to the warm one only, after its
+    warm-start settings; a key is an IPOPT option (``"max_iter"`` or ``"ipopt.max_iter"``) unless
+    it is one of CasADi's own (``"print_time"``, ``"show_eval_warnings"``).
+    """
+    cold = {
+        "ipopt.print_level": 0,
+        "print_time": False,
+        # IPOPT may probe wild iterates (Inf/NaN in the model, see NOTES): it backtracks by
+        # itself, and a failed solve is reported in MPCSolution, so CasADi's per-evaluation
+        # warnings on stderr are only noise that would bury the progress bars
+        "show_eval_warnings": False,
+        "ipopt.sb": "yes",
+        "ipopt.tol": tol,
+        "ipopt.acceptable_tol": max(1e-6, 100 * tol),
+        "ipopt.mu_target": tau,
+        "ipopt.max_iter": max_iter,
+        "ipopt.bound_relax_factor": 0.0,
+        "ipopt.honor_original_bounds": "no",
+        "ipopt.nlp_scaling_method": "none",
+    }
+    if jit:  # generated C code of the NLP functions, compiled once (needs a C compiler)
+        cold.update({"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS})
+    cold.update(_casadi_keys(options))
+    warm_opts = {
+        **cold,
+        "ipopt.warm_start_init_point": "yes",
+        "ipopt.warm_start_bound_push": 1e-6,
+        "ipopt.warm_start_mult_bound_push": 1e-6,
+        "ipopt.mu_init": 1e-3,
+        "ipopt.max_iter": min(max_iter, 50),
+    }
+    warm_opts.update(_casadi_keys(warm))
+    return cold, warm_opts
+
+
+def _casadi_keys(options: dict | None) -> dict:
+    """User solver options with IPOPT's keys prefixed ``ipopt.`` as CasADi expects."""
+    own = ("print_time", "show_eval_warnings")
+    return {
+        k if k.startswith("ipopt.") or k in own else f"ipopt.{k}": v
+        for k, v in (options or {}).items()
+    }

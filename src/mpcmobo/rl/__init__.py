@@ -14,7 +14,6 @@ from mpcmobo.rl.objectives import (
     f2_optimality,
     f3_critic_drift,
     f4_lyapunov,
-    j_tilde,
     mean_stage_cost,
     objectives,
 )
@@ -27,7 +26,6 @@ __all__ = [
     "f2_optimality",
     "f3_critic_drift",
     "f4_lyapunov",
-    "j_tilde",
     "lstd_solve",
     "mean_stage_cost",
     "objectives",

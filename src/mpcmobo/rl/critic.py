@@ -254,81 +254,29 @@ class CompatibleCritic:
     def fit(self, record: EpisodeRecord) -> CriticResult:
         """Fit nu (eq. lstdv_update), w (eq. lstdq_update) and the DPG gradient (eq. DPG)."""
         gamma = float(record.gamma) if self.gamma is None else self.gamma
-        T = record.steps
-        dpi = np.asarray(record.dpi, dtype=float).reshape(T, -1, np.asarray(record.u).shape[1])
-        n_theta = dpi.shape[1]
-        V = np.asarray(record.V, dtype=float).reshape(T + 1)
-        dV = np.asarray(record.dV, dtype=float).reshape(T + 1, n_theta)
-        L = np.asarray(record.L, dtype=float).reshape(T)
-        du = np.asarray(record.u, dtype=float) - np.asarray(record.pi, dtype=float)  # (T, nu)
-
+        ep = _Episode.from_record(record)
         mask = transition_mask(record)
         idx = np.flatnonzero(mask)
         enough = idx.size >= self.min_valid_steps
-
-        # ---- LSTDV (eq. lstdv_update): nu of V^nu = V_theta + dV^T nu (eq. nu)
-        nu = None
-        if enough:
-            Phi, Phi_next = dV[idx], dV[idx + 1]
-            delta = L[idx] + gamma * V[idx + 1] - V[idx]  # TD error of V_theta
-            if self.method == "paper":
-                nu = ridge_lstsq(Phi, delta, self.ridge)  # Xi_nu nu = b_nu, as least squares
-            else:
-                nu = lstd_solve(Phi, Phi_next, delta, gamma, self.ridge)
+        nu = self._lstdv(ep, idx, gamma) if enough else None
         nu_ok = nu is not None
         if nu is None:
-            nu = np.zeros(n_theta)
-
-        # V^nu(x_k) = V_theta(x_k) + grad V_theta(x_k)^T nu  (eq. nu)
-        state_ok = np.isfinite(V) & _finite_rows(dV)
-        V_nu = np.full(T + 1, np.nan)
-        V_nu[state_ok] = V[state_ok] + dV[state_ok] @ nu
-        n_states = int(np.count_nonzero(state_ok))
-        # sum over the T+1 states; with missing states, (T+1) x mean so that failed solves do not
-        # shrink the sum (and so fake a decrease in f3)
-        Vc = float(np.sum(V_nu[state_ok]) * (T + 1) / n_states) if n_states else float("nan")
-
-        # ---- LSTDQ (eq. lstdq_update): compatible features Psi_k = grad pi_k (u_k - pi_k)
-        success = np.asarray(record.success, dtype=bool).reshape(T + 1)
-        policy_mask = success[:-1] & _finite_rows(dpi) & _finite_rows(du)
-        Psi = np.zeros((T, n_theta))
-        Psi[policy_mask] = np.einsum("kpa,ka->kp", dpi[policy_mask], du[policy_mask])
-        w = None
-        if enough and nu_ok:
-            V_next = V_nu[idx + 1] if self.q_target == "V_nu" else V[idx + 1]
-            delta_V = L[idx] + gamma * V_next - V_nu[idx]  # delta^V_k
-            if np.all(np.isfinite(delta_V)):
-                w = ridge_lstsq(Psi[idx], delta_V, self.ridge)
+            nu = np.zeros(ep.n_theta)
+        V_nu, Vc = _value_baseline(ep, nu)
+        Psi, policy_mask = _compatible_features(ep)
+        w = self._lstdq(ep, idx, gamma, V_nu, Psi) if enough and nu_ok else None
         w_ok = w is not None
         ok = nu_ok and w_ok
         if not ok:
-            w = np.zeros(n_theta)
-
+            w = np.zeros(ep.n_theta)
         # A^w_k = Psi_k^T w  (eq. adv, eq. Q_w)
         advantage = Psi @ w
-        # grad_theta J_k = grad pi_k grad pi_k^T w  (eq. DPG)
-        g_k = np.zeros((T, n_theta))
-        g_k[policy_mask] = np.einsum(
-            "kpa,kqa,q->kp", dpi[policy_mask], dpi[policy_mask], w, optimize=True
-        )
-        # (1/T) sum_k over steps with a sensitivity; the actor descends it (eq. theta)
-        # weighting="discounted": sum_k gamma^k g_k / sum_k gamma^k, the deterministic policy
-        # gradient theorem's discounted state distribution, i.e. the gradient of the discounted
-        # closed-loop cost f1 from the episode's start (the paper's rule is the uniform mean).
-        if not np.any(policy_mask):
-            grad = np.zeros(n_theta)
-        elif self.weighting == "discounted":
-            wk = gamma ** np.arange(T, dtype=float) * policy_mask
-            grad = (wk @ g_k) / wk.sum()
-        else:
-            grad = g_k[policy_mask].mean(axis=0)
-        grad_norms = np.linalg.norm(g_k, axis=1)
+        grad, grad_norms = self._policy_gradient(ep, policy_mask, w, gamma)
         if not (np.all(np.isfinite(grad)) and np.all(np.isfinite(advantage))):
             # overflow in the products: treat as a failed fit rather than leak inf / NaN
             ok, w_ok = False, False
-            w, advantage, grad = np.zeros(n_theta), np.zeros(T), np.zeros(n_theta)
-            grad_norms = np.zeros(T)
-
+            w, advantage, grad = np.zeros(ep.n_theta), np.zeros(ep.T), np.zeros(ep.n_theta)
+            grad_norms = np.zeros(ep.T)
         return CriticResult(
             nu=nu,
             w=w,
@@ -346,3 +294,98 @@ class CompatibleCritic:
             method=self.method,
             q_target=self.q_target,
         )
+
+    def _lstdv(self, ep: _Episode, idx: np.ndarray, gamma: float) -> np.ndarray | None:
+        """nu of V^nu = V_theta + dV^T nu (eq. nu) by LSTDV (eq. lstdv_update) or LSTD(0)."""
+        Phi, Phi_next = ep.dV[idx], ep.dV[idx + 1]
+        delta = ep.L[idx] + gamma * ep.V[idx + 1] - ep.V[idx]  # TD error of V_theta
+        if self.method == "paper":
+            return ridge_lstsq(Phi, delta, self.ridge)  # Xi_nu nu = b_nu, as least squares
+        return lstd_solve(Phi, Phi_next, delta, gamma, self.ridge)
+
+    def _lstdq(
+        self, ep: _Episode, idx: np.ndarray, gamma: float, V_nu: np.ndarray, Psi: np.ndarray
+    ) -> np.ndarray | None:
+        """w of A^w = Psi^T w by LSTDQ (eq. lstdq_update) on the target delta^V_k."""
+        V_next = V_nu[idx + 1] if self.q_target == "V_nu" else ep.V[idx + 1]
+        delta_V = ep.L[idx] + gamma * V_next - V_nu[idx]  # delta^V_k
+        if not np.all(np.isfinite(delta_V)):
+            return None
+        return ridge_lstsq(Psi[idx], delta_V, self.ridge)
+
+    def _policy_gradient(
+        self, ep: _Episode, policy_mask: np.ndarray, w: np.ndarray, gamma: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """grad_theta J (eq. DPG) and the per-step norms ||grad pi_k grad pi_k^T w||.
+
+        grad_theta J_k = grad pi_k grad pi_k^T w; the mean over the steps with a sensitivity
+        ((1/T) sum_k), which the actor descends (eq. theta). ``weighting="discounted"``:
+        sum_k gamma^k g_k / sum_k gamma^k, the deterministic policy gradient theorem's
+        discounted state distribution, i.e. the gradient of the discounted closed-loop cost f1
+        from the episode's start (the paper's rule is the uniform mean).
+        """
+        T, n_theta, dpi = ep.T, ep.n_theta, ep.dpi
+        g_k = np.zeros((T, n_theta))
+        g_k[policy_mask] = np.einsum(
+            "kpa,kqa,q->kp", dpi[policy_mask], dpi[policy_mask], w, optimize=True
+        )
+        if not np.any(policy_mask):
+            grad = np.zeros(n_theta)
+        elif self.weighting == "discounted":
+            wk = gamma ** np.arange(T, dtype=float) * policy_mask
+            grad = (wk @ g_k) / wk.sum()
+        else:
+            grad = g_k[policy_mask].mean(axis=0)
+        return grad, np.linalg.norm(g_k, axis=1)
+
+
+@dataclass
+class _Episode:
+    """The arrays of an :class:`EpisodeRecord` the critic uses, as float arrays of fixed shape."""
+
+    T: int
+    n_theta: int
+    dpi: np.ndarray  # (T, n_theta, nu)
+    V: np.ndarray  # (T+1,)
+    dV: np.ndarray  # (T+1, n_theta)
+    L: np.ndarray  # (T,)
+    du: np.ndarray  # (T, nu) exploration u_k - pi_k
+    success: np.ndarray  # (T+1,) bool
+
+    @classmethod
+    def from_record(cls, record: EpisodeRecord) -> _Episode:
+        T = record.steps
+        dpi = np.asarray(record.dpi, dtype=float).reshape(T, -1, np.asarray(record.u).shape[1])
+        n_theta = dpi.shape[1]
+        return cls(
+            T=T,
+            n_theta=n_theta,
+            dpi=dpi,
+            V=np.asarray(record.V, dtype=float).reshape(T + 1),
+            dV=np.asarray(record.dV, dtype=float).reshape(T + 1, n_theta),
+            L=np.asarray(record.L, dtype=float).reshape(T),
+            du=np.asarray(record.u, dtype=float) - np.asarray(record.pi, dtype=float),
+            success=np.asarray(record.success, dtype=bool).reshape(-1),  # checked by the mask
+        )
+
+
+def _value_baseline(ep: _Episode, nu: np.ndarray) -> tuple[np.ndarray, float]:
+    """V^nu(x_k) = V_theta(x_k) + grad V_theta(x_k)^T nu (eq. nu) and Vc = sum_k V^nu(x_k).
+
+    NaN where V_theta is unavailable; with missing states Vc is (T+1) x their mean, so that
+    failed solves do not shrink the sum (and so fake a decrease in f3).
+    """
+    state_ok = np.isfinite(ep.V) & _finite_rows(ep.dV)
+    V_nu = np.full(ep.T + 1, np.nan)
+    V_nu[state_ok] = ep.V[state_ok] + ep.dV[state_ok] @ nu
+    n_states = int(np.count_nonzero(state_ok))
+    Vc = float(np.sum(V_nu[state_ok]) * (ep.T + 1) / n_states) if n_states else float("nan")
+    return V_nu, Vc
+
+
+def _compatible_features(ep: _Episode) -> tuple[np.ndarray, np.ndarray]:
+    """Psi_k = grad pi_k (u_k - pi_k) (eq. Q_w) and the steps whose policy sensitivity exists."""
+    policy_mask = ep.success[:-1] & _finite_rows(ep.dpi) & _finite_rows(ep.du)
+    Psi = np.zeros((ep.T, ep.n_theta))
+    Psi[policy_mask] = np.einsum("kpa,ka->kp", ep.dpi[policy_mask], ep.du[policy_mask])
+    return Psi, policy_mask

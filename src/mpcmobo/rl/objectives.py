@@ -35,11 +35,6 @@ def f1_closed_loop_cost(record: EpisodeRecord, gamma: float | None = None) -> fl
     return float(np.sum(g ** np.arange(T) * L) / T)  # eq. cl_perf
 
 
-def j_tilde(record: EpisodeRecord, gamma: float | None = None) -> float:
-    """J~(theta), the discounted closed-loop cost of the episode: the same as f1 (eq. cl_perf)."""
-    return f1_closed_loop_cost(record, gamma)
-
-
 def mean_stage_cost(record: EpisodeRecord) -> float:
     """Plain (undiscounted) mean of the stage costs L_k, as used by the evaluation protocol."""
     L = np.asarray(record.L, dtype=float).reshape(-1)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import casadi as ca
 import numpy as np
@@ -33,16 +34,29 @@ def rk4_step(f: Dynamics, x, u, p, dt: float, substeps: int = 1):
     return x
 
 
+def _half_span(lb: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Default variable scale: half the bound interval, 1 where it is infinite or empty."""
+    span = ub - lb
+    return np.where(np.isfinite(span) & (span > 0), span / 2, 1.0)
+
+
 def _vec(a, n: int, label: str) -> np.ndarray:
-    a = np.asarray(a, dtype=float).reshape(-1)
+    """A float copy of ``a`` with ``n`` entries (a copy: a system never aliases its caller's
+    arrays, e.g. the module constants ``cstr.TRUE_PARAMS``)."""
+    a = np.array(a, dtype=float).reshape(-1)
     if a.shape != (n,):
         raise ValueError(f"{label} has {a.shape[0]} entries, expected {n}")
     return a
 
 
-@dataclass
+@dataclass(frozen=True)
 class System:
     """A discrete-time control problem built from continuous dynamics and RK4.
+
+    Frozen (fields cannot be reassigned, the arrays are the system's own copies): the derived
+    :attr:`discrete_step` and :attr:`parameterization` are computed once per instance;
+    :meth:`with_spec` (``dataclasses.replace``) makes a new instance that derives them afresh,
+    and a pickled system carries them along.
 
     Parameters
     ----------
@@ -86,31 +100,35 @@ class System:
     u_scale: np.ndarray | None = None
     description: str = ""
 
+    # derived, not an argument: F(x, u, p) -> x_{k+1}, built once (``_rk4_function``)
+    discrete_step: ca.Function = field(init=False, repr=False, compare=False)
+
     def __post_init__(self) -> None:
         nx, nu, npar = len(self.state_names), len(self.input_names), len(self.param_names)
-        self.state_names = tuple(self.state_names)
-        self.input_names = tuple(self.input_names)
-        self.param_names = tuple(self.param_names)
+        normalised: dict = {
+            "state_names": tuple(self.state_names),
+            "input_names": tuple(self.input_names),
+            "param_names": tuple(self.param_names),
+        }
         for name in ("x_ref", "x_lb", "x_ub", "Q", "Gamma", "x0_lb", "x0_ub"):
-            setattr(self, name, _vec(getattr(self, name), nx, f"{self.name}.{name}"))
+            normalised[name] = _vec(getattr(self, name), nx, f"{self.name}.{name}")
         for name in ("u_ref", "u_lb", "u_ub", "R"):
-            setattr(self, name, _vec(getattr(self, name), nu, f"{self.name}.{name}"))
-        self.true_params = _vec(self.true_params, npar, f"{self.name}.true_params")
-        self.models = {k: _vec(v, npar, f"{self.name} model '{k}'") for k, v in self.models.items()}
-        self.models.setdefault("perfect", self.true_params.copy())
+            normalised[name] = _vec(getattr(self, name), nu, f"{self.name}.{name}")
+        true_params = _vec(self.true_params, npar, f"{self.name}.true_params")
+        models = {k: _vec(v, npar, f"{self.name} model '{k}'") for k, v in self.models.items()}
+        models.setdefault("perfect", true_params.copy())
+        normalised.update(true_params=true_params, models=models)
+        for name, value in normalised.items():
+            object.__setattr__(self, name, value)  # frozen: normalised once, here
         if np.any(self.u_lb > self.u_ub) or np.any(self.x_lb > self.x_ub):
             raise ValueError(f"{self.name}: a lower bound exceeds its upper bound")
         if self.dt <= 0:
             raise ValueError(f"{self.name}: dt must be positive, got {self.dt}")
         if self.x_scale is None:
-            span = self.x_ub - self.x_lb
-            self.x_scale = np.where(np.isfinite(span) & (span > 0), span / 2, 1.0)
+            object.__setattr__(self, "x_scale", _half_span(self.x_lb, self.x_ub))
         if self.u_scale is None:
-            span = self.u_ub - self.u_lb
-            self.u_scale = np.where(np.isfinite(span) & (span > 0), span / 2, 1.0)
-        x, u, p = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("p", npar)
-        xn = rk4_step(self.dynamics, x, u, p, self.dt, self.substeps)
-        self._step_fn = ca.Function("step", [x, u, p], [xn])
+            object.__setattr__(self, "u_scale", _half_span(self.u_lb, self.u_ub))
+        object.__setattr__(self, "discrete_step", self._rk4_function())
 
     # ------------------------------------------------------------------ sizes and names
     @property
@@ -120,6 +138,27 @@ class System:
     @property
     def nu(self) -> int:
         return len(self.input_names)
+
+    def _rk4_function(self) -> ca.Function:
+        """``discrete_step``: ``F(x, u, p) -> x_{k+1}``, RK4 over one period ``dt``.
+
+        The one discretisation of the dynamics: the true plant (``p`` = ``true_params``), the
+        prediction model (eq. mpc_model) and the MPC's transcription all call it.
+        """
+        x = ca.SX.sym("x", self.nx)
+        u = ca.SX.sym("u", self.nu)
+        p = ca.SX.sym("p", len(self.param_names))
+        xn = rk4_step(self.dynamics, x, u, p, self.dt, self.substeps)
+        return ca.Function("step", [x, u, p], [xn])
+
+    @cached_property
+    def parameterization(self) -> Parameterization:
+        """The learnable theta of the MPC: names, theta0, blocks and search space."""
+        return Parameterization.from_system(self)
+
+    @property
+    def search_space(self) -> SearchSpace:
+        return self.parameterization.space
 
     def with_spec(self, **changes) -> System:
         """A copy of the system with a modified MPC parameterization."""
@@ -157,13 +196,14 @@ class System:
     def plant_step(self, x, u) -> np.ndarray:
         """The true plant over one sampling period: ``x_{k+1} = f(x_k, u_k)``."""
         return np.asarray(
-            self._step_fn(self.check_state(x), self.check_input(u), self.true_params)
+            self.discrete_step(self.check_state(x), self.check_input(u), self.true_params)
         ).reshape(-1)
 
     def model_step(self, x, u, model: str | np.ndarray = "imperfect") -> np.ndarray:
         """The MPC's prediction model ``x_{k+1} = f_hat(x_k, u_k)`` (eq. mpc_model)."""
         p = self.model_params(model)
-        return np.asarray(self._step_fn(self.check_state(x), self.check_input(u), p)).reshape(-1)
+        x, u = self.check_state(x), self.check_input(u)
+        return np.asarray(self.discrete_step(x, u, p)).reshape(-1)
 
     def constraint_violation(self, x, u=None) -> float:
         """Sum of the positive parts of the state-bound violations ``max(0, h(x))``."""
@@ -183,22 +223,3 @@ class System:
 
     def clip_input(self, u) -> np.ndarray:
         return np.clip(np.asarray(u, dtype=float).reshape(-1), self.u_lb, self.u_ub)
-
-    # ------------------------------------------------------------------ MPC
-    def make_mpc(self, model: str | np.ndarray = "imperfect", **options):
-        """The parametric MPC of eq. (V0) for this system with the given prediction model.
-
-        ``options`` are passed to :class:`mpcmobo.mpc.ParametricMPC` (solver settings).
-        """
-        from mpcmobo.mpc.parametric import ParametricMPC  # systems -> mpc: lazy, one-way use
-
-        return ParametricMPC(self, model=model, **options)
-
-    @property
-    def search_space(self) -> SearchSpace:
-        return self.parameterization.space
-
-    @property
-    def parameterization(self) -> Parameterization:
-        """The learnable theta of the MPC: names, theta0, blocks and search space."""
-        return Parameterization.from_system(self)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -65,41 +65,13 @@ class Parameterization:
 
     @classmethod
     def from_system(cls, system: System) -> Parameterization:
+        """theta in block order (see :class:`MPCSpec`), its theta0 and its search box."""
         spec = system.mpc_spec
-        nx, nu = system.nx, system.nu
         xs, us = system.state_names, system.input_names
-        Q0 = system.Q if spec.Q0 is None else np.asarray(spec.Q0, float)
-        R0 = system.R if spec.R0 is None else np.asarray(spec.R0, float)
-        T0 = Q0 if spec.T0 is None else np.asarray(spec.T0, float)
-        if np.any(Q0 <= 0) or np.any(R0 <= 0) or np.any(T0 <= 0):
-            raise ValueError(
-                "MPC weights Q0, R0, T0 must be positive (they are searched in log scale)"
-            )
-        if spec.G_bound is None:
-            # a linear term that moves the optimum by about one constraint half-width
-            G_bound = np.concatenate([2 * Q0 * system.x_scale, 2 * R0 * system.u_scale])
-        else:
-            G_bound = np.asarray(spec.G_bound, float)
+        Q0, R0, T0, G_bound = _initial_weights(system, spec)
         r = spec.weight_log_range
-        names: list[str] = []
-        theta0: list[np.ndarray] = []
-        lo: list[np.ndarray] = []
-        hi: list[np.ndarray] = []
-        log: list[np.ndarray] = []
-        fixed: list[np.ndarray] = []
-        blocks: dict[str, slice] = {}
-
-        def add(block, nm, v0, l, h, lg, fx):
-            start = len(names)
-            names.extend(nm)
-            theta0.append(np.asarray(v0, float))
-            lo.append(np.asarray(l, float))
-            hi.append(np.asarray(h, float))
-            log.append(np.full(len(nm), lg))
-            fixed.append(np.full(len(nm), fx))
-            blocks[block] = slice(start, len(names))
-
-        add(
+        b = _Blocks()
+        b.add(
             "theta_c",
             ["theta_c"],
             [0.0],
@@ -108,45 +80,98 @@ class Parameterization:
             False,
             not spec.learn_theta_c,
         )
-        add("T", [f"T_{s}" for s in xs], T0, T0 * np.exp(-r), T0 * np.exp(r), True, False)
-        add("G", [f"G_{s}" for s in (*xs, *us)], np.zeros(nx + nu), -G_bound, G_bound, False, False)
-        add("Q", [f"Q_{s}" for s in xs], Q0, Q0 * np.exp(-r), Q0 * np.exp(r), True, False)
-        add("R", [f"R_{s}" for s in us], R0, R0 * np.exp(-r), R0 * np.exp(r), True, False)
-        idx = []
-        if spec.learn_model:
-            pnames = list(system.param_names)
-            for n in spec.learn_model:
-                if n not in pnames:
-                    raise ValueError(f"unknown model parameter '{n}'; known: {pnames}")
-                idx.append(pnames.index(n))
-            p0 = system.models.get("imperfect", system.true_params)[idx]
-            m = spec.model_log_range
-            pos = p0 > 0
-            lo_m = np.where(pos, p0 * np.exp(-m), p0 - m * np.abs(p0) - 1)
-            hi_m = np.where(pos, p0 * np.exp(m), p0 + m * np.abs(p0) + 1)
-            add("model", [f"model_{n}" for n in spec.learn_model], p0, lo_m, hi_m, False, False)
-            log[-1] = pos.copy()
+        b.add("T", [f"T_{s}" for s in xs], T0, T0 * np.exp(-r), T0 * np.exp(r), True, False)
+        G0 = np.zeros(system.nx + system.nu)
+        b.add("G", [f"G_{s}" for s in (*xs, *us)], G0, -G_bound, G_bound, False, False)
+        b.add("Q", [f"Q_{s}" for s in xs], Q0, Q0 * np.exp(-r), Q0 * np.exp(r), True, False)
+        b.add("R", [f"R_{s}" for s in us], R0, R0 * np.exp(-r), R0 * np.exp(r), True, False)
+        idx = _add_model_block(b, system, spec) if spec.learn_model else []
         if spec.learn_backoff:
-            bmax = (
-                0.25 * (system.x_ub - system.x_lb)
-                if spec.backoff_max is None
-                else np.asarray(spec.backoff_max, float)
-            )
-            bmax = np.where(np.isfinite(bmax), bmax, 0.0)
-            add(
-                "backoff",
-                [f"b_lb_{s}" for s in xs] + [f"b_ub_{s}" for s in xs],
-                np.zeros(2 * nx),
-                np.zeros(2 * nx),
-                np.concatenate([bmax, bmax]),
-                False,
-                False,
-            )
+            _add_backoff_block(b, system, spec)
         space = SearchSpace(
-            names,
-            np.concatenate(lo),
-            np.concatenate(hi),
-            np.concatenate(log),
-            np.concatenate(fixed),
+            b.names,
+            np.concatenate(b.lo),
+            np.concatenate(b.hi),
+            np.concatenate(b.log),
+            np.concatenate(b.fixed),
         )
-        return cls(tuple(names), np.concatenate(theta0), blocks, space, tuple(idx))
+        return cls(tuple(b.names), np.concatenate(b.theta0), b.blocks, space, tuple(idx))
+
+
+@dataclass
+class _Blocks:
+    """theta as it is assembled: names, theta0, bounds, log and fixed flags, block slices."""
+
+    names: list[str] = field(default_factory=list)
+    theta0: list[np.ndarray] = field(default_factory=list)
+    lo: list[np.ndarray] = field(default_factory=list)
+    hi: list[np.ndarray] = field(default_factory=list)
+    log: list[np.ndarray] = field(default_factory=list)
+    fixed: list[np.ndarray] = field(default_factory=list)
+    blocks: dict[str, slice] = field(default_factory=dict)
+
+    def add(self, block, nm, v0, l, h, lg, fx) -> None:
+        """Append block ``block`` with names ``nm``, theta0 ``v0``, bounds [l, h], log scale
+        ``lg`` and fixed flag ``fx`` (scalars or one per name)."""
+        start = len(self.names)
+        self.names.extend(nm)
+        self.theta0.append(np.asarray(v0, float))
+        self.lo.append(np.asarray(l, float))
+        self.hi.append(np.asarray(h, float))
+        self.log.append(np.full(len(nm), lg))
+        self.fixed.append(np.full(len(nm), fx))
+        self.blocks[block] = slice(start, len(self.names))
+
+
+def _initial_weights(system: System, spec: MPCSpec):
+    """Q0, R0, T0 (positive, searched in log scale) and the |G| bounds."""
+    Q0 = system.Q if spec.Q0 is None else np.asarray(spec.Q0, float)
+    R0 = system.R if spec.R0 is None else np.asarray(spec.R0, float)
+    T0 = Q0 if spec.T0 is None else np.asarray(spec.T0, float)
+    if np.any(Q0 <= 0) or np.any(R0 <= 0) or np.any(T0 <= 0):
+        raise ValueError("MPC weights Q0, R0, T0 must be positive (they are searched in log scale)")
+    if spec.G_bound is None:
+        # a linear term that moves the optimum by about one constraint half-width
+        G_bound = np.concatenate([2 * Q0 * system.x_scale, 2 * R0 * system.u_scale])
+    else:
+        G_bound = np.asarray(spec.G_bound, float)
+    return Q0, R0, T0, G_bound
+
+
+def _add_model_block(b: _Blocks, system: System, spec: MPCSpec) -> list[int]:
+    """The learnable model parameters ``model_<name>`` around the imperfect model's values
+    (log scale where positive); returns their indices in ``system.param_names``."""
+    pnames = list(system.param_names)
+    idx = []
+    for n in spec.learn_model:
+        if n not in pnames:
+            raise ValueError(f"unknown model parameter '{n}'; known: {pnames}")
+        idx.append(pnames.index(n))
+    p0 = system.models.get("imperfect", system.true_params)[idx]
+    m = spec.model_log_range
+    pos = p0 > 0
+    lo_m = np.where(pos, p0 * np.exp(-m), p0 - m * np.abs(p0) - 1)
+    hi_m = np.where(pos, p0 * np.exp(m), p0 + m * np.abs(p0) + 1)
+    b.add("model", [f"model_{n}" for n in spec.learn_model], p0, lo_m, hi_m, False, False)
+    b.log[-1] = pos.copy()
+    return idx
+
+
+def _add_backoff_block(b: _Blocks, system: System, spec: MPCSpec) -> None:
+    """State-constraint back-offs ``b_lb_<x>``, ``b_ub_<x>`` in [0, backoff_max] (eq. violation)."""
+    nx, xs = system.nx, system.state_names
+    bmax = (
+        0.25 * (system.x_ub - system.x_lb)
+        if spec.backoff_max is None
+        else np.asarray(spec.backoff_max, float)
+    )
+    bmax = np.where(np.isfinite(bmax), bmax, 0.0)
+    b.add(
+        "backoff",
+        [f"b_lb_{s}" for s in xs] + [f"b_ub_{s}" for s in xs],
+        np.zeros(2 * nx),
+        np.zeros(2 * nx),
+        np.concatenate([bmax, bmax]),
+        False,
+        False,
+    )
