@@ -31,26 +31,11 @@ __all__ = [
     "MAX_CHOLESKY",
     "GroupOffsetMean",
     "fit_group_offsets",
-    "noise_floor_likelihood",
 ]
 
 DTYPE = torch.float64
 # Exact Cholesky up to this many training points (gpytorch switches to CG above 800 by default).
 MAX_CHOLESKY = 5000
-
-
-def noise_floor_likelihood(floor: float, batch_shape: torch.Size | None = None):
-    """BoTorch's default Gaussian likelihood (LogNormal(-4, 1) noise prior) with the noise
-    variance bounded below by ``floor`` (standardised units) instead of 1e-4."""
-    from botorch.models.utils.gpytorch_modules import get_gaussian_likelihood_with_lognormal_prior
-    from gpytorch.constraints import GreaterThan
-
-    lik = get_gaussian_likelihood_with_lognormal_prior(batch_shape)
-    lik.noise_covar.register_constraint(
-        "raw_noise", GreaterThan(float(floor), transform=None, initial_value=2.0 * float(floor))
-    )
-    lik.noise_covar.initialize(noise=2.0 * float(floor))
-    return lik
 
 
 class GroupOffsetMean(Mean):
@@ -74,7 +59,6 @@ def fit_group_offsets(
     groups: np.ndarray,
     *,
     prior_std: float = 1.0,
-    noise_floor: float | None = None,
     maxiter: int = 200,
     seed: int = 0,
 ) -> dict[int, float]:
@@ -101,7 +85,6 @@ def fit_group_offsets(
         tY,
         covar_module=covar,
         mean_module=GroupOffsetMean(len(ids), prior_std),
-        likelihood=None if noise_floor is None else noise_floor_likelihood(noise_floor),
         outcome_transform=Standardize(m=1),
     ).to(DTYPE)
     mll = ExactMarginalLogLikelihood(model.likelihood, model)
