@@ -4,9 +4,9 @@ Loads the mobo learner of a finished (or interrupted) run from its checkpoint, c
 GPs on all recorded episodes, and times ``MOBOLearner._acquire`` (posterior front, box
 decomposition, qLogEHVI optimisation) for each effort ``(mc_samples, num_restarts,
 raw_samples)``, interleaved over the same acquisition seeds so that every setting sees the same
-machine load. Also times one conditioning fit and one full refit (hyperparameters plus the joint
-start-offset fit) of the same data. Speed-ups are ratios against the first effort, measured in
-the same run.
+machine load, with one torch thread as in a study's worker. Also times one conditioning fit and
+one full refit (hyperparameters plus the joint start-offset fit) of the same data. Speed-ups
+are ratios against the first effort, measured in the same run.
 
     .venv/bin/python benchmarks/ehvi_effort.py runs/default            # after `mpcmobo run`
     .venv/bin/python benchmarks/ehvi_effort.py runs/default --seeds 5
@@ -19,7 +19,10 @@ import os
 import pickle
 import statistics
 import time
+from dataclasses import replace
 from pathlib import Path
+
+import torch
 
 from mpcmobo.experiment.settings import build_system, load_settings
 from mpcmobo.learners import make_learner
@@ -33,6 +36,7 @@ def main() -> None:
     p.add_argument("--job", default="mobo-s0")
     p.add_argument("--seeds", type=int, default=5, help="acquisition seeds per effort")
     args = p.parse_args()
+    torch.set_num_threads(1)  # as in a study's worker (mpcmobo.experiment.study)
 
     ckpt = pickle.loads((args.run / "jobs" / args.job / "checkpoint.pkl").read_bytes())
     state = ckpt["state"]["learner"]
@@ -48,25 +52,26 @@ def main() -> None:
     learner.load_state_dict(state)
     learner.reduce_effort_after = None  # time each effort as given, never its halved form
     sur = learner.surrogate
-    n = learner.Z.shape[0]
+    n = learner.Z_.shape[0]
     print(f"{args.run}/{args.job}: {n} observations, load avg {os.getloadavg()[0]:.1f}")
 
     t0 = time.perf_counter()
-    sur.fit(learner.Z, learner.Y, learner.starts)  # conditioning only (hyperparameters kept)
+    sur.fit(learner.Z_, learner.Y_, learner.starts_)  # conditioning only (hyperparameters kept)
     t_cond = time.perf_counter() - t0
     hyper_state = sur.state_dict()
     sur._calls_since_refit = 10**9  # force the next fit to be a full refit
     t0 = time.perf_counter()
-    sur.fit(learner.Z, learner.Y, learner.starts)
+    sur.fit(learner.Z_, learner.Y_, learner.starts_)
     t_full = time.perf_counter() - t0
     sur.load_state_dict(hyper_state)  # back to the run's own hyperparameters
-    sur.fit(learner.Z, learner.Y, learner.starts)
+    sur.fit(learner.Z_, learner.Y_, learner.starts_)
     learner._acquire(10**6)  # warm-up (posterior caches, lazy imports)
 
     times: dict[tuple[int, int, int], list[float]] = {e: [] for e in EFFORTS}
     for seed in range(args.seeds):
         for e in EFFORTS:
-            learner.mc_samples, learner.num_restarts, learner.raw_samples = e
+            learner.ehvi = replace(learner.ehvi, mc_samples=e[0])
+            learner.search = replace(learner.search, num_restarts=e[1], raw_samples=e[2])
             t0 = time.perf_counter()
             learner._acquire(seed)
             times[e].append(time.perf_counter() - t0)

@@ -12,6 +12,9 @@ Synthetic data: ``f_j(x) = |x - a_j|^2 + 0.3 sin(3 w_j . x) + 0.05 eps`` with ra
 groups, f1 and f2 get one offset per group, and our surrogate fits those offsets (start effects,
 as inside ``mobo``); the plain loop gets the same data without groups. ``--starts 0``: none.
 
+Threads: our proposals run with one torch thread, as inside a study's worker process (which sets
+it once at start); the plain loop runs with torch's default thread count.
+
     .venv/bin/python benchmarks/proposal_time.py            # full: n in {50, 200, 600}
     .venv/bin/python benchmarks/proposal_time.py --quick    # n in {50, 200}, fewer repetitions
 """
@@ -33,20 +36,19 @@ from botorch.models import ModelListGP, SingleTaskGP
 from botorch.optim import optimize_acqf
 from gpytorch.mlls import SumMarginalLogLikelihood
 
-from mpcmobo.bo import GPSurrogate, propose_ehvi, reference_point
+from mpcmobo.bo import AcqfSearch, EHVIOptions, GPSurrogate, propose_ehvi, reference_point
 from mpcmobo.learners.bo import MOBOLearner, _GPLearner, search_effort
 
 D, M = 13, 4
-# the EHVI search effort of the mobo learner (its constructors' defaults), halved from
-# reduce_effort_after observations on, as in MOBOLearner.search_effort
+# the EHVI options and search effort of the mobo learner (its constructors' defaults), halved
+# from reduce_effort_after observations on, as in MOBOLearner.search_effort
 _MOBO = inspect.signature(MOBOLearner.__init__).parameters
 _GP = inspect.signature(_GPLearner.__init__).parameters
-EFFORT = {
-    "mc_samples": _MOBO["mc_samples"].default,
-    "num_restarts": _GP["num_restarts"].default,
-    "raw_samples": _GP["raw_samples"].default,
-    "reduce_effort_after": _MOBO["reduce_effort_after"].default,
-}
+OPTIONS = EHVIOptions(
+    **{k: _MOBO[k].default for k in ("mc_samples", "max_baseline", "method")},
+)
+SEARCH = AcqfSearch(**{k: _GP[k].default for k in ("num_restarts", "raw_samples", "maxiter")})
+REDUCE_AFTER = _MOBO["reduce_effort_after"].default
 
 
 def make_problem(seed: int = 0):
@@ -70,7 +72,8 @@ def time_fast(X, Y, ref, n, warmup, reps, groups=None):
         Xi, Yi = X[: n + i], Y[: n + i]
         t0 = time.perf_counter()
         sur.fit(Xi, Yi, groups=None if groups is None else groups[: n + i])
-        x = propose_ehvi(sur, Xi, Yi, ref, seed=i, **search_effort(n + i, **EFFORT))
+        options, search = search_effort(n + i, OPTIONS, SEARCH, REDUCE_AFTER)
+        x = propose_ehvi(sur, Xi, Yi, ref, seed=i, options=options, search=search)
         dt = time.perf_counter() - t0
         assert x.shape == (D,) and np.all((x >= 0) & (x <= 1))
         if i >= warmup:
@@ -119,14 +122,18 @@ def main() -> None:
         Y[:, :2] += rng.normal(scale=0.5, size=(args.starts, 2))[groups]
     ref = reference_point(Y[:20])  # fixed rule: from the initial design only
 
+    default_threads = torch.get_num_threads()
     print(
-        f"torch {torch.__version__}, threads {torch.get_num_threads()}, "
+        f"torch {torch.__version__}, threads 1 (mpcmobo) and {default_threads} (plain), "
         f"{os.cpu_count()} cpus, {platform.processor() or platform.machine()}, "
-        f"load avg {os.getloadavg()[0]:.1f}, starts {args.starts}, mobo effort {EFFORT}"
+        f"load avg {os.getloadavg()[0]:.1f}, starts {args.starts}, mobo effort {OPTIONS} "
+        f"{SEARCH} halved from {REDUCE_AFTER}"
     )
     rows = []
     for n in sizes:
+        torch.set_num_threads(1)  # as in a study's worker (mpcmobo.experiment.study)
         ft, nfull = time_fast(X, Y, ref, n, args.warmup, reps, groups)
+        torch.set_num_threads(default_threads)
         pt = time_plain(X, Y, ref, n, plain_reps)
         fmed, pmed = statistics.median(ft), statistics.median(pt)
         rows.append((n, fmed, statistics.mean(ft), max(ft), len(ft), nfull, pmed, len(pt)))

@@ -12,6 +12,8 @@ from botorch.models.transforms.outcome import Standardize
 from botorch.utils.sampling import draw_sobol_samples
 
 from mpcmobo.bo import (
+    AcqfSearch,
+    EHVIOptions,
     GPSurrogate,
     hypervolume,
     pareto_mask,
@@ -20,6 +22,7 @@ from mpcmobo.bo import (
     reference_point,
 )
 from mpcmobo.bo.fastpost import ExactIndependentGP
+from mpcmobo.bo.transforms import cost_transform
 
 
 def sobol(n: int, d: int, seed: int) -> np.ndarray:
@@ -41,6 +44,29 @@ def test_pareto_mask_hand_computed():
         ]
     )
     np.testing.assert_array_equal(pareto_mask(Y), [True, True, True, False, True, False, False])
+
+
+def _non_dominated_by_definition(Y: np.ndarray) -> np.ndarray:
+    """Row i is kept iff it is finite and no finite row j has Y_j <= Y_i everywhere and
+    Y_j < Y_i somewhere (the O(n^2 m) definition)."""
+    ok = np.all(np.isfinite(Y), axis=1)
+    F = Y[ok]
+    le = np.all(F[None, :, :] <= F[:, None, :], axis=2)
+    lt = np.any(F[None, :, :] < F[:, None, :], axis=2)
+    mask = np.zeros(len(Y), dtype=bool)
+    mask[ok] = ~np.any(le & lt, axis=1)
+    return mask
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 4, 5])
+def test_pareto_mask_matches_the_definition_with_ties_duplicates_and_nan(m):
+    rng = np.random.default_rng(m)
+    for n in (0, 1, 7, 300):
+        Y = rng.integers(0, 4, size=(n, m)).astype(float)  # many ties and exact duplicates
+        Y = np.vstack([Y, rng.normal(size=(n, m)), Y[: n // 3]])
+        Y[rng.random(Y.shape) < 0.03] = np.nan
+        Y[rng.random(Y.shape) < 0.01] = -np.inf
+        np.testing.assert_array_equal(pareto_mask(Y), _non_dominated_by_definition(Y))
 
 
 def test_hypervolume_hand_computed():
@@ -87,7 +113,7 @@ def test_surrogate_drops_nan_rows_and_predicts():
     ok = np.isfinite(Y).all(1)
     # minimisation units (the model itself maximises -y): predictions track the data
     assert np.corrcoef(mean[ok, 1], Y[ok, 1])[0, 1] > 0.95
-    x = propose_ehvi(sur, X, Y, reference_point(Y), seed=0, raw_samples=32, num_restarts=2)
+    x = propose_ehvi(sur, X, Y, reference_point(Y), seed=0, search=AcqfSearch(2, 32))
     assert x.shape == (2,) and np.all((x >= 0) & (x <= 1))
 
 
@@ -102,6 +128,19 @@ def test_log_outcome_predicts_original_units():
     z = np.r_[0.0, y[1:]]  # a zero cost: shifted log, offset from the data range
     sur0 = GPSurrogate(1, log_outcomes=[True]).fit(X, z)
     assert sur0.offsets[0] == pytest.approx(0.01 * (z.max() - z.min()))
+
+
+def test_cost_transform_round_trip():
+    """t = -g(y) with g = shifted log on flagged outputs; a zero-width posterior maps back to
+    the costs themselves."""
+    Y = np.array([[0.0, -2.0], [5.0, 1.0], [50.0, 3.0]])
+    tf = cost_transform([True, False]).fit(Y)
+    T = tf.forward(Y)
+    c = 0.01 * 50.0
+    np.testing.assert_allclose(T, np.column_stack([-np.log(Y[:, 0] + c), -Y[:, 1]]))
+    mean, std = tf.untransform(T, np.zeros_like(T))
+    np.testing.assert_allclose(mean, Y, atol=1e-12)
+    assert np.all(std == 0)
 
 
 def test_group_offsets_recover_the_start_free_cost():
@@ -181,6 +220,18 @@ def test_refit_period_grows_with_the_data():
     assert old.refit_fraction == 0.0
 
 
+def test_state_from_before_the_clean_up_loads_and_refuses_a_noise_floor():
+    X = sobol(12, 2, seed=2)
+    Y = (X**2).sum(1, keepdims=True)
+    state = GPSurrogate(1).fit(X, Y).state_dict()
+    old = {**state, "num_threads": 1, "noise_floor": None}  # keys of removed options
+    sur = GPSurrogate(1)
+    sur.load_state_dict(old)
+    sur.fit(X, Y)
+    with pytest.raises(ValueError, match="noise_floor = 0.2, an option removed"):
+        GPSurrogate(1).load_state_dict({**old, "noise_floor": 0.2})
+
+
 # ----------------------------------------------------------------------------- proposals
 def toy_ei(X: np.ndarray) -> np.ndarray:
     """Cost with minimum 0 at (0.7, 0.3), min of the initial design well above it."""
@@ -193,7 +244,7 @@ def test_ei_improves_on_initial_design():
     best0 = y.min()
     sur = GPSurrogate(1)
     for i in range(12):
-        x = propose_ei(sur, X, y, seed=i, raw_samples=64, num_restarts=2)
+        x = propose_ei(sur, X, y, seed=i, search=AcqfSearch(num_restarts=2, raw_samples=64))
         assert x.shape == (2,) and np.all((x >= 0) & (x <= 1))
         X = np.vstack([X, x])
         y = np.r_[y, toy_ei(x[None])]
@@ -215,7 +266,15 @@ def test_ehvi_increases_hypervolume():
     hv0 = hypervolume(Y, ref)
     sur = GPSurrogate(2, log_outcomes=[False, False])
     for i in range(10):
-        x = propose_ehvi(sur, X, Y, ref, seed=i, raw_samples=64, num_restarts=2, mc_samples=32)
+        x = propose_ehvi(
+            sur,
+            X,
+            Y,
+            ref,
+            seed=i,
+            options=EHVIOptions(mc_samples=32),
+            search=AcqfSearch(num_restarts=2, raw_samples=64),
+        )
         assert x.shape == (2,) and np.all((x >= 0) & (x <= 1))
         X = np.vstack([X, x])
         Y = np.vstack([Y, branin_currin(x[None])])
@@ -230,7 +289,7 @@ def test_ehvi_with_nothing_better_than_the_reference_point():
     X = sobol(12, 3, seed=5)
     Y = np.stack([(X**2).sum(1), ((1 - X) ** 2).sum(1)], 1)
     ref = Y.min(axis=0) - 1.0
-    x = propose_ehvi(GPSurrogate(2), X, Y, ref, seed=0, num_restarts=2, raw_samples=32)
+    x = propose_ehvi(GPSurrogate(2), X, Y, ref, seed=0, search=AcqfSearch(2, 32))
     assert x.shape == (3,) and np.all((x >= 0) & (x <= 1))
 
 
@@ -242,7 +301,7 @@ def test_state_dict_reproduces_next_proposal():
     for n in (22, 23):  # n >= 20: second call reuses hyperparameters
         sur.fit(X[:n], Y[:n])
     state = pickle.loads(pickle.dumps(sur.state_dict()))
-    kw = dict(seed=11, raw_samples=32, num_restarts=2, mc_samples=16)
+    kw = dict(seed=11, options=EHVIOptions(mc_samples=16), search=AcqfSearch(2, 32))
     x1 = propose_ehvi(sur.fit(X, Y), X, Y, ref, **kw)
     sur2 = GPSurrogate(2)
     sur2.load_state_dict(state)
@@ -255,10 +314,10 @@ def test_state_dict_reproduces_next_proposal():
     # EI too (propose_ei fits the surrogate itself when its data changed)
     s1 = GPSurrogate(1, refit_every=5).fit(X[:22], Y[:22, :1])
     st = pickle.loads(pickle.dumps(s1.state_dict()))
-    e1 = propose_ei(s1, X, Y[:, 0], seed=3, raw_samples=32, num_restarts=2)
+    e1 = propose_ei(s1, X, Y[:, 0], seed=3, search=AcqfSearch(2, 32))
     s2 = GPSurrogate(1)
     s2.load_state_dict(st)
-    e2 = propose_ei(s2, X, Y[:, 0], seed=3, raw_samples=32, num_restarts=2)
+    e2 = propose_ei(s2, X, Y[:, 0], seed=3, search=AcqfSearch(2, 32))
     np.testing.assert_array_equal(e1, e2)
 
 
@@ -267,6 +326,13 @@ def test_ehvi_variants_propose_in_cube(opts):
     X = sobol(10, 2, seed=6)
     Y = branin_currin(X)
     sur = GPSurrogate(2)
-    kw = dict(seed=0, raw_samples=32, num_restarts=2, mc_samples=16)
-    x = propose_ehvi(sur, X, Y, reference_point(Y), **kw, **opts)
+    options = EHVIOptions(mc_samples=16, **opts)
+    x = propose_ehvi(
+        sur, X, Y, reference_point(Y), seed=0, options=options, search=AcqfSearch(2, 32)
+    )
     assert x.shape == (2,) and np.all((x >= 0) & (x <= 1))
+
+
+def test_ehvi_options_refuse_an_unknown_method():
+    with pytest.raises(ValueError, match="unknown method 'ehvi'"):
+        EHVIOptions(method="ehvi")

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from mpcmobo.bo import AcqfSearch, EHVIOptions
 from mpcmobo.experiment.loop import LearningRun
 from mpcmobo.learners import EpisodeResult, make_learner
 from mpcmobo.mpc import ParametricMPC, rollout
@@ -88,7 +89,7 @@ def test_bo_learners_never_fit_nan(cstr):
         mobo.observe(th, _result(f))
     assert mobo.surrogate.train_Y.shape[0] == 3
     assert np.all(np.isfinite(mobo.surrogate.train_Y))
-    assert mobo.ref_point is not None and np.all(np.isfinite(mobo.ref_point))
+    assert mobo.ref_point_ is not None and np.all(np.isfinite(mobo.ref_point_))
 
 
 def test_mpc_rl_ignores_failed_episodes(cstr):
@@ -135,7 +136,7 @@ def test_learner_lowers_f1_on_short_cstr_run(cstr, cstr_mpc, name):
     for r in rows:
         assert cstr.search_space.contains(np.array(r["theta"]))
     if name == "mobo":  # cycled starts reach the GP as groups: one f1 offset per start
-        np.testing.assert_array_equal(learner.starts, np.arange(16) % 2)
+        np.testing.assert_array_equal(learner.starts_, np.arange(16) % 2)
         offsets = learner.surrogate.group_offsets
         assert sorted(offsets) == [0, 1]
         assert offsets[0][0] == pytest.approx(-offsets[1][0]) and offsets[0][0] != 0
@@ -152,46 +153,51 @@ def test_incumbent_prefers_supported_points_when_risk_averse(cstr):
     f1 = np.r_[1000 * np.exp(0.5 * rng.normal(size=10)), 700.0]
     picks = {}
     for kappa in (0.0, 3.0):
-        bo = make_learner(
-            "bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa, noise_floor=None
-        )
+        bo = make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa)
         for z, f in zip(Z, f1, strict=True):
             bo.observe(space.from_unit(z, base=bo.theta0), _result([f, 0, 0, 0]))
         picks[kappa] = space.to_unit(bo.incumbent())
     np.testing.assert_allclose(picks[0.0], Z[-1], atol=1e-9)
     np.testing.assert_allclose(picks[3.0], a, atol=1e-9)
-    # with confirmation (confirm_runs=2) the lone point is a challenger: re-run, not deployed
-    bo = make_learner(
-        "bo", space, cstr.parameterization.theta0, incumbent_kappa=0.0, noise_floor=None,
-        confirm_runs=2,
-    )  # fmt: skip
-    for z, f in zip(Z, f1, strict=True):
-        bo.observe(space.from_unit(z, base=bo.theta0), _result([f, 0, 0, 0]))
-    np.testing.assert_allclose(space.to_unit(bo.incumbent()), a, atol=1e-9)
-    np.testing.assert_allclose(space.to_unit(bo.propose()), Z[-1], atol=1e-9)
-    bo.observe(bo.propose(), _result([650.0, 0, 0, 0]))  # confirmed: now the incumbent
-    np.testing.assert_allclose(space.to_unit(bo.incumbent()), Z[-1], atol=1e-9)
     with pytest.raises(ValueError, match="incumbent_kappa"):
         make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=-1)
 
 
-def test_replication_reruns_the_incumbent_until_confirmed(cstr):
-    space = cstr.search_space
+@pytest.mark.parametrize("name", ["bo", "mobo"])
+def test_removed_options_load_at_their_old_defaults_only(cstr, name):
+    """confirm_runs, replicate_every, max_replicates and noise_floor were removed (issue 10):
+    old settings that leave them at their defaults still build the learner; one switched on,
+    or a name that was never an option, is refused with a message naming it."""
+    space, theta0 = cstr.search_space, cstr.parameterization.theta0
+    old = {"confirm_runs": 1, "replicate_every": 0, "max_replicates": 3, "noise_floor": None}
+    make_learner(name, space, theta0, **old)
+    for key, on in [("confirm_runs", 2), ("replicate_every", 3), ("noise_floor", 0.2)]:
+        with pytest.raises(ValueError, match=f"{key} = .*removed in the issue-10 clean-up"):
+            make_learner(name, space, theta0, **{**old, key: on})
+    with pytest.raises(TypeError, match="unexpected learner option 'confirm'"):
+        make_learner(name, space, theta0, confirm=2)
+
+
+def test_learner_state_from_before_the_clean_up_resumes_exactly(cstr):
+    """A state dict whose GP state still has the removed keys (num_threads, noise_floor at its
+    default) resumes to the same next proposal; a noise floor switched on is refused."""
+    space, theta0 = cstr.search_space, cstr.parameterization.theta0
     kw = {"n_init": 2, "num_restarts": 2, "raw_samples": 32, "maxiter": 10}
-    bo = make_learner("bo", space, cstr.parameterization.theta0, replicate_every=2, **kw)
-    proposals, incumbents = [], []
-    for k in range(7):
-        th = bo.propose()
-        proposals.append(space.to_unit(th))
-        incumbents.append(space.to_unit(bo.incumbent()))
-        bo.observe(th, _result([1000.0 + 100 * k, 0, 0, 0]))
-    # after the design (n = 2), every 2nd proposal (n = 3, 5) repeats the incumbent of then
-    for n in (3, 5):
-        np.testing.assert_array_equal(proposals[n], incumbents[n])
-    assert not np.array_equal(proposals[4], incumbents[4])
-    # once it has max_replicates (3) episodes the incumbent is not re-run
-    runs = np.count_nonzero(np.all(bo.Z == bo._incumbent_z, axis=1))
-    assert runs <= 3
+    a = make_learner("mobo", space, theta0, seed=1, **kw)
+    for k in range(4):
+        a.observe(a.propose(), _result([1000.0 + 100 * k, 10.0 - k, k % 2, 0]))
+    state = a.state_dict()
+    state["surrogate_pre_fit"] = {
+        **state["surrogate_pre_fit"],
+        "num_threads": 1,
+        "noise_floor": None,
+    }
+    b = make_learner("mobo", space, theta0, seed=7, **kw)
+    b.load_state_dict(state)
+    np.testing.assert_array_equal(a.propose(), b.propose())
+    state["surrogate_pre_fit"]["noise_floor"] = 0.2
+    with pytest.raises(ValueError, match="noise_floor"):
+        make_learner("mobo", space, theta0, **kw).load_state_dict(state)
 
 
 def test_mpc_rl_learning_rate_decay(cstr):
@@ -217,8 +223,8 @@ def test_mobo_halves_its_ehvi_search_after_reduce_effort_after(cstr, monkeypatch
 
     seen = []
 
-    def fake_ehvi(surrogate, X, Y, ref, *, seed, **kw):
-        seen.append((X.shape[0], kw["mc_samples"], kw["num_restarts"], kw["raw_samples"]))
+    def fake_ehvi(surrogate, X, Y, ref, *, seed, options, search):
+        seen.append((X.shape[0], options.mc_samples, search.num_restarts, search.raw_samples))
         return np.full(X.shape[1], 0.5)
 
     monkeypatch.setattr(bo_module, "propose_ehvi", fake_ehvi)
@@ -230,7 +236,7 @@ def test_mobo_halves_its_ehvi_search_after_reduce_effort_after(cstr, monkeypatch
         mobo.observe(th, _result([1000.0 + 100 * k, 10.0 - k, k % 2, 0]))
     # the design (n < 2) needs no search; full effort at n = 2, 3; halved from n = 4
     assert seen == [(2, 64, 4, 256), (3, 64, 4, 256), (4, 32, 2, 128), (5, 32, 2, 128)]
-    assert bo_module.reduced_effort(1, 1, 1) == {"mc_samples": 1, "num_restarts": 1,
-                                                 "raw_samples": 1}  # fmt: skip
+    options, search = bo_module.reduced_effort(EHVIOptions(mc_samples=1), AcqfSearch(1, 1))
+    assert (options.mc_samples, search.num_restarts, search.raw_samples) == (1, 1, 1)
     with pytest.raises(ValueError, match="reduce_effort_after"):
         make_learner("mobo", space, cstr.parameterization.theta0, reduce_effort_after=-1)

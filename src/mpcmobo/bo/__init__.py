@@ -4,22 +4,28 @@ Inputs ``X`` (n, d) lie in [0,1]^d; outcomes ``Y`` (n, m) are costs to be MINIMI
 maximises: the surrogate negates internally). NaN/inf rows are dropped before fitting.
 """
 
-from mpcmobo.bo.acquisition import posterior_front, propose_ehvi, propose_ei
+from mpcmobo.bo.acquisition import (
+    AcqfSearch,
+    EHVIOptions,
+    posterior_front,
+    propose_ehvi,
+    propose_ei,
+)
 from mpcmobo.bo.pareto import (
     finite_rows,
     hypervolume,
-    normalise_objectives,
     pareto_mask,
     reference_point,
 )
 from mpcmobo.bo.surrogate import GPSurrogate, fit_gp
 
 __all__ = [
+    "AcqfSearch",
+    "EHVIOptions",
     "GPSurrogate",
     "finite_rows",
     "fit_gp",
     "hypervolume",
-    "normalise_objectives",
     "pareto_mask",
     "posterior_front",
     "propose_ehvi",

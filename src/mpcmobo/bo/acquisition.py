@@ -6,12 +6,18 @@ it is fitted first (``surrogate.fit(X, Y)``), so a caller may either fit then pr
 just propose. The acquisition works on the surrogate's model, which maximises
 ``t = -g(y)`` (see ``surrogate``); maximising EI/EHVI of ``t`` is minimising the costs.
 
+Following BoTorch, an acquisition is built from the model plus an options object
+(:class:`EHVIOptions`; log EI needs none) and its maximisation is separate, configured by
+:class:`AcqfSearch` (``optimize_acqf``: L-BFGS-B restarts from the best raw samples).
+
 Determinism: the result is a function of (data, surrogate state, seed). The torch RNG is
 seeded with ``seed`` (in a forked RNG state, the caller's stream is untouched) for the raw
 samples of ``optimize_acqf`` and the quasi-MC sampler is ``SobolQMCNormalSampler(seed=seed)``.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import gpytorch
 import moocore
@@ -29,10 +35,44 @@ from botorch.utils.multi_objective.box_decompositions.non_dominated import (
     NondominatedPartitioning,
 )
 
+from mpcmobo.bo.groups import DTYPE, MAX_CHOLESKY
 from mpcmobo.bo.pareto import pareto_mask
-from mpcmobo.bo.surrogate import DTYPE, MAX_CHOLESKY, GPSurrogate, torch_threads
+from mpcmobo.bo.surrogate import GPSurrogate
 
-__all__ = ["posterior_front", "propose_ehvi", "propose_ei"]
+__all__ = ["AcqfSearch", "EHVIOptions", "posterior_front", "propose_ehvi", "propose_ei"]
+
+EHVI_METHODS = ("logehvi", "lognehvi")
+
+
+@dataclass(frozen=True)
+class AcqfSearch:
+    """How an acquisition is maximised on the unit cube (BoTorch's ``optimize_acqf``):
+    L-BFGS-B from ``num_restarts`` starts, the best of ``raw_samples`` random points, at most
+    ``maxiter`` iterations each."""
+
+    num_restarts: int = 4
+    raw_samples: int = 256
+    maxiter: int = 100
+
+
+@dataclass(frozen=True)
+class EHVIOptions:
+    """The (log) EHVI acquisition of :func:`propose_ehvi` (eq. EHVI).
+
+    ``mc_samples``: quasi-MC Sobol base samples. ``max_baseline``: at most this many observed
+    points define the current front (:func:`posterior_front`). ``alpha > 0``: approximate box
+    decomposition (``NondominatedPartitioning(alpha)``). ``method``: ``"logehvi"`` or
+    ``"lognehvi"`` (see :func:`propose_ehvi`).
+    """
+
+    mc_samples: int = 64
+    max_baseline: int = 32
+    alpha: float = 0.0
+    method: str = "logehvi"
+
+    def __post_init__(self) -> None:
+        if self.method not in EHVI_METHODS:
+            raise ValueError(f"unknown method {self.method!r}")
 
 
 def _prepare(surrogate: GPSurrogate, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -46,7 +86,8 @@ def _prepare(surrogate: GPSurrogate, X: np.ndarray, Y: np.ndarray) -> np.ndarray
     return surrogate.train_X
 
 
-def _optimize(acq, d: int, seed: int, num_restarts: int, raw_samples: int, maxiter: int):
+def _optimize(acq, d: int, seed: int, search: AcqfSearch) -> np.ndarray:
+    """The maximiser (d,) of ``acq`` on [0,1]^d, seeded."""
     bounds = torch.stack([torch.zeros(d, dtype=DTYPE), torch.ones(d, dtype=DTYPE)])
     with torch.random.fork_rng(), gpytorch.settings.max_cholesky_size(MAX_CHOLESKY):
         torch.manual_seed(seed)
@@ -54,12 +95,12 @@ def _optimize(acq, d: int, seed: int, num_restarts: int, raw_samples: int, maxit
             acq,
             bounds=bounds,
             q=1,
-            num_restarts=num_restarts,
-            raw_samples=raw_samples,
+            num_restarts=search.num_restarts,
+            raw_samples=search.raw_samples,
             options={
-                "maxiter": maxiter,
+                "maxiter": search.maxiter,
                 "seed": seed,
-                "batch_limit": num_restarts,
+                "batch_limit": search.num_restarts,
                 "init_batch_limit": 128,
             },
         )
@@ -72,10 +113,7 @@ def propose_ei(
     y: np.ndarray,
     *,
     seed: int,
-    num_restarts: int = 4,
-    raw_samples: int = 256,
-    maxiter: int = 100,
-    num_threads: int | None = 1,
+    search: AcqfSearch = AcqfSearch(),
 ) -> np.ndarray:
     """Next point (d,) in [0,1]^d maximising log expected improvement of one cost.
 
@@ -85,15 +123,14 @@ def propose_ei(
     incumbent ``t*`` is the best posterior mean at the observed points, not the best noisy
     observation.
     """
-    with torch_threads(num_threads):
-        Xf = _prepare(surrogate, X, y)
-        if surrogate.num_outputs != 1:
-            raise ValueError("propose_ei needs a single-output surrogate")
-        mt, _ = surrogate.posterior_model_space(Xf)
-        best_f = float(mt[:, 0].max())  # incumbent: best posterior mean (noisy EI)
-        model = surrogate.fast_model  # same posterior, faster
-        acq = LogExpectedImprovement(model, best_f=best_f)  # eq. acq_EI (log form)
-        return _optimize(acq, Xf.shape[1], seed, num_restarts, raw_samples, maxiter)
+    Xf = _prepare(surrogate, X, y)
+    if surrogate.num_outputs != 1:
+        raise ValueError("propose_ei needs a single-output surrogate")
+    mt, _ = surrogate.posterior_model_space(Xf)
+    best_f = float(mt[:, 0].max())  # incumbent: best posterior mean (noisy EI)
+    model = surrogate.fast_model  # same posterior, faster
+    acq = LogExpectedImprovement(model, best_f=best_f)  # eq. acq_EI (log form)
+    return _optimize(acq, Xf.shape[1], seed, search)
 
 
 def posterior_front(
@@ -125,6 +162,62 @@ def posterior_front(
     return idx
 
 
+def _logehvi(
+    surrogate: GPSurrogate,
+    Xf: np.ndarray,
+    base: np.ndarray,
+    tref: torch.Tensor,
+    sampler: SobolQMCNormalSampler,
+    alpha: float,
+):
+    """qLogEHVI with the posterior-mean front at ``Xf[base]`` as ``P`` (one box
+    decomposition of the region it dominates)."""
+    m = surrogate.num_outputs
+    if base.size:
+        mt, _ = surrogate.posterior_model_space(Xf[base])
+        front = torch.as_tensor(mt.reshape(-1, m), dtype=DTYPE)
+    else:  # no posterior mean beats the reference point yet: the whole box is improvement
+        front = torch.empty((0, m), dtype=DTYPE)
+    if alpha > 0:
+        part = NondominatedPartitioning(ref_point=tref, Y=front, alpha=alpha)
+    else:
+        part = FastNondominatedPartitioning(ref_point=tref, Y=front)
+    return qLogExpectedHypervolumeImprovement(  # eq. EHVI (log, MC)
+        surrogate.fast_model,  # same posterior, faster
+        ref_point=tref,
+        partitioning=part,
+        sampler=sampler,
+    )
+
+
+def _lognehvi(
+    surrogate: GPSurrogate,
+    Xf: np.ndarray,
+    base: np.ndarray,
+    tref: torch.Tensor,
+    sampler: SobolQMCNormalSampler,
+    alpha: float,
+    seed: int,
+):
+    """qLogNEHVI with the baseline points ``Xf[base]`` (the front integrated over the joint
+    posterior there)."""
+    # nothing better than ref yet: fall back to the best point per objective
+    if base.size == 0:
+        mt, _ = surrogate.posterior_model_space(Xf)
+        base = np.unique(np.argmax(mt, axis=0))
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        return qLogNoisyExpectedHypervolumeImprovement(  # eq. EHVI (log, noisy, MC)
+            surrogate.model,
+            ref_point=tref,
+            X_baseline=torch.as_tensor(Xf[base], dtype=DTYPE),
+            sampler=sampler,
+            prune_baseline=False,
+            alpha=alpha,
+            cache_root=True,
+        )
+
+
 def propose_ehvi(
     surrogate: GPSurrogate,
     X: np.ndarray,
@@ -132,14 +225,8 @@ def propose_ehvi(
     ref_point: np.ndarray,
     *,
     seed: int,
-    num_restarts: int = 4,
-    raw_samples: int = 256,
-    mc_samples: int = 64,
-    max_baseline: int = 32,
-    alpha: float | None = None,
-    method: str = "logehvi",
-    maxiter: int = 100,
-    num_threads: int | None = 1,
+    options: EHVIOptions = EHVIOptions(),
+    search: AcqfSearch = AcqfSearch(),
 ) -> np.ndarray:
     """Next point (d,) in [0,1]^d maximising (log) expected hypervolume improvement (eq. EHVI).
 
@@ -147,9 +234,9 @@ def propose_ehvi(
     ``V`` the hypervolume w.r.t. ``ref_point`` (minimisation units, mapped to the model's
     maximisation space with the surrogate's outcome transform; fix it once per run, see
     :func:`~mpcmobo.bo.pareto.reference_point`). Computed in log form by quasi-MC with
-    ``mc_samples`` Sobol base samples.
+    ``options.mc_samples`` Sobol base samples.
 
-    ``method``:
+    ``options.method``:
       * ``"logehvi"`` (default, fast): ``P`` = the posterior-mean Pareto front at the observed
         points (pruned by :func:`posterior_front`), one box decomposition of the region it
         dominates (``FastNondominatedPartitioning``, or the approximate
@@ -159,53 +246,19 @@ def propose_ehvi(
         baseline points ``X_baseline`` (the front is then integrated over the joint posterior
         at the baseline, one decomposition per MC sample: slower, accounts for noise).
 
-    ``num_restarts`` and ``maxiter`` bound the L-BFGS-B restarts and iterations;
-    ``num_threads`` is torch's thread count during the call (restored afterwards, and the
-    surrogate's own fit uses ``surrogate.num_threads``).
+    ``search`` bounds the maximisation (:class:`AcqfSearch`).
     """
-    with torch_threads(num_threads):
-        Xf = _prepare(surrogate, X, Y)
-        m = surrogate.num_outputs
-        ref = np.asarray(ref_point, dtype=np.float64).reshape(-1)
-        if ref.shape[0] != m or not np.all(np.isfinite(ref)):
-            raise ValueError("ref_point must be a finite vector with one entry per output")
-        ref_t = surrogate.to_model_space(ref[None, :])[0]
-        base = posterior_front(surrogate, Xf, ref_t, max_baseline)
-        tref = torch.as_tensor(ref_t, dtype=DTYPE)
-        sampler = SobolQMCNormalSampler(sample_shape=torch.Size([mc_samples]), seed=seed)
-        a = 0.0 if alpha is None else float(alpha)
-        if method == "logehvi":
-            if base.size:
-                mt, _ = surrogate.posterior_model_space(Xf[base])
-                front = torch.as_tensor(mt.reshape(-1, m), dtype=DTYPE)
-            else:  # no posterior mean beats the reference point yet: the whole box is improvement
-                front = torch.empty((0, m), dtype=DTYPE)
-            if a > 0:
-                part = NondominatedPartitioning(ref_point=tref, Y=front, alpha=a)
-            else:
-                part = FastNondominatedPartitioning(ref_point=tref, Y=front)
-            acq = qLogExpectedHypervolumeImprovement(  # eq. EHVI (log, MC)
-                surrogate.fast_model,  # same posterior, faster
-                ref_point=tref,
-                partitioning=part,
-                sampler=sampler,
-            )
-        elif method == "lognehvi":
-            # nothing better than ref yet: fall back to the best point per objective
-            if base.size == 0:
-                mt, _ = surrogate.posterior_model_space(Xf)
-                base = np.unique(np.argmax(mt, axis=0))
-            with torch.random.fork_rng():
-                torch.manual_seed(seed)
-                acq = qLogNoisyExpectedHypervolumeImprovement(  # eq. EHVI (log, noisy, MC)
-                    surrogate.model,
-                    ref_point=tref,
-                    X_baseline=torch.as_tensor(Xf[base], dtype=DTYPE),
-                    sampler=sampler,
-                    prune_baseline=False,
-                    alpha=a,
-                    cache_root=True,
-                )
-        else:
-            raise ValueError(f"unknown method {method!r}")
-        return _optimize(acq, Xf.shape[1], seed, num_restarts, raw_samples, maxiter)
+    Xf = _prepare(surrogate, X, Y)
+    ref = np.asarray(ref_point, dtype=np.float64).reshape(-1)
+    if ref.shape[0] != surrogate.num_outputs or not np.all(np.isfinite(ref)):
+        raise ValueError("ref_point must be a finite vector with one entry per output")
+    ref_t = surrogate.to_model_space(ref[None, :])[0]
+    base = posterior_front(surrogate, Xf, ref_t, options.max_baseline)
+    tref = torch.as_tensor(ref_t, dtype=DTYPE)
+    sampler = SobolQMCNormalSampler(sample_shape=torch.Size([options.mc_samples]), seed=seed)
+    alpha = float(options.alpha)
+    if options.method == "logehvi":
+        acq = _logehvi(surrogate, Xf, base, tref, sampler, alpha)
+    else:
+        acq = _lognehvi(surrogate, Xf, base, tref, sampler, alpha, seed)
+    return _optimize(acq, Xf.shape[1], seed, search)

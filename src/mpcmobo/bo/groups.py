@@ -31,26 +31,11 @@ __all__ = [
     "MAX_CHOLESKY",
     "GroupOffsetMean",
     "fit_group_offsets",
-    "noise_floor_likelihood",
 ]
 
 DTYPE = torch.float64
 # Exact Cholesky up to this many training points (gpytorch switches to CG above 800 by default).
 MAX_CHOLESKY = 5000
-
-
-def noise_floor_likelihood(floor: float, batch_shape: torch.Size | None = None):
-    """BoTorch's default Gaussian likelihood (LogNormal(-4, 1) noise prior) with the noise
-    variance bounded below by ``floor`` (standardised units) instead of 1e-4."""
-    from botorch.models.utils.gpytorch_modules import get_gaussian_likelihood_with_lognormal_prior
-    from gpytorch.constraints import GreaterThan
-
-    lik = get_gaussian_likelihood_with_lognormal_prior(batch_shape)
-    lik.noise_covar.register_constraint(
-        "raw_noise", GreaterThan(float(floor), transform=None, initial_value=2.0 * float(floor))
-    )
-    lik.noise_covar.initialize(noise=2.0 * float(floor))
-    return lik
 
 
 class GroupOffsetMean(Mean):
@@ -68,13 +53,30 @@ class GroupOffsetMean(Mean):
         return self.constant + padded[torch.where(g < 0, len(self.offsets), g)]
 
 
+def _offset_gp(
+    X: np.ndarray, t: np.ndarray, label: np.ndarray, num_groups: int, prior_std: float
+) -> SingleTaskGP:
+    """The model of the module docstring: a ``SingleTaskGP`` on ``(x, label)`` with BoTorch's
+    SE-ARD kernel on ``x`` only, the mean ``c + b[label]`` and standardised targets."""
+    d = X.shape[1]
+    tX = torch.as_tensor(np.column_stack([X, label]), dtype=DTYPE)
+    tY = torch.as_tensor(t[:, None], dtype=DTYPE)
+    covar = get_covar_module_with_dim_scaled_prior(ard_num_dims=d, active_dims=list(range(d)))
+    return SingleTaskGP(
+        tX,
+        tY,
+        covar_module=covar,
+        mean_module=GroupOffsetMean(num_groups, prior_std),
+        outcome_transform=Standardize(m=1),
+    ).to(DTYPE)
+
+
 def fit_group_offsets(
     X: np.ndarray,
     t: np.ndarray,
     groups: np.ndarray,
     *,
     prior_std: float = 1.0,
-    noise_floor: float | None = None,
     maxiter: int = 200,
     seed: int = 0,
 ) -> dict[int, float]:
@@ -90,20 +92,8 @@ def fit_group_offsets(
     ids = np.unique(groups[groups >= 0])
     if ids.size == 0:
         return {}
-    index = np.searchsorted(ids, groups)
-    label = np.where(groups >= 0, index, -1).astype(np.float64)
-    d = X.shape[1]
-    tX = torch.as_tensor(np.column_stack([X, label]), dtype=DTYPE)
-    tY = torch.as_tensor(t[:, None], dtype=DTYPE)
-    covar = get_covar_module_with_dim_scaled_prior(ard_num_dims=d, active_dims=list(range(d)))
-    model = SingleTaskGP(
-        tX,
-        tY,
-        covar_module=covar,
-        mean_module=GroupOffsetMean(len(ids), prior_std),
-        likelihood=None if noise_floor is None else noise_floor_likelihood(noise_floor),
-        outcome_transform=Standardize(m=1),
-    ).to(DTYPE)
+    label = np.where(groups >= 0, np.searchsorted(ids, groups), -1).astype(np.float64)
+    model = _offset_gp(X, t, label, len(ids), prior_std)
     mll = ExactMarginalLogLikelihood(model.likelihood, model)
     with torch.random.fork_rng(), gpytorch.settings.max_cholesky_size(MAX_CHOLESKY):
         torch.manual_seed(seed)

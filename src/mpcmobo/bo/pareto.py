@@ -16,7 +16,7 @@ from __future__ import annotations
 import moocore
 import numpy as np
 
-__all__ = ["finite_rows", "hypervolume", "normalise_objectives", "pareto_mask", "reference_point"]
+__all__ = ["finite_rows", "hypervolume", "pareto_mask", "reference_point"]
 
 
 def finite_rows(Y: np.ndarray) -> np.ndarray:
@@ -32,28 +32,16 @@ def pareto_mask(Y: np.ndarray) -> np.ndarray:
 
     Returns a bool (n,) array, True where no other row dominates the row. Exact duplicates do
     not dominate each other, so all copies of a Pareto point are kept. Non-finite rows are
-    False and are ignored as dominators.
+    False and are ignored as dominators. The test itself is ``moocore.is_nondominated``
+    (``keep_weakly=True``: duplicates kept) on the finite rows.
     """
     Y = np.asarray(Y, dtype=np.float64)
     if Y.ndim == 1:
         Y = Y[:, None]
-    n = Y.shape[0]
     ok = finite_rows(Y)
-    mask = np.zeros(n, dtype=bool)
-    idx = np.flatnonzero(ok)
-    if idx.size == 0:
-        return mask
-    F = Y[idx]
-    keep = np.ones(len(F), dtype=bool)
-    # Chunked O(n^2 m) comparison: row i is dominated if some j has F_j <= F_i everywhere
-    # and F_j < F_i somewhere.
-    chunk = max(1, 2_000_000 // max(1, len(F) * F.shape[1]))
-    for s in range(0, len(F), chunk):
-        Fi = F[s : s + chunk, None, :]  # (c, 1, m)
-        le = np.all(F[None, :, :] <= Fi, axis=2)  # (c, n): F_j <= F_i
-        lt = np.any(F[None, :, :] < Fi, axis=2)  # (c, n): F_j < F_i somewhere
-        keep[s : s + chunk] = ~np.any(le & lt, axis=1)
-    mask[idx] = keep
+    mask = np.zeros(Y.shape[0], dtype=bool)
+    if ok.any():
+        mask[ok] = moocore.is_nondominated(Y[ok], keep_weakly=True)
     return mask
 
 
@@ -95,17 +83,3 @@ def reference_point(Y: np.ndarray, margin: float = 0.1) -> np.ndarray:
     rng = hi - Y.min(axis=0)
     rng = np.where(rng > 0, rng, np.maximum(np.abs(hi), 1.0))
     return hi + margin * rng
-
-
-def normalise_objectives(
-    Y: np.ndarray, lower: np.ndarray | None = None, upper: np.ndarray | None = None
-) -> np.ndarray:
-    """Affine map of each objective to [0, 1] using ``lower``/``upper`` (default: the finite
-    rows' per-objective min and max). Dominance is preserved; hypervolume scales by
-    ``prod(1 / (upper - lower))``."""
-    Y = np.asarray(Y, dtype=np.float64)
-    F = Y[finite_rows(Y)]
-    lo = F.min(axis=0) if lower is None else np.asarray(lower, dtype=np.float64)
-    hi = F.max(axis=0) if upper is None else np.asarray(upper, dtype=np.float64)
-    span = np.where(hi - lo > 0, hi - lo, 1.0)
-    return (Y - lo) / span

@@ -13,26 +13,20 @@ Conventions
   space: no input transform.
 * Outcomes ``Y`` (n, m) are COSTS to be MINIMISED. BoTorch maximises, so the model is trained
   on ``t = -g(y)``: the fitted ``.model`` lives in the *maximisation* convention. ``g`` is the
-  identity, or for outputs flagged in ``log_outcomes`` the log transform below. A
+  identity, or for outputs flagged in ``log_outcomes`` a shifted log; this cost-space transform
+  is one object, ``.transform`` (:mod:`mpcmobo.bo.transforms`), refitted on each fit. A
   ``Standardize`` outcome transform then maps each ``t_j`` to zero mean / unit variance.
 * Rows of ``Y`` (or ``X``) containing NaN or inf are dropped before fitting: a failed episode
   is never fitted as a number.
-* Everything is float64.
-
-Log transform (for costs spanning orders of magnitude, e.g. the CSTR's f1)
--------------------------------------------------------------------------
-``g(y) = log(y + c)`` with the offset ``c`` recomputed on each fit from the finite data:
-``c = 0`` if ``min y > 0`` (plain ``log y``); otherwise ``c = -min y + 0.01 (max y - min y)``
-(or ``+1e-6`` if the range is zero), so the smallest cost maps to ``log(1% of the range)``
-rather than to ``-inf`` (the objectives f3, f4 are exactly 0 for many episodes).
+* Everything is float64. Torch's thread count is the process's (the study's workers set one
+  thread once, at start); nothing here changes it.
 
 Posterior (eq. mean_var) and back transform
 -------------------------------------------
 ``predict`` returns the latent-function posterior (no observation noise) in the original
-minimisation units. For identity outputs that is ``(-mu_t, sigma_t)``. For log outputs the
-posterior of ``g(y)`` is ``N(m, s^2)`` with ``m = -mu_t``, ``s = sigma_t``, so ``y + c`` is
-log-normal and we return its mean and standard deviation:
-``E[y] = exp(m + s^2/2) - c``, ``Std[y] = exp(m + s^2/2) sqrt(exp(s^2) - 1)``.
+minimisation units: the model-space posterior ``N(mu_t, sigma_t^2)`` mapped back by
+``.transform`` (for identity outputs ``(-mu_t, sigma_t)``, for log outputs the mean and
+standard deviation of the log-normal cost).
 
 Hyperparameter warm start
 -------------------------
@@ -69,7 +63,6 @@ candidates run on different starts are compared fairly.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from contextlib import contextmanager
 from typing import Any
 
 import gpytorch
@@ -81,31 +74,47 @@ from botorch.models.transforms.outcome import Standardize
 from gpytorch.mlls import ExactMarginalLogLikelihood
 
 from mpcmobo.bo.fastpost import ExactIndependentGP
-from mpcmobo.bo.groups import DTYPE, MAX_CHOLESKY, fit_group_offsets, noise_floor_likelihood
+from mpcmobo.bo.groups import DTYPE, MAX_CHOLESKY, fit_group_offsets
 from mpcmobo.bo.pareto import finite_rows
+from mpcmobo.bo.transforms import cost_transform
 
 __all__ = ["GPSurrogate", "fit_gp"]
-
-
-@contextmanager
-def torch_threads(n: int | None):
-    """Temporarily set ``torch.set_num_threads(n)`` (None: leave as is). The GP matrices here
-    are small (n <= a few thousand); one thread avoids synchronisation overhead, which on a
-    shared 2-core machine dominates the many small tensor operations of the acquisition."""
-    if n is None:
-        yield
-        return
-    old = torch.get_num_threads()
-    torch.set_num_threads(int(n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 def _as_2d(a: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     return a[:, None] if a.ndim == 1 else a
+
+
+def _flags(name: str, flags: Sequence[bool] | None, m: int) -> list[bool]:
+    """One bool per output (None: all False)."""
+    out = [False] * m if flags is None else [bool(b) for b in flags]
+    if len(out) != m:
+        raise ValueError(f"{name} must have one flag per output")
+    return out
+
+
+def _hyper_tensors(model: SingleTaskGP) -> dict[str, torch.Tensor]:
+    """The hyperparameters of ``model`` (standardised units; not the outcome transform)."""
+    return {
+        k: v.detach().clone()
+        for k, v in model.state_dict().items()
+        if not k.startswith("outcome_transform")
+    }
+
+
+def _gls_offsets(
+    K: np.ndarray, noise: float, H: np.ndarray, t: np.ndarray, t_adj: np.ndarray, prior_std: float
+) -> np.ndarray:
+    """Random-effects (GLS) posterior mean of one output's group offsets (module docstring,
+    "Start effects"): ``(H^T A H + I / tau^2) b = H^T A (t - mean(t))``, ``A = (s^2 (K +
+    sigma_n^2 I))^-1`` with ``s^2`` the variance of the adjusted targets ``t_adj``."""
+    s2 = max(float(np.var(t_adj)), 1e-12)
+    L = np.linalg.cholesky(s2 * (K + noise * np.eye(len(t))))
+    AH = np.linalg.solve(L.T, np.linalg.solve(L, H))  # A H
+    tau2 = prior_std**2 * max(float(np.var(t)), 1e-12)
+    lhs = H.T @ AH + np.eye(H.shape[1]) / tau2
+    return np.linalg.solve(lhs, AH.T @ (t - t.mean()))
 
 
 class GPSurrogate:
@@ -117,22 +126,20 @@ class GPSurrogate:
     refit_every: a full marginal-likelihood fit every ``refit_every`` calls to :meth:`fit`
         (1 = always), or less often with ``refit_fraction``. In between, hyperparameters are
         reused.
-    refit_fraction: with ``n`` finite observations, a full fit is due after
-        ``max(refit_every, ceil(refit_fraction n))`` calls (0: every ``refit_every`` calls).
-    log_outcomes: per output, whether to model ``log(y + c)`` (see module docstring).
+    log_outcomes: per output, whether to model ``log(y + c)`` (:mod:`mpcmobo.bo.transforms`).
     min_refit_n: while the number of finite observations is below this, always refit.
     fit_maxiter: L-BFGS-B iteration cap of a full fit.
     fit_subsample: a full fit maximises the marginal likelihood of a seeded random subset of
         at most this many points (None: all points); the GP is then conditioned on all.
-    num_threads: torch threads during fits (None: leave torch's setting).
     group_outputs: per output, whether ``fit(..., groups=...)`` estimates an offset per group
         (see "Start effects" in the module docstring). None: no output.
     group_prior_std: prior standard deviation ``tau`` of a group offset, in units of the
         output's standard deviation.
-    noise_floor: lower bound of the noise variance in standardised units (a fraction of the
-        outcome variance); None: BoTorch's 1e-4. Episode costs are noisy by nature: without a
-        floor, 13 inputs and a few dozen points let the marginal likelihood explain the noise by
-        short length scales, and the GP then trusts single lucky episodes.
+    refit_fraction: with ``n`` finite observations, a full fit is due after
+        ``max(refit_every, ceil(refit_fraction n))`` calls (0: every ``refit_every`` calls).
+
+    Fitted state (set by :meth:`fit`): ``model``, ``train_X``, ``train_Y``, ``group_offsets``,
+    ``last_fit_was_full`` and the fitted ``transform``.
     """
 
     def __init__(
@@ -144,68 +151,47 @@ class GPSurrogate:
         min_refit_n: int = 20,
         fit_maxiter: int = 200,
         fit_subsample: int | None = 300,
-        num_threads: int | None = 1,
         group_outputs: Sequence[bool] | None = None,
         group_prior_std: float = 1.0,
-        noise_floor: float | None = None,
         refit_fraction: float = 0.1,
     ) -> None:
         if num_outputs < 1:
             raise ValueError("num_outputs must be >= 1")
         if refit_every < 1:
             raise ValueError("refit_every must be >= 1")
-        self.num_outputs = int(num_outputs)
-        self.refit_every = int(refit_every)
         if not 0 <= refit_fraction <= 1:
             raise ValueError("refit_fraction must be in [0, 1]")
+        self.num_outputs = int(num_outputs)
+        self.refit_every = int(refit_every)
         self.refit_fraction = float(refit_fraction)
-        log = (
-            [False] * self.num_outputs if log_outcomes is None else [bool(b) for b in log_outcomes]
-        )
-        if len(log) != self.num_outputs:
-            raise ValueError("log_outcomes must have one flag per output")
-        self.log_outcomes = log
-        grp = (
-            [False] * self.num_outputs
-            if group_outputs is None
-            else [bool(b) for b in group_outputs]
-        )
-        if len(grp) != self.num_outputs:
-            raise ValueError("group_outputs must have one flag per output")
-        self.group_outputs = grp
+        self.log_outcomes = _flags("log_outcomes", log_outcomes, self.num_outputs)
+        self.group_outputs = _flags("group_outputs", group_outputs, self.num_outputs)
         if not group_prior_std > 0:
             raise ValueError("group_prior_std must be > 0")
         self.group_prior_std = float(group_prior_std)
-        if noise_floor is not None and not 0 < noise_floor < 1:
-            raise ValueError("noise_floor must be in (0, 1) (a fraction of the outcome variance)")
-        self.noise_floor = None if noise_floor is None else float(noise_floor)
-        self.group_offsets: dict[int, np.ndarray] = {}  # group -> (m,) offsets in model space
         self.min_refit_n = int(min_refit_n)
         self.fit_maxiter = int(fit_maxiter)
-        self.num_threads = num_threads
         self.fit_subsample = None if fit_subsample is None else int(fit_subsample)
-        self.model: SingleTaskGP | None = None
-        self._fast: ExactIndependentGP | None = None
-        self.offsets = np.zeros(self.num_outputs)
-        self.train_X: np.ndarray | None = None  # finite rows used in the last fit
-        self.train_Y: np.ndarray | None = None
-        self.last_fit_was_full = False
+        self._reset_fit()
         self._hyper: dict[str, np.ndarray] | None = None
         self._calls_since_refit = 0
         self._n_fits = 0
 
+    def _reset_fit(self) -> None:
+        """No fitted model; the transform and the group offsets start from scratch."""
+        self.transform = cost_transform(self.log_outcomes)
+        self.group_offsets: dict[int, np.ndarray] = {}  # group -> (m,) offsets in model space
+        self.model: SingleTaskGP | None = None
+        self._fast: ExactIndependentGP | None = None
+        self.train_X: np.ndarray | None = None  # finite rows used in the last fit
+        self.train_Y: np.ndarray | None = None
+        self.last_fit_was_full = False
+
     # ------------------------------------------------------------------ transforms
-    def _compute_offsets(self, Y: np.ndarray) -> np.ndarray:
-        c = np.zeros(self.num_outputs)
-        for j, use_log in enumerate(self.log_outcomes):
-            if not use_log:
-                continue
-            lo, hi = Y[:, j].min(), Y[:, j].max()
-            if lo > 0:
-                c[j] = 0.0
-            else:
-                c[j] = -lo + (0.01 * (hi - lo) if hi > lo else 1e-6)
-        return c
+    @property
+    def offsets(self) -> np.ndarray:
+        """The shifts ``c`` of the log outputs in the last fit (0 elsewhere)."""
+        return self.transform.steps[0].offsets_
 
     def to_model_space(self, Y: np.ndarray) -> np.ndarray:
         """Map costs ``Y`` (n, m) to the model's maximisation targets ``t = -g(y)``.
@@ -213,44 +199,21 @@ class GPSurrogate:
         Log outputs are clamped at ``y + c >= 1e-300`` (only matters for points below the
         training data, e.g. a reference point).
         """
-        Y = _as_2d(Y).copy()
-        for j, use_log in enumerate(self.log_outcomes):
-            if use_log:
-                Y[:, j] = np.log(np.maximum(Y[:, j] + self.offsets[j], 1e-300))
-        return -Y
+        return self.transform.forward(_as_2d(Y))
+
+    def to_cost_space(self, mt: np.ndarray, st: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The back transform of :meth:`predict`: a model-space posterior ``(mt, st)`` (from
+        :meth:`posterior_model_space`) as mean and std of the costs."""
+        return self.transform.untransform(mt, st)
 
     # ------------------------------------------------------------------ fitting
-    def _hyper_from_model(self, model: SingleTaskGP) -> dict[str, np.ndarray]:
-        return {
-            k: v.detach().cpu().numpy().copy()
-            for k, v in model.state_dict().items()
-            if not k.startswith("outcome_transform")
-        }
-
-    @staticmethod
-    def _hyper_tensors(model: SingleTaskGP) -> dict[str, torch.Tensor]:
-        return {
-            k: v.detach().clone()
-            for k, v in model.state_dict().items()
-            if not k.startswith("outcome_transform")
-        }
-
     def _refit_due(self, n: int) -> bool:
         period = max(self.refit_every, int(np.ceil(self.refit_fraction * n)))
         return self._hyper is None or n < self.min_refit_n or self._calls_since_refit >= period - 1
 
     def _new_gp(self, tX: torch.Tensor, tY: torch.Tensor) -> SingleTaskGP:
-        """BoTorch's default ``SingleTaskGP`` (standardised outcomes), with the noise variance
-        bounded below by ``noise_floor`` if one is set."""
-        likelihood = None
-        if self.noise_floor is not None:
-            likelihood = noise_floor_likelihood(
-                self.noise_floor, torch.Size([self.num_outputs]) if self.num_outputs > 1 else None
-            )
-        model = SingleTaskGP(
-            tX, tY, likelihood=likelihood, outcome_transform=Standardize(m=self.num_outputs)
-        )
-        return model.to(DTYPE)
+        """BoTorch's default ``SingleTaskGP`` with standardised outcomes."""
+        return SingleTaskGP(tX, tY, outcome_transform=Standardize(m=self.num_outputs)).to(DTYPE)
 
     def _make_model(self, tX: torch.Tensor, tY: torch.Tensor) -> SingleTaskGP:
         """A GP on ``(tX, tY)`` with the current hyperparameters (BoTorch's initial ones if
@@ -276,18 +239,12 @@ class GPSurrogate:
         # refines the offsets with all the data
         rows = self._subsample(len(X))
         rows = np.arange(len(X)) if rows is None else rows
-        with torch_threads(self.num_threads):
-            for j in np.flatnonzero(self.group_outputs):
-                bj = fit_group_offsets(
-                    X[rows],
-                    T[rows, j],
-                    groups[rows],
-                    prior_std=self.group_prior_std,
-                    noise_floor=self.noise_floor,
-                    seed=seed,
-                )
-                for g, v in bj.items():
-                    b[g][j] = v
+        for j in np.flatnonzero(self.group_outputs):
+            bj = fit_group_offsets(
+                X[rows], T[rows, j], groups[rows], prior_std=self.group_prior_std, seed=seed
+            )
+            for g, v in bj.items():
+                b[g][j] = v
         return b
 
     def _estimate_group_offsets(
@@ -302,31 +259,34 @@ class GPSurrogate:
             torch.as_tensor(X, dtype=DTYPE), torch.as_tensor(T_adj, dtype=DTYPE)
         )
         m = self.num_outputs
-        with torch.no_grad(), torch_threads(self.num_threads):
-            Xin = model.train_inputs[0]
-            K = model.covar_module(Xin).to_dense().reshape(m, len(X), len(X)).numpy()
+        n = len(X)
+        with torch.no_grad():
+            K = model.covar_module(model.train_inputs[0]).to_dense().reshape(m, n, n).numpy()
             noise = model.likelihood.noise.reshape(m, -1)[:, 0].numpy()
         b = np.zeros((len(ids), m))
         for j in np.flatnonzero(self.group_outputs):
-            s2 = max(float(np.var(T_adj[:, j])), 1e-12)
-            C = s2 * (K[j] + noise[j] * np.eye(len(X)))
-            L = np.linalg.cholesky(C)
-            AH = np.linalg.solve(L.T, np.linalg.solve(L, H))  # A H
-            t = T[:, j] - T[:, j].mean()
-            tau2 = self.group_prior_std**2 * max(float(np.var(T[:, j])), 1e-12)
-            lhs = H.T @ AH + np.eye(len(ids)) / tau2
-            b[:, j] = np.linalg.solve(lhs, AH.T @ t)
+            b[:, j] = _gls_offsets(K[j], noise[j], H, T[:, j], T_adj[:, j], self.group_prior_std)
         b -= b.mean(axis=0)  # centred: h is the cost of an average start
         return {int(g): b[k].copy() for k, g in enumerate(ids)}
 
-    def fit(self, X: np.ndarray, Y: np.ndarray, groups: np.ndarray | None = None) -> GPSurrogate:
-        """Fit (or condition) the GPs on the finite rows of ``(X, Y)``; returns ``self``.
+    def _offsets_for_fit(
+        self, X: np.ndarray, T: np.ndarray, groups: np.ndarray | None, full: bool
+    ) -> dict[int, np.ndarray]:
+        """The group offsets of this fit: none without groups; with the hyperparameters at a
+        full fit (:mod:`mpcmobo.bo.groups`); else their posterior mean under the current
+        hyperparameters."""
+        if groups is None:
+            return {}
+        if full:
+            return self._fit_group_offsets(X, T, groups, seed=1234 + len(X))
+        return self._estimate_group_offsets(X, T, groups)
 
-        ``groups`` (n,) integers, optional: the group (start index) of each row, -1 for none;
-        offsets per group are then estimated for the outputs flagged in ``group_outputs``.
-        """
-        X = _as_2d(X)
-        Y = _as_2d(Y)
+    def _finite_data(
+        self, X: np.ndarray, Y: np.ndarray, groups: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The finite rows of ``(X, Y)`` and their groups (None: no group information for a
+        flagged output)."""
+        X, Y = _as_2d(X), _as_2d(Y)
         if Y.shape[1] != self.num_outputs:
             raise ValueError(f"Y has {Y.shape[1]} columns, expected {self.num_outputs}")
         if X.shape[0] != Y.shape[0]:
@@ -334,26 +294,27 @@ class GPSurrogate:
         if groups is not None and np.shape(groups) != (X.shape[0],):
             raise ValueError("groups must have one entry per row of X")
         ok = finite_rows(Y) & finite_rows(X)
-        Xf, Yf = X[ok], Y[ok]
-        if Xf.shape[0] == 0:
+        if not ok.any():
             raise ValueError("no finite observations to fit")
-        self.train_X, self.train_Y = Xf.copy(), Yf.copy()
-        self.offsets = self._compute_offsets(Yf)
-        T = self.to_model_space(Yf)
-        n = Xf.shape[0]
-        tX = torch.as_tensor(Xf, dtype=DTYPE)
-        gf = None
+        g = None
         if groups is not None and any(self.group_outputs):
-            gf = np.asarray(groups, dtype=int)[ok]
-            if not np.any(gf >= 0):
-                gf = None
+            g = np.asarray(groups, dtype=int)[ok]
+            g = g if np.any(g >= 0) else None
+        return X[ok], Y[ok], g
+
+    def fit(self, X: np.ndarray, Y: np.ndarray, groups: np.ndarray | None = None) -> GPSurrogate:
+        """Fit (or condition) the GPs on the finite rows of ``(X, Y)``; returns ``self``.
+
+        ``groups`` (n,) integers, optional: the group (start index) of each row, -1 for none;
+        offsets per group are then estimated for the outputs flagged in ``group_outputs``.
+        """
+        Xf, Yf, gf = self._finite_data(X, Y, groups)
+        self.train_X, self.train_Y = Xf.copy(), Yf.copy()
+        T = self.transform.fit(Yf).forward(Yf)
+        n = Xf.shape[0]
         full = self._refit_due(n)
-        if gf is None:
-            self.group_offsets = {}
-        elif full:  # offsets and hyperparameters together (mpcmobo.bo.groups)
-            self.group_offsets = self._fit_group_offsets(Xf, T, gf, seed=1234 + n)
-        else:  # the posterior mean of the offsets under the current hyperparameters
-            self.group_offsets = self._estimate_group_offsets(Xf, T, gf)
+        self.group_offsets = self._offsets_for_fit(Xf, T, gf, full)
+        tX = torch.as_tensor(Xf, dtype=DTYPE)
         tY = torch.as_tensor(T if gf is None else T - self._group_matrix(gf), dtype=DTYPE)
         # eq. GP: one independent GP per output (batched), SE-ARD kernel, Gaussian noise
         model = self._make_model(tX, tY)
@@ -364,7 +325,7 @@ class GPSurrogate:
             self._calls_since_refit += 1
         model.eval()
         self.last_fit_was_full = full
-        self._hyper = self._hyper_from_model(model)
+        self._hyper = {k: v.numpy().copy() for k, v in _hyper_tensors(model).items()}
         self._n_fits += 1
         self.model = model
         self._fast = None
@@ -384,19 +345,15 @@ class GPSurrogate:
             # type-II ML on a seeded random subset (cost O(k^3) instead of O(n^3)), then
             # the hyperparameters are copied into the GP on all n points
             target = self._new_gp(tX[sub], tY[sub])
-            target.load_state_dict(self._hyper_tensors(model), strict=False)
+            target.load_state_dict(_hyper_tensors(model), strict=False)
         mll = ExactMarginalLogLikelihood(target.likelihood, target)
         # fit_gpytorch_mll may resample hyperparameters from their priors after a failed
         # attempt: seed that so a fit is a deterministic function of (data, state).
-        with (
-            torch.random.fork_rng(),
-            gpytorch.settings.max_cholesky_size(MAX_CHOLESKY),
-            torch_threads(self.num_threads),
-        ):
+        with torch.random.fork_rng(), gpytorch.settings.max_cholesky_size(MAX_CHOLESKY):
             torch.manual_seed(1234 + n)
             fit_gpytorch_mll(mll, optimizer_kwargs={"options": {"maxiter": self.fit_maxiter}})
         if target is not model:
-            model.load_state_dict(self._hyper_tensors(target), strict=False)
+            model.load_state_dict(_hyper_tensors(target), strict=False)
 
     @property
     def fast_model(self):
@@ -405,8 +362,7 @@ class GPSurrogate:
         if self.model is None:
             raise RuntimeError("fit() first")
         if self._fast is None:
-            with torch_threads(self.num_threads):
-                self._fast = ExactIndependentGP.from_singletask(self.model)
+            self._fast = ExactIndependentGP.from_singletask(self.model)
         return self._fast
 
     def is_fitted_on(self, X: np.ndarray, Y: np.ndarray) -> bool:
@@ -424,7 +380,7 @@ class GPSurrogate:
         if self.model is None:
             raise RuntimeError("fit() first")
         tX = torch.as_tensor(_as_2d(X), dtype=DTYPE).unsqueeze(-2)  # (n, 1, d)
-        with torch.no_grad(), torch_threads(self.num_threads):
+        with torch.no_grad():
             post = self.fast_model.posterior(tX)  # eq. post / mean_var
             mean = post.mean.squeeze(-2).numpy().copy()
             var = post.variance.squeeze(-2).clamp_min(0.0).numpy().copy()
@@ -433,22 +389,10 @@ class GPSurrogate:
     def predict(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Posterior mean and std (n, m) of the costs in the original minimisation units.
 
-        Log outputs: mean and std of the back-transformed (log-normal) value, see module
-        docstring.
+        Log outputs: mean and std of the back-transformed (log-normal) value
+        (:mod:`mpcmobo.bo.transforms`).
         """
         return self.to_cost_space(*self.posterior_model_space(X))
-
-    def to_cost_space(self, mt: np.ndarray, st: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The back transform of :meth:`predict`: a model-space posterior ``(mt, st)`` (from
-        :meth:`posterior_model_space`) as mean and std of the costs."""
-        mean, std = -mt, st.copy()
-        for j, use_log in enumerate(self.log_outcomes):
-            if use_log:
-                m, s2 = mean[:, j], st[:, j] ** 2
-                scale = np.exp(m + 0.5 * s2)
-                mean[:, j] = scale - self.offsets[j]
-                std[:, j] = scale * np.sqrt(np.expm1(s2))
-        return mean, std
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
@@ -465,17 +409,24 @@ class GPSurrogate:
             "min_refit_n": self.min_refit_n,
             "fit_maxiter": self.fit_maxiter,
             "fit_subsample": self.fit_subsample,
-            "num_threads": self.num_threads,
             "calls_since_refit": self._calls_since_refit,
             "n_fits": self._n_fits,
             "hyper": None if self._hyper is None else {k: v.copy() for k, v in self._hyper.items()},
             "group_outputs": list(self.group_outputs),
             "group_prior_std": self.group_prior_std,
-            "noise_floor": self.noise_floor,
             "group_offsets": {int(g): v.copy() for g, v in self.group_offsets.items()},
         }
 
     def load_state_dict(self, d: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`, also one written before the issue-10 clean-up: its
+        ``num_threads`` is ignored (torch's threads are the process's), and a ``noise_floor``
+        other than None (an option removed then) is refused."""
+        if d.get("noise_floor") is not None:
+            raise ValueError(
+                f"this GP state has noise_floor = {d['noise_floor']}, an option removed in the "
+                "issue-10 clean-up (it made results worse, docs/benchmarks.md); it cannot be "
+                "restored"
+            )
         self.num_outputs = int(d["num_outputs"])
         self.refit_every = int(d["refit_every"])
         # checkpoints written before refit_fraction existed refit every refit_every calls
@@ -485,20 +436,14 @@ class GPSurrogate:
         self.fit_maxiter = int(d["fit_maxiter"])
         fs = d.get("fit_subsample")
         self.fit_subsample = None if fs is None else int(fs)
-        self.num_threads = d.get("num_threads", 1)
         self._calls_since_refit = int(d["calls_since_refit"])
         self._n_fits = int(d["n_fits"])
         h = d["hyper"]
         self._hyper = None if h is None else {k: np.array(v) for k, v in h.items()}
         self.group_outputs = [bool(b) for b in d.get("group_outputs", [False] * self.num_outputs)]
         self.group_prior_std = float(d.get("group_prior_std", 1.0))
-        nf = d.get("noise_floor")
-        self.noise_floor = None if nf is None else float(nf)
+        self._reset_fit()
         self.group_offsets = {int(g): np.array(v) for g, v in d.get("group_offsets", {}).items()}
-        self.model = None
-        self._fast = None
-        self.train_X = self.train_Y = None
-        self.offsets = np.zeros(self.num_outputs)
 
 
 def fit_gp(
