@@ -1,15 +1,12 @@
 """The CSTR of the paper against an independent hand-written RK4, the stage cost, the registry."""
 
-import ast
 import dataclasses
 import math
 import pickle
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-import mpcmobo.systems
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import SearchSpace, System, get_system, register_system
 
@@ -154,21 +151,6 @@ def test_mpc_predicts_with_the_systems_model(cstr, cstr_mpc):
     sol = cstr_mpc.solve(x, cstr_mpc.theta0, sensitivities=False)
     pred = cstr.model_step(sol.plan_x[0], sol.plan_u[0], "imperfect")
     np.testing.assert_allclose(sol.plan_x[1], pred, rtol=1e-7, atol=1e-9)
-
-
-def test_systems_do_not_import_downstream_packages():
-    # systems -> mpc -> rl -> ...: one direction (docs/architecture.md), no lazy back-references
-    downstream = ("mpc", "rl", "bo", "learners", "experiment", "cli", "plots")
-    for path in Path(mpcmobo.systems.__file__).parent.glob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom):
-                names = [node.module or ""]
-            elif isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            else:
-                continue
-            for name in names:
-                assert name.split(".")[:2] not in [["mpcmobo", d] for d in downstream], path.name
 
 
 def test_register_user_system():
