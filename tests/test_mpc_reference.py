@@ -21,7 +21,7 @@ import scipy.linalg
 
 from mpcmobo.experiment.settings import MPCSettings
 from mpcmobo.mpc import ParametricMPC
-from mpcmobo.systems import System
+from mpcmobo.systems import System, get_system
 from mpcmobo.systems.parameterization import MPCSpec
 
 # A closed-loop start of the CSTR from which the imperfect MPC drives the temperature towards
@@ -276,3 +276,22 @@ def test_mpc_policy_is_the_discounted_lqr_gain():
     mpc.reset()
     x = np.array([0.7, -0.4])
     assert not np.allclose(mpc.solve(x, th).action, -K @ x, rtol=1e-3)
+
+
+def test_perfect_model_mpc_predicts_with_the_perfect_model_when_the_model_is_learnable():
+    """With learnable model parameters, theta carries the model: the default theta of the
+    perfect-model MPC must carry the perfect model, so that J* is the perfect-model MPC's
+    closed loop and not the imperfect one's (found by this issue's tests: J* was J_initial)."""
+    from mpcmobo.experiment.evaluation import Evaluator
+
+    plain = get_system("lq")
+    s = get_system("lq", learn_model=("stiffness", "damping", "gain"))
+    mpc = ParametricMPC(s, model="perfect")
+    x = np.array([1.0, -0.5])
+    sol = mpc.solve(x, None, sensitivities=False)
+    np.testing.assert_allclose(sol.plan_x[1], s.plant_step(x, sol.plan_u[0]), atol=1e-7)
+    imperfect = ParametricMPC(s, model="imperfect")
+    np.testing.assert_array_equal(imperfect.theta0, s.parameterization.theta0)
+    ev, ev_plain = Evaluator(s, n_starts=2, steps=10), Evaluator(plain, n_starts=2, steps=10)
+    assert ev.J_star() == pytest.approx(ev_plain.J_star(), rel=1e-6)
+    assert ev.J_star() < ev.J_eval(None)
