@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
@@ -71,16 +71,29 @@ def test_invalid_config_file_exit_2(tmp_path):
 def test_malformed_config_files_never_traceback(tmp_path_factory, data):
     import tomli_w
 
+    from mpcmobo.experiment.settings import SettingsError, validate_settings
+
+    try:  # only invalid files: a valid one would start a study
+        validate_settings(data)
+    except SettingsError:
+        pass
+    else:
+        assume(False)
     d = tmp_path_factory.mktemp("h")
     cfg = d / "c.toml"
     cfg.write_text(tomli_w.dumps(data))
-    # --episodes 0 guarantees nothing runs even when the file happens to be valid
-    res = runner.invoke(
-        app, ["run", "--config", str(cfg), "--episodes", "0", "--out", str(d / "o")]
-    )
+
+    def no_study(*args, **kwargs):
+        raise AssertionError("a study was started from an invalid settings file")
+
+    with pytest.MonkeyPatch.context() as mp:  # the file alone must stop the run
+        mp.setattr("mpcmobo.experiment.study.run_study", no_study)
+        res = runner.invoke(app, ["run", "--config", str(cfg), "--out", str(d / "o")])
     assert res.exit_code == 2, res.output
     assert res.exception is None or isinstance(res.exception, SystemExit)
     assert "Error:" in res.output
+    assert any(key in res.output for key in data), res.output  # the message names a key
+    assert not (d / "o" / "config.toml").exists()
 
 
 def test_run_seeds_forms_resume_and_evaluate(tmp_path):

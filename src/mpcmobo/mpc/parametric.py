@@ -125,6 +125,9 @@ class ParametricMPC:
         self.warm_start = bool(warm_start)
         self.param: Parameterization = system.parameterization
         self.theta0 = self.param.theta0.copy()
+        if "model" in self.param.blocks:  # learnable model parameters: this MPC's own model
+            idx = list(self.param.model_param_index)
+            self.theta0[self.param.blocks["model"]] = self.model_params[idx]
         self.theta_names = list(self.param.names)
         self.n_theta = self.param.n_theta
         self.nx, self.nu = system.nx, system.nu

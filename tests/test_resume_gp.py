@@ -1,0 +1,79 @@
+"""Study-level resume of the GP learners past a hyperparameter refit (issue 16, item 5).
+
+``tests/test_study.py`` resumes mpc-rl at study level; the GP learners are resumed there only
+inside their first episodes, where every fit is a full refit (fewer observations than the
+surrogate's ``min_refit_n`` = 20). Here mobo and hybrid run 24 episodes with ``refit_every = 2``:
+from the 20th observation on, fits alternate between a full refit and a warm-started fit
+(hyperparameters reused; refits at 19 and 22 observations), and the run is interrupted after 21,
+22 and 23 episodes, i.e. after fits of both kinds. The resumed records must equal the
+uninterrupted run's.
+"""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+
+from mpcmobo.experiment import storage
+from mpcmobo.experiment.settings import load_settings
+from mpcmobo.experiment.study import run_study
+
+WALL = ["mpc_time_s", "learner_time_s", "eval_time_s"]
+EPISODES = 24
+CHEAP = {  # a small acquisition search: the resume, not the search, is tested here
+    "n_init": 4,
+    "refit_every": 2,
+    "num_restarts": 1,
+    "raw_samples": 16,
+    "maxiter": 10,
+    "start_effects": False,  # per-start offsets: two more likelihood fits per refit
+}
+
+
+def _settings():
+    return load_settings(
+        None,
+        system={"name": "lq"},
+        learners=["mobo", "hybrid"],
+        episodes=EPISODES,
+        steps=6,
+        seeds=[0],
+        n_cycle_starts=3,
+        evaluation={"n_starts": 2, "eval_every": 5},
+        records={"trajectory_every": 5},
+        learner_options={"mobo": {**CHEAP, "mc_samples": 8}, "hybrid": {**CHEAP, "mc_samples": 8}},
+        workers=2,
+    )
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gp") / "full"
+    summary = run_study(_settings(), out)
+    assert summary["complete"] is True
+    return out
+
+
+def test_gp_learners_resume_past_a_refit_with_identical_records(uninterrupted, tmp_path):
+    out = tmp_path / "resumed"
+    # interrupted after 21 (a warm fit), 22 (a full refit) and 23 episodes (a warm fit)
+    part = run_study(_settings(), out, max_episodes_this_call=21)
+    assert part["complete"] is False
+    run_study(None, out, resume=True, max_episodes_this_call=1)
+    run_study(None, out, resume=True, max_episodes_this_call=1)
+    done = run_study(None, out, resume=True)
+    assert done["complete"] is True
+    a = storage.read_episodes(uninterrupted).drop(columns=WALL)
+    b = storage.read_episodes(out).drop(columns=WALL)
+    assert len(a) == 2 * EPISODES and set(a.learner) == {"mobo", "hybrid"}
+    pd.testing.assert_frame_equal(a, b)
+    pd.testing.assert_frame_equal(
+        storage.read_trajectories(uninterrupted), storage.read_trajectories(out)
+    )
+    # past the refit threshold: before the last fit (24 observations) the GP had reused its
+    # hyperparameters once since the refit at 22
+    for learner in ("mobo", "hybrid"):
+        state = storage.load_checkpoint(out, learner, 0)["state"]["learner"]
+        assert len(state["Z"]) == EPISODES
+        assert state["surrogate_pre_fit"]["min_refit_n"] == 20
+        assert state["surrogate_pre_fit"]["calls_since_refit"] == 1
