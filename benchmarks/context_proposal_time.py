@@ -31,7 +31,9 @@ def synthetic(rng, Z, C):
     d = Z.shape[1]
     A = np.random.default_rng(0).uniform(0.2, 0.8, size=(4, d))
     ctx = 0.5 * ((C - 0.5) ** 2).sum(1)
-    Y = np.stack([((Z - A[j]) ** 2).sum(1) + ctx + 0.05 * rng.normal(size=len(Z)) for j in range(4)], 1)
+    Y = np.stack(
+        [((Z - A[j]) ** 2).sum(1) + ctx + 0.05 * rng.normal(size=len(Z)) for j in range(4)], 1
+    )
     V = np.exp(3 * (Z[:, 0] - 0.7)) * rng.uniform(size=len(Z))
     return np.abs(Y) + 0.01, V
 

@@ -121,7 +121,7 @@ def test_safe_contextual_learners_resume_exactly(cstr, spec, name):
         kw = {**SMALL, **SAFE}
     a = make_learner(name, space, theta0, seed=3, contexts=spec, **kw)
     rng = np.random.default_rng(0)
-    for i in range(6):
+    for _ in range(6):
         th = a.propose()
         assert space.contains(th)
         a.observe(th, _ctx_result(rng, cstr, viol=rng.exponential()))
@@ -175,10 +175,8 @@ def test_mpc_rl_deploys_its_best_verified_theta_not_its_iterate(cstr, spec):
     space, theta0 = cstr.search_space, cstr.parameterization.theta0
     lr = make_learner("mpc-rl", space, theta0, contexts=spec, context="x0", deploy_confidence=0.9)
     rng = np.random.default_rng(0)
-    run = []
-    for k in range(6):
+    for _ in range(6):
         th = lr.propose()
-        run.append(th)
         f = [1000.0 * (1 + 0.05 * rng.normal()), 1, 0, 0]  # no theta is better than another
         lr.observe(th, EpisodeResult(np.array(f), np.ones(14), True, x0=cstr.x0_lb))
     assert not np.allclose(lr.propose(), theta0)  # the iterate moved
