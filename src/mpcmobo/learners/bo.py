@@ -244,11 +244,15 @@ class _GPLearner(Learner):
         )
 
     def _initial_design(self) -> np.ndarray:
-        """theta0, then scrambled Sobol points (seeded): ``n_init`` rows in unit coordinates."""
+        """theta0, then scrambled Sobol points (seeded): ``n_init`` rows in unit coordinates.
+        With a violation budget the Sobol points fill the trust region of radius
+        ``trust_radius`` around theta0 (safe exploration starts from theta0 outward)."""
         z0 = self.space.to_unit(self.theta0)
         sob = qmc.Sobol(d=self.space.dim, scramble=True, seed=self.seed).random(
             max(1, 2 ** int(np.ceil(np.log2(max(1, self.n_init)))))
         )
+        if self.violation_budget is not None:
+            sob = np.clip(z0 + self.trust_radius * (2 * sob - 1), 0, 1)
         return np.vstack([z0, sob])[: self.n_init]
 
     def _init_state(self) -> None:
@@ -289,9 +293,6 @@ class _GPLearner(Learner):
         self.starts_ = np.append(self.starts_, int(result.start_id))
         self.C_ = np.vstack([self.C_, self._context_of(result)])
         self.V_ = np.append(self.V_, float(result.violation))
-        if self.violation_budget == "auto" and self.budget_ is None and self.n_observed == 0:
-            floor = 0.0 if self.context_spec is None else self.context_spec.violation_floor
-            self.budget_ = default_budget(result.violation, floor)  # theta0's first episode
         self.n_observed += 1
         self._fit()
 
@@ -307,6 +308,15 @@ class _GPLearner(Learner):
         X = np.hstack([self.Z_, self.C_])
         Y = self.Y_ if self.violation_budget is None else np.hstack([self.Y_, self.V_[:, None]])
         return X, Y
+
+    def _auto_budget(self) -> float:
+        """``violation_budget = "auto"``: a multiple of theta0's expected violation over the
+        contexts (posterior mean, from all episodes so far) plus the system's floor
+        (:func:`~mpcmobo.learners.deploy.default_budget`)."""
+        z0 = self.space.to_unit(self.theta0)[None, :]
+        S = expected_outcome_samples(self.surrogate, z0, self.contexts, n_samples=128, seed=5)
+        floor = 0.0 if self.context_spec is None else self.context_spec.violation_floor
+        return default_budget(float(S[:, 0, -1].mean()), floor)
 
     def _safe_budget(self) -> float | None:
         return self.budget_ if self.violation_budget is not None else None
@@ -331,6 +341,8 @@ class _GPLearner(Learner):
             return
         self.surrogate.fit(X, Y, groups=self.starts_)
         self._fitted = True
+        if self.violation_budget == "auto":
+            self.budget_ = self._auto_budget()
         self._incumbent_z = self.deploy_rule.choose(
             self.surrogate,
             self.Z_[ok],

@@ -8,10 +8,13 @@ Candidates are the thetas the learner has run. A theta is *safe* when the
 ``safety_confidence`` quantile of its expected violation is at most the violation budget;
 only safe candidates are deployed.
 
-The default budget (``violation_budget = "auto"``) is set once, from the first episode of
-theta0 (safe by assumption): ``2 x`` its summed plant violation plus an absolute floor from
-the system's state bounds (:class:`~mpcmobo.bo.context.ContextSpec`, 0.1% of the summed
-widths), so it is scale-free.
+The default budget (``violation_budget = "auto"``) is relative to theta0 (safe by
+assumption): ``2 x`` theta0's expected violation per episode over the contexts (the posterior
+mean, re-estimated at every fit from all episodes) plus an absolute floor from the system's
+state bounds (:class:`~mpcmobo.bo.context.ContextSpec`, 0.1% of the summed widths), so it is
+scale-free. A first version set it from theta0's first episode alone; on the CSTR that
+episode had no violation while theta0's expected violation is about 6, the budget (0.1) then
+excluded every theta including theta0's neighbours, and the learner re-ran theta0.
 """
 
 from __future__ import annotations
@@ -92,6 +95,6 @@ class DeployRule:
 
 
 def default_budget(theta0_violation: float, floor: float) -> float:
-    """``BUDGET_FACTOR x`` theta0's observed violation plus ``floor`` (non-finite: floor)."""
+    """``BUDGET_FACTOR x`` theta0's (expected) violation plus ``floor`` (non-finite: floor)."""
     v = float(theta0_violation)
     return BUDGET_FACTOR * (v if np.isfinite(v) and v > 0 else 0.0) + float(floor)
