@@ -96,7 +96,7 @@ def test_deploy_rule_switches_only_with_evidence_and_never_to_unsafe(rng):
         np.testing.assert_array_equal(got, current)
     # the better theta violates (second output 0.1 z2 + 0.01 > budget at z2 = 0.9): not deployed
     bad = np.array([0.05, 0.9])
-    got = rule.choose(sur, np.vstack([bad, hi]), hi, C, budget=0.05, seed=0)
+    got = rule.choose(sur, np.vstack([bad, hi]), hi, C, budget=0.08, seed=0)
     np.testing.assert_array_equal(got, hi)
     assert default_budget(1.5, 0.1) == pytest.approx(3.1)
     assert default_budget(np.nan, 0.1) == pytest.approx(0.1)
@@ -205,3 +205,16 @@ def test_learning_run_passes_x0_and_violation_to_the_learner():
     np.testing.assert_array_equal(seen[0].x0, record.x[0])
     np.testing.assert_array_equal(seen[0].x0, row["x0"])
     assert seen[0].violation == pytest.approx(np.sum(record.violation))
+
+
+def test_safe_design_starts_from_theta0_outward(cstr, spec):
+    """With a violation budget the initial design is theta0 and points within trust_radius of
+    it (unit cube); without one, global Sobol points."""
+    space, theta0 = cstr.search_space, cstr.parameterization.theta0
+    z0 = space.to_unit(theta0)
+    safe = make_learner("mobo", space, theta0, n_init=5, violation_budget="auto", contexts=spec)
+    np.testing.assert_array_equal(safe.design[0], z0)
+    assert np.max(np.abs(safe.design - z0)) <= 0.1 + 1e-12
+    np.testing.assert_array_equal(safe.incumbent(), theta0)  # exactly theta0, no round trip
+    plain = make_learner("mobo", space, theta0, n_init=5)
+    assert np.max(np.abs(plain.design - z0)) > 0.3
