@@ -6,7 +6,10 @@ Synthetic data as in ``benchmarks/proposal_time.py`` (4 conflicting objectives o
 context effect ``+ 0.5 |c - 0.5|^2`` on every objective, positive costs, and a violation
 ``exp(3 (z_0 - 0.7)) * u`` (u uniform): a fitted step (observe: GP fit + deployment rule) and a
 proposal (constrained EHVI + safety filter) are timed separately, ``--reps`` times each at every
-n (the fits after the first are conditioning fits, as in a learner loop).
+n (the fits after the first are conditioning fits, as in a learner loop). The default mobo
+learner (no issue-11 options) is timed on the same data in the same run, and CPU time
+(``time.process_time``, one torch thread) is reported besides wall time: on the shared
+machine the wall time moves with the load, the CPU time much less.
 
     .venv/bin/python benchmarks/context_proposal_time.py --n 100 400
 """
@@ -48,40 +51,47 @@ def main() -> None:
     torch.set_num_threads(1)  # as in a study's worker
     system = get_system("cstr")
     spec = ContextSpec.from_system(system)
-    space = system.search_space
-    theta0 = system.parameterization.theta0
     for n in args.n:
-        rng = np.random.default_rng(n)
-        learner = MOBOLearner(space, theta0, seed=0, contexts=spec, **OPTIONS)
-        Z = rng.uniform(size=(n, space.dim))
-        X0 = np.array([system.sample_initial_state(rng) for _ in range(n)])
-        Y, V = synthetic(rng, Z, spec.unit(X0))
-        learner.Z_, learner.Y_ = Z, Y
-        learner.grads_ = np.zeros((n, space.n_theta))
-        learner.starts_ = np.full(n, -1)
-        learner.C_, learner.V_ = spec.unit(X0), V
-        learner.n_observed = n
-        learner.ref_point_ = np.quantile(Y, 0.9, axis=0)
-        learner._fit()
-        fits, props = [], []
-        for _ in range(args.reps):
-            t0 = time.perf_counter()
-            z = learner.propose()
-            props.append(time.perf_counter() - t0)
-            zu = space.to_unit(space.clip(z))[None, :]
-            x0 = system.sample_initial_state(rng)
-            y, v = synthetic(rng, zu, spec.unit(x0)[None, :])
-            res = EpisodeResult(
-                objectives=y[0], grad=np.zeros(space.n_theta), critic_ok=True, x0=x0, violation=v[0]
-            )
-            t0 = time.perf_counter()
-            learner.observe(z, res)
-            fits.append(time.perf_counter() - t0)
-        print(
-            f"n={n}: proposal median {statistics.median(props):.2f} s (max {max(props):.2f}), "
-            f"observe median {statistics.median(fits):.2f} s (max {max(fits):.2f})",
-            flush=True,
+        for label, options in (("issue-11 options", OPTIONS), ("defaults", {})):
+            run(label, options, n, args.reps, system, spec)
+
+
+def run(label, options, n, reps, system, spec) -> None:
+    space, theta0 = system.search_space, system.parameterization.theta0
+    rng = np.random.default_rng(n)
+    learner = MOBOLearner(space, theta0, seed=0, contexts=spec, **options)
+    Z = rng.uniform(size=(n, space.dim))
+    X0 = np.array([system.sample_initial_state(rng) for _ in range(n)])
+    Y, V = synthetic(rng, Z, spec.unit(X0))
+    learner.Z_, learner.Y_ = Z, Y
+    learner.grads_ = np.zeros((n, space.n_theta))
+    learner.starts_ = np.full(n, -1)
+    learner.C_, learner.V_ = spec.unit(X0)[:, : learner._dc], V
+    learner.n_observed = n
+    learner.ref_point_ = np.quantile(Y, 0.9, axis=0)
+    learner._fit()
+    fits, props, cfits, cprops = [], [], [], []
+    for _ in range(reps):
+        t0, c0 = time.perf_counter(), time.process_time()
+        z = learner.propose()
+        props.append(time.perf_counter() - t0)
+        cprops.append(time.process_time() - c0)
+        zu = space.to_unit(space.clip(z))[None, :]
+        x0 = system.sample_initial_state(rng)
+        y, v = synthetic(rng, zu, spec.unit(x0)[None, :])
+        res = EpisodeResult(
+            objectives=y[0], grad=np.zeros(space.n_theta), critic_ok=True, x0=x0, violation=v[0]
         )
+        t0, c0 = time.perf_counter(), time.process_time()
+        learner.observe(z, res)
+        fits.append(time.perf_counter() - t0)
+        cfits.append(time.process_time() - c0)
+    med = statistics.median
+    print(
+        f"n={n} {label}: proposal median {med(props):.2f} s wall, {med(cprops):.2f} s CPU; "
+        f"observe median {med(fits):.2f} s wall, {med(cfits):.2f} s CPU",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":
