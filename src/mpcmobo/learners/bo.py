@@ -13,6 +13,22 @@ Two choices help them work from single noisy episodes (each one a setting, measu
 * a risk-averse incumbent: the lowest ``m + kappa s`` of the modelled f1 (``incumbent_kappa``;
   0 gives the plain lowest predicted f1).
 
+Issue 11 adds, all off by default so the old records stay reproducible (measured in
+``docs/benchmarks.md``, "Safe, contextual learning: a first measurement"):
+
+* ``context = "x0"`` (default ``"none"``): the GPs model every outcome over ``(z, c)``, ``c``
+  the episode's initial state scaled to the initial-state box; acquisition and deployment use
+  the expectation over ``n_contexts`` (16) fixed initial states (:mod:`mpcmobo.bo.context`);
+* ``violation_budget`` (a number, or ``"auto"``: twice theta0's expected violation plus a
+  floor from the state bounds) with ``safety_confidence`` (0.9): the per-episode plant
+  violation is one more GP output; the EHVI / EI is weighted by the probability that the
+  expected violation stays within the budget (BoTorch's ``constraints=``), a proposal whose
+  ``safety_confidence`` quantile exceeds it is replaced by the best safe point of a trust
+  region around the deployed theta (radius ``trust_radius sqrt(#safe points)``), and the
+  initial design fills the trust region around theta0 instead of the whole cube;
+* ``deploy_confidence`` (e.g. 0.9): the deployed theta changes only when a run theta is better
+  in expectation with at least that posterior probability (:mod:`mpcmobo.learners.deploy`).
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
