@@ -1,8 +1,12 @@
 """Learning benchmark: mpc-rl, bo, mobo (and hybrid) on the CSTR, several seeds, one budget.
 
 Runs the real study runner (``mpcmobo.experiment.run_study``) and prints a markdown table:
-episodes until the evaluated incumbent is within 5% and 2% of J*, the final J_eval/J*,
-constraint violation during learning, and wall time per episode split into MPC and learner.
+episodes until the evaluated incumbent is within 5% and 2% of J*, the final J_eval/J*, the
+worst J_eval/J* of the deployed theta over the run, the number of evaluations of the deployed
+theta above J_eval(theta0) ("regressions"), constraint violation during learning (mean per
+episode, and the largest episode per seed), and wall time per episode split into MPC and
+learner. ``--system`` and ``--config`` (a settings file, e.g. learner options) are passed to
+the study.
 
     .venv/bin/python benchmarks/learning.py --episodes 50 --seeds 0 1 2 3 4 --out runs/bench-learning
     .venv/bin/python benchmarks/learning.py --table-only --out runs/a runs/b   # seeds pooled
@@ -36,13 +40,14 @@ def table(outs: list[Path]) -> str:
         raise SystemExit("the run directories have different J*: their seeds cannot be pooled")
     df = pd.concat([pd.read_parquet(out / "episodes.parquet") for out in outs])
     lines = [
-        f"J* = {J_star:.1f}, J_eval(theta0) = {summaries[0]['J_initial']:.1f} "
+        f"J* = {J_star:.5g}, J_eval(theta0) = {summaries[0]['J_initial']:.5g} "
         f"(ratio {summaries[0]['J_initial'] / J_star:.2f})",
         "",
         "| learner | seeds | episodes to 5% (median, per seed) | episodes to 2% (median, per seed) "
-        "| final J_eval/J* (median, per seed) | violation per episode (mean) "
+        "| final J_eval/J* (median, per seed) | worst deployed J_eval/J* (per seed) "
+        "| regressions | violation per episode (mean; max per seed) "
         "| MPC s/episode | learner s/episode |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     names = list(dict.fromkeys(n for s in summaries for n in s["learners"]))
     for name in names:
@@ -56,6 +61,21 @@ def table(outs: list[Path]) -> str:
         to2 = [p["episodes_to_2pct"] for p in per]
         ratio = [p["J_final"] / J_star if p["J_final"] is not None else np.nan for p in per]
         d = df[df["learner"] == name]
+        J0 = summaries[0]["J_initial"]
+        seeds = [
+            int(k)
+            for s in summaries
+            if name in s["learners"]
+            for k in sorted(s["learners"][name]["per_seed"], key=int)
+        ]
+        worst, regress, vmax = [], 0, []
+        for seed in seeds:
+            ds = d[d["seed"] == seed]
+            ev = ds["J_eval_incumbent"].dropna()
+            worst.append(ev.max() / J_star if len(ev) else np.nan)
+            # evaluations of the deployed theta above J_eval(theta0) (1e-9 relative slack)
+            regress += int(np.sum(ev > J0 * (1 + 1e-9)))
+            vmax.append(ds["violation"].max())
 
         def fmt(v):
             return "-" if v is None else str(v)
@@ -64,7 +84,9 @@ def table(outs: list[Path]) -> str:
             f"| {name} | {len(per)} | {_median_episodes(to5)} ({', '.join(map(fmt, to5))}) "
             f"| {_median_episodes(to2)} ({', '.join(map(fmt, to2))}) "
             f"| {np.nanmedian(ratio):.3f} ({', '.join(f'{r:.2f}' for r in ratio)}) "
-            f"| {d['violation'].mean():.3g} | {d['mpc_time_s'].mean():.2f} "
+            f"| {', '.join(f'{w:.2f}' for w in worst)} | {regress} "
+            f"| {d['violation'].mean():.3g}; {', '.join(f'{v:.3g}' for v in vmax)} "
+            f"| {d['mpc_time_s'].mean():.2f} "
             f"| {d['learner_time_s'].mean():.2f} |"
         )
     return "\n".join(lines)
@@ -78,6 +100,10 @@ def main() -> None:
     ap.add_argument("--eval-every", type=int, default=5)
     ap.add_argument("--start-mode", default="random", choices=["random", "cycle"])
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--system", default=None, help="registered system (default: the settings')")
+    ap.add_argument(
+        "--config", type=Path, default=None, help="TOML settings file (e.g. learner options)"
+    )
     ap.add_argument(
         "--out",
         type=Path,
@@ -91,7 +117,8 @@ def main() -> None:
         if len(args.out) != 1:
             raise SystemExit("one --out directory per run (several only with --table-only)")
         settings = load_settings(
-            None,
+            args.config,
+            system={"name": args.system} if args.system else None,
             learners=args.learners,
             episodes=args.episodes,
             seeds=args.seeds,

@@ -213,7 +213,12 @@ def _learning_run(settings: Settings, system: System, learner: str, seed: int) -
     """The job's learning run: the learner tunes the imperfect-model MPC (eq. V0)."""
     mpc = ParametricMPC(system, model="imperfect", **settings.mpc.options())
     options = settings.learner_options.get(learner, {})
-    tuner = make_learner(learner, system.search_space, mpc.theta0, seed=seed, **options)
+    from mpcmobo.bo.context import ContextSpec  # the initial state as a context (issue 11)
+
+    contexts = ContextSpec.from_system(system)
+    tuner = make_learner(
+        learner, system.search_space, mpc.theta0, seed=seed, contexts=contexts, **options
+    )
     return LearningRun(
         system,
         tuner,

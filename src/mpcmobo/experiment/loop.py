@@ -91,6 +91,7 @@ class LearningRun:
         t_mpc = time.perf_counter() - t1
         if self.start_mode == "cycle":
             result.start_id = self.episode % len(self.cycle_starts)
+        result.x0 = x0.copy()  # the context of the episode (issue 11)
         t2 = time.perf_counter()
         self.learner.observe(theta, result)
         incumbent = np.asarray(self.learner.incumbent(), dtype=float)

@@ -58,9 +58,13 @@ def check_learners(settings: Settings) -> None:
     """Every learner accepts its options (else a SettingsError naming them)."""
     system = build_system(settings)
     space, theta0 = system.search_space, system.parameterization.theta0
+    from mpcmobo.bo.context import ContextSpec  # the initial state as a context (issue 11)
+
+    ctx = ContextSpec.from_system(system)
     for name in settings.learners:
         try:
-            make_learner(name, space, theta0, seed=0, **settings.learner_options.get(name, {}))
+            options = settings.learner_options.get(name, {})
+            make_learner(name, space, theta0, seed=0, contexts=ctx, **options)
         except (TypeError, ValueError) as err:
             raise SettingsError(f"learner_options.{name}: {err}") from None
 

@@ -23,6 +23,8 @@ class EpisodeResult:
     mean_abs_advantage: float = float("nan")
     failures: int = 0  # failed MPC solves in the episode
     start_id: int = -1  # index of the initial state in a fixed cycled set; -1: a random start
+    x0: np.ndarray | None = None  # the episode's initial state (a context the learner observes)
+    violation: float = float("nan")  # plant constraint violation summed over the episode
 
     @property
     def f1(self) -> float:
@@ -49,6 +51,8 @@ def episode_result(
         Vc=float(cr.Vc),
         mean_abs_advantage=float(cr.mean_abs_advantage),
         failures=record.failures,
+        x0=np.asarray(record.x[0], dtype=float).copy(),
+        violation=float(np.sum(record.violation)),
     )
     return res, cr
 

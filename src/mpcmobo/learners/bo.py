@@ -13,6 +13,22 @@ Two choices help them work from single noisy episodes (each one a setting, measu
 * a risk-averse incumbent: the lowest ``m + kappa s`` of the modelled f1 (``incumbent_kappa``;
   0 gives the plain lowest predicted f1).
 
+Issue 11 adds, all off by default so the old records stay reproducible (measured in
+``docs/benchmarks.md``, "Safe, contextual learning: a first measurement"):
+
+* ``context = "x0"`` (default ``"none"``): the GPs model every outcome over ``(z, c)``, ``c``
+  the episode's initial state scaled to the initial-state box; acquisition and deployment use
+  the expectation over ``n_contexts`` (16) fixed initial states (:mod:`mpcmobo.bo.context`);
+* ``violation_budget`` (a number, or ``"auto"``: twice theta0's expected violation plus a
+  floor from the state bounds) with ``safety_confidence`` (0.9): the per-episode plant
+  violation is one more GP output; the EHVI / EI is weighted by the probability that the
+  expected violation stays within the budget (BoTorch's ``constraints=``), a proposal whose
+  ``safety_confidence`` quantile exceeds it is replaced by the best safe point of a trust
+  region around the deployed theta (radius ``trust_radius sqrt(#safe points)``), and the
+  initial design fills the trust region around theta0 instead of the whole cube;
+* ``deploy_confidence`` (e.g. 0.9): the deployed theta changes only when a run theta is better
+  in expectation with at least that posterior probability (:mod:`mpcmobo.learners.deploy`).
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
@@ -43,7 +59,9 @@ from mpcmobo.bo import (
     propose_ei,
     reference_point,
 )
+from mpcmobo.bo.context import ContextSpec, expected_outcome_samples, propose_context
 from mpcmobo.learners.base import EpisodeResult, Learner
+from mpcmobo.learners.deploy import DeployRule, default_budget
 from mpcmobo.systems.space import SearchSpace
 
 OBJECTIVES = ("f1", "f2", "f3", "f4")
@@ -142,10 +160,27 @@ class _GPLearner(Learner):
         maxiter: int = 100,
         start_effects: bool = True,
         incumbent_kappa: float = 1.0,
+        context: str = "none",
+        n_contexts: int = 16,
+        violation_budget: float | str | None = None,
+        safety_confidence: float = 0.9,
+        deploy_confidence: float | None = None,
+        trust_radius: float = 0.1,
+        contexts: ContextSpec | None = None,
         **removed: Any,
     ) -> None:
         super().__init__(space, theta0, seed)
         refuse_removed(removed)
+        self._configure_safe(
+            context,
+            n_contexts,
+            violation_budget,
+            safety_confidence,
+            deploy_confidence,
+            trust_radius,
+            contexts,
+            incumbent_kappa,
+        )
         self.incumbent_rule = IncumbentRule(incumbent_kappa)
         if n_init < 1:
             raise ValueError(f"n_init must be at least 1, got {n_init}")
@@ -158,6 +193,52 @@ class _GPLearner(Learner):
         self.design = self._initial_design()
         self._init_state()
 
+    def _configure_safe(
+        self,
+        context,
+        n_contexts,
+        violation_budget,
+        safety_confidence,
+        deploy_confidence,
+        trust_radius,
+        contexts,
+        kappa,
+    ) -> None:
+        """The options of issue 11 (module :mod:`mpcmobo.bo.context`,
+        :mod:`mpcmobo.learners.deploy`); all off by default: the old behaviour."""
+        if context not in ("none", "x0"):
+            raise ValueError(f"context must be 'none' or 'x0', got {context!r}")
+        if context == "x0" and contexts is None:
+            raise ValueError("context = 'x0' needs the system's contexts (ContextSpec)")
+        if isinstance(violation_budget, str) and violation_budget != "auto":
+            raise ValueError(
+                f"violation_budget must be a number >= 0, 'auto' or unset, got {violation_budget!r}"
+            )
+        if isinstance(violation_budget, (int, float)) and not (
+            np.isfinite(violation_budget) and violation_budget >= 0
+        ):
+            raise ValueError(f"violation_budget must be >= 0, got {violation_budget}")
+        if not 0 < trust_radius <= 1:
+            raise ValueError(f"trust_radius must be in (0, 1], got {trust_radius}")
+        self.context = context
+        self.context_spec = contexts
+        self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))
+        self.violation_budget = violation_budget
+        self.deploy_rule = DeployRule(
+            kappa=float(kappa),
+            deploy_confidence=None if deploy_confidence is None else float(deploy_confidence),
+            safety_confidence=float(safety_confidence),
+        )
+        self.trust_radius = float(trust_radius)
+        # the issue-11 path (contextual expectation, safety, deployment rule) or the old one
+        self.safe_mode = (
+            context == "x0" or violation_budget is not None or deploy_confidence is not None
+        )
+
+    @property
+    def _dc(self) -> int:
+        return self.contexts.shape[1]
+
     def _make_surrogate(
         self, log_outcomes: tuple[bool, ...] | None, refit_every: int, refit_fraction: float
     ) -> GPSurrogate:
@@ -165,20 +246,29 @@ class _GPLearner(Learner):
         log = (True,) * m if log_outcomes is None else tuple(log_outcomes)
         if len(log) != m:
             raise ValueError(f"log_outcomes needs {m} entries, got {len(log)}")
+        groups = log if self.start_effects else None
+        if self.violation_budget is not None:  # the violation, modelled like a cost (log)
+            log = (*log, True)
+            groups = None if groups is None else (*groups, False)
+            m += 1
         return GPSurrogate(
             m,
             refit_every=refit_every,
             refit_fraction=refit_fraction,
             log_outcomes=log,
-            group_outputs=log if self.start_effects else None,
+            group_outputs=groups,
         )
 
     def _initial_design(self) -> np.ndarray:
-        """theta0, then scrambled Sobol points (seeded): ``n_init`` rows in unit coordinates."""
+        """theta0, then scrambled Sobol points (seeded): ``n_init`` rows in unit coordinates.
+        With a violation budget the Sobol points fill the trust region of radius
+        ``trust_radius`` around theta0 (safe exploration starts from theta0 outward)."""
         z0 = self.space.to_unit(self.theta0)
         sob = qmc.Sobol(d=self.space.dim, scramble=True, seed=self.seed).random(
             max(1, 2 ** int(np.ceil(np.log2(max(1, self.n_init)))))
         )
+        if self.violation_budget is not None:
+            sob = np.clip(z0 + self.trust_radius * (2 * sob - 1), 0, 1)
         return np.vstack([z0, sob])[: self.n_init]
 
     def _init_state(self) -> None:
@@ -188,6 +278,13 @@ class _GPLearner(Learner):
         self.Y_ = np.zeros((0, m))  # modelled objectives (NaN rows kept, never fitted)
         self.grads_ = np.zeros((0, self.space.n_theta))  # CDPG gradients (non-finite: 0)
         self.starts_ = np.zeros(0, dtype=int)  # start index of each observation (-1: random)
+        self.C_ = np.zeros((0, self._dc))  # contexts (scaled x0) of each observation
+        self.V_ = np.zeros(0)  # plant violation of each observation
+        self.budget_: float | None = (
+            float(self.violation_budget)
+            if isinstance(self.violation_budget, (int, float))
+            else None
+        )
         self._pre_fit_state: dict | None = None
         self._fitted = False
         self._incumbent_z = self.space.to_unit(self.theta0)
@@ -195,6 +292,8 @@ class _GPLearner(Learner):
 
     # -------------------------------------------------------------- data
     def _theta(self, z: np.ndarray) -> np.ndarray:
+        if self.safe_mode and np.array_equal(z, self.space.to_unit(self.theta0)):
+            return self.theta0.copy()  # exactly theta0, not its round trip through z (issue 11)
         return self.space.from_unit(z, base=self.theta0)
 
     def _finite(self) -> np.ndarray:
@@ -208,8 +307,35 @@ class _GPLearner(Learner):
         self.Y_ = np.vstack([self.Y_, y])  # NaN rows stay in the log, never in the fit
         self.grads_ = np.vstack([self.grads_, np.where(np.isfinite(g), g, 0.0)])
         self.starts_ = np.append(self.starts_, int(result.start_id))
+        self.C_ = np.vstack([self.C_, self._context_of(result)])
+        self.V_ = np.append(self.V_, float(result.violation))
         self.n_observed += 1
         self._fit()
+
+    def _context_of(self, result: EpisodeResult) -> np.ndarray:
+        if self._dc == 0:
+            return np.zeros((1, 0))
+        if result.x0 is None:
+            raise ValueError("context = 'x0' needs EpisodeResult.x0 (the initial state)")
+        return self.context_spec.unit(result.x0)[None, :]
+
+    def _fit_data(self) -> tuple[np.ndarray, np.ndarray]:
+        """Inputs (z, c) and outputs (objectives, and the violation if constrained)."""
+        X = np.hstack([self.Z_, self.C_])
+        Y = self.Y_ if self.violation_budget is None else np.hstack([self.Y_, self.V_[:, None]])
+        return X, Y
+
+    def _auto_budget(self) -> float:
+        """``violation_budget = "auto"``: a multiple of theta0's expected violation over the
+        contexts (posterior mean, from all episodes so far) plus the system's floor
+        (:func:`~mpcmobo.learners.deploy.default_budget`)."""
+        z0 = self.space.to_unit(self.theta0)[None, :]
+        S = expected_outcome_samples(self.surrogate, z0, self.contexts, n_samples=128, seed=5)
+        floor = 0.0 if self.context_spec is None else self.context_spec.violation_floor
+        return default_budget(float(S[:, 0, -1].mean()), floor)
+
+    def _safe_budget(self) -> float | None:
+        return self.budget_ if self.violation_budget is not None else None
 
     def _fit(self) -> None:
         """Fit the GP(s) on the finite observations; the pre-fit state makes resume exact."""
@@ -218,10 +344,29 @@ class _GPLearner(Learner):
         if np.count_nonzero(self._finite()) < 2:
             self._fitted = False
             return
-        self.surrogate.fit(self.Z_, self.Y_, groups=self.starts_)
+        if not self.safe_mode:
+            self.surrogate.fit(self.Z_, self.Y_, groups=self.starts_)
+            self._fitted = True
+            Zf = self.Z_[self._finite()]
+            self._incumbent_z = Zf[self.incumbent_rule.choose(self.surrogate, Zf)].copy()
+            return
+        X, Y = self._fit_data()
+        ok = np.all(np.isfinite(Y), axis=1)
+        if np.count_nonzero(ok) < 2:
+            self._fitted = False
+            return
+        self.surrogate.fit(X, Y, groups=self.starts_)
         self._fitted = True
-        Zf = self.Z_[self._finite()]
-        self._incumbent_z = Zf[self.incumbent_rule.choose(self.surrogate, Zf)].copy()
+        if self.violation_budget == "auto":
+            self.budget_ = self._auto_budget()
+        self._incumbent_z = self.deploy_rule.choose(
+            self.surrogate,
+            self.Z_[ok],
+            self._incumbent_z,
+            self.contexts,
+            self._safe_budget(),
+            seed=1234 + self.Z_.shape[0],
+        )
 
     def incumbent(self) -> np.ndarray:
         return self._theta(self._incumbent_z)
@@ -235,7 +380,72 @@ class _GPLearner(Learner):
             return self._theta(self.design[n])
         if not self._fitted:  # every observation so far failed: keep exploring the design
             return self._theta(self.rng.uniform(size=self.space.dim))
+        if self.safe_mode:
+            return self._theta(self._acquire_safe(self._next_seed()))
         return self._theta(self._acquire(self._next_seed()))
+
+    def _safe_points(self) -> np.ndarray:
+        """The observed thetas (unit cube) the surrogate calls safe (all without a budget),
+        always with theta0 (safe by assumption)."""
+        X, Y = self._fit_data()
+        ok = np.all(np.isfinite(Y), axis=1)
+        Z = np.unique(self.Z_[ok], axis=0)
+        z0 = self.space.to_unit(self.theta0)
+        budget = self._safe_budget()
+        if budget is None or len(Z) == 0:
+            return np.unique(np.vstack([Z, z0]), axis=0)
+        S = expected_outcome_samples(self.surrogate, Z, self.contexts, n_samples=64, seed=7)
+        return np.unique(np.vstack([Z[self.deploy_rule.safe(S, budget)], z0]), axis=0)
+
+    def _acquire_safe(self, seed: int) -> np.ndarray:
+        """Constrained (log) EHVI / EI of the expected outcomes over the contexts, then the
+        safety filter on the candidate; an unsafe one is replaced by the best safe point of
+        a trust region around the deployed theta (radius ``trust_radius sqrt(#safe)``)."""
+        budget = self._safe_budget()
+        X, _ = self._fit_data()
+        safe = self._safe_points()
+        n_obj = len(self.outputs)
+        ref = None
+        if n_obj > 1:
+            ref = (
+                self.ref_point_
+                if self.ref_point_ is not None
+                else reference_point(self.Y_[self._finite()], margin=self.ref_margin)
+            )
+        options, search = self._safe_effort()
+        z = propose_context(
+            self.surrogate,
+            self.surrogate.train_X,
+            self.contexts,
+            n_objectives=n_obj,
+            ref_point=ref,
+            seed=seed,
+            mc_samples=options,
+            budget=budget,
+            search=search,
+            safe_points=safe,
+        )
+        if budget is None:
+            return z
+        S = expected_outcome_samples(self.surrogate, z[None, :], self.contexts, seed=seed)
+        if self.deploy_rule.safe(S, budget)[0]:
+            return z
+        return self._trust_region_point(seed, len(safe), budget)
+
+    def _safe_effort(self) -> tuple[int, AcqfSearch]:
+        return 64, self.search
+
+    def _trust_region_point(self, seed: int, n_safe: int, budget: float) -> np.ndarray:
+        center = self._incumbent_z
+        radius = min(0.5, self.trust_radius * np.sqrt(max(1, n_safe)))
+        sob = qmc.Sobol(d=self.space.dim, scramble=True, seed=seed).random(128)
+        cand = np.clip(center + radius * (2 * sob - 1), 0, 1)
+        S = expected_outcome_samples(self.surrogate, cand, self.contexts, n_samples=64, seed=seed)
+        ok = self.deploy_rule.safe(S, budget)
+        if not ok.any():
+            return center.copy()
+        score = np.where(ok, S[:, :, 0].mean(axis=0), np.inf)
+        return cand[int(np.argmin(score))]
 
     def _acquire(self, seed: int) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -252,6 +462,9 @@ class _GPLearner(Learner):
                 "surrogate_pre_fit": self._pre_fit_state,
                 "incumbent_z": self._incumbent_z.copy(),
                 "incumbent_pre_fit": self._pre_fit_incumbent.copy(),
+                "contexts_x0": self.C_.copy(),
+                "violations": self.V_.copy(),
+                "violation_budget": self.budget_,
             }
         )
         return d
@@ -261,6 +474,12 @@ class _GPLearner(Learner):
         self.Z_, self.Y_ = np.array(state["Z"], float), np.array(state["Y"], float)
         self.grads_ = np.array(state["grads"], float)
         self.starts_ = np.array(state.get("starts", np.full(len(self.Z_), -1)), dtype=int)
+        # checkpoints written before issue 11 have no contexts and violations
+        self.C_ = np.array(state.get("contexts_x0", np.full((len(self.Z_), self._dc), 0.5)), float)
+        self.C_ = self.C_.reshape(len(self.Z_), self._dc)
+        self.V_ = np.array(state.get("violations", np.full(len(self.Z_), np.nan)), float)
+        b = state.get("violation_budget", self.budget_)
+        self.budget_ = None if b is None else float(b)
         self._incumbent_z = np.array(state["incumbent_z"], float)
         self._pre_fit_incumbent = np.array(
             state.get("incumbent_pre_fit", state["incumbent_z"]), float
@@ -372,6 +591,10 @@ class MOBOLearner(_GPLearner):
         """The EHVI options and search of this learner's proposal after ``n`` observations
         (:func:`search_effort`)."""
         return search_effort(n, self.ehvi, self.search, self.reduce_effort_after)
+
+    def _safe_effort(self) -> tuple[int, AcqfSearch]:
+        options, search = self.search_effort(self.Z_.shape[0])
+        return options.mc_samples, search
 
     def _acquire(self, seed: int) -> np.ndarray:
         ref = self.ref_point_

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from mpcmobo.bo.context import ContextSpec
 from mpcmobo.learners.base import EpisodeResult, Learner
+from mpcmobo.learners.deploy import DeployRule
 from mpcmobo.systems.space import SearchSpace
 
 
@@ -19,6 +21,13 @@ class MPCRL(Learner):
     ``lr_decay = c > 0`` makes the step size ``alpha / (1 + c t)`` after ``t`` steps (a
     Robbins-Monro schedule; 0, the default, is the paper's constant step).
     Episodes whose critic failed (or whose objectives are NaN) make no step.
+
+    ``deploy_confidence = p`` (issue 11): the learner keeps stepping from its iterate but
+    deploys (``incumbent()``) its best verified theta: a GP on log f1 of its own episodes, over
+    ``(z, c)`` with ``context = "x0"`` (c the scaled initial state), judges the iterates by
+    their expected f1 over a fixed sample of initial states, and the deployed theta changes
+    only when a run theta is better with probability at least ``p``
+    (:class:`~mpcmobo.learners.deploy.DeployRule`). None (default): the iterate is deployed.
     """
 
     name = "mpc-rl"
@@ -36,8 +45,27 @@ class MPCRL(Learner):
         eps: float = 1e-8,
         max_step: float = 0.1,
         lr_decay: float = 0.0,
+        deploy_confidence: float | None = None,
+        context: str = "none",
+        n_contexts: int = 16,
+        incumbent_kappa: float = 0.0,
+        contexts: ContextSpec | None = None,
     ) -> None:
         super().__init__(space, theta0, seed)
+        if context not in ("none", "x0"):
+            raise ValueError(f"context must be 'none' or 'x0', got {context!r}")
+        if context == "x0" and contexts is None:
+            raise ValueError("context = 'x0' needs the system's contexts (ContextSpec)")
+        self.context_spec = contexts
+        self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))
+        self.deploy_rule = (
+            None
+            if deploy_confidence is None
+            else DeployRule(
+                kappa=float(incumbent_kappa), deploy_confidence=float(deploy_confidence)
+            )
+        )
+        self._init_judge()
         if optimizer not in ("adam", "sgd"):
             raise ValueError(f"optimizer must be 'adam' or 'sgd', got '{optimizer}'")
         if lr <= 0:
@@ -58,10 +86,53 @@ class MPCRL(Learner):
         return self._theta()
 
     def incumbent(self) -> np.ndarray:
-        return self._theta()
+        if self.deploy_rule is None:
+            return self._theta()
+        if np.array_equal(self.deployed_z_, self.space.to_unit(self.theta0)):
+            return self.theta0.copy()  # exactly theta0, not its round trip through z
+        return self.space.from_unit(self.deployed_z_, base=self.theta0)
+
+    # ------------------------------------------------------------ deployment (issue 11)
+    def _init_judge(self) -> None:
+        from mpcmobo.bo import GPSurrogate
+
+        dc = self.contexts.shape[1]
+        self.judge = None if self.deploy_rule is None else GPSurrogate(1, log_outcomes=(True,))
+        self.X_ = np.zeros((0, self.space.dim + dc))  # (z, c) of the learner's own episodes
+        self.F_ = np.zeros(0)  # their f1
+        self.deployed_z_ = self.space.to_unit(self.theta0)
+        self._judge_pre_fit: dict | None = None
+        self._deployed_pre_fit = self.deployed_z_.copy()
+
+    def _observe_deploy(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        dc = self.contexts.shape[1]
+        c = np.zeros(0) if dc == 0 else self.context_spec.unit(result.x0)
+        x = np.concatenate([self.space.to_unit(self.space.clip(theta)), c])
+        self.X_ = np.vstack([self.X_, x])
+        self.F_ = np.append(self.F_, result.f1)
+        self._judge_fit()
+
+    def _judge_fit(self) -> None:
+        self._judge_pre_fit = self.judge.state_dict()
+        self._deployed_pre_fit = self.deployed_z_.copy()
+        ok = np.isfinite(self.F_)
+        if np.count_nonzero(ok) < 2:
+            return
+        self.judge.fit(self.X_, self.F_[:, None])
+        d = self.space.dim
+        self.deployed_z_ = self.deploy_rule.choose(
+            self.judge,
+            self.X_[ok, :d],
+            self.deployed_z_,
+            self.contexts,
+            None,
+            seed=1234 + len(self.F_),
+        )
 
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
         self.n_observed += 1
+        if self.deploy_rule is not None:
+            self._observe_deploy(theta, result)
         g = np.asarray(result.grad, dtype=float)
         if not result.critic_ok or not np.all(np.isfinite(g)) or not result.valid:
             return
@@ -86,9 +157,27 @@ class MPCRL(Learner):
     def state_dict(self) -> dict:
         d = super().state_dict()
         d.update({"z": self.z.copy(), "m": self.m.copy(), "v": self.v.copy(), "t": self.t})
+        if self.deploy_rule is not None:
+            d.update(
+                {
+                    "judge_X": self.X_.copy(),
+                    "judge_F": self.F_.copy(),
+                    "judge_pre_fit": self._judge_pre_fit,
+                    "deployed_pre_fit": self._deployed_pre_fit.copy(),
+                }
+            )
         return d
 
     def load_state_dict(self, state: dict) -> None:
         super().load_state_dict(state)
         self.z, self.m, self.v = (np.array(state[k], dtype=float) for k in ("z", "m", "v"))
         self.t = int(state["t"])
+        if self.deploy_rule is not None:
+            self._init_judge()
+            if "judge_X" in state:  # else a checkpoint without deployment: start afresh
+                self.X_ = np.array(state["judge_X"], float)
+                self.F_ = np.array(state["judge_F"], float)
+                self.deployed_z_ = np.array(state["deployed_pre_fit"], float)
+                if state["judge_pre_fit"] is not None:
+                    self.judge.load_state_dict(state["judge_pre_fit"])
+                    self._judge_fit()
