@@ -137,7 +137,7 @@ def test_bad_out_paths_are_clear_errors_and_create_nothing(tmp_path):
 @pytest.mark.parametrize(
     "options, message",
     [
-        ("lr_rate = 0.1", "unknown option 'lr_rate'"),
+        ("lr_rate = 0.1", "unexpected learner option 'lr_rate'"),
         ('lr = "big"', "lr = 'big': must be a number"),
         ("lr = -1.0", "learning rate must be positive"),
     ],

@@ -48,8 +48,9 @@ LEARNERS: dict[str, type[Learner]] = {name: spec.cls for name, spec in LEARNER_S
 _NOT_OPTIONS = ("self", "space", "theta0", "seed")
 
 
-class LearnerOptionError(ValueError):
-    """An unknown or invalid learner option; the message lists the learner's options."""
+class LearnerOptionError(ValueError, TypeError):
+    """An unknown or invalid learner option; the message lists the learner's options. A
+    ``ValueError`` and, as an unknown option always was, a ``TypeError``."""
 
 
 def learner_options(name: str) -> dict[str, Any]:
@@ -121,7 +122,7 @@ def make_learner(
         return LEARNERS[name](space, theta0, seed, **options)
     except (TypeError, ValueError) as err:
         if unknown and isinstance(err, TypeError):
-            what = "unknown option" + ("s " if len(unknown) > 1 else " ")
+            what = "unexpected learner option" + ("s " if len(unknown) > 1 else " ")
             raise LearnerOptionError(
                 f"{what}{', '.join(repr(k) for k in unknown)}; {listing}"
             ) from None
