@@ -243,3 +243,57 @@ def test_idle_workers_exit_when_the_study_is_killed(tmp_path):
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=GUARD_S)
     wait_until(lambda: not any(alive(p) for p in workers), "the idle workers to exit", 60)
+
+
+def test_an_interrupt_inside_a_solve_ends_it_normally():
+    """SIGINTs land inside IPOPT: each solve still completes as usual (no failed status), and
+    Interrupted is raised once it has returned."""
+    import numpy as np
+
+    from mpcmobo.experiment import interrupts
+    from mpcmobo.mpc import ParametricMPC
+    from mpcmobo.systems import get_system
+
+    system = get_system("cstr")
+    mpc = ParametricMPC(system, model="imperfect")
+    statuses = []
+    raw = mpc.solve
+
+    in_solve = threading.Event()
+
+    def recorded(*args, **kwargs):
+        in_solve.set()
+        try:
+            sol = raw(*args, **kwargs)
+        finally:
+            in_solve.clear()
+        statuses.append(sol.status)
+        return sol
+
+    mpc.solve = recorded
+    interrupts.guard_solves(mpc)
+    rng = np.random.default_rng(0)
+    starts = [system.sample_initial_state(rng) for _ in range(5)]
+    stop = threading.Event()
+
+    def kick() -> None:  # only while a solve runs
+        while not stop.is_set():
+            if in_solve.is_set():
+                os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.0005)
+
+    previous = signal.signal(signal.SIGINT, lambda *a: None)
+    kicker = threading.Thread(target=kick, daemon=True)
+    try:
+        with pytest.raises(Interrupted), interrupts.catching():
+            kicker.start()
+            for _ in range(200):
+                for x in starts:
+                    mpc.solve(x, mpc.theta0)
+    finally:
+        stop.set()
+        if kicker.is_alive():
+            kicker.join()
+        signal.signal(signal.SIGINT, previous)
+    assert statuses  # the interrupted solve returned normally, then Interrupted was raised
+    assert all(s == statuses[0] for s in statuses) and "Exception" not in statuses[0], statuses

@@ -189,6 +189,7 @@ class Job:
         t_eval = time.perf_counter()
         row.J_eval_incumbent = self._evaluate(row.episode, np.asarray(row.incumbent, dtype=float))
         row.eval_time_s = time.perf_counter() - t_eval
+        interrupts.check()  # nothing of an interrupted evaluation is kept
         if record is not None and self.schedule.keeps_learning(row.episode):
             self.trajectories.append(Trajectory("learning", row.episode, 0, record.x, record.u))
         self.rows.append(row)
