@@ -1,10 +1,11 @@
 """Kill-and-resume soak: ``kill -9`` of ``mpcmobo run`` at random moments, then ``--resume``.
 
 Runs the study once without interruption (the reference), then ``--kills`` times: starts the
-same study in a new directory, kills its main process with SIGKILL at a moment drawn uniformly
-over the reference's run (from the moment ``config.toml`` exists to the end: J*, episodes,
-checkpoint writes, the records; a kill before it leaves nothing to resume), checks
-that its worker processes exit by themselves, resumes it with ``mpcmobo run --resume`` and
+same study in a new directory and kills its main process with SIGKILL at a random moment of its
+progress: once the jobs have checkpointed k episodes in total (k drawn uniformly from 0 to the
+total budget - 1, or "-1": during the computation of J*), plus a delay drawn uniformly from 0 to
+``--max-delay`` seconds (inside an episode, a checkpoint write or an evaluation). It checks that
+the worker processes exit by themselves, resumes the run with ``mpcmobo run --resume`` and
 compares ``episodes.parquet`` (wall-time columns aside) and ``trajectories.parquet`` with the
 reference's. Prints a markdown table and writes ``OUT/soak.json``.
 
@@ -102,16 +103,19 @@ def wait_for_config(proc: subprocess.Popen, out: Path) -> float:
     return time.monotonic() - t0
 
 
-def trial(config: Path, out: Path, moment: float) -> dict:
-    """Start the study, kill it ``moment`` seconds after its config.toml exists, resume."""
+def trial(config: Path, out: Path, k: int, delay: float) -> dict:
+    """Start the study; kill it ``delay`` seconds after it has checkpointed ``k`` episodes
+    (k = -1: after its config.toml exists); resume it."""
     proc = start(config, out)
     seen: set[int] = set()
     wait_for_config(proc, out)
-    deadline = time.monotonic() + moment
+    while k >= 0 and episodes_done(out) < k + 1 and proc.poll() is None:
+        seen |= workers_of(proc.pid)
+        time.sleep(0.02)
+    deadline = time.monotonic() + delay
     while time.monotonic() < deadline and proc.poll() is None:
         seen |= workers_of(proc.pid)
         time.sleep(0.02)
-    seen |= workers_of(proc.pid)
     finished_first = proc.poll() is not None
     proc.kill()
     proc.wait()
@@ -137,7 +141,8 @@ def trial(config: Path, out: Path, moment: float) -> dict:
         text=True,
     )
     return {
-        "moment_s": round(moment, 2),
+        "after_episodes": k,
+        "delay_s": round(delay, 2),
         "finished_before_kill": finished_first,
         "episodes_at_kill": done_at_kill,
         "workers_seen": len(seen),
@@ -159,6 +164,7 @@ def main() -> None:
     p.add_argument("--n-starts", type=int, default=2)
     p.add_argument("--kills", type=int, default=10)
     p.add_argument("--seed", type=int, default=0, help="seed of the kill moments")
+    p.add_argument("--max-delay", type=float, default=1.0, help="seconds after the k-th episode")
     p.add_argument("--out", type=Path, default=Path("runs/soak"))
     args = p.parse_args()
 
@@ -180,10 +186,12 @@ def main() -> None:
 
     rng = np.random.default_rng(args.seed)
     rows = []
+    total = args.episodes * len(args.learners) * len(args.seeds)
     for i in range(args.kills):
-        moment = float(rng.uniform(0.0, wall))
+        k = int(rng.integers(-1, total))
+        delay = float(rng.uniform(0.0, args.max_delay))
         out = args.out / f"kill{i}"
-        r = trial(config, out, moment)
+        r = trial(config, out, k, delay)
         r["identical"] = r["resume_exit_code"] == 0 and same_records(ref, out)
         rows.append(r)
         print(json.dumps(r), flush=True)
@@ -191,11 +199,11 @@ def main() -> None:
             shutil.rmtree(out)
 
     print()
-    print("| kill | moment after start-up [s] | episodes at kill | workers seen | left after wait "
+    print("| kill | after episode | + delay [s] | episodes at kill | workers seen | left after wait "
           "| workers gone after [s] | resume exit | identical |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for i, r in enumerate(rows):
-        print(f"| {i} | {r['moment_s']} | {r['episodes_at_kill']} | {r['workers_seen']} | "
+        print(f"| {i} | {r['after_episodes']} | {r['delay_s']} | {r['episodes_at_kill']} | {r['workers_seen']} | "
               f"{r['workers_left_after_wait']} | {r['workers_exit_s']} | "
               f"{r['resume_exit_code']} | {'yes' if r['identical'] else 'NO'} |")  # fmt: skip
     n_ok = sum(r["identical"] for r in rows)

@@ -84,6 +84,8 @@ def _handler(signum: int, frame: Any) -> None:
     request_stop(signum)
     if _state.active and _state.depth == 0:
         raise Interrupted(_state.signum)
+    if _Worker.initialized and not _Worker.busy.is_set():
+        os._exit(128 + signum)  # an idle worker told to terminate: nothing to finish
 
 
 @contextmanager
@@ -155,11 +157,13 @@ def catching() -> Iterator[None]:
 # ---------------------------------------------------------------------- worker processes
 class _Worker:
     busy = threading.Event()  # a job runs in this worker
+    initialized = False  # this process is a study's worker (init_worker ran)
 
 
 def init_worker(parent_pid: int, stop: str | None = None) -> None:
     """Initializer of a study's worker process: ignore SIGINT, stop on SIGTERM, and watch the
     parent and the stop file ``stop`` (see the module docstring)."""
+    _Worker.initialized = True
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _handler)
     threading.Thread(
@@ -178,9 +182,19 @@ def worker_job() -> Iterator[None]:
         _Worker.busy.clear()
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, but not ours to signal
+        return True
+    return True
+
+
 def _watchdog(parent_pid: int, stop: str | None) -> None:
     while True:
-        orphaned = os.getppid() != parent_pid
+        orphaned = os.getppid() != parent_pid or not _alive(parent_pid)
         if orphaned or (stop is not None and os.path.exists(stop)):
             break
         time.sleep(WATCH_INTERVAL_S)
