@@ -9,8 +9,11 @@ or ``--seeds 0,1,2``. Invalid settings exit with code 2 and a message naming the
 from __future__ import annotations
 
 import math
+import os
+import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -18,9 +21,10 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mpcmobo.experiment.rundir import RunDirectory, StudyError
-from mpcmobo.experiment.settings import Settings, SettingsError, load_settings
-from mpcmobo.learners.registry import LEARNER_SPECS
+from mpcmobo.experiment.interrupts import Interrupted
+from mpcmobo.experiment.rundir import RunDirectory, StudyError, read_run_file
+from mpcmobo.experiment.settings import PAPER_LEARNERS, Settings, SettingsError, load_settings
+from mpcmobo.learners.registry import LEARNER_SPECS, describe_options
 
 app = typer.Typer(
     name="mpcmobo",
@@ -81,6 +85,47 @@ def _progress() -> Progress:
     )
 
 
+class _Lines:
+    """Plain progress lines for a log (stdout not a terminal: CI, nohup, a scheduler): the
+    start, J*, and one line per job every ``every`` episodes and at its last episode."""
+
+    def __init__(self, every: int | None = None) -> None:
+        self.every = every
+        self.printed: dict[tuple[str, int], int] = {}
+        self.t0 = time.perf_counter()
+
+    def _print(self, text: str) -> None:
+        elapsed = time.perf_counter() - self.t0
+        console.print(f"[{elapsed:7.0f} s] {text}", markup=False, highlight=False, soft_wrap=True)
+        console.file.flush()
+
+    def __call__(self, event: dict) -> None:
+        kind = event.get("kind")
+        if kind == "start":
+            total = event["episodes"]
+            if self.every is None:
+                self.every = max(1, min(10, total // 10))
+            jobs = ", ".join(f"{n} s{s}" for n, s in event["jobs"])
+            self._print(f"study in {event['out_dir']}: {jobs}; {total} episodes each")
+        elif kind == "reference":
+            if event["status"] == "running":
+                self._print("computing J* and J(theta0)")
+            else:
+                self._print(f"J* = {_fmt(event['J_star'])}, J(theta0) = {_fmt(event['J_initial'])}")
+        elif kind == "episode":
+            job, n = (event["learner"], event["seed"]), event["episode"]
+            last = self.printed.get(job)
+            every = self.every or 1
+            due = last is None or n // every > last // every or n == event["episodes"]
+            if n == last or not due:
+                return
+            self.printed[job] = n
+            self._print(
+                f"{event['learner']} s{event['seed']}: episode {n}/{event['episodes']}, "
+                f"f1 {_fmt(event['f1'])}, best J_eval {_fmt(event['best_J_eval'])}"
+            )
+
+
 class _Bars:
     """Rich progress bars, one per (learner, seed) job, fed by the study's progress events."""
 
@@ -112,27 +157,73 @@ class _Bars:
                 )
 
 
-@app.command(context_settings={"allow_extra_args": True})
+def _default(key: str) -> Any:
+    return Settings.model_fields[key].get_default(call_default_factory=True)
+
+
+def _options_epilog() -> str:
+    lines = ["Learner options (a table learner_options.NAME in the --config file), defaults:"]
+    lines += [f"{name}: {describe_options(name)}" for name in LEARNER_SPECS]
+    return "\n\n".join(lines)
+
+
+RUN_HELP = (
+    "Run a study (learners x seeds): records, summary and, once complete, figures 1-4.\n\n"
+    "Ctrl-C (SIGINT) or SIGTERM stops the run at the end of the current MPC step (exit code "
+    "130 or 143) with every finished episode recorded; --resume continues it. Library "
+    "warnings go to DIR/run.log; with its output redirected, the run prints a progress line "
+    "per job every few episodes."
+)
+
+
+@app.command(context_settings={"allow_extra_args": True}, help=RUN_HELP, epilog=_options_epilog())
 def run(
     ctx: typer.Context,
-    config: Path | None = typer.Option(None, "--config", "-c", help="settings file (TOML)"),
-    system: str | None = typer.Option(None, "--system", help="system name (`mpcmobo systems`)"),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="settings file (TOML)", show_default="none, the defaults below"
+    ),
+    system: str | None = typer.Option(
+        None,
+        "--system",
+        help="system name (`mpcmobo systems`)",
+        show_default=_default("system").name,
+    ),
     learner: str | None = typer.Option(
-        None, "--learner", "-l", help=f"{' | '.join([*LEARNER_SPECS, 'all'])} (or a comma list)"
+        None,
+        "--learner",
+        "-l",
+        help=f"{' | '.join([*LEARNER_SPECS, 'all'])} (or a comma list)",
+        show_default=",".join(PAPER_LEARNERS),
     ),
-    episodes: int | None = typer.Option(None, "--episodes", "-n", help="episodes per job"),
-    steps: int | None = typer.Option(None, "--steps", help="time steps per episode"),
+    episodes: int | None = typer.Option(
+        None, "--episodes", "-n", help="episodes per job", show_default=str(_default("episodes"))
+    ),
+    steps: int | None = typer.Option(
+        None, "--steps", help="time steps per episode", show_default="the system's episode length"
+    ),
     seeds: list[str] | None = typer.Option(
-        None, "--seeds", "-s", help="seeds: --seeds 0 1 2, --seeds 0,1,2 or repeated --seeds"
+        None,
+        "--seeds",
+        "-s",
+        help="seeds: --seeds 0 1 2, --seeds 0,1,2 or repeated --seeds",
+        show_default=" ".join(map(str, _default("seeds"))),
     ),
-    out: Path | None = typer.Option(None, "--out", "-o", help="output directory"),
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        "-o",
+        help="output directory, new or empty (its parent must exist)",
+        show_default="runs/<timestamp>",
+    ),
     resume: bool = typer.Option(
         False,
         "--resume",
         help="continue the run recorded in --out (with --episodes N: extend its budget to N)",
     ),
-    workers: int | None = typer.Option(None, "--workers", "-w", help="parallel processes"),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
+    workers: int | None = typer.Option(
+        None, "--workers", "-w", help="parallel processes", show_default=str(_default("workers"))
+    ),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
     no_plot: bool = typer.Option(False, "--no-plot", help="do not draw figures 1-4 at the end"),
 ) -> None:
     """Run a study (learners x seeds): records, summary and, once complete, figures 1-4."""
@@ -154,10 +245,15 @@ def run(
                 seeds=seed_list,
                 workers=workers,
             )
+            given = out is not None
             out = out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")
+            # a given --out needs an existing parent; the default creates runs/
+            RunDirectory(out).check_new(parents=not given)
         t0 = time.perf_counter()
         if quiet:
             summary = run_study(settings, out, resume=resume)
+        elif not console.is_terminal:
+            summary = run_study(settings, out, resume=resume, progress=_Lines())
         else:
             with _progress() as progress:
                 summary = run_study(settings, out, resume=resume, progress=_Bars(progress))
@@ -165,9 +261,31 @@ def run(
         _fail(str(err), 2)
     except StudyError as err:
         _fail(str(err), 1)
+    except Interrupted as err:
+        _interrupted(out, err.signal_name, err.exit_code)
     except KeyboardInterrupt:
-        _fail(f"interrupted; continue with: mpcmobo run --resume --out {out}", 130)
+        _interrupted(out, "SIGINT", 130)
     _report(summary, out, time.perf_counter() - t0, no_plot)
+
+
+def _interrupted(out: Path | None, name: str, code: int) -> None:
+    """An interrupted run: where its records are and how to continue it; exit ``code``."""
+    if out is not None and RunDirectory(out).holds_run():
+        err_console.print(
+            f"interrupted ({name}): every finished episode is recorded in {escape(str(out))}; "
+            f"continue with: mpcmobo run --resume --out {escape(str(out))}",
+            highlight=False,
+            soft_wrap=True,
+        )
+    else:
+        err_console.print(f"interrupted ({name}) before the run started", highlight=False)
+    if Path(sys.argv[0]).name in ("mpcmobo", "cli.py"):
+        # the program itself (not the CLI inside a test): everything is on disk and fsync'ed,
+        # so skip the interpreter's teardown (torch's alone takes about a second)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    raise typer.Exit(code)
 
 
 def _resumed_settings(
@@ -218,6 +336,26 @@ def _summary_table(summary: dict) -> Table:
     return table
 
 
+def _check_records(directory: Path) -> None:
+    """The records that figures are drawn from can be read (else exit 1 naming the file)."""
+    import json
+
+    import pandas as pd
+
+    fix = f"rebuild the records from the checkpoints with: mpcmobo run --resume --out {directory}"
+    readers = {
+        "episodes.parquet": pd.read_parquet,
+        "trajectories.parquet": pd.read_parquet,
+        "summary.json": lambda p: json.loads(p.read_text(encoding="utf-8")),
+    }
+    try:
+        for name, read in readers.items():
+            if (directory / name).exists():
+                read_run_file(directory / name, read, fix)
+    except StudyError as err:
+        _fail(str(err), 1)
+
+
 def _require_run(directory: Path) -> RunDirectory:
     run_dir = RunDirectory(directory)
     if not run_dir.holds_run():
@@ -236,6 +374,7 @@ def plot(
     _require_run(directory)
     if not (directory / "episodes.parquet").exists():
         _fail(f"{directory} has no records yet (episodes.parquet)", 2)
+    _check_records(directory)
     try:
         paths = make_figures(directory, learner=learner)
     except ValueError as err:
@@ -257,15 +396,24 @@ def evaluate(
     run_dir = _require_run(directory)
     try:
         settings = run_dir.saved_settings(evaluation__n_starts=n_starts, evaluation__seed=seed)
+        incumbents = run_dir.incumbents(settings)
     except SettingsError as err:
         _fail(str(err), 2)
+    except StudyError as err:
+        _fail(str(err), 1)
+    if not incumbents:
+        _fail(
+            f"no job in {directory} has finished an episode: nothing to evaluate (continue the "
+            f"run with: mpcmobo run --resume --out {directory})",
+            1,
+        )
     evaluator = make_evaluator(settings, build_system(settings))
     J_star = evaluator.J_star()
     J0 = evaluator.J_eval(None)
     table = Table(title=f"{settings.system.name}: J* = {_fmt(J_star)}, J(theta0) = {_fmt(J0)}")
     for col in ("learner", "seed", "episodes", "J_eval", "gap to J* [%]"):
         table.add_column(col, justify="right")
-    for learner, s, episodes, incumbent in run_dir.incumbents(settings):
+    for learner, s, episodes, incumbent in incumbents:
         J = evaluator.J_eval(incumbent)
         gap = f"{100 * (J - J_star) / abs(J_star):.2f}"
         table.add_row(learner, str(s), str(episodes), _fmt(J), gap)

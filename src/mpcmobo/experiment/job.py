@@ -20,10 +20,12 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
+from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
+from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.loop import LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
-from mpcmobo.experiment.rundir import RunDirectory, StudyError
+from mpcmobo.experiment.rundir import RunDirectory, RunFileError
 from mpcmobo.experiment.settings import Settings, build_system, validate_settings
 from mpcmobo.learners import make_learner
 from mpcmobo.mpc import ParametricMPC
@@ -99,6 +101,9 @@ class Job:
         system = build_system(settings)
         self.run = _learning_run(settings, system, learner, seed)
         self.evaluator = make_evaluator(settings, system)
+        # an interrupt during an MPC solve stops the job when the solve returns, never fails it
+        interrupts.guard_solves(self.run.mpc)
+        interrupts.guard_solves(self.evaluator.mpc("imperfect"))
         if J_initial is not None:
             self.evaluator.remember(self.run.mpc.theta0, J_initial)
         self.schedule = EvaluationSchedule.from_settings(settings)
@@ -117,11 +122,18 @@ class Job:
         ckpt = self.run_dir.checkpoint(self.learner, self.seed)
         if ckpt is None:
             return
-        self.run.load_state_dict(ckpt.state)
+        path = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
+        fix = f"delete {path.parent} to run this job again from its first episode"
+        try:
+            self.run.load_state_dict(ckpt.state)
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+            raise RunFileError(
+                f"{path}: the job's state cannot be restored ({err}); {fix}"
+            ) from None
         self.rows, self.trajectories = ckpt.rows, ckpt.trajectories
         self.wall_time_s = ckpt.wall_time_s
         if len(self.rows) != self.run.episode:
-            raise StudyError(f"checkpoint of {self.learner}-s{self.seed} is inconsistent")
+            raise RunFileError(f"{path} is inconsistent (rows and state differ); {fix}")
         if ckpt.episodes < self.settings.episodes:
             self._extend()
         else:
@@ -158,18 +170,26 @@ class Job:
         )
 
     def save(self) -> None:
-        self.run_dir.save_checkpoint(self.checkpoint())
+        with interrupts.deferred():  # a checkpoint is written whole
+            self.run_dir.save_checkpoint(self.checkpoint())
 
     # ------------------------------------------------------------------ episodes
     def step(self) -> EpisodeRow:
         """Run the next episode, evaluate its incumbent and store its trajectories as the
-        schedule says; return its row."""
+        schedule says; return its row.
+
+        An interrupt (:class:`~mpcmobo.experiment.interrupts.Interrupted`) during the episode
+        or its evaluation discards the episode: nothing of it is recorded, and a resumed job
+        runs it again from the last checkpoint."""
+        interrupts.check()
         t_start = time.perf_counter()
         out, record = self.run.run_episode()
+        interrupts.check()
         row = EpisodeRow.from_dict(out)
         t_eval = time.perf_counter()
         row.J_eval_incumbent = self._evaluate(row.episode, np.asarray(row.incumbent, dtype=float))
         row.eval_time_s = time.perf_counter() - t_eval
+        interrupts.check()  # nothing of an interrupted evaluation is kept
         if record is not None and self.schedule.keeps_learning(row.episode):
             self.trajectories.append(Trajectory("learning", row.episode, 0, record.x, record.u))
         self.rows.append(row)
@@ -280,14 +300,20 @@ def run_job(
 
     ``parent_pid``: in a worker process, the pid of the study's process. If that process dies
     (killed, not interrupted), the job stops after its current episode's checkpoint instead of
-    running on as an orphan that a later ``--resume`` would race with.
+    running on as an orphan that a later ``--resume`` would race with (the worker's watchdog,
+    :func:`mpcmobo.experiment.interrupts.init_worker`, stops it sooner: at the end of the current
+    MPC step). An interrupt raises :class:`~mpcmobo.experiment.interrupts.Interrupted` with
+    every finished episode checkpointed. Library warnings go to ``DIR/run.log``.
     ``system_factory``: in a worker process, the factory of the settings' system, registered
     here under its name (a worker does not see what the study's process registered).
     """
     if system_factory is not None:
         register_system(settings_dict["system"]["name"], system_factory, overwrite=True)
+    interrupts.check()  # told to stop before this job started
     settings = validate_settings(settings_dict)
-    with single_threaded():
+    guard = interrupts.worker_job() if parent_pid is not None else interrupts.active()
+    source = f"{learner_name}-s{seed}"
+    with guard, run_log(out_dir, source, capture_output=parent_pid is not None), single_threaded():
         job = Job(settings, RunDirectory(out_dir), learner_name, seed, J_initial)
         job.restore()
         for _ in job.episodes(max_episodes):

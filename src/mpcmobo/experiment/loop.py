@@ -83,11 +83,12 @@ class LearningRun:
         """Run one episode; return its row of records (the fields of :class:`EpisodeRow` except
         ``J_eval_incumbent`` and ``eval_time_s``, which the study's job adds) and the episode."""
         t0 = time.perf_counter()
-        theta = np.asarray(self.learner.propose(), dtype=float)
+        theta, proposal_error = self._propose()
         t_prop = time.perf_counter() - t0
         x0 = self.next_start()
         t1 = time.perf_counter()
         record, result, error = self._on_plant(theta, x0)
+        error = "; ".join(e for e in (proposal_error, error) if e)
         t_mpc = time.perf_counter() - t1
         if self.start_mode == "cycle":
             result.start_id = self.episode % len(self.cycle_starts)
@@ -122,6 +123,18 @@ class LearningRun:
         }
         self.episode += 1
         return row, record
+
+    def _propose(self) -> tuple[np.ndarray, str]:
+        """The learner's proposal; if the learner fails (an exception, or a theta that is not
+        finite), the episode runs its incumbent instead and the error is recorded."""
+        try:
+            theta = np.asarray(self.learner.propose(), dtype=float)
+            if theta.shape != (self.learner.space.n_theta,) or not np.all(np.isfinite(theta)):
+                raise ValueError(f"the proposal is not a finite theta: {theta!r}")
+            return theta, ""
+        except Exception as err:  # noqa: BLE001 - a learner's failure never ends a run
+            theta = np.asarray(self.learner.incumbent(), dtype=float)
+            return theta, f"proposal failed, ran the incumbent: {type(err).__name__}: {err}"
 
     def _on_plant(
         self, theta: np.ndarray, x0: np.ndarray

@@ -9,13 +9,26 @@ may change. :class:`RunDirectory` reads and writes the typed records of the dire
 
 from __future__ import annotations
 
+import os
+import pickle
+import warnings
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 
 from mpcmobo.experiment import storage
+from mpcmobo.experiment.logs import RunFileWarning
 from mpcmobo.experiment.records import Checkpoint, Reference
-from mpcmobo.experiment.settings import Settings, load_settings, settings_to_toml
+from mpcmobo.experiment.settings import (
+    Settings,
+    SettingsError,
+    load_settings,
+    settings_to_toml,
+)
+
+T = TypeVar("T")
 
 # what a resumed run may take from the settings it is given (the rest is the saved run's)
 RESUME_CHANGES = ("workers", "backend", "episodes")
@@ -23,6 +36,42 @@ RESUME_CHANGES = ("workers", "backend", "episodes")
 
 class StudyError(RuntimeError):
     """A study cannot run as asked (e.g. the output directory already holds another run)."""
+
+
+class RunFileError(StudyError):
+    """A file of a run cannot be read; the message names it and says what to do."""
+
+
+# what reading a damaged pickle or Parquet file can raise (truncated, empty, garbage, wrong type)
+READ_ERRORS = (
+    OSError,
+    EOFError,
+    pickle.UnpicklingError,
+    ValueError,
+    TypeError,
+    KeyError,
+    AttributeError,
+    IndexError,
+    ImportError,
+)
+
+
+def read_run_file(path: Path, read: Callable[[Path], T], fix: str) -> T:
+    """``read(path)``, or a :class:`RunFileError` naming ``path``, the problem and ``fix``."""
+    tail = f"; {fix}" if fix else ""
+    try:
+        return read(path)
+    except READ_ERRORS as err:
+        raise RunFileError(f"{path} cannot be read ({_describe(err)}){tail}") from None
+    except Exception as err:  # noqa: BLE001 - e.g. pyarrow's errors; reported the same way
+        raise RunFileError(f"{path} cannot be read ({_describe(err)}){tail}") from None
+
+
+def _describe(err: BaseException) -> str:
+    text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    if isinstance(err, EOFError) and not text:
+        text = "the file is empty or truncated"
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
 
 
 class RunDirectory:
@@ -38,20 +87,69 @@ class RunDirectory:
 
     def saved_settings(self, **overrides) -> Settings:
         """The run's saved settings (with ``overrides``, see :func:`load_settings`)."""
+        if self.path.exists() and not self.path.is_dir():
+            raise StudyError(f"{self.path} is a file, not a run directory")
         if not self.holds_run():
             raise StudyError(f"nothing to resume: {self.config} does not exist")
-        return load_settings(self.config, **overrides)
+        try:
+            return load_settings(self.config, **overrides)
+        except SettingsError as err:
+            if str(err).startswith(str(self.config)):  # the file itself, not an override
+                raise SettingsError(
+                    f"{err}\n  this file holds the settings of the run in {self.path}: repair "
+                    f"it (summary.json has them under 'settings', if the run got that far)"
+                ) from None
+            raise
 
     # ------------------------------------------------------------------ opening
-    def create(self, settings: Settings) -> Settings:
-        """Start a new run here: the directory must be empty; every setting is saved."""
-        if self.path.exists() and any(self.path.iterdir()):
+    def check_new(self, parents: bool = True) -> None:
+        """That a new run can start here: an empty directory, or a new one in a writable
+        directory (``parents``: missing parent directories may be created); else a
+        :class:`StudyError` saying why. Nothing is created."""
+        path = self.path
+        if path.exists():
+            if not path.is_dir():
+                raise StudyError(f"--out {path} is a file; give a directory for the run")
+            if any(path.iterdir()):
+                raise StudyError(
+                    f"{path} is not empty; choose a new --out directory or continue it with "
+                    "--resume"
+                )
+            if not os.access(path, os.W_OK | os.X_OK):
+                raise StudyError(f"--out {path}: the directory is not writable")
+            return
+        parent = path.parent
+        while not parent.exists() and parents and parent != parent.parent:
+            parent = parent.parent
+        if not parent.exists():
             raise StudyError(
-                f"{self.path} is not empty; choose a new --out directory or continue it with "
-                "--resume"
+                f"--out {path}: the parent directory {path.parent} does not exist; create it "
+                "first or choose another --out"
             )
+        if not parent.is_dir():
+            raise StudyError(f"--out {path}: {parent} is a file, not a directory")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise StudyError(f"--out {path}: cannot create it, {parent} is not writable")
+
+    def create(self, settings: Settings, parents: bool = True) -> Settings:
+        """Start a new run here: the directory must be empty or new (:meth:`check_new`);
+        every setting is saved. If that fails, nothing created here is left behind."""
+        self.check_new(parents)
         resolved = settings.resolved()
-        storage.atomic_write_text(self.config, settings_to_toml(resolved))
+        made = []
+        for d in reversed([self.path, *self.path.parents]):
+            if not d.exists():
+                made.append(d)
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            storage.atomic_write_text(self.config, settings_to_toml(resolved))
+        except OSError as err:
+            for d in reversed(made):
+                try:
+                    d.rmdir()
+                except OSError:
+                    break
+            raise StudyError(f"--out {self.path}: cannot write the run there ({err})") from None
         return resolved
 
     def reopen(self, settings: Settings | None) -> Settings:
@@ -75,15 +173,57 @@ class RunDirectory:
         """The study-level reference, if it was computed."""
         if not self.reference_path.exists():
             return None
-        return Reference.from_dict(storage.read_pickle(self.reference_path))
+        return read_run_file(
+            self.reference_path,
+            lambda p: Reference.from_dict(storage.read_pickle(p)),
+            f"delete it and continue with `mpcmobo run --resume --out {self.path}`, which "
+            "computes it again (J* and J_eval(theta0); the jobs' records are not affected)",
+        )
 
     def save_reference(self, reference: Reference) -> None:
         storage.write_pickle(self.reference_path, reference.to_dict())
 
     def checkpoint(self, learner: str, seed: int) -> Checkpoint | None:
-        """The job's last checkpoint (None if it has not finished an episode)."""
-        d = storage.load_checkpoint(self.path, learner, seed)
-        return None if d is None else Checkpoint.from_dict(d)
+        """The job's last checkpoint (None if it has not finished an episode).
+
+        If the latest checkpoint cannot be read, the generation before it is used (one episode
+        less, run again on resume) with a :class:`RunFileWarning`; the damaged file is kept
+        beside it as ``checkpoint.pkl.damaged``. If neither can be read: :class:`RunFileError`.
+        """
+        path = storage.checkpoint_path(self.path, learner, seed)
+        prev = storage.previous_checkpoint_path(self.path, learner, seed)
+        job_dir = path.parent
+        fix = (
+            f"restore it, or delete {job_dir} to run the job {storage.job_name(learner, seed)} "
+            "again from its first episode"
+        )
+        if path.exists():
+            try:
+                return _read_checkpoint(path, learner, seed)
+            except RunFileError as err:
+                if not prev.exists():
+                    raise RunFileError(f"{err}; there is no earlier checkpoint; {fix}") from None
+                try:
+                    ckpt = _read_checkpoint(prev, learner, seed)
+                except RunFileError as err2:
+                    raise RunFileError(
+                        f"{err}; and the previous generation: {err2}; {fix}"
+                    ) from None
+                damaged = path.with_name(path.name + ".damaged")
+                try:  # kept for inspection; the next save starts a new generation
+                    os.replace(path, damaged)
+                except OSError:
+                    damaged = path
+                warnings.warn(
+                    f"{err}; continuing from the previous checkpoint {prev.name} "
+                    f"({len(ckpt.rows)} episodes); the damaged file is kept as {damaged.name}",
+                    RunFileWarning,
+                    stacklevel=2,
+                )
+                return ckpt
+        if prev.exists():  # replaced at the moment of a crash: the previous generation holds
+            return read_run_file(prev, lambda p: _read_checkpoint(p, learner, seed), fix)
+        return None
 
     def save_checkpoint(self, ckpt: Checkpoint) -> None:
         storage.save_checkpoint(self.path, ckpt.learner, ckpt.seed, ckpt.to_dict())
@@ -107,9 +247,24 @@ def open_run(
     required, the directory empty) or, with ``resume``, the saved run (see
     :meth:`RunDirectory.reopen`)."""
     run_dir = RunDirectory(out)
-    run_dir.path.mkdir(parents=True, exist_ok=True)
     if resume:
         return run_dir, run_dir.reopen(settings)
     if settings is None:
         raise StudyError("settings are required for a new study")
     return run_dir, run_dir.create(settings)
+
+
+def _read_checkpoint(path: Path, learner: str, seed: int) -> Checkpoint:
+    """One checkpoint file, checked: it is a checkpoint of this version and job."""
+
+    def read(p: Path) -> Checkpoint:
+        d: Any = storage.read_pickle(p)
+        if not isinstance(d, dict):
+            raise TypeError(f"holds a {type(d).__name__}, not a checkpoint")
+        if d.get("version") != storage.CHECKPOINT_VERSION:
+            raise ValueError(f"checkpoint version {d.get('version')} is not supported")
+        if d.get("learner") != learner or int(d.get("seed", -1)) != int(seed):
+            raise ValueError(f"it is the checkpoint of {d.get('learner')}-s{d.get('seed')}")
+        return Checkpoint.from_dict(d)
+
+    return read_run_file(path, read, "")

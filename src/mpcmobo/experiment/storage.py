@@ -7,6 +7,10 @@ Layout of a study directory ``DIR``::
     jobs/<learner>-s<seed>/checkpoint.pkl
                                      LearningRun state + all rows + stored trajectories of one job,
                                      rewritten atomically after every episode
+    jobs/<learner>-s<seed>/checkpoint.prev.pkl
+                                     the generation before (read if the latest cannot be)
+    run.log                          library warnings and worker output (``logs.py``)
+    .stop                            only while an interrupted study stops its workers
     episodes.parquet                 per-episode rows of all jobs (rebuilt from the checkpoints)
     trajectories.parquet             states/inputs, long format (rebuilt from the checkpoints)
     summary.json                     per-learner results
@@ -144,9 +148,26 @@ def checkpoint_path(out_dir: str | Path, learner: str, seed: int) -> Path:
     return Path(out_dir) / "jobs" / job_name(learner, seed) / "checkpoint.pkl"
 
 
+def previous_checkpoint_path(out_dir: str | Path, learner: str, seed: int) -> Path:
+    return checkpoint_path(out_dir, learner, seed).with_name("checkpoint.prev.pkl")
+
+
 def save_checkpoint(out_dir: str | Path, learner: str, seed: int, ckpt: dict) -> Path:
+    """Write the job's checkpoint atomically; the one it replaces becomes
+    ``checkpoint.prev.pkl`` (a hard link made before the replacement, so that the latest
+    checkpoint exists at every moment)."""
     ckpt = dict(ckpt, version=CHECKPOINT_VERSION, learner=learner, seed=int(seed))
-    return write_pickle(checkpoint_path(out_dir, learner, seed), ckpt)
+    path = checkpoint_path(out_dir, learner, seed)
+    data = pickle.dumps(ckpt, protocol=pickle.HIGHEST_PROTOCOL)
+    if path.exists():
+        prev = previous_checkpoint_path(out_dir, learner, seed)
+        tmp = path.with_name(f".{prev.name}.{secrets.token_hex(6)}.tmp")
+        try:
+            os.link(path, tmp)
+            os.replace(tmp, prev)
+        except OSError:  # no hard links here: a copy
+            atomic_write_bytes(prev, path.read_bytes())
+    return atomic_write_bytes(path, data)
 
 
 def load_checkpoint(out_dir: str | Path, learner: str, seed: int) -> dict | None:

@@ -22,9 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from mpcmobo.experiment import storage
+from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.job import Progress, progress_event, run_job
+from mpcmobo.experiment.logs import count_warnings, run_log
 from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
 from mpcmobo.experiment.settings import Settings, SettingsError, build_system
@@ -73,6 +74,8 @@ def compute_reference(settings: Settings) -> Reference:
     """J*, J_eval(theta0) and the evaluation episodes of theta0 ("initial") and perfect MPC."""
     system = build_system(settings)
     evaluator = make_evaluator(settings, system)
+    for model in ("imperfect", "perfect"):  # an interrupt ends a solve, never fails it
+        interrupts.guard_solves(evaluator.mpc(model))
     theta0 = evaluator.mpc("imperfect").theta0.copy()
     t0 = time.perf_counter()
     trajectories = []
@@ -176,10 +179,17 @@ def summarize(settings: Settings, reference: Reference, df, wall_times: dict) ->
 def write_records(
     out_dir: str | Path, settings: Settings, reference: Reference | None
 ) -> dict | None:
-    """(Re)build episodes.parquet, trajectories.parquet and summary.json from the checkpoints."""
+    """(Re)build episodes.parquet, trajectories.parquet and summary.json from the checkpoints
+    (a damaged latest checkpoint: the previous generation, see :meth:`RunDirectory.checkpoint`);
+    the summary counts the warnings logged in ``run.log`` (``warnings``)."""
     out = Path(out_dir)
-    jobs = [(n, s) for n in settings.learners for s in settings.seeds]
-    ckpts = storage.load_checkpoints(out, jobs)
+    run_dir = RunDirectory(out)
+    ckpts = []
+    for n in settings.learners:
+        for s in settings.seeds:
+            ckpt = run_dir.checkpoint(n, s)
+            if ckpt is not None:
+                ckpts.append(dict(ckpt.to_dict(), learner=ckpt.learner, seed=ckpt.seed))
     df = storage.episodes_frame(ckpts)
     storage.write_parquet(out / "episodes.parquet", df)
     if reference is None:
@@ -192,6 +202,7 @@ def write_records(
     wall = {(c["learner"], c["seed"]): c["wall_time_s"] for c in ckpts}
     summary = summarize(settings, reference, df, wall)
     summary["reference_wall_time_s"] = reference.wall_time_s
+    summary["warnings"] = count_warnings(out)
     storage.write_json(out / "summary.json", summary)
     return summary
 
@@ -208,10 +219,27 @@ def run_study(
 
     ``max_episodes_this_call`` stops every job after that many episodes of this call (used to
     simulate an interruption); the summary then has ``complete: false``.
+
+    SIGINT and SIGTERM stop the study (in the main thread): the jobs stop at the end of their
+    current MPC step, the workers are stopped, the records are rebuilt from the checkpoints
+    and :class:`~mpcmobo.experiment.interrupts.Interrupted` (a ``KeyboardInterrupt``) is
+    raised. Library warnings go to ``DIR/run.log`` (:mod:`mpcmobo.experiment.logs`).
     """
-    if settings is not None and not resume:
-        check_learners(settings)  # a bad learner option fails before anything is written
-    run_dir, settings = open_run(out_dir, settings, resume)
+    with interrupts.catching():
+        if settings is not None and not resume:
+            check_learners(settings)  # a bad learner option fails before anything is written
+        run_dir, settings = open_run(out_dir, settings, resume)
+        with run_log(run_dir.path, "study"):
+            return _run_study(run_dir, settings, resume, progress, max_episodes_this_call)
+
+
+def _run_study(
+    run_dir: RunDirectory,
+    settings: Settings,
+    resume: bool,
+    progress: Progress | None,
+    max_episodes_this_call: int | None,
+) -> dict:
     if resume:
         check_learners(settings)
     emit = progress or (lambda event: None)
@@ -228,7 +256,8 @@ def run_study(
     try:
         _run_jobs(_pending(run_dir, settings, jobs, emit), args, settings, run_dir, emit)
     finally:
-        summary = write_records(run_dir.path, settings, reference)
+        with interrupts.deferred():  # the records of what is checkpointed, written whole
+            summary = write_records(run_dir.path, settings, reference)
     emit({"kind": "done", "summary": summary})
     return summary
 
@@ -320,27 +349,66 @@ def _sendable(factory) -> None:
 
 
 def _run_processes(jobs, args, workers: int, watch: _Watch) -> None:
+    """The jobs in a pool of spawned worker processes. Each worker ignores SIGINT and watches
+    the study's process (:func:`interrupts.init_worker`); if the study stops (interrupt, or a
+    job's error), the file ``DIR/.stop`` tells the busy workers to stop at the end of their current MPC
+    step, and those that do not within :data:`STOP_TIMEOUT_S` are terminated."""
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     _sendable(args["system_factory"])
     ctx = mp.get_context("spawn")  # no CasADi / torch state is inherited through fork
-    with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
-        futures = {
-            pool.submit(run_job, learner_name=n, seed=s, parent_pid=os.getpid(), **args): (n, s)
-            for n, s in jobs
-        }
-        remaining = set(futures)
-        try:
-            while remaining:
-                done, remaining = wait(remaining, timeout=0.5, return_when=FIRST_COMPLETED)
-                watch.poll()
-                for f in done:
-                    f.result()  # re-raise a job's error here
-        except BaseException:
-            for f in remaining:
-                f.cancel()
-            raise
+    stop = watch.run_dir.path / STOP_FILE
+    stop.unlink(missing_ok=True)  # left by a study that was killed while stopping
+    pool = ProcessPoolExecutor(
+        max_workers=min(workers, len(jobs)),
+        mp_context=ctx,
+        initializer=interrupts.init_worker,
+        initargs=(os.getpid(), str(stop)),
+    )
+    futures = {
+        pool.submit(run_job, learner_name=n, seed=s, parent_pid=os.getpid(), **args): (n, s)
+        for n, s in jobs
+    }
+    remaining = set(futures)
+    try:
+        while remaining:
+            done, remaining = wait(remaining, timeout=0.5, return_when=FIRST_COMPLETED)
+            watch.poll()
+            for f in done:
+                f.result()  # re-raise a job's error here
+    except BaseException:
+        with interrupts.deferred():
+            try:
+                _stop_pool(pool, stop, remaining)
+            finally:
+                stop.unlink(missing_ok=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+STOP_TIMEOUT_S = 10.0  # how long stopped workers may take to finish their current MPC step
+STOP_FILE = ".stop"  # in the run directory while the study stops its workers
+
+
+def _stop_pool(pool, stop, remaining) -> None:
+    """Stop the workers: cancel what has not started, tell the busy ones to stop (their jobs
+    end at the end of the current MPC step, with everything finished checkpointed), wait for
+    their jobs to report, then end the worker processes. They are killed rather than waited
+    for: a worker's interpreter takes seconds to tear down (torch, CasADi), and all it has to
+    keep is already on disk (checkpoints and the log are written whole)."""
+    from concurrent.futures import wait
+
+    stop.touch()
+    for f in remaining:
+        f.cancel()
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    wait(remaining, timeout=STOP_TIMEOUT_S)
+    for p in processes:
+        p.kill()
+    for p in processes:
+        p.join(timeout=STOP_TIMEOUT_S)
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _run_ray(jobs, args, workers: int, watch: _Watch) -> None:
@@ -355,8 +423,14 @@ def _run_ray(jobs, args, workers: int, watch: _Watch) -> None:
         ray.init(num_cpus=workers, include_dashboard=False, ignore_reinit_error=True)
     remote = ray.remote(num_cpus=1)(run_job)
     refs = [remote.remote(learner_name=n, seed=s, **args) for n, s in jobs]
-    while refs:
-        ready, refs = ray.wait(refs, timeout=0.5)
-        watch.poll()
-        for r in ready:
-            ray.get(r)
+    try:
+        while refs:
+            ready, refs = ray.wait(refs, timeout=0.5)
+            watch.poll()
+            for r in ready:
+                ray.get(r)
+    except BaseException:
+        with interrupts.deferred():
+            for r in refs:  # checkpoints are atomic: a killed task loses its episode only
+                ray.cancel(r, force=True)
+        raise
