@@ -13,11 +13,10 @@ state where an input bound and a slack are active.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import scipy.linalg
+from cstr_reference import hand_rk4
 
 from mpcmobo.experiment.settings import MPCSettings
 from mpcmobo.mpc import ParametricMPC
@@ -30,33 +29,6 @@ from mpcmobo.systems.parameterization import MPCSpec
 X_LOW_T = np.array([98.091, 0.069, 407.26])
 # qc at its upper bound 140, qs inside its bounds, a slack active (cold solve at step 0)
 X_HOT = np.array([93.04, 0.206, 455.697])
-
-
-def _paper_rhs(x, u, mult):
-    """eq. (CSTR_model) with the multipliers of eq. (CSTR_Wrongmodel), Table 1, in numpy."""
-    V, Ca, T = x
-    qs, qc = u
-    qo, Cao, To, Tco = 100.0, 1.0, 350.0, 350.0
-    dH, rhoCp, k0, ER, rhocCpc, hA = -2e5, 1000.0, 7.2e10, 1e4, 1000.0, 7e5
-    k1, k2, k3 = -dH * k0 / rhoCp, rhocCpc / rhoCp, hA / rhocCpc
-    r = math.exp(-ER / T)
-    return np.array(
-        [
-            qo - qs,
-            mult[0] * qo / V * (Cao - Ca) - mult[1] * k0 * r * Ca,
-            qo / V * (To - T)
-            + mult[2] * k1 * r * Ca
-            + mult[3] * k2 * qc / V * (1 - math.exp(-mult[4] * k3 / qc)) * (Tco - T),
-        ]
-    )
-
-
-def _hand_rk4(x, u, mult, dt=0.05):
-    k1 = _paper_rhs(x, u, mult)
-    k2 = _paper_rhs(x + dt / 2 * k1, u, mult)
-    k3 = _paper_rhs(x + dt / 2 * k2, u, mult)
-    k4 = _paper_rhs(x + dt * k3, u, mult)
-    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
 def _blocks(system, theta):
@@ -174,7 +146,7 @@ def test_plan_follows_a_hand_rk4_of_the_imperfect_model(cstr, study_mpc, x0):
     assert sol.success
     mult = (1.1, 1.2, 1.15, 0.9, 1.2)  # eq. (CSTR_Wrongmodel)
     for i in range(study_mpc.N):
-        pred = _hand_rk4(sol.plan_x[i], sol.plan_u[i], mult)
+        pred = hand_rk4(sol.plan_x[i], sol.plan_u[i], mult)
         # equality constraints hold to IPOPT's tolerance in scaled units (half the box)
         err = np.abs(sol.plan_x[i + 1] - pred) / cstr.x_scale
         assert np.all(err < 1e-7), (i, err)

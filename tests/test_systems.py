@@ -6,46 +6,20 @@ import pickle
 
 import numpy as np
 import pytest
+from cstr_reference import hand_rk4, paper_rhs
 
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import SearchSpace, System, get_system, register_system
-
-
-def _paper_rhs(x, u, mult=(1, 1, 1, 1, 1)):
-    """eq. (CSTR_model) / (CSTR_Wrongmodel) written out with Table 1, independently of casadi."""
-    V, Ca, T = x
-    qs, qc = u
-    qo, Cao, To, Tco = 100.0, 1.0, 350.0, 350.0
-    dH, rhoCp, k0, ER, rhocCpc, hA = -2e5, 1000.0, 7.2e10, 1e4, 1000.0, 7e5
-    k1, k2, k3 = -dH * k0 / rhoCp, rhocCpc / rhoCp, hA / rhocCpc
-    r = math.exp(-ER / T)
-    return np.array(
-        [
-            qo - qs,
-            mult[0] * qo / V * (Cao - Ca) - mult[1] * k0 * r * Ca,
-            qo / V * (To - T)
-            + mult[2] * k1 * r * Ca
-            + mult[3] * k2 * qc / V * (1 - math.exp(-mult[4] * k3 / qc)) * (Tco - T),
-        ]
-    )
-
-
-def _rk4(x, u, dt=0.05, mult=(1, 1, 1, 1, 1)):
-    k1 = _paper_rhs(x, u, mult)
-    k2 = _paper_rhs(x + dt / 2 * k1, u, mult)
-    k3 = _paper_rhs(x + dt / 2 * k2, u, mult)
-    k4 = _paper_rhs(x + dt * k3, u, mult)
-    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
 def test_plant_matches_hand_written_rk4(cstr, rng):
     for _ in range(20):
         x = rng.uniform([90, 0.0, 400], [110, 0.35, 480])
         u = rng.uniform([55, 55], [140, 140])
-        np.testing.assert_allclose(cstr.plant_step(x, u), _rk4(x, u), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(cstr.plant_step(x, u), hand_rk4(x, u), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(
             cstr.model_step(x, u, "imperfect"),
-            _rk4(x, u, mult=(1.1, 1.2, 1.15, 0.9, 1.2)),
+            hand_rk4(x, u, mult=(1.1, 1.2, 1.15, 0.9, 1.2)),
             rtol=1e-12,
             atol=1e-12,
         )
@@ -53,7 +27,7 @@ def test_plant_matches_hand_written_rk4(cstr, rng):
 
 def test_reference_is_not_an_equilibrium_but_the_noted_point_is(cstr):
     # NOTES.md: with V=105, q_s=100, q_c=110 the equilibrium is C_a=0.1181, T=434.07
-    d = _paper_rhs(np.array([105, 0.12, 433.0]), np.array([100, 110.0]))
+    d = paper_rhs(np.array([105, 0.12, 433.0]), np.array([100, 110.0]))
     assert d[1] == pytest.approx(0.032, abs=2e-3) and d[2] == pytest.approx(-4.55, abs=0.05)
     x = np.array([105, 0.1181, 434.07])
     for _ in range(100):

@@ -1,0 +1,35 @@
+"""The CSTR of the paper written out in numpy, independently of CasADi (tests only)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def paper_rhs(x, u, mult=(1, 1, 1, 1, 1)):
+    """eq. (CSTR_model) / (CSTR_Wrongmodel) written out with Table 1, independently of casadi."""
+    V, Ca, T = x
+    qs, qc = u
+    qo, Cao, To, Tco = 100.0, 1.0, 350.0, 350.0
+    dH, rhoCp, k0, ER, rhocCpc, hA = -2e5, 1000.0, 7.2e10, 1e4, 1000.0, 7e5
+    k1, k2, k3 = -dH * k0 / rhoCp, rhocCpc / rhoCp, hA / rhocCpc
+    r = math.exp(-ER / T)
+    return np.array(
+        [
+            qo - qs,
+            mult[0] * qo / V * (Cao - Ca) - mult[1] * k0 * r * Ca,
+            qo / V * (To - T)
+            + mult[2] * k1 * r * Ca
+            + mult[3] * k2 * qc / V * (1 - math.exp(-mult[4] * k3 / qc)) * (Tco - T),
+        ]
+    )
+
+
+def hand_rk4(x, u, mult=(1, 1, 1, 1, 1), dt=0.05):
+    """One classical RK4 step of :func:`paper_rhs` (dt = 0.05 min, Table 1)."""
+    k1 = paper_rhs(x, u, mult)
+    k2 = paper_rhs(x + dt / 2 * k1, u, mult)
+    k3 = paper_rhs(x + dt / 2 * k2, u, mult)
+    k4 = paper_rhs(x + dt * k3, u, mult)
+    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
