@@ -4,18 +4,23 @@ For every state of a few 60-step closed-loop CSTR episodes, this times
 
 * each variant of our :class:`mpcmobo.mpc.ParametricMPC` (``mpc.solve(x, theta0,
   sensitivities=True)``: the solve, dpi/dtheta and dV/dtheta), and
-* a BASELINE built in the same run: a plain CasADi ``Opti`` + IPOPT formulation of the same
-  MPC (horizon N, gamma, the cost of section 5 at theta0, l1 slacks with Gamma = 1e5 on the
-  state bounds, input bounds, the RK4 model of the imperfect plant, physical unscaled
-  variables, default IPOPT options except ``print_level 0``). ``opti.solve()`` alone is timed,
-  no sensitivities. Its initial guess is the previous step's primal solution (unshifted) via
-  ``opti.set_initial``; at the first step of an episode, the current state for every predicted
-  state and ``u_ref`` for every input.
+* the BASELINE built in the same run, the reference of every ratio: the same MPC (horizon N,
+  gamma, the cost of section 5 at theta0, l1 slacks with Gamma = 1e5 on the state bounds, input
+  bounds, the RK4 model of the imperfect plant, physical unscaled variables) written as a CasADi
+  expert would: ``casadi.Opti`` with its functions expanded to SX (``"expand": True``), called
+  through ``Opti.to_function``, IPOPT with the tolerances of our MPC (``tol``, ``acceptable_tol``)
+  and otherwise its defaults. The solve call alone is timed, no sensitivities. Its initial
+  guess is the previous step's primal solution (unshifted); at the first step of an episode,
+  the current state for every predicted state and ``u_ref`` for every input, zero slacks.
+* ``baseline_mx``, an extra row: the same ``Opti`` problem with MX function graphs, called
+  through ``opti.solve()`` (the baseline of issue 2, which made the ratios look 4-5x larger).
 
 The measurements of all variants and the baseline are interleaved state by state (the order
 rotates each step), so load from other processes on the shared machine hits them alike. The
 plant is stepped with the first variant's action, so every solver sees the same states.
-Reported: median and 95th percentile per variant, and the ratio baseline median / ours median.
+Reported: median and 95th percentile per row; ``ratio`` = baseline median / variant median
+(on a baseline row: that baseline's median / the first variant's median), ``ratio_mx`` the
+same against ``baseline_mx``.
 
     .venv/bin/python benchmarks/step_time.py            # 4 episodes x 60 steps
     .venv/bin/python benchmarks/step_time.py --quick    # 1 episode x 20 steps
@@ -24,6 +29,7 @@ Reported: median and 95th percentile per variant, and the ratio baseline median 
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import platform
 import time
@@ -35,11 +41,22 @@ from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import get_system
 from mpcmobo.systems.base import rk4_step
 
+# the IPOPT tolerances of our MPC (ParametricMPC's default tol; acceptable_tol as it derives it)
+TOL = inspect.signature(ParametricMPC).parameters["tol"].default
+ACCEPTABLE_TOL = max(1e-6, 100 * TOL)
+
 
 class OptiBaseline:
-    """The same MPC as a plain ``casadi.Opti`` problem in physical units, default IPOPT."""
+    """The same MPC as a plain ``casadi.Opti`` problem in physical units.
 
-    def __init__(self, s, model: str = "imperfect", warm: bool = True) -> None:
+    ``expand=True``: the NLP functions are expanded to SX (``opti.solver("ipopt", {"expand":
+    True})``) and the solve is one call of ``opti.to_function`` (what a CasADi expert writes; the
+    reference). ``expand=False``: MX function graphs, called through ``opti.solve()`` (the
+    baseline of issue 2, kept as an extra row). IPOPT: the tolerances of our MPC (``tol`` 1e-8,
+    ``acceptable_tol`` 1e-6, which are also IPOPT's defaults), otherwise IPOPT's defaults.
+    """
+
+    def __init__(self, s, model: str = "imperfect", warm: bool = True, expand: bool = True) -> None:
         mpc_spec = s.mpc_spec
         N, gamma = mpc_spec.horizon, mpc_spec.gamma
         nx, nu = s.nx, s.nu
@@ -78,15 +95,24 @@ class OptiBaseline:
                 cost += ca.dot(ca.DM(G[:nx]), dx)
                 cost += gamma**N * (ca.dot(dx, Tw * dx) + ca.dot(ca.DM(Gamma_f), E[:, i]))
         opti.minimize(cost)
-        opti.solver("ipopt", {"print_time": False}, {"print_level": 0})
+        opti.solver(
+            "ipopt",
+            {"print_time": False, "show_eval_warnings": False, "expand": expand},
+            {"print_level": 0, "sb": "yes", "tol": TOL, "acceptable_tol": ACCEPTABLE_TOL},
+        )
         self.opti, self.X, self.U, self.E, self.x0 = opti, X, U, E, x0
+        self.expand = expand
+        # expanded: x0 and the initial guess in, the solution out, one Function call
+        self._fn = opti.to_function("baseline", [x0, X, U, E], [X, U, E]) if expand else None
         self._prev = None
 
     def reset(self) -> None:
         self._prev = None
 
     def solve(self, x):
-        """Returns (wall time of opti.solve(), success, iterations, first input)."""
+        """Returns (wall time of the solve call, success, iterations, first input)."""
+        if self.expand:
+            return self._solve_function(x)
         opti = self.opti
         opti.set_value(self.x0, x)
         if self.warm and self._prev is not None:
@@ -110,6 +136,28 @@ class OptiBaseline:
         u0 = np.asarray(sol.value(self.U[:, 0])).reshape(-1) if ok else None
         return dt, ok, int(stats.get("iter_count", 0)), u0
 
+    def _solve_function(self, x):
+        if self.warm and self._prev is not None:
+            guess = self._prev  # the previous step's primal solution, unshifted
+        else:
+            guess = (
+                np.tile(x[:, None], (1, self.N + 1)),
+                np.tile(self.s.u_ref[:, None], (1, self.N)),
+                np.zeros((self.s.nx, self.N + 1)),
+            )
+        t0 = time.perf_counter()
+        try:
+            out = self._fn(x, *guess)
+            raised = False
+        except RuntimeError:
+            raised = True
+        dt = time.perf_counter() - t0
+        stats = self._fn.stats()
+        ok = not raised and bool(stats.get("success", False))
+        self._prev = tuple(np.asarray(o) for o in out) if ok else None
+        u0 = self._prev[1][:, 0].copy() if ok else None
+        return dt, ok, int(stats.get("iter_count", 0)), u0
+
 
 # name -> ParametricMPC options; the first one drives the closed loop.
 VARIANTS: dict[str, dict] = {
@@ -121,11 +169,22 @@ VARIANTS: dict[str, dict] = {
 }
 
 
+# name -> OptiBaseline options; "baseline" is the reference of every ratio.
+BASELINES: dict[str, dict] = {
+    "baseline": {"expand": True},  # SX, Opti.to_function, warm: the expert's formulation
+    "baseline_mx": {"expand": False},  # MX, opti.solve(), warm: the baseline of issue 2
+}
+_BASELINE_LABELS = {
+    "baseline": "Opti, expand=True (SX), Opti.to_function, our tolerances",
+    "baseline_mx": "Opti, MX, opti.solve(), our tolerances (the issue-2 baseline)",
+}
+
+
 def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> dict:
     s = get_system("cstr")
     mpcs = {name: ParametricMPC(s, "imperfect", **opts) for name, opts in variants.items()}
-    base = OptiBaseline(s)
-    names = [*mpcs, "baseline"]
+    bases = {name: OptiBaseline(s, **opts) for name, opts in BASELINES.items()}
+    names = [*mpcs, *bases]
     times = {n: [] for n in names}
     iters = {n: [] for n in names}
     fails = {n: 0 for n in names}
@@ -134,23 +193,25 @@ def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> 
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
     theta0 = next(iter(mpcs.values())).theta0
     first = names[0]
-    # one untimed solve per variant (first-call allocations)
+    # one untimed solve per variant and baseline (first-call allocations)
     for m in mpcs.values():
         m.solve(x0s[0], theta0, sensitivities=True)
         m.reset()
-    base.solve(x0s[0])
-    base.reset()
+    for b in bases.values():
+        b.solve(x0s[0])
+        b.reset()
     for x0 in x0s:
         for m in mpcs.values():
             m.reset()
-        base.reset()
+        for b in bases.values():
+            b.reset()
         x = x0.copy()
         for k in range(steps):
             order = names[k % len(names) :] + names[: k % len(names)]
             actions = {}
             for n in order:
-                if n == "baseline":
-                    dt, ok, it, u0 = base.solve(x)
+                if n in bases:
+                    dt, ok, it, u0 = bases[n].solve(x)
                     actions[n] = u0
                 else:
                     t0 = time.perf_counter()
@@ -166,18 +227,22 @@ def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> 
                 for n in mpcs:
                     du[n].append(float(np.max(np.abs(actions[n] - actions["baseline"]))))
             x = s.plant_step(x, actions[first])
+    med = {n: float(np.median(times[n])) for n in names}
     res = {}
-    tb = np.array(times["baseline"]) * 1e3
     for n in names:
         t = np.array(times[n]) * 1e3
+        if n in bases:  # this baseline's solve / our first variant's step
+            ratio = {"ratio": med[n] / med[first]}
+        else:  # a baseline's solve / this variant's step
+            ratio = {"ratio": med["baseline"] / med[n], "ratio_mx": med["baseline_mx"] / med[n]}
         res[n] = {
             "median_ms": float(np.median(t)),
             "p95_ms": float(np.percentile(t, 95)),
             "mean_iters": float(np.mean(iters[n])),
             "failures": int(fails[n]),
-            "ratio": float(np.median(tb) / np.median(t)),
+            **ratio,
             "max_du_vs_baseline": float(np.max(du[n])) if n in du and du[n] else None,
-            "variant": variants.get(n, "Opti + IPOPT defaults"),
+            "variant": variants.get(n, _BASELINE_LABELS.get(n)),
         }
     return res
 
@@ -200,12 +265,21 @@ def main(argv=None) -> None:
         f"CSTR, {episodes} episode(s) x {steps} steps, casadi {ca.__version__}, "
         f"{platform.machine()}, python {platform.python_version()}"
     )
-    hdr = f"{'variant':<22} {'median ms':>10} {'p95 ms':>8} {'iters':>6} {'fail':>5} {'ratio':>6}"
+    first = next(iter(variants))
+    print(
+        f"ratio: baseline median / variant median; on a baseline row: that baseline's median / "
+        f"{first!r} median. ratio_mx: the same against baseline_mx"
+    )
+    hdr = (
+        f"{'variant':<22} {'median ms':>10} {'p95 ms':>8} {'iters':>6} {'fail':>5} "
+        f"{'ratio':>6} {'ratio_mx':>8}"
+    )
     print(hdr)
     for n, r in res.items():
+        rmx = f"{r['ratio_mx']:>8.2f}" if "ratio_mx" in r else f"{'':>8}"
         print(
             f"{n:<22} {r['median_ms']:>10.2f} {r['p95_ms']:>8.2f} {r['mean_iters']:>6.1f} "
-            f"{r['failures']:>5d} {r['ratio']:>6.2f}"
+            f"{r['failures']:>5d} {r['ratio']:>6.2f} {rmx}"
         )
     if args.json:
         with open(args.json, "w") as fh:
