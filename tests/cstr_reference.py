@@ -1,4 +1,5 @@
-"""The CSTR of the paper written out in numpy, independently of CasADi (tests only)."""
+"""Independent references for the tests: the CSTR of the paper written out in numpy (no CasADi),
+and central finite differences of an MPC's policy and value in theta."""
 
 from __future__ import annotations
 
@@ -33,3 +34,20 @@ def hand_rk4(x, u, mult=(1, 1, 1, 1, 1), dt=0.05):
     k3 = paper_rhs(x + dt / 2 * k2, u, mult)
     k4 = paper_rhs(x + dt * k3, u, mult)
     return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def fd_sensitivities(mpc, x, theta, rel_step=1e-5):
+    """Central differences of the MPC's first input and value in each theta coordinate (step
+    ``rel_step * max(1, |theta_i|)``), solved without sensitivities: (dpi (n_theta, nu), dV)."""
+    theta = np.asarray(theta, dtype=float)
+    dpi = np.zeros((theta.size, mpc.system.nu))
+    dV = np.zeros(theta.size)
+    for i in range(theta.size):
+        h = rel_step * max(1.0, abs(theta[i]))
+        tp, tm = theta.copy(), theta.copy()
+        tp[i] += h
+        tm[i] -= h
+        sp, sm = mpc.solve(x, tp, False), mpc.solve(x, tm, False)
+        dpi[i] = (sp.action - sm.action) / (2 * h)
+        dV[i] = (sp.value - sm.value) / (2 * h)
+    return dpi, dV

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cstr_reference import fd_sensitivities
 
 from mpcmobo.experiment.loop import LearningRun
 from mpcmobo.experiment.settings import MPCSettings, load_settings
@@ -151,16 +152,7 @@ def test_sensitivities_with_warm_start_at_study_tolerance(cstr):
     assert cstr.u_lb[0] + 1 < sol.action[0] < cstr.u_ub[0] - 1  # q_s inside
 
     ref = ParametricMPC(cstr, model="imperfect", warm_start=False, tol=1e-10)
-    dpi = np.zeros((study.n_theta, cstr.nu))
-    dV = np.zeros(study.n_theta)
-    for i in range(study.n_theta):
-        h = 1e-5 * max(1.0, abs(th[i]))
-        tp, tm = th.copy(), th.copy()
-        tp[i] += h
-        tm[i] -= h
-        sp, sm = ref.solve(x, tp, False), ref.solve(x, tm, False)
-        dpi[i] = (sp.action - sm.action) / (2 * h)
-        dV[i] = (sp.value - sm.value) / (2 * h)
+    dpi, dV = fd_sensitivities(ref, x, th)
     scale_pi = np.abs(dpi).max(axis=0)
     assert scale_pi[0] > 1e-2 and scale_pi[1] < 1e-6  # the bound input barely moves
     assert np.all(np.abs(sol.dpi_dtheta - dpi) <= 1e-4 * scale_pi + 1e-9)

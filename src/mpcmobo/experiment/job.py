@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
+from mpcmobo.bo.context import ContextSpec
 from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.logs import run_log
@@ -27,7 +28,7 @@ from mpcmobo.experiment.loop import LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
 from mpcmobo.experiment.settings import Settings, build_system, validate_settings
-from mpcmobo.learners import make_learner
+from mpcmobo.learners import Learner, make_learner
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import register_system
@@ -229,16 +230,20 @@ class Job:
         }
 
 
+def make_study_learner(
+    settings: Settings, system: System, name: str, theta0: np.ndarray, seed: int
+) -> Learner:
+    """The learner ``name`` with the study's options for it, and the system's initial-state
+    distribution as its contexts (issue 11; used only by learners with ``context = "x0"``)."""
+    options = settings.learner_options.get(name, {})
+    contexts = ContextSpec.from_system(system)
+    return make_learner(name, system.search_space, theta0, seed=seed, contexts=contexts, **options)
+
+
 def _learning_run(settings: Settings, system: System, learner: str, seed: int) -> LearningRun:
     """The job's learning run: the learner tunes the imperfect-model MPC (eq. V0)."""
     mpc = ParametricMPC(system, model="imperfect", **settings.mpc.options())
-    options = settings.learner_options.get(learner, {})
-    from mpcmobo.bo.context import ContextSpec  # the initial state as a context (issue 11)
-
-    contexts = ContextSpec.from_system(system)
-    tuner = make_learner(
-        learner, system.search_space, mpc.theta0, seed=seed, contexts=contexts, **options
-    )
+    tuner = make_study_learner(settings, system, learner, mpc.theta0, seed)
     return LearningRun(
         system,
         tuner,

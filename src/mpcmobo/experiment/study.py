@@ -24,12 +24,12 @@ import numpy as np
 
 from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
-from mpcmobo.experiment.job import Progress, progress_event, run_job
+from mpcmobo.experiment.job import Progress, make_study_learner, progress_event, run_job
 from mpcmobo.experiment.logs import count_warnings, run_log
 from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
 from mpcmobo.experiment.settings import Settings, SettingsError, build_system
-from mpcmobo.learners.registry import LEARNER_SPECS, make_learner
+from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems.registry import system_factory
 
 # relative cost per episode of a learner's job, to start the slowest jobs first
@@ -58,14 +58,10 @@ def system_info(system) -> dict:
 def check_learners(settings: Settings) -> None:
     """Every learner accepts its options (else a SettingsError naming them)."""
     system = build_system(settings)
-    space, theta0 = system.search_space, system.parameterization.theta0
-    from mpcmobo.bo.context import ContextSpec  # the initial state as a context (issue 11)
-
-    ctx = ContextSpec.from_system(system)
+    theta0 = system.parameterization.theta0
     for name in settings.learners:
         try:
-            options = settings.learner_options.get(name, {})
-            make_learner(name, space, theta0, seed=0, contexts=ctx, **options)
+            make_study_learner(settings, system, name, theta0, seed=0)
         except (TypeError, ValueError) as err:
             raise SettingsError(f"learner_options.{name}: {err}") from None
 
