@@ -287,6 +287,9 @@ VARIANTS: dict[str, dict] = {
     "hess_lbfgs": {"solver_options": {"hessian_approximation": "limited-memory"}},
     "codegen": {"codegen": True},  # generated C, compiled once per machine, cached on disk
     "codegen_adaptive": {"codegen": True, "warm_options": {"mu_strategy": "adaptive"}},
+    # warm solves: up to 6 Newton steps on the barrier KKT system first, IPOPT if they fail
+    "newton": {"newton_steps": 6},
+    "codegen_newton": {"codegen": True, "newton_steps": 6},
     "jit": {"jit": True},  # CasADi's jit: compiled C, compiled again at every build
 }
 # run by default (jit: a 20-45 s compile at every build; codegen does the same, cached)
@@ -306,8 +309,8 @@ _BASELINE_LABELS = {
 
 
 class _Components:
-    """Wall time of an MPC's IPOPT calls, of its sensitivities and of IPOPT's function
-    evaluations (its own statistics) during one ``solve``."""
+    """Wall time of an MPC's solver calls (IPOPT and Newton steps), of its sensitivities and of
+    IPOPT's function evaluations (its own statistics) during one ``solve``."""
 
     def __init__(self, mpc: ParametricMPC) -> None:
         self.solver = self.sens = self.fun = 0.0
@@ -328,7 +331,17 @@ class _Components:
             finally:
                 self.sens += time.perf_counter() - t0
 
+        newton_solve = mpc._newton_solve
+
+        def timed_newton(*args):
+            t0 = time.perf_counter()
+            try:
+                return newton_solve(*args)
+            finally:
+                self.solver += time.perf_counter() - t0
+
         mpc._run_solver, mpc._sensitivities = timed_run, timed_sens
+        mpc._newton_solve = timed_newton
 
     def take(self) -> tuple[float, float, float]:
         out = (self.solver, self.sens, self.fun)
@@ -478,12 +491,12 @@ def main(argv=None) -> None:
         f"{first!r} median. ratio_mx: the same against baseline_mx"
     )
     print(
-        "components (medians, ms): ipopt = the IPOPT calls, of which fun = IPOPT's function "
-        "evaluations; sens = both sensitivities; other = the rest of the step (Python)"
+        "components (medians, ms): solver = IPOPT calls and Newton steps, fun = IPOPT's "
+        "function evaluations; sens = both sensitivities; other = the rest of the step (Python)"
     )
     hdr = (
         f"{'variant':<18} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
-        f"{'ratio':>6} {'ratio_mx':>8} {'du_first':>9} {'ipopt':>6} {'fun':>6} {'sens':>6} "
+        f"{'ratio':>6} {'ratio_mx':>8} {'du_first':>9} {'solver':>6} {'fun':>6} {'sens':>6} "
         f"{'other':>6} {'build s':>7}"
     )
     print(hdr)

@@ -330,16 +330,18 @@ class ParametricMPC:
         self._newton_fn = self._newton_function(wv, y, p, R, Jy, H, f, kkt_opts)
 
     def _newton_function(self, wv, y, p, R, Jy, H, f, opts) -> ca.Function:
-        """(y, p) -> (y + a dy, |R(y)|_inf, f(y), max H(y), min mu): one Newton step on the
-        barrier KKT system, ``dR/dy dy = -R``, with the fraction-to-boundary rule ``a <= 1``:
-        ``mu + a dmu`` and (to first order) ``H + a dH`` keep 0.5 % of their distance to 0."""
+        """(y, p) -> (y+ = y + a dy, |R(y)|_inf, |R(y+)|_inf, f(y+), max H(y+), min mu+): one
+        Newton step on the barrier KKT system, ``dR/dy dy = -R``, with the fraction-to-boundary
+        rule ``a <= 1``: ``mu + a dmu`` and (to first order) ``H + a dH`` keep 0.5 % of their
+        distance to 0; and the residual at the new point, so that no step is taken in vain."""
         nw, neq = self.nw, self.neq
         dw = ca.SX.sym("dw", self.nw)
-        res = ca.Function("newton_res", [y, p], [R, Jy, H, f], opts)
+        res = ca.Function("newton_res", [y, p], [R, Jy, H], opts)
+        point = ca.Function("newton_point", [y, p], [ca.norm_inf(R), f, ca.mmax(H)], opts)
         dH = ca.Function("newton_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)], opts)
         Y = ca.MX.sym("y", self._ny)
         P = ca.MX.sym("p", p.numel())
-        Rv, J, Hv, fv = res(Y, P)
+        Rv, J, Hv = res(Y, P)
         dy = ca.solve(J, -Rv, self._linsol)
         mu, dmu = Y[nw + neq :], dy[nw + neq :]
         dHv = dH(Y[:nw], P, dy[:nw])
@@ -347,7 +349,9 @@ class ParametricMPC:
         a_mu = ca.mmin(ca.if_else(dmu < 0, -mu / dmu, big))
         a_H = ca.mmin(ca.if_else(dHv > 0, -Hv / dHv, big))
         a = ca.fmin(1.0, 0.995 * ca.fmin(a_mu, a_H))
-        out = [Y + a * dy, ca.norm_inf(Rv), fv, ca.mmax(Hv), ca.mmin(mu)]
+        Y1 = Y + a * dy
+        res1, f1, h1 = point(Y1, P)
+        out = [Y1, ca.norm_inf(Rv), res1, f1, h1, ca.mmin(Y1[nw + neq :]), ca.mmax(Hv)]
         return ca.Function("newton", [Y, P], out)
 
     def _sensitivity_function(self, linsol: str) -> ca.Function:
@@ -506,20 +510,20 @@ class ParametricMPC:
         w = prev["w_shift"]
         lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
         y = np.concatenate([w, lam, mu])
-        res_prev = np.inf
-        for k in range(self._newton + 1):
+        if not np.all(mu > 0):
+            return None
+        for k in range(1, self._newton + 1):
             y_next, *scalars = self._newton_fn(y, p)
-            res, f, h_max, mu_min = (float(v) for v in scalars)
+            res0, res, f, h_max, mu_min, h0_max = (float(v) for v in scalars)
             # not interior (the new state violates a row of the old plan), not converging
-            # (the residual does not fall tenfold per step from the 2nd step on), or out of steps
-            if not (h_max < 0 and mu_min > 0 and np.isfinite(res)):
+            # (from the 2nd step on, the residual must fall tenfold per step), or out of steps
+            if not (h0_max < 0 and h_max < 0 and mu_min > 0 and np.isfinite(res)):
                 return None
+            y = np.asarray(y_next).reshape(-1)
             if res <= self._tol:
                 break
-            if k == self._newton or (k >= 2 and res > 0.1 * res_prev):
+            if k == self._newton or (k >= 2 and res > 0.1 * res0):
                 return None
-            res_prev = res
-            y = np.asarray(y_next).reshape(-1)
         nw, neq = self.nw, self.neq
         w, lam, mu = y[:nw], y[nw : nw + neq], y[nw + neq :]
         mu_g, n_lb = mu[: self.nin], len(self._lb_idx)
