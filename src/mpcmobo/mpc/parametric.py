@@ -121,7 +121,7 @@ class ParametricMPC:
         ``R(y, p) = 0`` from the shifted previous solution (fraction-to-boundary steps that keep
         ``H < 0`` and ``mu > 0``). Accepted only when ``|R|_inf <= tol`` at a strictly interior
         point: then it is the barrier solution IPOPT stops at, to its tolerance; otherwise IPOPT
-        solves as without it. 0 (default): always IPOPT.
+        solves as without it. 0: always IPOPT.
     """
 
     def __init__(
@@ -142,7 +142,7 @@ class ParametricMPC:
         linsol: str = "qr",
         codegen: bool = False,
         cache_dir: str | os.PathLike | None = None,
-        newton_steps: int = 0,
+        newton_steps: int = 6,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
