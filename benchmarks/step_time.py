@@ -14,6 +14,17 @@ For every state of a few 60-step closed-loop CSTR episodes, this times
   the current state for every predicted state and ``u_ref`` for every input, zero slacks.
 * ``baseline_mx``, an extra row: the same ``Opti`` problem with MX function graphs, called
   through ``opti.solve()`` (the baseline of issue 2, which made the ratios look 4-5x larger).
+* ``mpcrl``, a peer row (``pip install 'mpcmobo[bench]'``, skipped without it): the same MPC
+  in ``mpcrl`` 1.4.1 driven by its ``LstdDpgAgent`` (:class:`MpcrlPeer`): its solve plus its
+  dpi/dtheta per step.
+
+For our variants the step is split into components: the solver (IPOPT calls and Newton steps;
+of the IPOPT calls, IPOPT's own function-evaluation time from its statistics), the two
+sensitivities, and the rest (Python); ``build_s`` is the construction time of the MPC (with
+``codegen``, the first build in a run compiles into an empty cache directory, the second one
+loads the library: set ``MPCMOBO_CACHE_DIR`` to a new directory to see both).
+``du_first`` is the largest |action - the first variant's action| over all steps: the same
+policy gives about 1e-7, a different local solution in the constraint-violating phases tens.
 
 The measurements of all variants and the baseline are interleaved state by state (the order
 rotates each step), so load from other processes on the shared machine hits them alike. The
@@ -24,6 +35,7 @@ same against ``baseline_mx``.
 
     .venv/bin/python benchmarks/step_time.py            # 4 episodes x 60 steps
     .venv/bin/python benchmarks/step_time.py --quick    # 1 episode x 20 steps
+    .venv/bin/python benchmarks/step_time.py --variants default jit --no-peers
 """
 
 from __future__ import annotations
