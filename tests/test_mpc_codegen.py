@@ -2,6 +2,7 @@
 
 import multiprocessing
 import os
+import shutil
 import subprocess
 
 import numpy as np
@@ -11,6 +12,10 @@ from cstr_reference import fd_sensitivities
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.mpc import codegen as cg
 from mpcmobo.systems import get_system
+
+needs_cc = pytest.mark.skipif(
+    shutil.which(cg.compiler_command()[0]) is None, reason="no C compiler ($CC or cc)"
+)
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +43,7 @@ def _theta(mpc, rng):
     return th
 
 
+@needs_cc
 def test_compiled_mpc_gives_the_interpreted_numbers(lq, lq_pair):
     interp, compiled = lq_pair
     assert compiled.build_info["codegen"] and compiled.build_info["path"].endswith(".so")
@@ -52,6 +58,7 @@ def test_compiled_mpc_gives_the_interpreted_numbers(lq, lq_pair):
         np.testing.assert_allclose(b.dV_dtheta, a.dV_dtheta, rtol=1e-8, atol=1e-12)
 
 
+@needs_cc
 def test_compiled_sensitivities_match_central_differences(lq, lq_pair):
     _, mpc = lq_pair
     rng = np.random.default_rng(5)
@@ -62,6 +69,7 @@ def test_compiled_sensitivities_match_central_differences(lq, lq_pair):
     np.testing.assert_allclose(sol.dV_dtheta, dV, rtol=1e-4, atol=1e-6 * np.abs(dV).max())
 
 
+@needs_cc
 def test_second_build_loads_the_cached_library(lq, lq_pair, cache, monkeypatch):
     _, first = lq_pair
     path = first.build_info["path"]
@@ -87,6 +95,7 @@ def _build(cache_dir):
     return mpc.build_info["path"], bool(sol.success), sol.action.tolist()
 
 
+@needs_cc
 def test_concurrent_builds_share_one_library(tmp_path):
     # two processes build the same MPC at the same time: both load a complete library
     with multiprocessing.get_context("spawn").Pool(2) as pool:

@@ -29,6 +29,11 @@ simple bounds). ``R`` is smooth across active-set changes and ``dR/dy`` stays in
     d V  / d theta = d Lagr / d theta at the solution                                  (grad V)
 
 and the finite differences of the solver's own outputs agree with them.
+
+The same residual gives a fast path for warm solves (``newton_steps``): from the shifted
+previous solution, Newton steps ``dR/dy dy = -R`` with a fraction-to-boundary rule reach the
+root of ``R`` in 3-4 steps when the active set does not change; accepted at ``|R| <= tol`` at a
+strictly interior point, it is the point IPOPT stops at, and IPOPT solves otherwise.
 """
 
 from __future__ import annotations
@@ -109,8 +114,8 @@ class ParametricMPC:
         fastest measured, ``"csparse"``, ...), used in one adjoint solve inside a single CasADi
         function.
     codegen:
-        Use generated C code for IPOPT's NLP functions and for the sensitivity function,
-        compiled once per machine and problem and cached on disk (``mpcmobo.mpc.codegen``):
+        Use generated C code for IPOPT's NLP functions, the sensitivity function and the Newton
+        step, compiled once per machine and problem and cached on disk (``mpcmobo.mpc.codegen``):
         the first build compiles (tens of seconds), later builds of the same problem load the
         library. Same numbers as without it, faster steps (``docs/benchmarks.md``, step time).
         Needs a C compiler (``$CC`` or ``cc``); an alternative to ``jit``.
@@ -376,7 +381,8 @@ class ParametricMPC:
         return ca.Function("sens", [w, lam, mu, p], [dpi, dV])
 
     def _compiled_library(self, cache_dir):
-        """The NLP functions IPOPT calls and ``_sens``, compiled (or loaded from the cache)."""
+        """The NLP functions IPOPT calls, ``_sens`` and ``_newton_fn``, compiled (or loaded from
+        the cache)."""
         nlp = ca.Function(
             "nlp",
             [self._nlp["x"], self._nlp["p"]],
