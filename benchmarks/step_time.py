@@ -14,6 +14,17 @@ For every state of a few 60-step closed-loop CSTR episodes, this times
   the current state for every predicted state and ``u_ref`` for every input, zero slacks.
 * ``baseline_mx``, an extra row: the same ``Opti`` problem with MX function graphs, called
   through ``opti.solve()`` (the baseline of issue 2, which made the ratios look 4-5x larger).
+* ``mpcrl``, a peer row (``pip install 'mpcmobo[bench]'``, skipped without it): the same MPC
+  in ``mpcrl`` 1.4.1 driven by its ``LstdDpgAgent`` (:class:`MpcrlPeer`): its solve plus its
+  dpi/dtheta per step.
+
+For our variants the step is split into components: the solver (IPOPT calls and Newton steps;
+of the IPOPT calls, IPOPT's own function-evaluation time from its statistics), the two
+sensitivities, and the rest (Python); ``build_s`` is the construction time of the MPC (with
+``codegen``, the first build in a run compiles into an empty cache directory, the second one
+loads the library: set ``MPCMOBO_CACHE_DIR`` to a new directory to see both).
+``du_first`` is the largest |action - the first variant's action| over all steps: the same
+policy gives about 1e-7, a different local solution in the constraint-violating phases tens.
 
 The measurements of all variants and the baseline are interleaved state by state (the order
 rotates each step), so load from other processes on the shared machine hits them alike. The
@@ -24,6 +35,7 @@ same against ``baseline_mx``.
 
     .venv/bin/python benchmarks/step_time.py            # 4 episodes x 60 steps
     .venv/bin/python benchmarks/step_time.py --quick    # 1 episode x 20 steps
+    .venv/bin/python benchmarks/step_time.py --variants default jit --no-peers
 """
 
 from __future__ import annotations
@@ -159,14 +171,146 @@ class OptiBaseline:
         return dt, ok, int(stats.get("iter_count", 0)), u0
 
 
+class MpcrlPeer:
+    """The same MPC in ``mpcrl`` 1.4.1 (``csnlp.wrappers.Mpc``), driven by an ``LstdDpgAgent``.
+
+    Physical units as the baseline; the cost weights (theta_c, T, G, Q, R at theta0) are the
+    agent's learnable parameters; IPOPT expanded to SX with our tolerances, the agent's own warm
+    start ("last-successful"). One step = ``agent.state_value(x, deterministic=True)`` (the solve)
+    plus the agent's dpi/dtheta for that solution (its ``_sensitivity`` function, which the agent
+    evaluates once per rollout: timed per episode and spread evenly over its steps). No dV/dtheta
+    (the agent does not compute it).
+    """
+
+    def __init__(self, s, model: str = "imperfect") -> None:
+        from csnlp import Nlp
+        from csnlp.wrappers import Mpc
+        from mpcrl import LearnableParameter, LearnableParametersDict, LstdDpgAgent
+        from mpcrl import exploration as E
+        from mpcrl.optim import GradientDescent
+
+        spec = s.mpc_spec
+        N, gamma, nx, nu = spec.horizon, spec.gamma, s.nx, s.nu
+        Gamma = np.full(nx, 1e5) if spec.Gamma is None else np.asarray(spec.Gamma)
+        Gamma_f = Gamma if spec.Gamma_f is None else np.asarray(spec.Gamma_f)
+        pm = ca.DM(s.model_params(model))
+        th0 = s.parameterization.theta0
+        blocks = s.parameterization.blocks
+        mpc = Mpc(Nlp(sym_type="SX"), N)
+        par = {
+            n: mpc.parameter(n, (len(th0[blocks[n]]), 1)) for n in ("theta_c", "T", "G", "Q", "R")
+        }
+        x, _ = mpc.state("x", nx)
+        u, _ = mpc.action("u", nu, lb=s.u_lb.reshape(-1, 1), ub=s.u_ub.reshape(-1, 1))
+        eta, _, _ = mpc.variable("eta", (nx, N + 1), lb=0)
+        xs, us = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
+        mpc.set_nonlinear_dynamics(ca.Function("F", [xs, us], [s.discrete_step(xs, us, pm)]))
+        mpc.constraint("x_lb", ca.DM(s.x_lb) - eta, "<=", x)
+        mpc.constraint("x_ub", x, "<=", ca.DM(s.x_ub) + eta)
+        xr, ur = ca.DM(s.x_ref), ca.DM(s.u_ref)
+        cost = par["theta_c"]
+        for i in range(N + 1):
+            dx = x[:, i] - xr
+            if i < N:
+                du = u[:, i] - ur
+                cost += gamma**i * (
+                    ca.dot(dx, par["Q"] * dx)
+                    + ca.dot(du, par["R"] * du)
+                    + ca.dot(ca.DM(Gamma), eta[:, i])
+                )
+                cost += ca.dot(par["G"], ca.vertcat(dx, du))
+            else:
+                cost += ca.dot(par["G"][:nx], dx)
+                cost += gamma**N * (ca.dot(dx, par["T"] * dx) + ca.dot(ca.DM(Gamma_f), eta[:, i]))
+        mpc.minimize(cost)
+        mpc.init_solver(
+            {
+                "expand": True,
+                "print_time": False,
+                "show_eval_warnings": False,
+                "calc_lam_p": False,
+                "ipopt": {
+                    "print_level": 0,
+                    "sb": "yes",
+                    "tol": TOL,
+                    "acceptable_tol": ACCEPTABLE_TOL,
+                },
+            },
+            solver="ipopt",
+        )
+        learnable = LearnableParametersDict(
+            LearnableParameter(n, (len(th0[blocks[n]]), 1), th0[blocks[n]].reshape(-1, 1))
+            for n in par
+        )
+        self.agent = LstdDpgAgent(
+            mpc=mpc,
+            update_strategy=10**9,
+            discount_factor=gamma,
+            optimizer=GradientDescent(learning_rate=0.0),
+            learnable_parameters=learnable,
+            exploration=E.OrnsteinUhlenbeckExploration(0.0, 0.0, mode="additive"),
+        )
+        self._vals: list = []
+        self._s, self._N = s, N
+        self._first = True
+
+    def reset(self) -> None:
+        self.agent.reset()
+        self._vals = []
+        self._first = True
+
+    def solve(self, x):
+        """Returns (wall time of the solve, success, iterations, first input)."""
+        vals0 = None
+        if self._first:  # the baseline's cold guess; later the agent warm-starts by itself
+            N, s = self._N, self._s
+            vals0 = {
+                "x": np.tile(x[:, None], (1, N + 1)),
+                "u": np.tile(s.u_ref[:, None], (1, N)),
+                "eta": np.zeros((s.nx, N + 1)),
+            }
+        t0 = time.perf_counter()
+        action, sol = self.agent.state_value(x, deterministic=True, vals0=vals0)
+        dt = time.perf_counter() - t0
+        self._first = self._first and not sol.success
+        if sol.success:
+            self._vals.append(np.asarray(sol.x_and_lam_and_p.elements()))
+        it = int(sol.stats.get("iter_count", 0))
+        return dt, bool(sol.success), it, np.asarray(action).reshape(-1)
+
+    def episode_sensitivity_time(self) -> float:
+        """Wall time of the agent's dpi/dtheta for the episode's successful solves, per solve."""
+        if not self._vals:
+            return 0.0
+        vals = ca.DM(np.stack(self._vals))
+        t0 = time.perf_counter()
+        self.agent._sensitivity(vals, len(self._vals))
+        return (time.perf_counter() - t0) / len(self._vals)
+
+
 # name -> ParametricMPC options; the first one drives the closed loop.
 VARIANTS: dict[str, dict] = {
-    "default": {},  # IPOPT, shifted primal-dual warm start, adjoint sensitivities (sparse QR)
-    "cold": {"warm_start": False},  # no warm start
-    "warm_mu_init_1e-5": {"warm_options": {"mu_init": 1e-5}},
-    "warm_mu_adaptive": {"warm_options": {"mu_strategy": "adaptive"}},
-    "jit": {"jit": True},  # generated, compiled C for the NLP and KKT functions
+    # up to 6 Newton steps on the barrier KKT system from the shifted previous solution, IPOPT
+    # (shifted primal-dual warm start, no lam_p) when they do not converge; adjoint
+    # sensitivities (sparse QR)
+    "default": {},
+    "ipopt": {"newton_steps": 0},  # IPOPT only
+    # IPOPT only, with lam_p: the default before issue 13's second part
+    "ipopt_lam_p": {"newton_steps": 0, "solver_options": {"calc_lam_p": True}},
+    "cold": {"warm_start": False},  # no warm start (so no Newton steps either)
+    "warm_mu_init_1e-5": {"newton_steps": 0, "warm_options": {"mu_init": 1e-5}},
+    "warm_mu_adaptive": {"newton_steps": 0, "warm_options": {"mu_strategy": "adaptive"}},
+    "hess_lbfgs": {
+        "newton_steps": 0,
+        "solver_options": {"hessian_approximation": "limited-memory"},
+    },
+    # generated C, compiled once per machine and problem, cached on disk
+    "codegen_ipopt": {"codegen": True, "newton_steps": 0},
+    "codegen": {"codegen": True},  # generated C and the Newton steps
+    "jit": {"jit": True, "newton_steps": 0},  # CasADi's jit: compiled again at every build
 }
+# run by default (jit: a 20-45 s compile at every build; codegen does the same, cached)
+DEFAULT_VARIANTS = [v for v in VARIANTS if v != "jit"]
 
 
 # name -> OptiBaseline options; "baseline" is the reference of every ratio.
@@ -177,18 +321,72 @@ BASELINES: dict[str, dict] = {
 _BASELINE_LABELS = {
     "baseline": "Opti, expand=True (SX), Opti.to_function, our tolerances",
     "baseline_mx": "Opti, MX, opti.solve(), our tolerances (the issue-2 baseline)",
+    "mpcrl": "mpcrl 1.4.1 LstdDpgAgent: state_value + its dpi/dtheta per step",
 }
 
 
-def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> dict:
+class _Components:
+    """Wall time of an MPC's solver calls (IPOPT and Newton steps), of its sensitivities and of
+    IPOPT's function evaluations (its own statistics) during one ``solve``."""
+
+    def __init__(self, mpc: ParametricMPC) -> None:
+        self.solver = self.sens = self.fun = 0.0
+        run_solver, sensitivities = mpc._run_solver, mpc._sensitivities
+
+        def timed_run(x, p, warm):
+            t0 = time.perf_counter()
+            out = run_solver(x, p, warm)
+            self.solver += time.perf_counter() - t0
+            st = (mpc._solver_warm if warm else mpc._solver).stats()
+            self.fun += sum(v for k, v in st.items() if k.startswith("t_wall_nlp"))
+            return out
+
+        def timed_sens(*args):
+            t0 = time.perf_counter()
+            try:
+                return sensitivities(*args)
+            finally:
+                self.sens += time.perf_counter() - t0
+
+        newton_solve = mpc._newton_solve
+
+        def timed_newton(*args):
+            t0 = time.perf_counter()
+            try:
+                return newton_solve(*args)
+            finally:
+                self.solver += time.perf_counter() - t0
+
+        mpc._run_solver, mpc._sensitivities = timed_run, timed_sens
+        mpc._newton_solve = timed_newton
+
+    def take(self) -> tuple[float, float, float]:
+        out = (self.solver, self.sens, self.fun)
+        self.solver = self.sens = self.fun = 0.0
+        return out
+
+
+def run(
+    episodes: int, steps: int, variants: dict[str, dict], seed: int = 0, peers: bool = True
+) -> dict:
     s = get_system("cstr")
-    mpcs = {name: ParametricMPC(s, "imperfect", **opts) for name, opts in variants.items()}
+    build = {}
+    mpcs = {}
+    for name, opts in variants.items():
+        t0 = time.perf_counter()
+        mpcs[name] = ParametricMPC(s, "imperfect", **opts)
+        build[name] = time.perf_counter() - t0
+    comps = {n: _Components(m) for n, m in mpcs.items()}
     bases = {name: OptiBaseline(s, **opts) for name, opts in BASELINES.items()}
+    if peers and _has_mpcrl():
+        bases["mpcrl"] = MpcrlPeer(s)
     names = [*mpcs, *bases]
     times = {n: [] for n in names}
+    parts = {n: [] for n in mpcs}  # (solver, sensitivities, function evaluations) per step
     iters = {n: [] for n in names}
     fails = {n: 0 for n in names}
     du = {n: [] for n in mpcs}  # |action - baseline action|, a sanity check of "same problem"
+    du_first = {n: [] for n in names}  # |action - first variant's action|: "same policy"
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
     theta0 = next(iter(mpcs.values())).theta0
@@ -197,6 +395,8 @@ def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> 
     for m in mpcs.values():
         m.solve(x0s[0], theta0, sensitivities=True)
         m.reset()
+    for c in comps.values():
+        c.take()
     for b in bases.values():
         b.solve(x0s[0])
         b.reset()
@@ -206,6 +406,7 @@ def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> 
         for b in bases.values():
             b.reset()
         x = x0.copy()
+        episode_steps = {n: [] for n in bases}
         for k in range(steps):
             order = names[k % len(names) :] + names[: k % len(names)]
             actions = {}
@@ -213,10 +414,12 @@ def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> 
                 if n in bases:
                     dt, ok, it, u0 = bases[n].solve(x)
                     actions[n] = u0
+                    episode_steps[n].append(len(times[n]))
                 else:
                     t0 = time.perf_counter()
                     sol = mpcs[n].solve(x, theta0, sensitivities=True)
                     dt = time.perf_counter() - t0
+                    parts[n].append(comps[n].take())
                     ok, it = sol.success, sol.iterations
                     actions[n] = sol.action
                     ok = ok and bool(np.all(np.isfinite(sol.dpi_dtheta)))
@@ -226,7 +429,14 @@ def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> 
             if actions["baseline"] is not None:
                 for n in mpcs:
                     du[n].append(float(np.max(np.abs(actions[n] - actions["baseline"]))))
+            for n in names:
+                if actions[n] is not None and actions[first] is not None:
+                    du_first[n].append(float(np.max(np.abs(actions[n] - actions[first]))))
             x = s.plant_step(x, actions[first])
+        if "mpcrl" in bases:  # its sensitivities, evaluated once per episode, spread evenly
+            per_step = bases["mpcrl"].episode_sensitivity_time()
+            for i in episode_steps["mpcrl"]:
+                times["mpcrl"][i] += per_step
     med = {n: float(np.median(times[n])) for n in names}
     res = {}
     for n in names:
@@ -238,13 +448,32 @@ def run(episodes: int, steps: int, variants: dict[str, dict], seed: int = 0) -> 
         res[n] = {
             "median_ms": float(np.median(t)),
             "p95_ms": float(np.percentile(t, 95)),
+            "mean_ms": float(np.mean(t)),
             "mean_iters": float(np.mean(iters[n])),
             "failures": int(fails[n]),
             **ratio,
             "max_du_vs_baseline": float(np.max(du[n])) if n in du and du[n] else None,
+            "max_du_vs_first": float(np.max(du_first[n])) if du_first[n] else None,
             "variant": variants.get(n, _BASELINE_LABELS.get(n)),
         }
+        if n in mpcs:
+            a = np.array(parts[n]) * 1e3
+            res[n].update(
+                build_s=build[n],
+                median_solver_ms=float(np.median(a[:, 0])),
+                median_sens_ms=float(np.median(a[:, 1])),
+                median_fun_ms=float(np.median(a[:, 2])),
+                median_other_ms=float(np.median(t - a[:, 0] - a[:, 1])),
+            )
     return res
+
+
+def _has_mpcrl() -> bool:
+    try:
+        import mpcrl  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def main(argv=None) -> None:
@@ -254,13 +483,21 @@ def main(argv=None) -> None:
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
-        "--variants", nargs="*", default=None, help=f"subset of {list(VARIANTS)} (default: all)"
+        "--variants",
+        nargs="*",
+        default=None,
+        help=f"subset of {list(VARIANTS)} (default: all but jit)",
     )
     ap.add_argument("--json", default=None, help="write the results to this file")
+    ap.add_argument("--no-peers", action="store_true", help="without the mpcrl row")
     args = ap.parse_args(argv)
     episodes, steps = (1, 20) if args.quick else (args.episodes, args.steps)
-    variants = VARIANTS if not args.variants else {k: VARIANTS[k] for k in args.variants}
-    res = run(episodes, steps, variants, args.seed)
+    names = args.variants or DEFAULT_VARIANTS
+    unknown = [v for v in names if v not in VARIANTS]
+    if unknown:
+        ap.error(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
+    variants = {k: VARIANTS[k] for k in names}
+    res = run(episodes, steps, variants, args.seed, peers=not args.no_peers)
     print(
         f"CSTR, {episodes} episode(s) x {steps} steps, casadi {ca.__version__}, "
         f"{platform.machine()}, python {platform.python_version()}"
@@ -270,16 +507,28 @@ def main(argv=None) -> None:
         f"ratio: baseline median / variant median; on a baseline row: that baseline's median / "
         f"{first!r} median. ratio_mx: the same against baseline_mx"
     )
+    print(
+        "components (medians, ms): solver = IPOPT calls and Newton steps, fun = IPOPT's "
+        "function evaluations; sens = both sensitivities; other = the rest of the step (Python)"
+    )
     hdr = (
-        f"{'variant':<22} {'median ms':>10} {'p95 ms':>8} {'iters':>6} {'fail':>5} "
-        f"{'ratio':>6} {'ratio_mx':>8}"
+        f"{'variant':<18} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
+        f"{'ratio':>6} {'ratio_mx':>8} {'du_first':>9} {'solver':>6} {'fun':>6} {'sens':>6} "
+        f"{'other':>6} {'build s':>7}"
     )
     print(hdr)
     for n, r in res.items():
         rmx = f"{r['ratio_mx']:>8.2f}" if "ratio_mx" in r else f"{'':>8}"
+        duf = f"{r['max_du_vs_first']:>9.1e}" if r["max_du_vs_first"] is not None else " " * 9
+        comp = (
+            f"{r['median_solver_ms']:>6.2f} {r['median_fun_ms']:>6.2f} "
+            f"{r['median_sens_ms']:>6.2f} {r['median_other_ms']:>6.2f} {r['build_s']:>7.2f}"
+            if "build_s" in r
+            else ""
+        )
         print(
-            f"{n:<22} {r['median_ms']:>10.2f} {r['p95_ms']:>8.2f} {r['mean_iters']:>6.1f} "
-            f"{r['failures']:>5d} {r['ratio']:>6.2f} {rmx}"
+            f"{n:<18} {r['median_ms']:>7.2f} {r['mean_ms']:>7.2f} {r['p95_ms']:>7.2f} "
+            f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rmx} {duf} {comp}"
         )
     if args.json:
         with open(args.json, "w") as fh:

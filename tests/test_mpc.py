@@ -88,6 +88,7 @@ def test_fallback_on_forced_solver_failure(cstr):
     x = np.array([100.0, 0.2, 420.0])
     first = good.solve(x, good.theta0)
     good._run_solver = lambda *a, **k: (False, "forced", 0, None, None)
+    good._newton_solve = lambda p: None  # the Newton steps fail too
     failed = good.solve(x, good.theta0)
     assert not failed.success
     np.testing.assert_allclose(failed.action, first.plan_u[1])
@@ -164,3 +165,74 @@ def test_warm_start_shifts_primal_and_dual(cstr):
     assert prev["lam_g"].shape == (mpc.neq + mpc.nin,) and prev["lam_x"].shape == (mpc.nw,)
     second = mpc.solve(cstr.plant_step(x, first.action), mpc.theta0)
     assert second.success and second.iterations < 12
+
+
+def _closed_loop_pairs(cstr, a, b, x, theta, steps):
+    """Solve with both MPCs along the closed loop of ``a``; yield both solutions."""
+    a.reset()
+    b.reset()
+    for _ in range(steps):
+        sa, sb = a.solve(x, theta), b.solve(x, theta)
+        yield sa, sb
+        x = cstr.plant_step(x, sa.action)
+
+
+def _active_theta(mpc):
+    """theta0 with a linear cost on q_c that holds q_c at its lower bound (an active bound)."""
+    th = mpc.theta0.copy()
+    th[mpc.theta_names.index("G_qc")] = 3000.0
+    return th
+
+
+@pytest.mark.parametrize("active", [False, True])
+def test_newton_path_gives_the_ipopt_solution(cstr, active):
+    ipopt, newton = ParametricMPC(cstr, newton_steps=0), ParametricMPC(cstr, newton_steps=6)
+    x = np.array([100.0, 0.15, 430.0])
+    theta = _active_theta(newton) if active else newton.theta0
+    used = 0
+    for sa, sb in _closed_loop_pairs(cstr, ipopt, newton, x, theta, 25):
+        if active:
+            assert sa.plan_u[:, 1].min() < cstr.u_lb[1] + 1e-3
+        assert sa.success and sb.success and sa.status != "Newton_Succeeded"
+        used += sb.status == "Newton_Succeeded"
+        np.testing.assert_allclose(sb.action, sa.action, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(sb.value, sa.value, rtol=1e-7)
+        scale = np.abs(sa.dpi_dtheta).max(axis=0)
+        assert np.all(np.abs(sb.dpi_dtheta - sa.dpi_dtheta) <= 1e-4 * scale)
+        np.testing.assert_allclose(sb.dV_dtheta, sa.dV_dtheta, rtol=1e-4, atol=1e-6)
+    assert used >= 10  # the warm steps of the calm phase take the Newton path
+
+
+def test_newton_sensitivities_match_central_differences(cstr):
+    mpc = ParametricMPC(cstr, newton_steps=6)
+    x = np.array([100.0, 0.15, 430.0])
+    th = _active_theta(mpc)  # q_c held at its bound: the multipliers of that bound matter
+    for _ in range(5):  # a few closed-loop steps: a warm start
+        x = cstr.plant_step(x, mpc.solve(x, th, False).action)
+    prev = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in mpc._prev.items()}
+
+    def solve(theta, sens):
+        mpc._prev = dict(prev)
+        sol = mpc.solve(x, theta, sens)
+        assert sol.status == "Newton_Succeeded"
+        return sol
+
+    sol = solve(th, True)
+    dpi, dV = np.zeros_like(sol.dpi_dtheta), np.zeros_like(sol.dV_dtheta)
+    for i in range(th.size):
+        h = 1e-5 * max(1.0, abs(th[i]))
+        tp, tm = th.copy(), th.copy()
+        tp[i] += h
+        tm[i] -= h
+        sp, sm = solve(tp, False), solve(tm, False)
+        dpi[i] = (sp.action - sm.action) / (2 * h)
+        dV[i] = (sp.value - sm.value) / (2 * h)
+    # q_c sits at its bound: its sensitivities are ~1e-7, at the level of the differences' noise
+    tol_pi = 1e-4 * np.abs(dpi).max(axis=0) + 1e-6 * np.abs(dpi).max()
+    assert np.all(np.abs(sol.dpi_dtheta - dpi) <= tol_pi)
+    assert np.all(np.abs(sol.dV_dtheta - dV) <= 1e-4 * np.abs(dV) + 1e-6 * np.abs(dV).max())
+
+
+def test_newton_steps_must_be_a_count(cstr):
+    with pytest.raises(ValueError, match="newton_steps must be an integer >= 0, got -1"):
+        ParametricMPC(cstr, newton_steps=-1)

@@ -25,6 +25,7 @@ from mpcmobo.experiment.settings import (
     Settings,
     SettingsError,
     load_settings,
+    read_toml,
     settings_to_toml,
 )
 
@@ -92,6 +93,10 @@ class RunDirectory:
         if not self.holds_run():
             raise StudyError(f"nothing to resume: {self.config} does not exist")
         try:
+            saved = read_toml(self.config)
+            if "newton_steps" not in saved.get("mpc", {}):
+                # saved before the setting existed: that run's MPC was IPOPT only (issue 13)
+                overrides = {"mpc__newton_steps": 0, **overrides}
             return load_settings(self.config, **overrides)
         except SettingsError as err:
             if str(err).startswith(str(self.config)):  # the file itself, not an override

@@ -80,6 +80,18 @@ class MPCSettings(_Section):
     tol: float = Field(1e-8, gt=0, lt=1)
     max_iter: int = Field(150, ge=1, le=100_000)
     warm_start: bool = True
+    newton_steps: int = Field(
+        6,
+        ge=0,
+        le=100,
+        description="warm solves first try this many Newton steps on the barrier KKT system "
+        "(IPOPT if they do not converge); 0: always IPOPT",
+    )
+    codegen: bool = Field(
+        False,
+        description="generated C code of the MPC, compiled once per machine and problem and "
+        "cached ($MPCMOBO_CACHE_DIR, else $XDG_CACHE_HOME/mpcmobo or ~/.cache/mpcmobo)",
+    )
 
     def options(self) -> dict[str, Any]:
         d = self.model_dump()

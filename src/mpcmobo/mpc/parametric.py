@@ -29,10 +29,16 @@ simple bounds). ``R`` is smooth across active-set changes and ``dR/dy`` stays in
     d V  / d theta = d Lagr / d theta at the solution                                  (grad V)
 
 and the finite differences of the solver's own outputs agree with them.
+
+The same residual gives a fast path for warm solves (``newton_steps``): from the shifted
+previous solution, Newton steps ``dR/dy dy = -R`` with a fraction-to-boundary rule reach the
+root of ``R`` in 3-4 steps when the active set does not change; accepted at ``|R| <= tol`` at a
+strictly interior point, it is the point IPOPT stops at, and IPOPT solves otherwise.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -40,11 +46,23 @@ from typing import NamedTuple
 import casadi as ca
 import numpy as np
 
+from mpcmobo.mpc.codegen import compiled_library
 from mpcmobo.systems.base import System
 from mpcmobo.systems.parameterization import Parameterization
 
 _SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
 _JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
+# options of CasADi's nlpsol itself (not IPOPT's): passed without the "ipopt." prefix
+_CASADI_NLPSOL_KEYS = (
+    "print_time",
+    "show_eval_warnings",
+    "calc_lam_p",
+    "calc_lam_x",
+    "calc_f",
+    "calc_g",
+    "bound_consistency",
+    "record_time",
+)
 
 
 @dataclass
@@ -95,6 +113,20 @@ class ParametricMPC:
         CasADi linear solver plugin of the sensitivity system (``"qr"``, the default and
         fastest measured, ``"csparse"``, ...), used in one adjoint solve inside a single CasADi
         function.
+    codegen:
+        Use generated C code for IPOPT's NLP functions, the sensitivity function and the Newton
+        step, compiled once per machine and problem and cached on disk (``mpcmobo.mpc.codegen``):
+        the first build compiles (tens of seconds), later builds of the same problem load the
+        library. Same numbers as without it, faster steps (``docs/benchmarks.md``, step time).
+        Needs a C compiler (``$CC`` or ``cc``); an alternative to ``jit``.
+    cache_dir:
+        Directory of the compiled libraries (default: ``mpcmobo.mpc.codegen.cache_directory()``).
+    newton_steps:
+        With a warm start, first try at most this many Newton steps on the barrier KKT system
+        ``R(y, p) = 0`` from the shifted previous solution (fraction-to-boundary steps that keep
+        ``H < 0`` and ``mu > 0``). Accepted only when ``|R|_inf <= tol`` at a strictly interior
+        point: then it is the barrier solution IPOPT stops at, to its tolerance; otherwise IPOPT
+        solves as without it. 0: always IPOPT.
     """
 
     def __init__(
@@ -113,6 +145,9 @@ class ParametricMPC:
         jit: bool = False,
         warm_options: dict | None = None,
         linsol: str = "qr",
+        codegen: bool = False,
+        cache_dir: str | os.PathLike | None = None,
+        newton_steps: int = 6,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
@@ -121,6 +156,10 @@ class ParametricMPC:
         self.N = int(spec.horizon if horizon is None else horizon)
         self.gamma = float(spec.gamma if gamma is None else gamma)
         _check_options(self.N, self.gamma, tau, linsol)
+        if int(newton_steps) != newton_steps or newton_steps < 0:
+            raise ValueError(f"newton_steps must be an integer >= 0, got {newton_steps}")
+        self._newton = int(newton_steps)
+        self._tol = float(tol)
         self.tau = float(tau)
         self.warm_start = bool(warm_start)
         self.param: Parameterization = system.parameterization
@@ -141,14 +180,23 @@ class ParametricMPC:
         self.cost_scale = float(cost_scale)
         self._linsol = linsol
         self._jit = bool(jit)
+        self._codegen = bool(codegen)
+        if self._jit and self._codegen:
+            raise ValueError("jit and codegen are alternatives: choose one of them")
         self._build()
         cold, warm = _ipopt_options(
             tol, self.tau, max_iter, jit=self._jit, options=solver_options, warm=warm_options
         )
-        self._solver = ca.nlpsol("mpc", "ipopt", self._nlp, cold)
-        self._solver_warm = (
-            ca.nlpsol("mpc_warm", "ipopt", self._nlp, warm) if self.warm_start else None
-        )
+        nlp: dict | str = self._nlp
+        #: how the MPC's functions were built: {"codegen", and with it "path", "cached", "seconds"}
+        self.build_info: dict = {"codegen": self._codegen}
+        if self._codegen:
+            lib = self._compiled_library(cache_dir)
+            nlp = str(lib)
+            self._sens = ca.external("sens", str(lib))
+            self._newton_fn = ca.external("newton", str(lib))
+        self._solver = ca.nlpsol("mpc", "ipopt", nlp, cold)
+        self._solver_warm = ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
         self._prev: dict | None = None
 
     # ------------------------------------------------------------------ construction
@@ -284,6 +332,32 @@ class ParametricMPC:
         self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw], kkt_opts)
         self._ny = y.numel()
         self._sens = self._sensitivity_function(self._linsol)
+        self._newton_fn = self._newton_function(wv, y, p, R, Jy, H, f, kkt_opts)
+
+    def _newton_function(self, wv, y, p, R, Jy, H, f, opts) -> ca.Function:
+        """(y, p) -> (y+ = y + a dy, |R(y)|_inf, |R(y+)|_inf, f(y+), max H(y+), min mu+): one
+        Newton step on the barrier KKT system, ``dR/dy dy = -R``, with the fraction-to-boundary
+        rule ``a <= 1``: ``mu + a dmu`` and (to first order) ``H + a dH`` keep 0.5 % of their
+        distance to 0; and the residual at the new point, so that no step is taken in vain."""
+        nw, neq = self.nw, self.neq
+        dw = ca.SX.sym("dw", self.nw)
+        res = ca.Function("newton_res", [y, p], [R, Jy, H], opts)
+        point = ca.Function("newton_point", [y, p], [ca.norm_inf(R), f, ca.mmax(H)], opts)
+        dH = ca.Function("newton_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)], opts)
+        Y = ca.MX.sym("y", self._ny)
+        P = ca.MX.sym("p", p.numel())
+        Rv, J, Hv = res(Y, P)
+        dy = ca.solve(J, -Rv, self._linsol)
+        mu, dmu = Y[nw + neq :], dy[nw + neq :]
+        dHv = dH(Y[:nw], P, dy[:nw])
+        big = ca.DM(1e300)
+        a_mu = ca.mmin(ca.if_else(dmu < 0, -mu / dmu, big))
+        a_H = ca.mmin(ca.if_else(dHv > 0, -Hv / dHv, big))
+        a = ca.fmin(1.0, 0.995 * ca.fmin(a_mu, a_H))
+        Y1 = Y + a * dy
+        res1, f1, h1 = point(Y1, P)
+        out = [Y1, ca.norm_inf(Rv), res1, f1, h1, ca.mmin(Y1[nw + neq :]), ca.mmax(Hv)]
+        return ca.Function("newton", [Y, P], out)
 
     def _sensitivity_function(self, linsol: str) -> ca.Function:
         """(w, lam, mu, p) -> (dpi/dtheta, dV/dtheta), one call, one sparse factorisation.
@@ -305,6 +379,21 @@ class ParametricMPC:
         dpi = -ca.mtimes(Jth.T, L[:, :nu])  # (eq. nabla_pi), physical, (n_theta, nu)
         dV = self.cost_scale * (dfdth - ca.mtimes(Jth.T, L[:, nu]))
         return ca.Function("sens", [w, lam, mu, p], [dpi, dV])
+
+    def _compiled_library(self, cache_dir):
+        """The NLP functions IPOPT calls, ``_sens`` and ``_newton_fn``, compiled (or loaded from
+        the cache)."""
+        nlp = ca.Function(
+            "nlp",
+            [self._nlp["x"], self._nlp["p"]],
+            [self._nlp["f"], self._nlp["g"]],
+            ["x", "p"],
+            ["f", "g"],
+        )
+        probe = ca.nlpsol("probe", "ipopt", self._nlp, {"calc_lam_p": True})
+        names = ("nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l", "nlp_grad")
+        functions = [nlp, *(probe.get_function(n) for n in names), self._sens, self._newton_fn]
+        return compiled_library(functions, directory=cache_dir, info=self.build_info)
 
     # ------------------------------------------------------------------ validation
     def check_theta(self, theta) -> np.ndarray:
@@ -346,6 +435,12 @@ class ParametricMPC:
         t0 = time.perf_counter()
         p = np.concatenate([x, theta])
         warm = self.warm_start and self._prev is not None
+        if warm and self._newton:
+            found = self._newton_solve(p)
+            if found is not None:
+                sol = self._solution(x, p, *found, sensitivities=sensitivities)
+                sol.solve_time = time.perf_counter() - t0
+                return sol
         ok, status, iters, out, wopt = self._run_solver(x, p, warm)
         if not ok and warm:  # a warm start can mislead IPOPT: retry once from a cold start
             ok, status, iters2, out, wopt = self._run_solver(x, p, False)
@@ -353,7 +448,7 @@ class ParametricMPC:
         if not ok:
             sol = self._failed_solution(status, iters, sensitivities)
         else:
-            sol = self._solution(x, p, out, wopt, status, iters, sensitivities)
+            sol = self._solution(x, p, out, wopt, status, iters, sensitivities=sensitivities)
         sol.solve_time = time.perf_counter() - t0
         return sol
 
@@ -375,7 +470,9 @@ class ParametricMPC:
             fallback=True,
         )
 
-    def _solution(self, x, p, out, wopt, status, iters, sensitivities: bool) -> MPCSolution:
+    def _solution(
+        self, x, p, out, wopt, status, iters, mult=None, sensitivities: bool = True
+    ) -> MPCSolution:
         """pi_theta(x) (eq. Policy), V_theta(x), the plan and, if asked, the sensitivities;
         the solution, shifted, is the next warm start."""
         lam_g = np.asarray(out["lam_g"]).reshape(-1)
@@ -401,13 +498,46 @@ class ParametricMPC:
         )
         if sensitivities:
             try:
-                sol.dpi_dtheta, sol.dV_dtheta = self._sensitivities(wopt, lam_g, lam_x, p)
+                sol.dpi_dtheta, sol.dV_dtheta = self._sensitivities(wopt, lam_g, lam_x, p, mult)
             except (RuntimeError, ValueError) as err:  # singular KKT matrix
                 sol.dpi_dtheta = np.full((self.n_theta, self.nu), np.nan)
                 sol.dV_dtheta = np.full(self.n_theta, np.nan)
                 sol.info["sensitivity_error"] = str(err)
         self._remember(wopt, lam_g, lam_x, plan_u)
         return sol
+
+    def _newton_solve(self, p: np.ndarray):
+        """Newton steps on R(y, p) = 0 from the shifted previous solution (``newton_steps``).
+
+        Returns the arguments of ``_solution`` (CasADi-style outputs, w, status, steps, and the
+        multipliers (lambda, mu)) when ``|R|_inf <= tol`` at a point with ``H < 0``, ``mu > 0``;
+        None when the steps do not get there (IPOPT then solves)."""
+        prev = self._prev
+        w = prev["w_shift"]
+        lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
+        y = np.concatenate([w, lam, mu])
+        if not np.all(mu > 0):
+            return None
+        for k in range(1, self._newton + 1):
+            y_next, *scalars = self._newton_fn(y, p)
+            res0, res, f, h_max, mu_min, h0_max = (float(v) for v in scalars)
+            # not interior (the new state violates a row of the old plan), not converging
+            # (from the 2nd step on, the residual must fall tenfold per step), or out of steps
+            if not (h0_max < 0 and h_max < 0 and mu_min > 0 and np.isfinite(res)):
+                return None
+            y = np.asarray(y_next).reshape(-1)
+            if res <= self._tol:
+                break
+            if k == self._newton or (k >= 2 and res > 0.1 * res0):
+                return None
+        nw, neq = self.nw, self.neq
+        w, lam, mu = y[:nw], y[nw : nw + neq], y[nw + neq :]
+        mu_g, n_lb = mu[: self.nin], len(self._lb_idx)
+        lam_x = np.zeros(nw)
+        lam_x[self._ub_idx] += mu[self.nin + n_lb :]
+        lam_x[self._lb_idx] -= mu[self.nin : self.nin + n_lb]
+        out = {"lam_g": np.concatenate([lam, mu_g]), "lam_x": lam_x, "f": f}
+        return out, w, "Newton_Succeeded", k, (lam, mu)
 
     def _run_solver(self, x: np.ndarray, p: np.ndarray, warm: bool):
         if warm:
@@ -468,9 +598,10 @@ class ParametricMPC:
         )
         return lam, mu
 
-    def _sensitivities(self, w, lam_g, lam_x, p):
-        """(dpi/dtheta, dV/dtheta) at a solution (eq. nabla_pi, grad V)."""
-        lam, mu = self._multipliers(w, lam_g, lam_x)
+    def _sensitivities(self, w, lam_g, lam_x, p, mult=None):
+        """(dpi/dtheta, dV/dtheta) at a solution (eq. nabla_pi, grad V); ``mult``: its
+        (lambda, mu) when known (Newton), else recovered from CasADi's multipliers."""
+        lam, mu = self._multipliers(w, lam_g, lam_x) if mult is None else mult
         dpi, dV = self._sens(w, lam, mu, p)
         dpi, dV = np.asarray(dpi), np.asarray(dV).reshape(-1)
         if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
@@ -539,6 +670,9 @@ def _ipopt_options(
     cold = {
         "ipopt.print_level": 0,
         "print_time": False,
+        # lam_p (the multipliers of the parameters) costs one more gradient evaluation per
+        # solve and is not used: the sensitivities come from the KKT system
+        "calc_lam_p": False,
         # IPOPT may probe wild iterates (Inf/NaN in the model, see NOTES): it backtracks by
         # itself, and a failed solve is reported in MPCSolution, so CasADi's per-evaluation
         # warnings on stderr are only noise that would bury the progress bars
@@ -569,7 +703,7 @@ def _ipopt_options(
 
 def _casadi_keys(options: dict | None) -> dict:
     """User solver options with IPOPT's keys prefixed ``ipopt.`` as CasADi expects."""
-    own = ("print_time", "show_eval_warnings")
+    own = _CASADI_NLPSOL_KEYS
     return {
         k if k.startswith("ipopt.") or k in own else f"ipopt.{k}": v
         for k, v in (options or {}).items()

@@ -1,0 +1,60 @@
+"""Where the default MPC step's time goes: the steps the Newton path solves vs the IPOPT steps.
+
+On the states of ``benchmarks/step_time.py`` (4 closed-loop CSTR episodes of 60 steps, initial
+states from ``default_rng(0)``), the default :class:`mpcmobo.mpc.ParametricMPC` (Newton steps
+first, IPOPT when they do not converge) is timed step by step, with both sensitivities; the
+steps are split by the path that solved them.
+
+    PYTHONPATH=src .venv/bin/python benchmarks/newton_split.py [--codegen]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from mpcmobo.mpc import ParametricMPC
+from mpcmobo.systems import get_system
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--codegen", action="store_true")
+    ap.add_argument("--episodes", type=int, default=4)
+    args = ap.parse_args(argv)
+    s = get_system("cstr")
+    mpc = ParametricMPC(s, "imperfect", codegen=args.codegen)
+    rng = np.random.default_rng(0)
+    x0s = [s.sample_initial_state(rng) for _ in range(args.episodes)]
+    mpc.solve(x0s[0], mpc.theta0)  # first-call allocations
+    paths: dict[str, list[float]] = {"newton": [], "ipopt warm": [], "ipopt cold": []}
+    newton_steps = []
+    for x0 in x0s:
+        mpc.reset()
+        x = x0.copy()
+        for k in range(60):
+            t0 = time.perf_counter()
+            sol = mpc.solve(x, mpc.theta0, sensitivities=True)
+            dt = time.perf_counter() - t0
+            if sol.status == "Newton_Succeeded":
+                paths["newton"].append(dt)
+                newton_steps.append(sol.iterations)
+            else:
+                paths["ipopt cold" if k == 0 else "ipopt warm"].append(dt)
+            x = s.plant_step(x, sol.action)
+    n = sum(len(v) for v in paths.values())
+    everything = np.concatenate([np.array(v) for v in paths.values()])
+    print(f"codegen={args.codegen}: {n} steps, median step {1e3 * np.median(everything):.2f} ms")
+    for name, v in paths.items():
+        if v:
+            print(
+                f"  {name:<11} {len(v):>4} steps ({100 * len(v) / n:4.1f} %), median "
+                f"{1e3 * np.median(v):6.2f} ms, mean {1e3 * np.mean(v):6.2f} ms"
+            )
+    print(f"  Newton steps per Newton-path solve: mean {np.mean(newton_steps):.2f}")
+
+
+if __name__ == "__main__":
+    main()
