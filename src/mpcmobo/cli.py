@@ -21,6 +21,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from mpcmobo import __version__
 from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, read_run_file
 from mpcmobo.experiment.settings import PAPER_LEARNERS, Settings, SettingsError, load_settings
@@ -35,6 +36,25 @@ app = typer.Typer(
 )
 console = Console()
 err_console = Console(stderr=True)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        console.print(f"mpcmobo {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: bool = typer.Option(
+        False,
+        "--version",
+        callback=_print_version,
+        is_eager=True,
+        help="print the installed version (package metadata) and exit",
+    ),
+) -> None:
+    """Tune an MPC from closed-loop data: MPC-RL (CDPG), BO and MPC-RL-MOBO."""
 
 
 def _fail(message: str, code: int) -> None:
