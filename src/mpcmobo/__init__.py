@@ -10,5 +10,6 @@ try:
     __version__: str = version("mpcmobo")
 except PackageNotFoundError:  # pragma: no cover - a source tree that was never installed
     __version__ = "0+unknown"
+"""The installed distribution's version (``importlib.metadata``); ``mpcmobo --version``."""
 
 __all__ = ["__version__"]

@@ -48,6 +48,7 @@ def _save(fig, out: Path, name: str) -> list[Path]:
 
 
 def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
+    """Fig. 1: J tilde per episode and J_eval of the incumbent against J*, one panel per learner."""
     n = len(learners)
     fig = Figure(figsize=(8.5, 2.4 * n))
     axes = fig.subplots(n, 1, sharex=True, squeeze=False)
@@ -74,6 +75,7 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
 
 
 def fig2(ep: pd.DataFrame, learners: list[str]):
+    """Fig. 2: mean |A^w| per episode, and the MOBO observations with their Pareto front."""
     fig = Figure(figsize=(11, 4.2))
     _advantage_panel(fig.add_subplot(1, 2, 1), ep, learners)
     _pareto_panel(fig, fig.add_subplot(1, 2, 2, projection="3d"), ep, learners)

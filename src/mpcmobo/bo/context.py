@@ -71,6 +71,8 @@ class ContextSpec:
 
     @classmethod
     def from_system(cls, system, seed: int = 0, pool_size: int = 256) -> ContextSpec:
+        """The system's initial-state box and a pool of ``pool_size`` initial states drawn with
+        ``seed`` (a stream of its own)."""
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), CONTEXT_STREAM]))
         pool = np.array([system.sample_initial_state(rng) for _ in range(pool_size)])
         span = np.asarray(system.x_ub, float) - np.asarray(system.x_lb, float)
@@ -95,6 +97,7 @@ class ContextSpec:
 
     @property
     def dim(self) -> int:
+        """Number of context coordinates (the state dimension)."""
         return int(np.asarray(self.lb).shape[0])
 
     def unit(self, x0: np.ndarray) -> np.ndarray:
@@ -131,13 +134,17 @@ class ContextModel(Model):
 
     @property
     def num_outputs(self) -> int:
+        """Number of outputs of the base model."""
         return self.base.num_outputs
 
     @property
     def batch_shape(self) -> torch.Size:
+        """Empty: the model is not batched."""
         return torch.Size([])
 
     def posterior(self, X, output_indices=None, observation_noise=False, **kwargs):
+        """The base model's joint posterior at ``X`` with the K contexts appended to every
+        candidate."""
         if self.append is not None:
             X = self.append.transform(X)
         return self.base.posterior(X, output_indices=output_indices, **kwargs)
@@ -159,6 +166,8 @@ class ContextExpectation(MultiOutputExpectation):
         self.keep = list(range(len(self.log_flags))) if keep is None else list(keep)
 
     def forward(self, samples: torch.Tensor, X=None) -> torch.Tensor:
+        """Expectation over the K contexts of each candidate of the ``keep`` columns of ``samples``
+        (class docstring)."""
         s = self._prepare_samples(samples)  # ... x q x n_w x m
         lin = s.mean(dim=-2)
         if any(self.log_flags):

@@ -72,6 +72,8 @@ class ExactIndependentGP(Model):
 
     @classmethod
     def from_singletask(cls, model: SingleTaskGP) -> ExactIndependentGP:
+        """The exact posterior of a fitted ``SingleTaskGP`` with its default RBF kernel and constant
+        mean."""
         if not isinstance(model.covar_module, RBFKernel) or not isinstance(
             model.mean_module, ConstantMean
         ):
@@ -88,10 +90,12 @@ class ExactIndependentGP(Model):
 
     @property
     def num_outputs(self) -> int:
+        """Number of independent outputs."""
         return self._m
 
     @property
     def batch_shape(self) -> torch.Size:
+        """Empty: the model is not batched."""
         return torch.Size([])
 
     def posterior(
@@ -102,6 +106,8 @@ class ExactIndependentGP(Model):
         posterior_transform=None,
         **kwargs,
     ) -> GPyTorchPosterior:
+        """Joint posterior at ``X`` (``... x q x d``), outputs independent; no output subset, no
+        observation noise."""
         if output_indices is not None or observation_noise is not False:
             raise NotImplementedError
         batch, (q, d) = X.shape[:-2], X.shape[-2:]

@@ -48,6 +48,7 @@ class GroupOffsetMean(Mean):
         self.register_prior("offsets_prior", NormalPrior(0.0, float(prior_std)), "offsets")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The prior mean ``c + b[g]`` at ``x`` (last column: the group label, -1 for none)."""
         g = x[..., -1].round().long()
         padded = torch.cat([self.offsets, torch.zeros(1, dtype=self.offsets.dtype)])
         return self.constant + padded[torch.where(g < 0, len(self.offsets), g)]

@@ -34,6 +34,8 @@ class ShiftedLog:
         self.offsets_ = np.zeros(len(self.flags))  # c per output, set by fit
 
     def fit(self, Y: np.ndarray) -> ShiftedLog:
+        """Choose the offsets ``c`` so that ``y + c > 0`` on the flagged outputs of ``Y``; returns
+        self."""
         c = np.zeros(len(self.flags))
         for j in np.flatnonzero(self.flags):
             lo, hi = Y[:, j].min(), Y[:, j].max()
@@ -65,12 +67,15 @@ class Negate:
     """``-y``: costs (minimised) as BoTorch's maximised targets."""
 
     def fit(self, Y: np.ndarray) -> Negate:
+        """Nothing to fit; returns self."""
         return self
 
     def forward(self, Y: np.ndarray) -> np.ndarray:
+        """``-Y``."""
         return -Y
 
     def untransform(self, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std of ``y`` from those of ``-y``."""
         return -mean, std.copy()
 
 
@@ -81,16 +86,19 @@ class ChainedTransform:
         self.steps = steps
 
     def fit(self, Y: np.ndarray) -> ChainedTransform:
+        """Fit every step on the output of the steps before it; returns self."""
         for step in self.steps:
             Y = step.fit(Y).forward(Y)
         return self
 
     def forward(self, Y: np.ndarray) -> np.ndarray:
+        """The steps applied in order."""
         for step in self.steps:
             Y = step.forward(Y)
         return Y
 
     def untransform(self, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std in the original space: the steps undone in reverse order."""
         for step in reversed(self.steps):
             mean, std = step.untransform(mean, std)
         return mean, std

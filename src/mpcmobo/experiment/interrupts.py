@@ -41,10 +41,13 @@ class Interrupted(KeyboardInterrupt):
 
     @property
     def exit_code(self) -> int:
+        """The process exit code of the signal: 128 + its number (130 for SIGINT, 143 for
+        SIGTERM)."""
         return 128 + self.signum
 
     @property
     def signal_name(self) -> str:
+        """The signal's name, e.g. ``SIGINT``."""
         try:
             return signal.Signals(self.signum).name
         except ValueError:  # pragma: no cover

@@ -29,6 +29,7 @@ class RunFileWarning(UserWarning):
 
 
 def log_path(out_dir: str | Path) -> Path:
+    """The run's log file, ``DIR/run.log``."""
     return Path(out_dir) / LOG_NAME
 
 

@@ -83,6 +83,7 @@ class RunDirectory:
         self.reference_path = self.path / "reference.pkl"
 
     def holds_run(self) -> bool:
+        """Whether the directory holds a run (its ``config.toml`` exists)."""
         return self.config.exists()
 
     def saved_settings(self, **overrides) -> Settings:
@@ -181,6 +182,7 @@ class RunDirectory:
         )
 
     def save_reference(self, reference: Reference) -> None:
+        """Write ``reference.pkl`` (J*, J_initial, theta0)."""
         storage.write_pickle(self.reference_path, reference.to_dict())
 
     def checkpoint(self, learner: str, seed: int) -> Checkpoint | None:
@@ -226,6 +228,7 @@ class RunDirectory:
         return None
 
     def save_checkpoint(self, ckpt: Checkpoint) -> None:
+        """Write the job's checkpoint; the one it replaces is kept as the previous one."""
         storage.save_checkpoint(self.path, ckpt.learner, ckpt.seed, ckpt.to_dict())
 
     def incumbents(self, settings: Settings) -> list[tuple[str, int, int, np.ndarray]]:

@@ -58,6 +58,7 @@ class SystemSettings(_Section):
         return v
 
     def spec_overrides(self) -> dict[str, Any]:
+        """The overrides of the system's ``MPCSpec`` that these settings ask for."""
         out: dict[str, Any] = {}
         if self.learn_model:
             out["learn_model"] = tuple(self.learn_model)
@@ -82,6 +83,7 @@ class MPCSettings(_Section):
     warm_start: bool = True
 
     def options(self) -> dict[str, Any]:
+        """The options given to ``ParametricMPC`` (the unset ones left to the system)."""
         d = self.model_dump()
         return {k: v for k, v in d.items() if v is not None}
 
@@ -331,6 +333,8 @@ def _nest(overrides: dict[str, Any]) -> dict[str, Any]:
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
+    """The TOML file at ``path`` as a dictionary; a missing or malformed file is a
+    ``SettingsError``."""
     path = Path(path)
     try:
         with path.open("rb") as fh:
@@ -355,6 +359,7 @@ def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
 
 
 def settings_to_toml(settings: Settings) -> str:
+    """The settings as TOML text (what ``config.toml`` holds)."""
     import tomli_w
 
     return tomli_w.dumps(settings.to_dict())

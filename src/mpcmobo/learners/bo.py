@@ -558,6 +558,8 @@ class MOBOLearner(_GPLearner):
         super()._fit()
 
     def propose(self) -> np.ndarray:
+        """The next theta: the GP proposal, or every ``hybrid_every``-th time a CDPG step from the
+        incumbent."""
         self.n_proposals_ += 1
         if self._hybrid_due():
             step = self._gradient_step()
@@ -606,12 +608,14 @@ class MOBOLearner(_GPLearner):
         )
 
     def state_dict(self) -> dict:
+        """The base state plus the reference point and the number of proposals."""
         d = super().state_dict()
         d["ref_point"] = None if self.ref_point_ is None else self.ref_point_.copy()
         d["n_proposals"] = self.n_proposals_
         return d
 
     def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict`."""
         self.ref_point_ = None if state["ref_point"] is None else np.array(state["ref_point"])
         self.n_proposals_ = int(state["n_proposals"])
         super().load_state_dict(state)

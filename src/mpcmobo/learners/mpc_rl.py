@@ -83,9 +83,11 @@ class MPCRL(Learner):
         return self.space.from_unit(self.z, base=self.theta0)
 
     def propose(self) -> np.ndarray:
+        """The current theta of the gradient steps."""
         return self._theta()
 
     def incumbent(self) -> np.ndarray:
+        """The deployed theta: the current one, or with a deploy rule the best verified one."""
         if self.deploy_rule is None:
             return self._theta()
         if np.array_equal(self.deployed_z_, self.space.to_unit(self.theta0)):
@@ -130,6 +132,9 @@ class MPCRL(Learner):
         )
 
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """One gradient step (``optimizer``: Adam or plain) along the episode's CDPG gradient (eq.
+        DPG, eq. theta) in normalised coordinates; an episode without a valid gradient is
+        skipped."""
         self.n_observed += 1
         if self.deploy_rule is not None:
             self._observe_deploy(theta, result)
@@ -155,6 +160,7 @@ class MPCRL(Learner):
         self.z = np.clip(self.z - step, 0.0, 1.0)  # projection onto the bounds
 
     def state_dict(self) -> dict:
+        """The base state plus the Adam state (z, m, v, t) and the deploy rule's state."""
         d = super().state_dict()
         d.update({"z": self.z.copy(), "m": self.m.copy(), "v": self.v.copy(), "t": self.t})
         if self.deploy_rule is not None:
@@ -169,6 +175,7 @@ class MPCRL(Learner):
         return d
 
     def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict`."""
         super().load_state_dict(state)
         self.z, self.m, self.v = (np.array(state[k], dtype=float) for k in ("z", "m", "v"))
         self.t = int(state["t"])

@@ -41,7 +41,9 @@ LEARNER_SPECS: dict[str, LearnerSpec] = {
         LearnerSpec("hybrid", HybridLearner, "hybrid", "tab:purple", job_cost=4, in_paper=False),
     )
 }
+"""The learners by name, one entry each: what the settings, the CLI and the figures read."""
 LEARNERS: dict[str, type[Learner]] = {name: spec.cls for name, spec in LEARNER_SPECS.items()}
+"""The learner classes by name (from :data:`LEARNER_SPECS`)."""
 
 
 # the constructor arguments of every learner that are not options

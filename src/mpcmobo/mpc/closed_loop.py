@@ -12,7 +12,10 @@ from mpcmobo.systems.base import System
 
 
 class Exploration(Protocol):
-    def sample(self, rng: np.random.Generator, k: int) -> np.ndarray: ...
+    """Exploration noise on the applied inputs (e.g. ``mpcmobo.rl.GaussianExploration``)."""
+
+    def sample(self, rng: np.random.Generator, k: int) -> np.ndarray:
+        """(nu,) noise added to the input of step ``k``."""
 
 
 def rollout(

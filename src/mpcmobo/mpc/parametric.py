@@ -308,6 +308,8 @@ class ParametricMPC:
 
     # ------------------------------------------------------------------ validation
     def check_theta(self, theta) -> np.ndarray:
+        """``theta`` as a float vector of length ``n_theta`` (None: theta0); a wrong shape or a
+        non-finite value is a ``ValueError``."""
         if theta is None:
             return self.theta0.copy()
         theta = np.asarray(theta, dtype=float)

@@ -133,10 +133,12 @@ class System:
     # ------------------------------------------------------------------ sizes and names
     @property
     def nx(self) -> int:
+        """Number of states."""
         return len(self.state_names)
 
     @property
     def nu(self) -> int:
+        """Number of inputs."""
         return len(self.input_names)
 
     def _rk4_function(self) -> ca.Function:
@@ -158,6 +160,7 @@ class System:
 
     @property
     def search_space(self) -> SearchSpace:
+        """The search space of theta (from the cached MPC parameterization)."""
         return self.parameterization.space
 
     def with_spec(self, **changes) -> System:
@@ -166,6 +169,8 @@ class System:
 
     # ------------------------------------------------------------------ validation
     def check_state(self, x) -> np.ndarray:
+        """``x`` as a flat float vector of length ``nx``; a wrong shape or a non-finite value is a
+        ``ValueError``."""
         x = np.asarray(x, dtype=float)
         if x.shape not in ((self.nx,), (self.nx, 1)):
             raise ValueError(f"state has shape {x.shape}, expected ({self.nx},) for {self.name}")
@@ -175,6 +180,8 @@ class System:
         return x
 
     def check_input(self, u) -> np.ndarray:
+        """``u`` as a flat float vector of length ``nu``; a wrong shape or a non-finite value is a
+        ``ValueError``."""
         u = np.asarray(u, dtype=float)
         if u.shape not in ((self.nu,), (self.nu, 1)):
             raise ValueError(f"input has shape {u.shape}, expected ({self.nu},) for {self.name}")
@@ -184,6 +191,8 @@ class System:
         return u
 
     def model_params(self, model: str | np.ndarray) -> np.ndarray:
+        """The model parameter vector p of a named model (``true``, ``imperfect``, ...) or of an
+        array."""
         if isinstance(model, str):
             if model not in self.models:
                 raise ValueError(
@@ -222,4 +231,5 @@ class System:
         return rng.uniform(self.x0_lb, self.x0_ub)
 
     def clip_input(self, u) -> np.ndarray:
+        """``u`` clipped to the input bounds."""
         return np.clip(np.asarray(u, dtype=float).reshape(-1), self.u_lb, self.u_ub)

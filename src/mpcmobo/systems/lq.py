@@ -14,10 +14,14 @@ from mpcmobo.systems.parameterization import MPCSpec
 
 
 def lq_dynamics(x, u, p):
+    """Continuous dynamics of the damped oscillator: ``dp/dt = v``, ``dv/dt = -p0 p - p1 v + p2
+    f``."""
     return ca.vertcat(x[1], -p[0] * x[0] - p[1] * x[1] + p[2] * u[0])
 
 
 def make_lq(**spec_overrides) -> System:
+    """The LQ test system (a damped oscillator with a quadratic cost), ``spec_overrides`` applied to
+    its MPC spec."""
     spec = MPCSpec(horizon=8, gamma=0.95, Gamma=np.full(2, 1e3), Gamma_f=np.full(2, 1e3))
     spec = spec.with_overrides("LQ system", **spec_overrides)
     return System(

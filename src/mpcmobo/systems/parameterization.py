@@ -61,6 +61,7 @@ class Parameterization:
 
     @property
     def n_theta(self) -> int:
+        """Number of parameters in theta."""
         return len(self.names)
 
     @classmethod

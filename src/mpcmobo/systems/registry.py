@@ -24,6 +24,7 @@ def register_system(name: str, factory: Callable[..., System], *, overwrite: boo
 
 
 def available_systems() -> list[str]:
+    """The names of the registered systems, sorted."""
     return sorted(_REGISTRY)
 
 

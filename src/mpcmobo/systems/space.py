@@ -65,10 +65,12 @@ class SearchSpace:
 
     @property
     def n_theta(self) -> int:
+        """Number of coordinates of theta."""
         return len(self.names)
 
     @property
     def free(self) -> np.ndarray:
+        """Boolean mask of the searched (not fixed) coordinates."""
         return ~self.fixed
 
     @property
@@ -78,6 +80,7 @@ class SearchSpace:
 
     @property
     def free_names(self) -> list[str]:
+        """Names of the searched (free) coordinates."""
         return [n for n, f in zip(self.names, self.free) if f]
 
     def _check(self, theta: np.ndarray) -> np.ndarray:
@@ -87,9 +90,11 @@ class SearchSpace:
         return theta
 
     def clip(self, theta: np.ndarray) -> np.ndarray:
+        """``theta`` clipped to the bounds."""
         return np.clip(self._check(theta), self.lower, self.upper)
 
     def contains(self, theta: np.ndarray, tol: float = 1e-12) -> bool:
+        """Whether ``theta`` lies within the bounds (up to ``tol`` times the span)."""
         theta = self._check(theta)
         span = np.maximum(self.upper - self.lower, 1.0)
         return bool(
@@ -140,6 +145,7 @@ class SearchSpace:
         return out
 
     def to_dict(self) -> dict:
+        """The space as a plain dictionary."""
         return {
             "names": list(self.names),
             "lower": self.lower.tolist(),
