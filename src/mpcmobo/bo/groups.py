@@ -100,6 +100,6 @@ def fit_group_offsets(
         torch.manual_seed(seed)
         fit_gpytorch_mll(mll, optimizer_kwargs={"options": {"maxiter": maxiter}})
     b = model.mean_module.offsets.detach().numpy().copy()
-    b *= float(model.outcome_transform.stdvs.reshape(-1)[0])  # back to the units of t
+    b *= float(model.outcome_transform.stdvs.reshape(-1)[0])  # type: ignore[union-attr,operator]  # back to the units of t; Standardize
     b -= b.mean()
     return {int(g): float(b[k]) for k, g in enumerate(ids)}

@@ -20,6 +20,7 @@ of ``g(y)`` is ``N(m, s^2)``, so ``y + c`` is log-normal: its mean and standard 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -82,7 +83,7 @@ class Negate:
 class ChainedTransform:
     """The steps applied in order by ``forward``, undone in reverse order by ``untransform``."""
 
-    def __init__(self, *steps) -> None:
+    def __init__(self, *steps: Any) -> None:
         self.steps = steps
 
     def fit(self, Y: np.ndarray) -> ChainedTransform:

@@ -86,7 +86,7 @@ def check() -> None:
 def _handler(signum: int, frame: Any) -> None:
     request_stop(signum)
     if _state.active and _state.depth == 0:
-        raise Interrupted(_state.signum)
+        raise Interrupted(_state.signum)  # type: ignore[arg-type]  # set by request_stop
     if _Worker.initialized and not _Worker.busy.is_set():
         os._exit(128 + signum)  # an idle worker told to terminate: nothing to finish
 

@@ -86,7 +86,7 @@ class RunDirectory:
         """Whether the directory holds a run (its ``config.toml`` exists)."""
         return self.config.exists()
 
-    def saved_settings(self, **overrides) -> Settings:
+    def saved_settings(self, **overrides: Any) -> Settings:
         """The run's saved settings (with ``overrides``, see :func:`load_settings`)."""
         if self.path.exists() and not self.path.is_dir():
             raise StudyError(f"{self.path} is a file, not a run directory")
@@ -240,7 +240,7 @@ class RunDirectory:
                 ckpt = self.checkpoint(learner, seed)
                 if ckpt is not None and ckpt.rows:
                     out.append((learner, seed, len(ckpt.rows), ckpt.incumbent))
-        return out
+        return out  # type: ignore[return-value]  # a checkpoint with rows has an incumbent
 
 
 def open_run(

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mpcmobo.learners.registry import LEARNER_SPECS
-from mpcmobo.systems import available_systems, get_system
+from mpcmobo.systems import System, available_systems, get_system
 
 # the learners the settings accept by name, and those the paper's study runs (the default)
 KNOWN_LEARNERS = tuple(LEARNER_SPECS)
@@ -242,7 +243,7 @@ def _drop_none(d: Any) -> Any:
     return d
 
 
-def build_system(settings: Settings):
+def build_system(settings: Settings) -> System:
     """The system of the settings, with its MPC-spec overrides applied."""
     spec = settings.system.spec_overrides()
     return get_system(settings.system.name, **spec)
@@ -264,7 +265,7 @@ def _field_names(model: type[BaseModel], loc: tuple) -> list[str] | None:
     return None
 
 
-def _format_error(err: dict) -> str:
+def _format_error(err: Mapping[str, Any]) -> str:
     loc = tuple(err.get("loc", ()))
     key = ".".join(str(p) for p in loc) or "(top level)"
     typ = err.get("type", "")

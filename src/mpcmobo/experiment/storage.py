@@ -28,7 +28,7 @@ import math
 import os
 import pickle
 import secrets
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -250,7 +250,11 @@ def trajectory_rows(
 
 
 def trajectories_frame(
-    reference: dict | None, checkpoints: list[dict], state_names, input_names, dt: float
+    reference: dict | None,
+    checkpoints: list[dict],
+    state_names: Sequence[str],
+    input_names: Sequence[str],
+    dt: float,
 ) -> pd.DataFrame:
     """The study-level (learner "", seed -1) and per-job stored trajectories, long format."""
     parts = []

@@ -57,7 +57,7 @@ class MPCRL(Learner):
         if context == "x0" and contexts is None:
             raise ValueError("context = 'x0' needs the system's contexts (ContextSpec)")
         self.context_spec = contexts
-        self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))
+        self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
         self.deploy_rule = (
             None
             if deploy_confidence is None
@@ -108,22 +108,22 @@ class MPCRL(Learner):
 
     def _observe_deploy(self, theta: np.ndarray, result: EpisodeResult) -> None:
         dc = self.contexts.shape[1]
-        c = np.zeros(0) if dc == 0 else self.context_spec.unit(result.x0)
+        c = np.zeros(0) if dc == 0 else self.context_spec.unit(result.x0)  # type: ignore[union-attr,arg-type]  # dc > 0: context x0
         x = np.concatenate([self.space.to_unit(self.space.clip(theta)), c])
         self.X_ = np.vstack([self.X_, x])
         self.F_ = np.append(self.F_, result.f1)
         self._judge_fit()
 
     def _judge_fit(self) -> None:
-        self._judge_pre_fit = self.judge.state_dict()
+        self._judge_pre_fit = self.judge.state_dict()  # type: ignore[union-attr]  # with deploy_rule
         self._deployed_pre_fit = self.deployed_z_.copy()
         ok = np.isfinite(self.F_)
         if np.count_nonzero(ok) < 2:
             return
-        self.judge.fit(self.X_, self.F_[:, None])
+        self.judge.fit(self.X_, self.F_[:, None])  # type: ignore[union-attr]  # with deploy_rule
         d = self.space.dim
-        self.deployed_z_ = self.deploy_rule.choose(
-            self.judge,
+        self.deployed_z_ = self.deploy_rule.choose(  # type: ignore[union-attr]  # with the judge
+            self.judge,  # type: ignore[arg-type]
             self.X_[ok, :d],
             self.deployed_z_,
             self.contexts,
@@ -186,5 +186,5 @@ class MPCRL(Learner):
                 self.F_ = np.array(state["judge_F"], float)
                 self.deployed_z_ = np.array(state["deployed_pre_fit"], float)
                 if state["judge_pre_fit"] is not None:
-                    self.judge.load_state_dict(state["judge_pre_fit"])
+                    self.judge.load_state_dict(state["judge_pre_fit"])  # type: ignore[union-attr]
                     self._judge_fit()

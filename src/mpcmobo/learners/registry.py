@@ -101,7 +101,7 @@ def _type_problem(key: str, value: Any, default: Any) -> str | None:
 
 
 def make_learner(
-    name: str, space: SearchSpace, theta0: np.ndarray, seed: int = 0, **options
+    name: str, space: SearchSpace, theta0: np.ndarray, seed: int = 0, **options: Any
 ) -> Learner:
     """Build the learner ``name`` ("mpc-rl", "bo", "mobo", "hybrid") with its options.
 

@@ -35,10 +35,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mpcmobo.systems.base import System
 from mpcmobo.systems.parameterization import Parameterization
@@ -146,7 +147,7 @@ class ParametricMPC:
             tol, self.tau, max_iter, jit=self._jit, options=solver_options, warm=warm_options
         )
         self._solver = ca.nlpsol("mpc", "ipopt", self._nlp, cold)
-        self._solver_warm = (
+        self._solver_warm: ca.Function | None = (
             ca.nlpsol("mpc_warm", "ipopt", self._nlp, warm) if self.warm_start else None
         )
         self._prev: dict | None = None
@@ -185,7 +186,7 @@ class ParametricMPC:
             x_lo, x_hi = x_lo + bo[:nx], x_hi - bo[nx:]
         return _ThetaTerms(theta_c, Tw, G, Qw, Rw, pm, x_lo, x_hi)
 
-    def _transcribe(self, x0: ca.SX, th: ca.SX):
+    def _transcribe(self, x0: ca.SX, th: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
         """Multiple shooting of eq. (V0) over stages 0..N: (w, G, H, cost / cost_scale).
 
         Sets the bounds of ``w`` and the index lists of its inputs, states and slacks.
@@ -195,7 +196,9 @@ class ParametricMPC:
         t = self._theta_terms(th)
         F = sysm.discrete_step
         w = _Decisions()
-        self._iu, self._ix, self._ie = [], [], []  # index lists into w
+        self._iu: list[int] = []  # index lists into w
+        self._ix: list[int] = []
+        self._ie: list[int] = []
         zu_lb, zu_ub = (sysm.u_lb - ur) / Su, (sysm.u_ub - ur) / Su
         g_eq, g_in = [], []
         cost = t.theta_c
@@ -222,7 +225,7 @@ class ParametricMPC:
         self._lbw, self._ubw = np.array(w.lb), np.array(w.ub)
         return ca.vertcat(*w.w), ca.vertcat(*g_eq), ca.vertcat(*g_in), cost / self.cost_scale
 
-    def _state_rows(self, x_phys, eta, t: _ThetaTerms) -> list:
+    def _state_rows(self, x_phys: ca.SX, eta: ca.SX | np.ndarray, t: _ThetaTerms) -> list:
         """l1-relaxed state constraints of one stage (eq. violation), scaled rows ``H <= 0``."""
         sysm, Sx = self.system, self.Sx
         rows = []
@@ -251,7 +254,9 @@ class ParametricMPC:
         )
         return wshift, gshift
 
-    def _kkt_functions(self, wv, geq, gin, f, th, p) -> None:
+    def _kkt_functions(
+        self, wv: ca.SX, geq: ca.SX, gin: ca.SX, f: ca.SX, th: ca.SX, p: ca.SX
+    ) -> None:
         """The barrier-relaxed KKT residual R(y, p) and its Jacobians (eq. nabla_pi).
 
         Sets ``_kkt`` = (w, lam, mu, p) -> (dR/dy, dR/dtheta, df/dtheta, df/dw) and the
@@ -278,7 +283,7 @@ class ParametricMPC:
         # barrier solution the solver returns.
         dfdth = ca.gradient(f, th)
         dfdw = ca.gradient(f, wv)
-        kkt_opts = {}
+        kkt_opts: dict[str, Any] = {}
         if self._jit:  # the exact Hessian inside dR/dy dominates this evaluation
             kkt_opts = {"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS}
         self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw], kkt_opts)
@@ -307,7 +312,7 @@ class ParametricMPC:
         return ca.Function("sens", [w, lam, mu, p], [dpi, dV])
 
     # ------------------------------------------------------------------ validation
-    def check_theta(self, theta) -> np.ndarray:
+    def check_theta(self, theta: ArrayLike | None) -> np.ndarray:
         """``theta`` as a float vector of length ``n_theta`` (None: theta0); a wrong shape or a
         non-finite value is a ``ValueError``."""
         if theta is None:
@@ -341,7 +346,9 @@ class ParametricMPC:
             return self.system.clip_input(plan[age])
         return self.system.clip_input(self.system.u_ref)
 
-    def solve(self, x, theta=None, sensitivities: bool = True) -> MPCSolution:
+    def solve(
+        self, x: ArrayLike, theta: ArrayLike | None = None, sensitivities: bool = True
+    ) -> MPCSolution:
         """Solve eq. (V0) at state ``x``; return pi_theta(x), V_theta(x) and their gradients."""
         x = self.system.check_state(x)
         theta = self.check_theta(theta)
@@ -377,7 +384,16 @@ class ParametricMPC:
             fallback=True,
         )
 
-    def _solution(self, x, p, out, wopt, status, iters, sensitivities: bool) -> MPCSolution:
+    def _solution(
+        self,
+        x: np.ndarray,
+        p: np.ndarray,
+        out: dict[str, ca.DM],
+        wopt: np.ndarray,
+        status: str,
+        iters: int,
+        sensitivities: bool,
+    ) -> MPCSolution:
         """pi_theta(x) (eq. Policy), V_theta(x), the plan and, if asked, the sensitivities;
         the solution, shifted, is the next warm start."""
         lam_g = np.asarray(out["lam_g"]).reshape(-1)
@@ -411,9 +427,11 @@ class ParametricMPC:
         self._remember(wopt, lam_g, lam_x, plan_u)
         return sol
 
-    def _run_solver(self, x: np.ndarray, p: np.ndarray, warm: bool):
+    def _run_solver(
+        self, x: np.ndarray, p: np.ndarray, warm: bool
+    ) -> tuple[bool, str, int, Any, Any]:  # (ok, status, iterations, solver output, w)
         if warm:
-            w0, lam_g0, lam_x0 = self._prev["w_shift"], self._prev["lam_g"], self._prev["lam_x"]
+            w0, lam_g0, lam_x0 = self._prev["w_shift"], self._prev["lam_g"], self._prev["lam_x"]  # type: ignore[index]  # warm: _prev is set
         else:
             w0, lam_g0, lam_x0 = self._cold_guess(x), None, None
         args = {
@@ -426,7 +444,7 @@ class ParametricMPC:
         }
         if lam_g0 is not None:
             args["lam_g0"], args["lam_x0"] = lam_g0, lam_x0
-        solver = self._solver_warm if warm else self._solver
+        solver: ca.Function = self._solver_warm if warm else self._solver  # type: ignore[assignment]  # warm: built
         try:
             out = solver(**args)
         except RuntimeError as err:  # IPOPT can raise on evaluation errors
@@ -437,7 +455,9 @@ class ParametricMPC:
         ok = status in _SUCCESS and bool(np.all(np.isfinite(wopt)))
         return ok, status, iters, out, wopt
 
-    def _remember(self, w, lam_g, lam_x, plan_u) -> None:
+    def _remember(
+        self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray, plan_u: np.ndarray | None
+    ) -> None:
         """Store the solution and its multipliers, shifted by one stage, as the next warm start."""
         self._prev = {
             "w_shift": w[self._wshift],
@@ -447,7 +467,9 @@ class ParametricMPC:
             "age": 0,
         }
 
-    def _multipliers(self, w, lam_g, lam_x):
+    def _multipliers(
+        self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Split CasADi's multipliers into (lambda for G, mu >= 0 for every row of H)."""
         tau = self.tau
         lam = lam_g[: self.neq]
@@ -470,7 +492,9 @@ class ParametricMPC:
         )
         return lam, mu
 
-    def _sensitivities(self, w, lam_g, lam_x, p):
+    def _sensitivities(
+        self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray, p: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(dpi/dtheta, dV/dtheta) at a solution (eq. nabla_pi, grad V)."""
         lam, mu = self._multipliers(w, lam_g, lam_x)
         dpi, dV = self._sens(w, lam, mu, p)

@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 @dataclass(frozen=True)
@@ -28,10 +29,10 @@ class SearchSpace:
     def __init__(
         self,
         names: Sequence[str],
-        lower: Sequence[float],
-        upper: Sequence[float],
-        log: Sequence[bool] | None = None,
-        fixed: Sequence[bool] | None = None,
+        lower: ArrayLike,
+        upper: ArrayLike,
+        log: ArrayLike | None = None,
+        fixed: ArrayLike | None = None,
     ) -> None:
         n = len(names)
         lower = np.asarray(lower, dtype=float).reshape(-1)
@@ -47,12 +48,12 @@ class SearchSpace:
             raise ValueError("search space: bounds must be finite")
         bad = np.flatnonzero(~(lower <= upper))
         if bad.size:
-            raise ValueError(f"search space: lower > upper for {[names[i] for i in bad]}")
+            raise ValueError(f"search space: lower > upper for {[names[i] for i in bad.tolist()]}")
         badlog = np.flatnonzero(log & (lower <= 0))
         if badlog.size:
             raise ValueError(
                 f"search space: log-scaled parameters need positive bounds: "
-                f"{[names[i] for i in badlog]}"
+                f"{[names[i] for i in badlog.tolist()]}"
             )
         free_deg = np.flatnonzero(~fixed & (lower == upper))
         fixed = fixed.copy()
@@ -101,7 +102,9 @@ class SearchSpace:
             np.all(theta >= self.lower - tol * span) and np.all(theta <= self.upper + tol * span)
         )
 
-    def _warp(self, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, log: np.ndarray):
+    def _warp(
+        self, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, log: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         v, lo, hi = v.copy(), lo.copy(), hi.copy()
         v[..., log] = np.log(np.maximum(v[..., log], 1e-300))
         lo[log], hi[log] = np.log(lo[log]), np.log(hi[log])
