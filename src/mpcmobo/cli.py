@@ -12,15 +12,24 @@ import math
 import os
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+)
 from rich.table import Table
 
+from mpcmobo import __version__
 from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, read_run_file
 from mpcmobo.experiment.settings import PAPER_LEARNERS, Settings, SettingsError, load_settings
@@ -37,7 +46,26 @@ console = Console()
 err_console = Console(stderr=True)
 
 
-def _fail(message: str, code: int) -> None:
+def _print_version(value: bool) -> None:
+    if value:
+        console.print(f"mpcmobo {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: bool = typer.Option(
+        False,
+        "--version",
+        callback=_print_version,
+        is_eager=True,
+        help="print the installed version (package metadata) and exit",
+    ),
+) -> None:
+    """Tune an MPC from closed-loop data: MPC-RL (CDPG), BO and MPC-RL-MOBO."""
+
+
+def _fail(message: str, code: int) -> NoReturn:
     err_console.print(f"[bold red]Error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
@@ -131,8 +159,8 @@ class _Bars:
 
     def __init__(self, progress: Progress) -> None:
         self.progress = progress
-        self.tasks: dict[tuple[str, int], int] = {}
-        self.ref_task: int | None = None
+        self.tasks: dict[tuple[str, int], TaskID] = {}
+        self.ref_task: TaskID | None = None
 
     def __call__(self, event: dict) -> None:
         kind = event.get("kind")
@@ -251,12 +279,12 @@ def run(
             RunDirectory(out).check_new(parents=not given)
         t0 = time.perf_counter()
         if quiet:
-            summary = run_study(settings, out, resume=resume)
+            summary = run_study(settings, out, resume=resume)  # type: ignore[arg-type]  # --resume checked --out
         elif not console.is_terminal:
-            summary = run_study(settings, out, resume=resume, progress=_Lines())
+            summary = run_study(settings, out, resume=resume, progress=_Lines())  # type: ignore[arg-type]  # --resume checked --out
         else:
             with _progress() as progress:
-                summary = run_study(settings, out, resume=resume, progress=_Bars(progress))
+                summary = run_study(settings, out, resume=resume, progress=_Bars(progress))  # type: ignore[arg-type]  # --resume checked --out
     except SettingsError as err:
         _fail(str(err), 2)
     except StudyError as err:
@@ -265,10 +293,10 @@ def run(
         _interrupted(out, err.signal_name, err.exit_code)
     except KeyboardInterrupt:
         _interrupted(out, "SIGINT", 130)
-    _report(summary, out, time.perf_counter() - t0, no_plot)
+    _report(summary, out, time.perf_counter() - t0, no_plot)  # type: ignore[arg-type]  # --resume checked --out
 
 
-def _interrupted(out: Path | None, name: str, code: int) -> None:
+def _interrupted(out: Path | None, name: str, code: int) -> NoReturn:
     """An interrupted run: where its records are and how to continue it; exit ``code``."""
     if out is not None and RunDirectory(out).holds_run():
         err_console.print(
@@ -289,7 +317,7 @@ def _interrupted(out: Path | None, name: str, code: int) -> None:
 
 
 def _resumed_settings(
-    out: Path | None, fixed: dict[str, object], workers: int | None, episodes: int | None
+    out: Path | None, fixed: Mapping[str, object], workers: int | None, episodes: int | None
 ) -> Settings | None:
     """What ``--resume`` changes in the saved run: None, or its settings with ``--workers`` and
     ``--episodes``; the options in ``fixed`` may not be given."""

@@ -11,11 +11,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from mpl_toolkits.mplot3d import Axes3D
 
 from mpcmobo.bo.pareto import pareto_mask
 from mpcmobo.learners.registry import LEARNER_SPECS
@@ -31,14 +36,16 @@ def _band(df: pd.DataFrame, col: str) -> pd.DataFrame:
     return pd.DataFrame({"med": g.median(), "q1": g.quantile(0.25), "q3": g.quantile(0.75)})
 
 
-def _curve(ax, df: pd.DataFrame, col: str, color: str, label: str, n_seeds: int, **kw) -> None:
+def _curve(
+    ax: Axes, df: pd.DataFrame, col: str, color: str, label: str, n_seeds: int, **kw: Any
+) -> None:
     b = _band(df, col).dropna(subset=["med"])
     ax.plot(b.index, b["med"], color=color, label=label, **kw)
     if n_seeds > 1:
         ax.fill_between(b.index, b["q1"], b["q3"], color=color, alpha=0.25, linewidth=0)
 
 
-def _save(fig, out: Path, name: str) -> list[Path]:
+def _save(fig: Figure, out: Path, name: str) -> list[Path]:
     paths = []
     for ext in ("png", "pdf"):
         p = out / f"{name}.{ext}"
@@ -47,7 +54,8 @@ def _save(fig, out: Path, name: str) -> list[Path]:
     return paths
 
 
-def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
+def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]) -> Figure:
+    """Fig. 1: J tilde per episode and J_eval of the incumbent against J*, one panel per learner."""
     n = len(learners)
     fig = Figure(figsize=(8.5, 2.4 * n))
     axes = fig.subplots(n, 1, sharex=True, squeeze=False)
@@ -73,14 +81,15 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
     return fig
 
 
-def fig2(ep: pd.DataFrame, learners: list[str]):
+def fig2(ep: pd.DataFrame, learners: list[str]) -> Figure:
+    """Fig. 2: mean |A^w| per episode, and the MOBO observations with their Pareto front."""
     fig = Figure(figsize=(11, 4.2))
     _advantage_panel(fig.add_subplot(1, 2, 1), ep, learners)
     _pareto_panel(fig, fig.add_subplot(1, 2, 2, projection="3d"), ep, learners)
     return fig
 
 
-def _advantage_panel(ax, ep: pd.DataFrame, learners: list[str]) -> None:
+def _advantage_panel(ax: Axes, ep: pd.DataFrame, learners: list[str]) -> None:
     """Mean |A^w| per episode of the critic-based learners (median and IQR over seeds)."""
     shown = [n for n in ("mpc-rl", "mobo") if n in learners] or learners
     for name in shown:
@@ -95,7 +104,7 @@ def _advantage_panel(ax, ep: pd.DataFrame, learners: list[str]) -> None:
     ax.legend(fontsize=8)
 
 
-def _pareto_panel(fig, ax3, ep: pd.DataFrame, learners: list[str]) -> None:
+def _pareto_panel(fig: Figure, ax3: Axes3D, ep: pd.DataFrame, learners: list[str]) -> None:
     """The observed objectives (f1, f2, f4, or f3 without f4) of the first seed of MOBO (else
     the last learner), with their Pareto front."""
     src = "mobo" if "mobo" in learners else learners[-1]
@@ -127,7 +136,7 @@ def _pareto_panel(fig, ax3, ep: pd.DataFrame, learners: list[str]) -> None:
     ax3.set_title(f"Pareto front of the {LABELS.get(src, src)} observations", fontsize=9)
 
 
-def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
+def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str) -> Figure:
     names = info["state_names"] if kind == "x" else info["input_names"]
     ref = info["x_ref"] if kind == "x" else info["u_ref"]
     lb = info["x_lb"] if kind == "x" else info["u_lb"]
@@ -162,7 +171,7 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str):
     return fig
 
 
-def _final_lines(ax, final: pd.DataFrame, col: str) -> None:
+def _final_lines(ax: Axes, final: pd.DataFrame, col: str) -> None:
     """The final incumbent's evaluation episodes, one line per start (with several seeds: the
     median over seeds and the interquartile band)."""
     for _, g in final.groupby("start"):

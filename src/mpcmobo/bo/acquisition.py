@@ -23,6 +23,7 @@ import gpytorch
 import moocore
 import numpy as np
 import torch
+from botorch.acquisition.acquisition import AcquisitionFunction
 from botorch.acquisition.analytic import LogExpectedImprovement
 from botorch.acquisition.multi_objective.logei import (
     qLogExpectedHypervolumeImprovement,
@@ -83,10 +84,10 @@ def _prepare(surrogate: GPSurrogate, X: np.ndarray, Y: np.ndarray) -> np.ndarray
         Y = Y[:, None]
     if not surrogate.is_fitted_on(X, Y):
         surrogate.fit(X, Y)
-    return surrogate.train_X
+    return surrogate.train_X  # type: ignore[return-value]  # set by fit
 
 
-def _optimize(acq, d: int, seed: int, search: AcqfSearch) -> np.ndarray:
+def _optimize(acq: AcquisitionFunction, d: int, seed: int, search: AcqfSearch) -> np.ndarray:
     """The maximiser (d,) of ``acq`` on [0,1]^d, seeded."""
     bounds = torch.stack([torch.zeros(d, dtype=DTYPE), torch.ones(d, dtype=DTYPE)])
     with torch.random.fork_rng(), gpytorch.settings.max_cholesky_size(MAX_CHOLESKY):
@@ -169,7 +170,7 @@ def _logehvi(
     tref: torch.Tensor,
     sampler: SobolQMCNormalSampler,
     alpha: float,
-):
+) -> qLogExpectedHypervolumeImprovement:
     """qLogEHVI with the posterior-mean front at ``Xf[base]`` as ``P`` (one box
     decomposition of the region it dominates)."""
     m = surrogate.num_outputs
@@ -181,7 +182,7 @@ def _logehvi(
     if alpha > 0:
         part = NondominatedPartitioning(ref_point=tref, Y=front, alpha=alpha)
     else:
-        part = FastNondominatedPartitioning(ref_point=tref, Y=front)
+        part = FastNondominatedPartitioning(ref_point=tref, Y=front)  # type: ignore[assignment]  # botorch takes any box decomposition
     return qLogExpectedHypervolumeImprovement(  # eq. EHVI (log, MC)
         surrogate.fast_model,  # same posterior, faster
         ref_point=tref,
@@ -198,7 +199,7 @@ def _lognehvi(
     sampler: SobolQMCNormalSampler,
     alpha: float,
     seed: int,
-):
+) -> qLogNoisyExpectedHypervolumeImprovement:
     """qLogNEHVI with the baseline points ``Xf[base]`` (the front integrated over the joint
     posterior there)."""
     # nothing better than ref yet: fall back to the best point per objective
@@ -208,7 +209,7 @@ def _lognehvi(
     with torch.random.fork_rng():
         torch.manual_seed(seed)
         return qLogNoisyExpectedHypervolumeImprovement(  # eq. EHVI (log, noisy, MC)
-            surrogate.model,
+            surrogate.model,  # type: ignore[arg-type]  # fitted by _prepare
             ref_point=tref,
             X_baseline=torch.as_tensor(Xf[base], dtype=DTYPE),
             sampler=sampler,

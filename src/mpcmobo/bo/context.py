@@ -27,18 +27,26 @@ surrogate: the safety constraint and the deployment rule then work on theta alon
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import gpytorch
 import numpy as np
 import torch
+from botorch.acquisition.acquisition import AcquisitionFunction
 from botorch.acquisition.multi_objective.multi_output_risk_measures import (
     MultiOutputExpectation,
 )
 from botorch.models.model import Model
 from botorch.models.transforms.input import AppendFeatures
+from botorch.posteriors import Posterior
 
 from mpcmobo.bo.groups import DTYPE, MAX_CHOLESKY
+
+if TYPE_CHECKING:
+    from mpcmobo.bo.acquisition import AcqfSearch
+    from mpcmobo.bo.surrogate import GPSurrogate
 
 __all__ = [
     "ContextModel",
@@ -70,7 +78,9 @@ class ContextSpec:
     seed: int = 0
 
     @classmethod
-    def from_system(cls, system, seed: int = 0, pool_size: int = 256) -> ContextSpec:
+    def from_system(cls, system: Any, seed: int = 0, pool_size: int = 256) -> ContextSpec:
+        """The system's initial-state box and a pool of ``pool_size`` initial states drawn with
+        ``seed`` (a stream of its own)."""
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), CONTEXT_STREAM]))
         pool = np.array([system.sample_initial_state(rng) for _ in range(pool_size)])
         span = np.asarray(system.x_ub, float) - np.asarray(system.x_lb, float)
@@ -95,6 +105,7 @@ class ContextSpec:
 
     @property
     def dim(self) -> int:
+        """Number of context coordinates (the state dimension)."""
         return int(np.asarray(self.lb).shape[0])
 
     def unit(self, x0: np.ndarray) -> np.ndarray:
@@ -131,13 +142,23 @@ class ContextModel(Model):
 
     @property
     def num_outputs(self) -> int:
+        """Number of outputs of the base model."""
         return self.base.num_outputs
 
     @property
     def batch_shape(self) -> torch.Size:
+        """Empty: the model is not batched."""
         return torch.Size([])
 
-    def posterior(self, X, output_indices=None, observation_noise=False, **kwargs):
+    def posterior(  # type: ignore[override]  # posterior_transform goes through **kwargs
+        self,
+        X: torch.Tensor,
+        output_indices: list[int] | None = None,
+        observation_noise: bool | torch.Tensor = False,
+        **kwargs: Any,
+    ) -> Posterior:
+        """The base model's joint posterior at ``X`` with the K contexts appended to every
+        candidate."""
         if self.append is not None:
             X = self.append.transform(X)
         return self.base.posterior(X, output_indices=output_indices, **kwargs)
@@ -153,12 +174,16 @@ class ContextExpectation(MultiOutputExpectation):
     the non-contextual learner.
     """
 
-    def __init__(self, n_w: int, log_flags, keep=None) -> None:
+    def __init__(
+        self, n_w: int, log_flags: Sequence[bool], keep: Sequence[int] | None = None
+    ) -> None:
         super().__init__(n_w=n_w)
         self.log_flags = [bool(b) for b in log_flags]
         self.keep = list(range(len(self.log_flags))) if keep is None else list(keep)
 
-    def forward(self, samples: torch.Tensor, X=None) -> torch.Tensor:
+    def forward(self, samples: torch.Tensor, X: torch.Tensor | None = None) -> torch.Tensor:
+        """Expectation over the K contexts of each candidate of the ``keep`` columns of ``samples``
+        (class docstring)."""
         s = self._prepare_samples(samples)  # ... x q x n_w x m
         lin = s.mean(dim=-2)
         if any(self.log_flags):
@@ -172,7 +197,9 @@ def _to_cost(t: torch.Tensor, log: bool, offset: float) -> torch.Tensor:
     return torch.exp(-t) - offset if log else -t
 
 
-def violation_constraint(n_w: int, column: int, log: bool, offset: float, budget: float):
+def violation_constraint(
+    n_w: int, column: int, log: bool, offset: float, budget: float
+) -> Callable[[torch.Tensor], torch.Tensor]:
     """A BoTorch outcome constraint (``<= 0`` is feasible) on model-space samples
     ``... x (q K) x m``: the expected violation over the K contexts minus ``budget``."""
 
@@ -185,7 +212,7 @@ def violation_constraint(n_w: int, column: int, log: bool, offset: float, budget
 
 
 def expected_outcome_samples(
-    surrogate,
+    surrogate: GPSurrogate,
     Z: np.ndarray,
     contexts: np.ndarray,
     *,
@@ -241,13 +268,13 @@ def _front_indices(C: np.ndarray, r: np.ndarray, max_baseline: int) -> np.ndarra
     return idx
 
 
-def _model_space_means(surrogate, E: np.ndarray) -> np.ndarray:
+def _model_space_means(surrogate: GPSurrogate, E: np.ndarray) -> np.ndarray:
     """Expected costs (n, m) mapped to the model space ``t = -g(y)``."""
     return surrogate.to_model_space(E)
 
 
 def propose_context(
-    surrogate,
+    surrogate: GPSurrogate,
     Xf: np.ndarray,
     contexts: np.ndarray,
     *,
@@ -257,7 +284,7 @@ def propose_context(
     mc_samples: int = 64,
     max_baseline: int = 32,
     budget: float | None = None,
-    search=None,
+    search: AcqfSearch | None = None,
     safe_points: np.ndarray | None = None,
 ) -> np.ndarray:
     """Next unit-cube theta (d,) maximising the (constrained) log EHVI (``n_objectives > 1``)
@@ -306,10 +333,10 @@ def propose_context(
         front = torch.as_tensor(T[base].reshape(-1, n_objectives), dtype=DTYPE)
         tref = torch.as_tensor(ref_t, dtype=DTYPE)
         part = FastNondominatedPartitioning(ref_point=tref, Y=front)
-        acq = qLogExpectedHypervolumeImprovement(
+        acq: AcquisitionFunction = qLogExpectedHypervolumeImprovement(
             model,
             ref_point=tref,
-            partitioning=part,
+            partitioning=part,  # type: ignore[arg-type]  # botorch takes any box decomposition
             sampler=sampler,
             objective=objective,
             constraints=constraints,
@@ -322,7 +349,7 @@ def propose_context(
             model,
             best_f=best_f,
             sampler=sampler,
-            objective=GenericMCObjective(lambda s, X=None: objective(s, X)[..., 0]),
+            objective=GenericMCObjective(lambda s, X=None: objective(s, X)[..., 0]),  # type: ignore[misc]
             constraints=constraints,
         )
     return _optimize(acq, d, seed, search)

@@ -19,7 +19,10 @@ The outputs are independent, so the joint posterior is block diagonal across out
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
+from botorch.acquisition.objective import PosteriorTransform
 from botorch.models import SingleTaskGP
 from botorch.models.model import Model
 from botorch.posteriors.gpytorch import GPyTorchPosterior
@@ -72,6 +75,8 @@ class ExactIndependentGP(Model):
 
     @classmethod
     def from_singletask(cls, model: SingleTaskGP) -> ExactIndependentGP:
+        """The exact posterior of a fitted ``SingleTaskGP`` with its default RBF kernel and constant
+        mean."""
         if not isinstance(model.covar_module, RBFKernel) or not isinstance(
             model.mean_module, ConstantMean
         ):
@@ -84,24 +89,28 @@ class ExactIndependentGP(Model):
         noise = model.likelihood.noise.reshape(m, -1)[:, 0]
         const = model.mean_module.constant.reshape(m)
         ot = model.outcome_transform
-        return cls(X, Yt, ls, noise, const, ot.means.reshape(m), ot.stdvs.reshape(m))
+        return cls(X, Yt, ls, noise, const, ot.means.reshape(m), ot.stdvs.reshape(m))  # type: ignore[union-attr,operator]  # Standardize
 
     @property
     def num_outputs(self) -> int:
+        """Number of independent outputs."""
         return self._m
 
     @property
     def batch_shape(self) -> torch.Size:
+        """Empty: the model is not batched."""
         return torch.Size([])
 
     def posterior(
         self,
         X: torch.Tensor,
-        output_indices=None,
-        observation_noise=False,
-        posterior_transform=None,
-        **kwargs,
+        output_indices: list[int] | None = None,
+        observation_noise: bool | torch.Tensor = False,
+        posterior_transform: PosteriorTransform | None = None,
+        **kwargs: Any,
     ) -> GPyTorchPosterior:
+        """Joint posterior at ``X`` (``... x q x d``), outputs independent; no output subset, no
+        observation noise."""
         if output_indices is not None or observation_noise is not False:
             raise NotImplementedError
         batch, (q, d) = X.shape[:-2], X.shape[-2:]

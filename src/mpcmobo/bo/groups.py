@@ -48,6 +48,7 @@ class GroupOffsetMean(Mean):
         self.register_prior("offsets_prior", NormalPrior(0.0, float(prior_std)), "offsets")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The prior mean ``c + b[g]`` at ``x`` (last column: the group label, -1 for none)."""
         g = x[..., -1].round().long()
         padded = torch.cat([self.offsets, torch.zeros(1, dtype=self.offsets.dtype)])
         return self.constant + padded[torch.where(g < 0, len(self.offsets), g)]
@@ -99,6 +100,6 @@ def fit_group_offsets(
         torch.manual_seed(seed)
         fit_gpytorch_mll(mll, optimizer_kwargs={"options": {"maxiter": maxiter}})
     b = model.mean_module.offsets.detach().numpy().copy()
-    b *= float(model.outcome_transform.stdvs.reshape(-1)[0])  # back to the units of t
+    b *= float(model.outcome_transform.stdvs.reshape(-1)[0])  # type: ignore[union-attr,operator]  # back to the units of t; Standardize
     b -= b.mean()
     return {int(g): float(b[k]) for k, g in enumerate(ids)}

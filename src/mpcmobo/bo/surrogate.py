@@ -356,7 +356,7 @@ class GPSurrogate:
             model.load_state_dict(_hyper_tensors(target), strict=False)
 
     @property
-    def fast_model(self):
+    def fast_model(self) -> ExactIndependentGP:
         """:class:`~mpcmobo.bo.fastpost.ExactIndependentGP` with ``.model``'s exact posterior
         (cached per fit): used for predictions and acquisition evaluation."""
         if self.model is None:
@@ -371,7 +371,7 @@ class GPSurrogate:
             return False
         X, Y = _as_2d(X), _as_2d(Y)
         ok = finite_rows(Y) & finite_rows(X)
-        return np.array_equal(X[ok], self.train_X) and np.array_equal(Y[ok], self.train_Y)
+        return np.array_equal(X[ok], self.train_X) and np.array_equal(Y[ok], self.train_Y)  # type: ignore[arg-type]  # set with train_X
 
     # ------------------------------------------------------------------ prediction
     def posterior_model_space(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

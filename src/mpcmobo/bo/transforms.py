@@ -20,6 +20,7 @@ of ``g(y)`` is ``N(m, s^2)``, so ``y + c`` is log-normal: its mean and standard 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -34,6 +35,8 @@ class ShiftedLog:
         self.offsets_ = np.zeros(len(self.flags))  # c per output, set by fit
 
     def fit(self, Y: np.ndarray) -> ShiftedLog:
+        """Choose the offsets ``c`` so that ``y + c > 0`` on the flagged outputs of ``Y``; returns
+        self."""
         c = np.zeros(len(self.flags))
         for j in np.flatnonzero(self.flags):
             lo, hi = Y[:, j].min(), Y[:, j].max()
@@ -65,32 +68,38 @@ class Negate:
     """``-y``: costs (minimised) as BoTorch's maximised targets."""
 
     def fit(self, Y: np.ndarray) -> Negate:
+        """Nothing to fit; returns self."""
         return self
 
     def forward(self, Y: np.ndarray) -> np.ndarray:
+        """``-Y``."""
         return -Y
 
     def untransform(self, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std of ``y`` from those of ``-y``."""
         return -mean, std.copy()
 
 
 class ChainedTransform:
     """The steps applied in order by ``forward``, undone in reverse order by ``untransform``."""
 
-    def __init__(self, *steps) -> None:
+    def __init__(self, *steps: Any) -> None:
         self.steps = steps
 
     def fit(self, Y: np.ndarray) -> ChainedTransform:
+        """Fit every step on the output of the steps before it; returns self."""
         for step in self.steps:
             Y = step.fit(Y).forward(Y)
         return self
 
     def forward(self, Y: np.ndarray) -> np.ndarray:
+        """The steps applied in order."""
         for step in self.steps:
             Y = step.forward(Y)
         return Y
 
     def untransform(self, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std in the original space: the steps undone in reverse order."""
         for step in reversed(self.steps):
             mean, std = step.untransform(mean, std)
         return mean, std

@@ -44,6 +44,7 @@ class Evaluator:
         self._cache: dict[tuple[str, bytes], float] = {}
 
     def mpc(self, model: str = "imperfect") -> ParametricMPC:
+        """The evaluation MPC with ``model`` (built once, then reused)."""
         if model not in self._mpcs:
             self._mpcs[model] = ParametricMPC(self.system, model=model, **self._mpc_options)
         return self._mpcs[model]
@@ -70,6 +71,7 @@ class Evaluator:
         self._cache[(model, theta.tobytes())] = float(value)
 
     def is_cached(self, theta: np.ndarray | None, model: str = "imperfect") -> bool:
+        """Whether J_eval of ``theta`` with ``model`` is already computed."""
         theta = self.mpc(model).check_theta(theta)
         return (model, theta.tobytes()) in self._cache
 

@@ -41,10 +41,13 @@ class Interrupted(KeyboardInterrupt):
 
     @property
     def exit_code(self) -> int:
+        """The process exit code of the signal: 128 + its number (130 for SIGINT, 143 for
+        SIGTERM)."""
         return 128 + self.signum
 
     @property
     def signal_name(self) -> str:
+        """The signal's name, e.g. ``SIGINT``."""
         try:
             return signal.Signals(self.signum).name
         except ValueError:  # pragma: no cover
@@ -83,7 +86,7 @@ def check() -> None:
 def _handler(signum: int, frame: Any) -> None:
     request_stop(signum)
     if _state.active and _state.depth == 0:
-        raise Interrupted(_state.signum)
+        raise Interrupted(_state.signum)  # type: ignore[arg-type]  # set by request_stop
     if _Worker.initialized and not _Worker.busy.is_set():
         os._exit(128 + signum)  # an idle worker told to terminate: nothing to finish
 

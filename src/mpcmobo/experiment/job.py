@@ -55,6 +55,7 @@ class EvaluationSchedule:
 
     @classmethod
     def from_settings(cls, settings: Settings) -> EvaluationSchedule:
+        """The schedule of a study's settings (episodes, ``eval_every``, ``trajectory_every``)."""
         return cls(
             settings.episodes, settings.evaluation.eval_every, settings.records.trajectory_every
         )
@@ -78,6 +79,7 @@ class EvaluationSchedule:
         return {} if self.theta is None else {"theta": self.theta, "episode": self.episode}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore the last evaluated incumbent and its episode."""
         theta = state.get("theta")
         self.theta = None if theta is None else np.asarray(theta, dtype=float)
         self.episode = state.get("episode")
@@ -114,6 +116,7 @@ class Job:
 
     @property
     def done(self) -> bool:
+        """Whether the job has run its whole budget of episodes."""
         return self.run.episode >= self.settings.episodes
 
     # ------------------------------------------------------------------ restore / save
@@ -158,6 +161,7 @@ class Job:
         ]
 
     def checkpoint(self) -> Checkpoint:
+        """The job's state and records as a :class:`Checkpoint`."""
         return Checkpoint(
             learner=self.learner,
             seed=self.seed,
@@ -171,6 +175,7 @@ class Job:
         )
 
     def save(self) -> None:
+        """Write the job's checkpoint (atomically, never cut by an interrupt)."""
         with interrupts.deferred():  # a checkpoint is written whole
             self.run_dir.save_checkpoint(self.checkpoint())
 
@@ -219,9 +224,11 @@ class Job:
             yield self.step()
 
     def progress(self) -> dict:
+        """The job's progress event (what the progress bars and lines show)."""
         return progress_event(self.learner, self.seed, self.rows, self.settings.episodes)
 
     def result(self) -> dict:
+        """The job's result entry of ``summary.json``."""
         return {
             "learner": self.learner,
             "seed": self.seed,

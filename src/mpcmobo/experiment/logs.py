@@ -19,6 +19,7 @@ import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TextIO
 
 LOG_NAME = "run.log"
 WARNING = "WARNING"
@@ -29,6 +30,7 @@ class RunFileWarning(UserWarning):
 
 
 def log_path(out_dir: str | Path) -> Path:
+    """The run's log file, ``DIR/run.log``."""
     return Path(out_dir) / LOG_NAME
 
 
@@ -82,7 +84,14 @@ class _LineWriter(io.TextIOBase):
 def run_log(out_dir: str | Path, source: str, capture_output: bool = False) -> Iterator[None]:
     """Route warnings (and with ``capture_output`` stdout / stderr) into ``DIR/run.log``."""
 
-    def show(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    def show(
+        message: Warning | str,
+        category: type[Warning],
+        filename: str,
+        lineno: int,
+        file: TextIO | None = None,
+        line: str | None = None,
+    ) -> None:
         append(out_dir, source, WARNING, f"{category.__name__}: {message} ({filename}:{lineno})")
         if issubclass(category, RunFileWarning):
             print(f"Warning: {message}", file=sys.stderr, flush=True)

@@ -75,6 +75,7 @@ class LearningRun:
         self.previous_Vc: float | None = None
 
     def next_start(self) -> np.ndarray:
+        """The initial state of the next episode (the cycle of fixed starts, or a random one)."""
         if self.start_mode == "cycle":
             return self.cycle_starts[self.episode % len(self.cycle_starts)].copy()
         return self.system.sample_initial_state(self.rng_start)
@@ -161,6 +162,7 @@ class LearningRun:
         return record, result, ""
 
     def state_dict(self) -> dict:
+        """Everything needed to continue the run exactly: episode, random streams, learner state."""
         return {
             "episode": self.episode,
             "previous_Vc": self.previous_Vc,
@@ -170,6 +172,7 @@ class LearningRun:
         }
 
     def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict`."""
         self.episode = int(state["episode"])
         self.previous_Vc = state["previous_Vc"]
         self.rng_start.bit_generator.state = state["rng_start"]

@@ -47,9 +47,11 @@ class EpisodeRow:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EpisodeRow:
+        """The row from its dictionary (one row of ``episodes.parquet``)."""
         return cls(**d)
 
     def to_dict(self) -> dict[str, Any]:
+        """The row as a dictionary, columns in the order of ``episodes.parquet``."""
         return {name: getattr(self, name) for name in ROW_FIELDS}
 
 
@@ -73,9 +75,11 @@ class Trajectory:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Trajectory:
+        """The trajectory from its dictionary."""
         return cls(d["phase"], d["episode"], d["start"], d["x"], d["u"])
 
     def to_dict(self) -> dict[str, Any]:
+        """The trajectory as a dictionary (one row of ``trajectories.parquet``)."""
         return {
             "phase": self.phase,
             "episode": self.episode,
@@ -105,6 +109,7 @@ class Checkpoint:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Checkpoint:
+        """The checkpoint from the plain dictionary stored in the file."""
         return cls(
             learner=d["learner"],
             seed=int(d["seed"]),
@@ -118,6 +123,7 @@ class Checkpoint:
         )
 
     def to_dict(self) -> dict[str, Any]:
+        """The checkpoint as the plain dictionary stored in the file."""
         return {
             "state": self.state,
             "rows": [r.to_dict() for r in self.rows],
@@ -149,6 +155,7 @@ class Reference:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Reference:
+        """The reference from its dictionary (``reference.pkl``)."""
         return cls(
             J_star=d["J_star"],
             J_initial=d["J_initial"],
@@ -159,6 +166,7 @@ class Reference:
         )
 
     def to_dict(self) -> dict[str, Any]:
+        """The reference as a dictionary (``reference.pkl``)."""
         return {
             "J_star": self.J_star,
             "J_initial": self.J_initial,

@@ -84,9 +84,10 @@ class RunDirectory:
         self.reference_path = self.path / "reference.pkl"
 
     def holds_run(self) -> bool:
+        """Whether the directory holds a run (its ``config.toml`` exists)."""
         return self.config.exists()
 
-    def saved_settings(self, **overrides) -> Settings:
+    def saved_settings(self, **overrides: Any) -> Settings:
         """The run's saved settings (with ``overrides``, see :func:`load_settings`)."""
         if self.path.exists() and not self.path.is_dir():
             raise StudyError(f"{self.path} is a file, not a run directory")
@@ -186,6 +187,7 @@ class RunDirectory:
         )
 
     def save_reference(self, reference: Reference) -> None:
+        """Write ``reference.pkl`` (J*, J_initial, theta0)."""
         storage.write_pickle(self.reference_path, reference.to_dict())
 
     def checkpoint(self, learner: str, seed: int) -> Checkpoint | None:
@@ -231,6 +233,7 @@ class RunDirectory:
         return None
 
     def save_checkpoint(self, ckpt: Checkpoint) -> None:
+        """Write the job's checkpoint; the one it replaces is kept as the previous one."""
         storage.save_checkpoint(self.path, ckpt.learner, ckpt.seed, ckpt.to_dict())
 
     def incumbents(self, settings: Settings) -> list[tuple[str, int, int, np.ndarray]]:
@@ -242,7 +245,7 @@ class RunDirectory:
                 ckpt = self.checkpoint(learner, seed)
                 if ckpt is not None and ckpt.rows:
                     out.append((learner, seed, len(ckpt.rows), ckpt.incumbent))
-        return out
+        return out  # type: ignore[return-value]  # a checkpoint with rows has an incumbent
 
 
 def open_run(

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mpcmobo.learners.registry import LEARNER_SPECS
-from mpcmobo.systems import available_systems, get_system
+from mpcmobo.systems import System, available_systems, get_system
 
 # the learners the settings accept by name, and those the paper's study runs (the default)
 KNOWN_LEARNERS = tuple(LEARNER_SPECS)
@@ -58,6 +59,7 @@ class SystemSettings(_Section):
         return v
 
     def spec_overrides(self) -> dict[str, Any]:
+        """The overrides of the system's ``MPCSpec`` that these settings ask for."""
         out: dict[str, Any] = {}
         if self.learn_model:
             out["learn_model"] = tuple(self.learn_model)
@@ -94,6 +96,7 @@ class MPCSettings(_Section):
     )
 
     def options(self) -> dict[str, Any]:
+        """The options given to ``ParametricMPC`` (the unset ones left to the system)."""
         d = self.model_dump()
         return {k: v for k, v in d.items() if v is not None}
 
@@ -252,7 +255,7 @@ def _drop_none(d: Any) -> Any:
     return d
 
 
-def build_system(settings: Settings):
+def build_system(settings: Settings) -> System:
     """The system of the settings, with its MPC-spec overrides applied."""
     spec = settings.system.spec_overrides()
     return get_system(settings.system.name, **spec)
@@ -274,7 +277,7 @@ def _field_names(model: type[BaseModel], loc: tuple) -> list[str] | None:
     return None
 
 
-def _format_error(err: dict) -> str:
+def _format_error(err: Mapping[str, Any]) -> str:
     loc = tuple(err.get("loc", ()))
     key = ".".join(str(p) for p in loc) or "(top level)"
     typ = err.get("type", "")
@@ -343,6 +346,8 @@ def _nest(overrides: dict[str, Any]) -> dict[str, Any]:
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
+    """The TOML file at ``path`` as a dictionary; a missing or malformed file is a
+    ``SettingsError``."""
     path = Path(path)
     try:
         with path.open("rb") as fh:
@@ -367,6 +372,7 @@ def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
 
 
 def settings_to_toml(settings: Settings) -> str:
+    """The settings as TOML text (what ``config.toml`` holds)."""
     import tomli_w
 
     return tomli_w.dumps(settings.to_dict())

@@ -28,7 +28,7 @@ import math
 import os
 import pickle
 import secrets
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +88,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
@@ -110,30 +111,36 @@ def _json_safe(obj: Any) -> Any:
 
 
 def write_json(path: str | Path, obj: Any) -> Path:
+    """Write ``obj`` as standard JSON (NaN and inf as null) atomically."""
     text = json.dumps(_json_safe(obj), indent=2, allow_nan=False)
     return atomic_write_text(path, text + "\n")
 
 
 def read_json(path: str | Path) -> Any:
+    """The JSON file at ``path``."""
     return json.loads(Path(path).read_text(encoding="utf-8"))
 
 
 def write_toml(path: str | Path, obj: dict) -> Path:
+    """Write ``obj`` as TOML atomically."""
     import tomli_w
 
     return atomic_write_text(path, tomli_w.dumps(obj))
 
 
 def write_pickle(path: str | Path, obj: Any) -> Path:
+    """Write ``obj`` as a pickle atomically."""
     return atomic_write_bytes(path, pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL))
 
 
 def read_pickle(path: str | Path) -> Any:
+    """The pickled object at ``path``."""
     with Path(path).open("rb") as fh:
         return pickle.load(fh)
 
 
 def write_parquet(path: str | Path, df: pd.DataFrame) -> Path:
+    """Write ``df`` as Parquet (pyarrow, no index) atomically."""
     buf = io.BytesIO()
     df.to_parquet(buf, index=False, engine="pyarrow")
     return atomic_write_bytes(path, buf.getvalue())
@@ -141,14 +148,17 @@ def write_parquet(path: str | Path, df: pd.DataFrame) -> Path:
 
 # ---------------------------------------------------------------------- study layout
 def job_name(learner: str, seed: int) -> str:
+    """The job's name and directory name, ``<learner>-s<seed>``."""
     return f"{learner}-s{int(seed)}"
 
 
 def checkpoint_path(out_dir: str | Path, learner: str, seed: int) -> Path:
+    """The job's checkpoint file, ``DIR/jobs/<job>/checkpoint.pkl``."""
     return Path(out_dir) / "jobs" / job_name(learner, seed) / "checkpoint.pkl"
 
 
 def previous_checkpoint_path(out_dir: str | Path, learner: str, seed: int) -> Path:
+    """The job's previous checkpoint, ``DIR/jobs/<job>/checkpoint.prev.pkl``."""
     return checkpoint_path(out_dir, learner, seed).with_name("checkpoint.prev.pkl")
 
 
@@ -171,6 +181,7 @@ def save_checkpoint(out_dir: str | Path, learner: str, seed: int, ckpt: dict) ->
 
 
 def load_checkpoint(out_dir: str | Path, learner: str, seed: int) -> dict | None:
+    """The job's checkpoint as a dictionary (None if there is none)."""
     path = checkpoint_path(out_dir, learner, seed)
     if not path.exists():
         return None
@@ -181,6 +192,7 @@ def load_checkpoint(out_dir: str | Path, learner: str, seed: int) -> dict | None
 
 
 def load_checkpoints(out_dir: str | Path, jobs: Iterable[tuple[str, int]]) -> list[dict]:
+    """The checkpoints of ``jobs`` that exist."""
     out = []
     for learner, seed in jobs:
         ckpt = load_checkpoint(out_dir, learner, seed)
@@ -238,7 +250,11 @@ def trajectory_rows(
 
 
 def trajectories_frame(
-    reference: dict | None, checkpoints: list[dict], state_names, input_names, dt: float
+    reference: dict | None,
+    checkpoints: list[dict],
+    state_names: Sequence[str],
+    input_names: Sequence[str],
+    dt: float,
 ) -> pd.DataFrame:
     """The study-level (learner "", seed -1) and per-job stored trajectories, long format."""
     parts = []
@@ -268,8 +284,10 @@ def trajectories_frame(
 
 
 def read_episodes(out_dir: str | Path) -> pd.DataFrame:
+    """``DIR/episodes.parquet``, one row per episode."""
     return pd.read_parquet(Path(out_dir) / "episodes.parquet")
 
 
 def read_trajectories(out_dir: str | Path) -> pd.DataFrame:
+    """``DIR/trajectories.parquet``, the stored states and inputs."""
     return pd.read_parquet(Path(out_dir) / "trajectories.parquet")

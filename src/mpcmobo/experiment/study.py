@@ -17,8 +17,9 @@ import math
 import os
 import pickle
 import time
+from collections.abc import Callable, Collection
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,14 +31,20 @@ from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
 from mpcmobo.experiment.settings import Settings, SettingsError, build_system
 from mpcmobo.learners.registry import LEARNER_SPECS
+from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import system_factory
+
+if TYPE_CHECKING:
+    from concurrent.futures import Future, ProcessPoolExecutor
+
+    import pandas as pd
 
 # relative cost per episode of a learner's job, to start the slowest jobs first
 JOB_COST = {name: spec.job_cost for name, spec in LEARNER_SPECS.items()}
 
 
 # ---------------------------------------------------------------------- building blocks
-def system_info(system) -> dict:
+def system_info(system: System) -> dict:
     """What the figures need to know about the system (JSON-safe: inf -> None)."""
     return {
         "name": system.name,
@@ -93,7 +100,7 @@ def compute_reference(settings: Settings) -> Reference:
 
 
 # ---------------------------------------------------------------------- summary
-def _first_within(df, J_star: float, tol: float) -> int | None:
+def _first_within(df: pd.DataFrame, J_star: float, tol: float) -> int | None:
     ok = df[np.isfinite(df["J_eval_incumbent"])]
     ok = ok[ok["J_eval_incumbent"] - J_star <= tol * abs(J_star)]
     return int(ok["episode"].min()) if len(ok) else None
@@ -110,7 +117,9 @@ def _median_or_null(values: list[float | None]) -> float | None:
     return int(m) if m.is_integer() else m
 
 
-def _seed_summary(s, settings: Settings, J_star: float, wall_time_s: float) -> dict[str, Any]:
+def _seed_summary(
+    s: pd.DataFrame, settings: Settings, J_star: float, wall_time_s: float
+) -> dict[str, Any]:
     """The summary of one job from its rows ``s`` (sorted by episode)."""
     evaluated = s[np.isfinite(s["J_eval_incumbent"])]
     return {
@@ -146,7 +155,7 @@ def _learner_summary(
     }
 
 
-def summarize(settings: Settings, reference: Reference, df, wall_times: dict) -> dict:
+def summarize(settings: Settings, reference: Reference, df: pd.DataFrame, wall_times: dict) -> dict:
     """The per-learner summary of the records ``df`` (episodes.parquet)."""
     J_star = float(reference.J_star)
     learners: dict[str, Any] = {}
@@ -255,7 +264,7 @@ def _run_study(
         with interrupts.deferred():  # the records of what is checkpointed, written whole
             summary = write_records(run_dir.path, settings, reference)
     emit({"kind": "done", "summary": summary})
-    return summary
+    return summary  # type: ignore[return-value]  # a dict: the reference exists
 
 
 def _reference(run_dir: RunDirectory, settings: Settings, emit: Progress) -> Reference:
@@ -333,7 +342,7 @@ class _Watch:
                 self.emit(progress_event(n, s, ckpt.rows, self.total))
 
 
-def _sendable(factory) -> None:
+def _sendable(factory: Callable[..., System]) -> None:
     """A system factory must reach the worker processes by reference (pickle)."""
     try:
         pickle.dumps(factory)
@@ -344,7 +353,9 @@ def _sendable(factory) -> None:
         ) from None
 
 
-def _run_processes(jobs, args, workers: int, watch: _Watch) -> None:
+def _run_processes(
+    jobs: list[tuple[str, int]], args: dict[str, Any], workers: int, watch: _Watch
+) -> None:
     """The jobs in a pool of spawned worker processes. Each worker ignores SIGINT and watches
     the study's process (:func:`interrupts.init_worker`); if the study stops (interrupt, or a
     job's error), the file ``DIR/.stop`` tells the busy workers to stop at the end of their current MPC
@@ -387,7 +398,7 @@ STOP_TIMEOUT_S = 10.0  # how long stopped workers may take to finish their curre
 STOP_FILE = ".stop"  # in the run directory while the study stops its workers
 
 
-def _stop_pool(pool, stop, remaining) -> None:
+def _stop_pool(pool: ProcessPoolExecutor, stop: Path, remaining: Collection[Future[Any]]) -> None:
     """Stop the workers: cancel what has not started, tell the busy ones to stop (their jobs
     end at the end of the current MPC step, with everything finished checkpointed), wait for
     their jobs to report, then end the worker processes. They are killed rather than waited
@@ -407,7 +418,9 @@ def _stop_pool(pool, stop, remaining) -> None:
     pool.shutdown(wait=False, cancel_futures=True)
 
 
-def _run_ray(jobs, args, workers: int, watch: _Watch) -> None:
+def _run_ray(
+    jobs: list[tuple[str, int]], args: dict[str, Any], workers: int, watch: _Watch
+) -> None:
     try:
         import ray
     except ImportError:

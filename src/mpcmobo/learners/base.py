@@ -28,10 +28,12 @@ class EpisodeResult:
 
     @property
     def f1(self) -> float:
+        """The closed-loop cost f1 (eq. cl_perf)."""
         return float(self.objectives[0])
 
     @property
     def valid(self) -> bool:
+        """Whether all four objectives are finite."""
         return bool(np.all(np.isfinite(self.objectives)))
 
 
@@ -88,6 +90,8 @@ class Learner(ABC):
         """The current best theta."""
 
     def state_dict(self) -> dict:
+        """The learner's state (name, seed, random stream, observations); the constructor owns the
+        configuration."""
         return {
             "name": self.name,
             "seed": self.seed,
@@ -96,6 +100,7 @@ class Learner(ABC):
         }
 
     def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict` of a learner of the same name."""
         if state.get("name") != self.name:
             raise ValueError(f"state of learner '{state.get('name')}' given to '{self.name}'")
         self.seed = int(state["seed"])

@@ -195,14 +195,14 @@ class _GPLearner(Learner):
 
     def _configure_safe(
         self,
-        context,
-        n_contexts,
-        violation_budget,
-        safety_confidence,
-        deploy_confidence,
-        trust_radius,
-        contexts,
-        kappa,
+        context: str,
+        n_contexts: int,
+        violation_budget: float | str | None,
+        safety_confidence: float,
+        deploy_confidence: float | None,
+        trust_radius: float,
+        contexts: ContextSpec | None,
+        kappa: float,
     ) -> None:
         """The options of issue 11 (module :mod:`mpcmobo.bo.context`,
         :mod:`mpcmobo.learners.deploy`); all off by default: the old behaviour."""
@@ -222,7 +222,7 @@ class _GPLearner(Learner):
             raise ValueError(f"trust_radius must be in (0, 1], got {trust_radius}")
         self.context = context
         self.context_spec = contexts
-        self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))
+        self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
         self.violation_budget = violation_budget
         self.deploy_rule = DeployRule(
             kappa=float(kappa),
@@ -317,7 +317,7 @@ class _GPLearner(Learner):
             return np.zeros((1, 0))
         if result.x0 is None:
             raise ValueError("context = 'x0' needs EpisodeResult.x0 (the initial state)")
-        return self.context_spec.unit(result.x0)[None, :]
+        return self.context_spec.unit(result.x0)[None, :]  # type: ignore[union-attr]  # dc > 0: context x0
 
     def _fit_data(self) -> tuple[np.ndarray, np.ndarray]:
         """Inputs (z, c) and outputs (objectives, and the violation if constrained)."""
@@ -408,14 +408,14 @@ class _GPLearner(Learner):
         ref = None
         if n_obj > 1:
             ref = (
-                self.ref_point_
-                if self.ref_point_ is not None
-                else reference_point(self.Y_[self._finite()], margin=self.ref_margin)
+                self.ref_point_  # type: ignore[attr-defined]  # n_obj > 1: a MOBOLearner
+                if self.ref_point_ is not None  # type: ignore[attr-defined]
+                else reference_point(self.Y_[self._finite()], margin=self.ref_margin)  # type: ignore[attr-defined]
             )
         options, search = self._safe_effort()
         z = propose_context(
             self.surrogate,
-            self.surrogate.train_X,
+            self.surrogate.train_X,  # type: ignore[arg-type]  # fitted by _fit_data
             self.contexts,
             n_objectives=n_obj,
             ref_point=ref,
@@ -533,7 +533,7 @@ class MOBOLearner(_GPLearner):
         hybrid_every: int = 0,
         hybrid_step: float = 0.05,
         log_outcomes: tuple[bool, ...] | None = (True, True, False, False),
-        **options,
+        **options: Any,
     ) -> None:
         super().__init__(space, theta0, seed, log_outcomes=log_outcomes, **options)
         if reduce_effort_after is not None and reduce_effort_after < 0:
@@ -558,6 +558,8 @@ class MOBOLearner(_GPLearner):
         super()._fit()
 
     def propose(self) -> np.ndarray:
+        """The next theta: the GP proposal, or every ``hybrid_every``-th time a CDPG step from the
+        incumbent."""
         self.n_proposals_ += 1
         if self._hybrid_due():
             step = self._gradient_step()
@@ -606,12 +608,14 @@ class MOBOLearner(_GPLearner):
         )
 
     def state_dict(self) -> dict:
+        """The base state plus the reference point and the number of proposals."""
         d = super().state_dict()
         d["ref_point"] = None if self.ref_point_ is None else self.ref_point_.copy()
         d["n_proposals"] = self.n_proposals_
         return d
 
     def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict`."""
         self.ref_point_ = None if state["ref_point"] is None else np.array(state["ref_point"])
         self.n_proposals_ = int(state["n_proposals"])
         super().load_state_dict(state)
@@ -622,5 +626,13 @@ class HybridLearner(MOBOLearner):
 
     name = "hybrid"
 
-    def __init__(self, space, theta0, seed=0, *, hybrid_every: int = 3, **options) -> None:
+    def __init__(
+        self,
+        space: SearchSpace,
+        theta0: np.ndarray,
+        seed: int = 0,
+        *,
+        hybrid_every: int = 3,
+        **options: Any,
+    ) -> None:
         super().__init__(space, theta0, seed, hybrid_every=hybrid_every, **options)

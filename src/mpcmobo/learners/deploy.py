@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mpcmobo.bo.context import expected_outcome_samples
+from mpcmobo.bo.surrogate import GPSurrogate
 
 BUDGET_FACTOR = 2.0  # default budget: this multiple of theta0's own violation (+ floor)
 
@@ -60,7 +61,7 @@ class DeployRule:
 
     def choose(
         self,
-        surrogate,
+        surrogate: GPSurrogate,
         Z: np.ndarray,
         current: np.ndarray,
         contexts: np.ndarray,

@@ -57,7 +57,7 @@ class MPCRL(Learner):
         if context == "x0" and contexts is None:
             raise ValueError("context = 'x0' needs the system's contexts (ContextSpec)")
         self.context_spec = contexts
-        self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))
+        self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
         self.deploy_rule = (
             None
             if deploy_confidence is None
@@ -83,9 +83,11 @@ class MPCRL(Learner):
         return self.space.from_unit(self.z, base=self.theta0)
 
     def propose(self) -> np.ndarray:
+        """The current theta of the gradient steps."""
         return self._theta()
 
     def incumbent(self) -> np.ndarray:
+        """The deployed theta: the current one, or with a deploy rule the best verified one."""
         if self.deploy_rule is None:
             return self._theta()
         if np.array_equal(self.deployed_z_, self.space.to_unit(self.theta0)):
@@ -106,22 +108,22 @@ class MPCRL(Learner):
 
     def _observe_deploy(self, theta: np.ndarray, result: EpisodeResult) -> None:
         dc = self.contexts.shape[1]
-        c = np.zeros(0) if dc == 0 else self.context_spec.unit(result.x0)
+        c = np.zeros(0) if dc == 0 else self.context_spec.unit(result.x0)  # type: ignore[union-attr,arg-type]  # dc > 0: context x0
         x = np.concatenate([self.space.to_unit(self.space.clip(theta)), c])
         self.X_ = np.vstack([self.X_, x])
         self.F_ = np.append(self.F_, result.f1)
         self._judge_fit()
 
     def _judge_fit(self) -> None:
-        self._judge_pre_fit = self.judge.state_dict()
+        self._judge_pre_fit = self.judge.state_dict()  # type: ignore[union-attr]  # with deploy_rule
         self._deployed_pre_fit = self.deployed_z_.copy()
         ok = np.isfinite(self.F_)
         if np.count_nonzero(ok) < 2:
             return
-        self.judge.fit(self.X_, self.F_[:, None])
+        self.judge.fit(self.X_, self.F_[:, None])  # type: ignore[union-attr]  # with deploy_rule
         d = self.space.dim
-        self.deployed_z_ = self.deploy_rule.choose(
-            self.judge,
+        self.deployed_z_ = self.deploy_rule.choose(  # type: ignore[union-attr]  # with the judge
+            self.judge,  # type: ignore[arg-type]
             self.X_[ok, :d],
             self.deployed_z_,
             self.contexts,
@@ -130,6 +132,9 @@ class MPCRL(Learner):
         )
 
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """One gradient step (``optimizer``: Adam or plain) along the episode's CDPG gradient (eq.
+        DPG, eq. theta) in normalised coordinates; an episode without a valid gradient is
+        skipped."""
         self.n_observed += 1
         if self.deploy_rule is not None:
             self._observe_deploy(theta, result)
@@ -155,6 +160,7 @@ class MPCRL(Learner):
         self.z = np.clip(self.z - step, 0.0, 1.0)  # projection onto the bounds
 
     def state_dict(self) -> dict:
+        """The base state plus the Adam state (z, m, v, t) and the deploy rule's state."""
         d = super().state_dict()
         d.update({"z": self.z.copy(), "m": self.m.copy(), "v": self.v.copy(), "t": self.t})
         if self.deploy_rule is not None:
@@ -169,6 +175,7 @@ class MPCRL(Learner):
         return d
 
     def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict`."""
         super().load_state_dict(state)
         self.z, self.m, self.v = (np.array(state[k], dtype=float) for k in ("z", "m", "v"))
         self.t = int(state["t"])
@@ -179,5 +186,5 @@ class MPCRL(Learner):
                 self.F_ = np.array(state["judge_F"], float)
                 self.deployed_z_ = np.array(state["deployed_pre_fit"], float)
                 if state["judge_pre_fit"] is not None:
-                    self.judge.load_state_dict(state["judge_pre_fit"])
+                    self.judge.load_state_dict(state["judge_pre_fit"])  # type: ignore[union-attr]
                     self._judge_fit()

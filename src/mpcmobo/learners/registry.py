@@ -41,7 +41,9 @@ LEARNER_SPECS: dict[str, LearnerSpec] = {
         LearnerSpec("hybrid", HybridLearner, "hybrid", "tab:purple", job_cost=4, in_paper=False),
     )
 }
+"""The learners by name, one entry each: what the settings, the CLI and the figures read."""
 LEARNERS: dict[str, type[Learner]] = {name: spec.cls for name, spec in LEARNER_SPECS.items()}
+"""The learner classes by name (from :data:`LEARNER_SPECS`)."""
 
 
 # the constructor arguments of every learner that are not options
@@ -99,7 +101,7 @@ def _type_problem(key: str, value: Any, default: Any) -> str | None:
 
 
 def make_learner(
-    name: str, space: SearchSpace, theta0: np.ndarray, seed: int = 0, **options
+    name: str, space: SearchSpace, theta0: np.ndarray, seed: int = 0, **options: Any
 ) -> Learner:
     """Build the learner ``name`` ("mpc-rl", "bo", "mobo", "hybrid") with its options.
 

@@ -12,7 +12,10 @@ from mpcmobo.systems.base import System
 
 
 class Exploration(Protocol):
-    def sample(self, rng: np.random.Generator, k: int) -> np.ndarray: ...
+    """Exploration noise on the applied inputs (e.g. ``mpcmobo.rl.GaussianExploration``)."""
+
+    def sample(self, rng: np.random.Generator, k: int) -> np.ndarray:
+        """(nu,) noise added to the input of step ``k``."""
 
 
 def rollout(
@@ -48,7 +51,7 @@ def rollout(
         _record_solve(rec, k, sol, sensitivities)
         if k == steps:
             break
-        u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)
+        u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)  # type: ignore[arg-type]  # rng checked above
         x = _apply(system, rec, k, x, system.clip_input(u))
     return rec
 
@@ -76,7 +79,7 @@ def _blank_record(steps: int, nx: int, nu: int, theta: np.ndarray, gamma: float)
 
 def _record_solve(rec: EpisodeRecord, k: int, sol: MPCSolution, sensitivities: bool) -> None:
     """The solve at x_k: success, time, status, V_theta(x_k) and its gradients, pi_theta(x_k)."""
-    rec.success[k], rec.solve_time[k] = sol.success, sol.solve_time
+    rec.success[k], rec.solve_time[k] = sol.success, sol.solve_time  # type: ignore[index]  # None only in old records
     rec.status.append(sol.status)
     if sol.success:
         rec.V[k] = sol.value

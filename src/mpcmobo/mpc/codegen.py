@@ -49,7 +49,7 @@ def compiler_command() -> list[str]:
 def library_key(functions: list[ca.Function], flags: tuple[str, ...] = DEFAULT_FLAGS) -> str:
     """Hash of what the compiled library depends on: the functions, CasADi, compiler, flags."""
     h = hashlib.sha256()
-    for part in (ca.__version__, platform.machine(), " ".join(compiler_command()), *flags):
+    for part in (ca.CasadiMeta.version(), platform.machine(), " ".join(compiler_command()), *flags):
         h.update(part.encode())
         h.update(b"\0")
     for f in functions:

@@ -41,10 +41,12 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from pathlib import Path
+from typing import Any, NamedTuple
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mpcmobo.mpc.codegen import compiled_library
 from mpcmobo.systems.base import System
@@ -196,7 +198,9 @@ class ParametricMPC:
             self._sens = ca.external("sens", str(lib))
             self._newton_fn = ca.external("newton", str(lib))
         self._solver = ca.nlpsol("mpc", "ipopt", nlp, cold)
-        self._solver_warm = ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
+        self._solver_warm: ca.Function | None = (
+            ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
+        )
         self._prev: dict | None = None
 
     # ------------------------------------------------------------------ construction
@@ -233,7 +237,7 @@ class ParametricMPC:
             x_lo, x_hi = x_lo + bo[:nx], x_hi - bo[nx:]
         return _ThetaTerms(theta_c, Tw, G, Qw, Rw, pm, x_lo, x_hi)
 
-    def _transcribe(self, x0: ca.SX, th: ca.SX):
+    def _transcribe(self, x0: ca.SX, th: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
         """Multiple shooting of eq. (V0) over stages 0..N: (w, G, H, cost / cost_scale).
 
         Sets the bounds of ``w`` and the index lists of its inputs, states and slacks.
@@ -243,7 +247,9 @@ class ParametricMPC:
         t = self._theta_terms(th)
         F = sysm.discrete_step
         w = _Decisions()
-        self._iu, self._ix, self._ie = [], [], []  # index lists into w
+        self._iu: list[int] = []  # index lists into w
+        self._ix: list[int] = []
+        self._ie: list[int] = []
         zu_lb, zu_ub = (sysm.u_lb - ur) / Su, (sysm.u_ub - ur) / Su
         g_eq, g_in = [], []
         cost = t.theta_c
@@ -270,7 +276,7 @@ class ParametricMPC:
         self._lbw, self._ubw = np.array(w.lb), np.array(w.ub)
         return ca.vertcat(*w.w), ca.vertcat(*g_eq), ca.vertcat(*g_in), cost / self.cost_scale
 
-    def _state_rows(self, x_phys, eta, t: _ThetaTerms) -> list:
+    def _state_rows(self, x_phys: ca.SX, eta: ca.SX | np.ndarray, t: _ThetaTerms) -> list:
         """l1-relaxed state constraints of one stage (eq. violation), scaled rows ``H <= 0``."""
         sysm, Sx = self.system, self.Sx
         rows = []
@@ -299,7 +305,9 @@ class ParametricMPC:
         )
         return wshift, gshift
 
-    def _kkt_functions(self, wv, geq, gin, f, th, p) -> None:
+    def _kkt_functions(
+        self, wv: ca.SX, geq: ca.SX, gin: ca.SX, f: ca.SX, th: ca.SX, p: ca.SX
+    ) -> None:
         """The barrier-relaxed KKT residual R(y, p) and its Jacobians (eq. nabla_pi).
 
         Sets ``_kkt`` = (w, lam, mu, p) -> (dR/dy, dR/dtheta, df/dtheta, df/dw) and the
@@ -326,7 +334,7 @@ class ParametricMPC:
         # barrier solution the solver returns.
         dfdth = ca.gradient(f, th)
         dfdw = ca.gradient(f, wv)
-        kkt_opts = {}
+        kkt_opts: dict[str, Any] = {}
         if self._jit:  # the exact Hessian inside dR/dy dominates this evaluation
             kkt_opts = {"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS}
         self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw], kkt_opts)
@@ -334,7 +342,17 @@ class ParametricMPC:
         self._sens = self._sensitivity_function(self._linsol)
         self._newton_fn = self._newton_function(wv, y, p, R, Jy, H, f, kkt_opts)
 
-    def _newton_function(self, wv, y, p, R, Jy, H, f, opts) -> ca.Function:
+    def _newton_function(
+        self,
+        wv: ca.SX,
+        y: ca.SX,
+        p: ca.SX,
+        R: ca.SX,
+        Jy: ca.SX,
+        H: ca.SX,
+        f: ca.SX,
+        opts: dict,
+    ) -> ca.Function:
         """(y, p) -> (y+ = y + a dy, |R(y)|_inf, |R(y+)|_inf, f(y+), max H(y+), min mu+): one
         Newton step on the barrier KKT system, ``dR/dy dy = -R``, with the fraction-to-boundary
         rule ``a <= 1``: ``mu + a dmu`` and (to first order) ``H + a dH`` keep 0.5 % of their
@@ -380,7 +398,7 @@ class ParametricMPC:
         dV = self.cost_scale * (dfdth - ca.mtimes(Jth.T, L[:, nu]))
         return ca.Function("sens", [w, lam, mu, p], [dpi, dV])
 
-    def _compiled_library(self, cache_dir):
+    def _compiled_library(self, cache_dir: str | os.PathLike | None) -> Path:
         """The NLP functions IPOPT calls, ``_sens`` and ``_newton_fn``, compiled (or loaded from
         the cache)."""
         nlp = ca.Function(
@@ -396,7 +414,9 @@ class ParametricMPC:
         return compiled_library(functions, directory=cache_dir, info=self.build_info)
 
     # ------------------------------------------------------------------ validation
-    def check_theta(self, theta) -> np.ndarray:
+    def check_theta(self, theta: ArrayLike | None) -> np.ndarray:
+        """``theta`` as a float vector of length ``n_theta`` (None: theta0); a wrong shape or a
+        non-finite value is a ``ValueError``."""
         if theta is None:
             return self.theta0.copy()
         theta = np.asarray(theta, dtype=float)
@@ -428,7 +448,9 @@ class ParametricMPC:
             return self.system.clip_input(plan[age])
         return self.system.clip_input(self.system.u_ref)
 
-    def solve(self, x, theta=None, sensitivities: bool = True) -> MPCSolution:
+    def solve(
+        self, x: ArrayLike, theta: ArrayLike | None = None, sensitivities: bool = True
+    ) -> MPCSolution:
         """Solve eq. (V0) at state ``x``; return pi_theta(x), V_theta(x) and their gradients."""
         x = self.system.check_state(x)
         theta = self.check_theta(theta)
@@ -471,7 +493,15 @@ class ParametricMPC:
         )
 
     def _solution(
-        self, x, p, out, wopt, status, iters, mult=None, sensitivities: bool = True
+        self,
+        x: np.ndarray,
+        p: np.ndarray,
+        out: dict[str, ca.DM],
+        wopt: np.ndarray,
+        status: str,
+        iters: int,
+        mult: tuple[np.ndarray, np.ndarray] | None = None,
+        sensitivities: bool = True,
     ) -> MPCSolution:
         """pi_theta(x) (eq. Policy), V_theta(x), the plan and, if asked, the sensitivities;
         the solution, shifted, is the next warm start."""
@@ -506,13 +536,17 @@ class ParametricMPC:
         self._remember(wopt, lam_g, lam_x, plan_u)
         return sol
 
-    def _newton_solve(self, p: np.ndarray):
+    def _newton_solve(
+        self, p: np.ndarray
+    ) -> tuple[dict, np.ndarray, str, int, tuple[np.ndarray, np.ndarray]] | None:
         """Newton steps on R(y, p) = 0 from the shifted previous solution (``newton_steps``).
 
         Returns the arguments of ``_solution`` (CasADi-style outputs, w, status, steps, and the
         multipliers (lambda, mu)) when ``|R|_inf <= tol`` at a point with ``H < 0``, ``mu > 0``;
         None when the steps do not get there (IPOPT then solves)."""
         prev = self._prev
+        if prev is None:
+            return None
         w = prev["w_shift"]
         lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
         y = np.concatenate([w, lam, mu])
@@ -539,9 +573,11 @@ class ParametricMPC:
         out = {"lam_g": np.concatenate([lam, mu_g]), "lam_x": lam_x, "f": f}
         return out, w, "Newton_Succeeded", k, (lam, mu)
 
-    def _run_solver(self, x: np.ndarray, p: np.ndarray, warm: bool):
+    def _run_solver(
+        self, x: np.ndarray, p: np.ndarray, warm: bool
+    ) -> tuple[bool, str, int, Any, Any]:  # (ok, status, iterations, solver output, w)
         if warm:
-            w0, lam_g0, lam_x0 = self._prev["w_shift"], self._prev["lam_g"], self._prev["lam_x"]
+            w0, lam_g0, lam_x0 = self._prev["w_shift"], self._prev["lam_g"], self._prev["lam_x"]  # type: ignore[index]  # warm: _prev is set
         else:
             w0, lam_g0, lam_x0 = self._cold_guess(x), None, None
         args = {
@@ -554,7 +590,7 @@ class ParametricMPC:
         }
         if lam_g0 is not None:
             args["lam_g0"], args["lam_x0"] = lam_g0, lam_x0
-        solver = self._solver_warm if warm else self._solver
+        solver: ca.Function = self._solver_warm if warm else self._solver  # type: ignore[assignment]  # warm: built
         try:
             out = solver(**args)
         except RuntimeError as err:  # IPOPT can raise on evaluation errors
@@ -565,7 +601,9 @@ class ParametricMPC:
         ok = status in _SUCCESS and bool(np.all(np.isfinite(wopt)))
         return ok, status, iters, out, wopt
 
-    def _remember(self, w, lam_g, lam_x, plan_u) -> None:
+    def _remember(
+        self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray, plan_u: np.ndarray | None
+    ) -> None:
         """Store the solution and its multipliers, shifted by one stage, as the next warm start."""
         self._prev = {
             "w_shift": w[self._wshift],
@@ -575,7 +613,9 @@ class ParametricMPC:
             "age": 0,
         }
 
-    def _multipliers(self, w, lam_g, lam_x):
+    def _multipliers(
+        self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Split CasADi's multipliers into (lambda for G, mu >= 0 for every row of H)."""
         tau = self.tau
         lam = lam_g[: self.neq]
@@ -598,7 +638,14 @@ class ParametricMPC:
         )
         return lam, mu
 
-    def _sensitivities(self, w, lam_g, lam_x, p, mult=None):
+    def _sensitivities(
+        self,
+        w: np.ndarray,
+        lam_g: np.ndarray,
+        lam_x: np.ndarray,
+        p: np.ndarray,
+        mult: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(dpi/dtheta, dV/dtheta) at a solution (eq. nabla_pi, grad V); ``mult``: its
         (lambda, mu) when known (Newton), else recovered from CasADi's multipliers."""
         lam, mu = self._multipliers(w, lam_g, lam_x) if mult is None else mult

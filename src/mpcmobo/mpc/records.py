@@ -34,15 +34,19 @@ class EpisodeRecord:
 
     @property
     def steps(self) -> int:
+        """Number of time steps T."""
         return int(self.u.shape[0])
 
     @property
     def failures(self) -> int:
+        """Number of failed MPC solves."""
         return int(np.count_nonzero(~self.success))
 
     def to_dict(self) -> dict:
+        """The record as a dictionary of its fields."""
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
     @classmethod
     def from_dict(cls, d: dict) -> EpisodeRecord:
+        """The record from a dictionary of its fields."""
         return cls(**d)

@@ -271,7 +271,7 @@ class CompatibleCritic:
             w = np.zeros(ep.n_theta)
         # A^w_k = Psi_k^T w  (eq. adv, eq. Q_w)
         advantage = Psi @ w
-        grad, grad_norms = self._policy_gradient(ep, policy_mask, w, gamma)
+        grad, grad_norms = self._policy_gradient(ep, policy_mask, w, gamma)  # type: ignore[arg-type]  # zeros if not ok
         if not (np.all(np.isfinite(grad)) and np.all(np.isfinite(advantage))):
             # overflow in the products: treat as a failed fit rather than leak inf / NaN
             ok, w_ok = False, False
@@ -279,7 +279,7 @@ class CompatibleCritic:
             grad_norms = np.zeros(ep.T)
         return CriticResult(
             nu=nu,
-            w=w,
+            w=w,  # type: ignore[arg-type]  # zeros if not ok
             advantage=advantage,
             grad=grad,
             grad_norms=grad_norms,

@@ -56,6 +56,7 @@ class GaussianExploration:
 
     @property
     def nu(self) -> int:
+        """Number of inputs."""
         return int(self.std0.shape[0])
 
     def std_at(self, episode: int) -> np.ndarray:
@@ -79,6 +80,7 @@ class GaussianExploration:
         return rng.standard_normal(self.nu) * self.std
 
     def state_dict(self) -> dict:
+        """The noise settings and the current episode."""
         return {
             "std": self.std0.tolist(),
             "decay": self.decay,
@@ -88,6 +90,7 @@ class GaussianExploration:
 
     @classmethod
     def from_state_dict(cls, d: dict) -> GaussianExploration:
+        """The exploration from a :meth:`state_dict`."""
         return cls(d["std"], d["decay"], d["min_std"], d["episode"])
 
     def __repr__(self) -> str:

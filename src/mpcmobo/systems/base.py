@@ -11,9 +11,11 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import Any
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mpcmobo.systems.parameterization import MPCSpec, Parameterization
 from mpcmobo.systems.space import SearchSpace
@@ -22,7 +24,7 @@ from mpcmobo.systems.space import SearchSpace
 Dynamics = Callable[[ca.SX, ca.SX, ca.SX], ca.SX]
 
 
-def rk4_step(f: Dynamics, x, u, p, dt: float, substeps: int = 1):
+def rk4_step(f: Dynamics, x: ca.SX, u: ca.SX, p: ca.SX, dt: float, substeps: int = 1) -> ca.SX:
     """One explicit fourth-order Runge-Kutta step of ``dx/dt = f(x, u, p)`` over ``dt``."""
     h = dt / substeps
     for _ in range(substeps):
@@ -40,7 +42,7 @@ def _half_span(lb: np.ndarray, ub: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(span) & (span > 0), span / 2, 1.0)
 
 
-def _vec(a, n: int, label: str) -> np.ndarray:
+def _vec(a: ArrayLike, n: int, label: str) -> np.ndarray:
     """A float copy of ``a`` with ``n`` entries (a copy: a system never aliases its caller's
     arrays, e.g. the module constants ``cstr.TRUE_PARAMS``)."""
     a = np.array(a, dtype=float).reshape(-1)
@@ -133,10 +135,12 @@ class System:
     # ------------------------------------------------------------------ sizes and names
     @property
     def nx(self) -> int:
+        """Number of states."""
         return len(self.state_names)
 
     @property
     def nu(self) -> int:
+        """Number of inputs."""
         return len(self.input_names)
 
     def _rk4_function(self) -> ca.Function:
@@ -158,14 +162,17 @@ class System:
 
     @property
     def search_space(self) -> SearchSpace:
+        """The search space of theta (from the cached MPC parameterization)."""
         return self.parameterization.space
 
-    def with_spec(self, **changes) -> System:
+    def with_spec(self, **changes: Any) -> System:
         """A copy of the system with a modified MPC parameterization."""
         return replace(self, mpc_spec=replace(self.mpc_spec, **changes))
 
     # ------------------------------------------------------------------ validation
-    def check_state(self, x) -> np.ndarray:
+    def check_state(self, x: ArrayLike) -> np.ndarray:
+        """``x`` as a flat float vector of length ``nx``; a wrong shape or a non-finite value is a
+        ``ValueError``."""
         x = np.asarray(x, dtype=float)
         if x.shape not in ((self.nx,), (self.nx, 1)):
             raise ValueError(f"state has shape {x.shape}, expected ({self.nx},) for {self.name}")
@@ -174,7 +181,9 @@ class System:
             raise ValueError(f"state contains NaN or inf: {x}")
         return x
 
-    def check_input(self, u) -> np.ndarray:
+    def check_input(self, u: ArrayLike) -> np.ndarray:
+        """``u`` as a flat float vector of length ``nu``; a wrong shape or a non-finite value is a
+        ``ValueError``."""
         u = np.asarray(u, dtype=float)
         if u.shape not in ((self.nu,), (self.nu, 1)):
             raise ValueError(f"input has shape {u.shape}, expected ({self.nu},) for {self.name}")
@@ -184,6 +193,8 @@ class System:
         return u
 
     def model_params(self, model: str | np.ndarray) -> np.ndarray:
+        """The model parameter vector p of a named model (``true``, ``imperfect``, ...) or of an
+        array."""
         if isinstance(model, str):
             if model not in self.models:
                 raise ValueError(
@@ -193,24 +204,26 @@ class System:
         return _vec(model, len(self.param_names), "model parameters")
 
     # ------------------------------------------------------------------ plant and cost
-    def plant_step(self, x, u) -> np.ndarray:
+    def plant_step(self, x: ArrayLike, u: ArrayLike) -> np.ndarray:
         """The true plant over one sampling period: ``x_{k+1} = f(x_k, u_k)``."""
         return np.asarray(
             self.discrete_step(self.check_state(x), self.check_input(u), self.true_params)
         ).reshape(-1)
 
-    def model_step(self, x, u, model: str | np.ndarray = "imperfect") -> np.ndarray:
+    def model_step(
+        self, x: ArrayLike, u: ArrayLike, model: str | np.ndarray = "imperfect"
+    ) -> np.ndarray:
         """The MPC's prediction model ``x_{k+1} = f_hat(x_k, u_k)`` (eq. mpc_model)."""
         p = self.model_params(model)
         x, u = self.check_state(x), self.check_input(u)
         return np.asarray(self.discrete_step(x, u, p)).reshape(-1)
 
-    def constraint_violation(self, x, u=None) -> float:
+    def constraint_violation(self, x: ArrayLike, u: ArrayLike | None = None) -> float:
         """Sum of the positive parts of the state-bound violations ``max(0, h(x))``."""
         x = np.asarray(x, dtype=float).reshape(-1)
         return float(np.sum(np.maximum(0, self.x_lb - x) + np.maximum(0, x - self.x_ub)))
 
-    def stage_cost(self, x, u) -> float:
+    def stage_cost(self, x: ArrayLike, u: ArrayLike) -> float:
         """RL stage cost L(x, u) of section 5: weighted squared error plus violation penalty."""
         x, u = self.check_state(x), self.check_input(u)
         dx, du = x - self.x_ref, u - self.u_ref
@@ -221,5 +234,6 @@ class System:
         """A draw of the (uniform, box) initial-state distribution."""
         return rng.uniform(self.x0_lb, self.x0_ub)
 
-    def clip_input(self, u) -> np.ndarray:
+    def clip_input(self, u: ArrayLike) -> np.ndarray:
+        """``u`` clipped to the input bounds."""
         return np.clip(np.asarray(u, dtype=float).reshape(-1), self.u_lb, self.u_ub)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import casadi as ca
 import numpy as np
 
@@ -31,7 +33,7 @@ TRUE_PARAMS = np.ones(5)
 IMPERFECT_PARAMS = np.array([1.1, 1.2, 1.15, 0.9, 1.2])
 
 
-def cstr_dynamics(x, u, p):
+def cstr_dynamics(x: ca.SX, u: ca.SX, p: ca.SX) -> ca.SX:
     """Right-hand side of eq. (CSTR_model), with multipliers ``p`` on its terms.
 
     x = (V [l], C_a [mol/l], T [K]), u = (q_s, q_c) [l/min]. With ``p = 1`` this is the true
@@ -50,7 +52,7 @@ def cstr_dynamics(x, u, p):
     return ca.vertcat(dV, dCa, dT)
 
 
-def make_cstr(**spec_overrides) -> System:
+def make_cstr(**spec_overrides: Any) -> System:
     """The CSTR benchmark: true plant, imperfect model, bounds, references and stage cost."""
     spec = MPCSpec(
         horizon=10,

@@ -6,6 +6,8 @@ The true plant has ``p = (1, 0.5, 1)``; the imperfect model ``p = (1.3, 0.3, 0.8
 
 from __future__ import annotations
 
+from typing import Any
+
 import casadi as ca
 import numpy as np
 
@@ -13,11 +15,15 @@ from mpcmobo.systems.base import System
 from mpcmobo.systems.parameterization import MPCSpec
 
 
-def lq_dynamics(x, u, p):
+def lq_dynamics(x: ca.SX, u: ca.SX, p: ca.SX) -> ca.SX:
+    """Continuous dynamics of the damped oscillator: ``dp/dt = v``, ``dv/dt = -p0 p - p1 v + p2
+    f``."""
     return ca.vertcat(x[1], -p[0] * x[0] - p[1] * x[1] + p[2] * u[0])
 
 
-def make_lq(**spec_overrides) -> System:
+def make_lq(**spec_overrides: Any) -> System:
+    """The LQ test system (a damped oscillator with a quadratic cost), ``spec_overrides`` applied to
+    its MPC spec."""
     spec = MPCSpec(horizon=8, gamma=0.95, Gamma=np.full(2, 1e3), Gamma_f=np.full(2, 1e3))
     spec = spec.with_overrides("LQ system", **spec_overrides)
     return System(

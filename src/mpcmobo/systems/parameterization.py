@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mpcmobo.systems.space import SearchSpace
 
@@ -41,7 +42,7 @@ class MPCSpec:
     learn_backoff: bool = False
     backoff_max: np.ndarray | None = None  # upper bound of each back-off (nx,)
 
-    def with_overrides(self, owner: str = "system", **overrides) -> MPCSpec:
+    def with_overrides(self, owner: str = "system", **overrides: Any) -> MPCSpec:
         """A copy with some settings changed; an unknown setting is a ValueError."""
         for k in overrides:
             if not hasattr(self, k):
@@ -61,6 +62,7 @@ class Parameterization:
 
     @property
     def n_theta(self) -> int:
+        """Number of parameters in theta."""
         return len(self.names)
 
     @classmethod
@@ -110,7 +112,16 @@ class _Blocks:
     fixed: list[np.ndarray] = field(default_factory=list)
     blocks: dict[str, slice] = field(default_factory=dict)
 
-    def add(self, block, nm, v0, l, h, lg, fx) -> None:
+    def add(
+        self,
+        block: str,
+        nm: list[str],
+        v0: ArrayLike,
+        l: ArrayLike,
+        h: ArrayLike,
+        lg: bool | ArrayLike,
+        fx: bool | ArrayLike,
+    ) -> None:
         """Append block ``block`` with names ``nm``, theta0 ``v0``, bounds [l, h], log scale
         ``lg`` and fixed flag ``fx`` (scalars or one per name)."""
         start = len(self.names)
@@ -123,7 +134,9 @@ class _Blocks:
         self.blocks[block] = slice(start, len(self.names))
 
 
-def _initial_weights(system: System, spec: MPCSpec):
+def _initial_weights(
+    system: System, spec: MPCSpec
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Q0, R0, T0 (positive, searched in log scale) and the |G| bounds."""
     Q0 = system.Q if spec.Q0 is None else np.asarray(spec.Q0, float)
     R0 = system.R if spec.R0 is None else np.asarray(spec.R0, float)

@@ -8,6 +8,7 @@ registered by the user's script is also known to the workers.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from mpcmobo.systems.base import System
 
@@ -24,6 +25,7 @@ def register_system(name: str, factory: Callable[..., System], *, overwrite: boo
 
 
 def available_systems() -> list[str]:
+    """The names of the registered systems, sorted."""
     return sorted(_REGISTRY)
 
 
@@ -34,6 +36,6 @@ def system_factory(name: str) -> Callable[..., System]:
     return _REGISTRY[name]
 
 
-def get_system(name: str, **options) -> System:
+def get_system(name: str, **options: Any) -> System:
     """Build the registered system ``name`` (options go to its factory)."""
     return system_factory(name)(**options)

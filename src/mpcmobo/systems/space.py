@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 @dataclass(frozen=True)
@@ -28,10 +29,10 @@ class SearchSpace:
     def __init__(
         self,
         names: Sequence[str],
-        lower: Sequence[float],
-        upper: Sequence[float],
-        log: Sequence[bool] | None = None,
-        fixed: Sequence[bool] | None = None,
+        lower: ArrayLike,
+        upper: ArrayLike,
+        log: ArrayLike | None = None,
+        fixed: ArrayLike | None = None,
     ) -> None:
         n = len(names)
         lower = np.asarray(lower, dtype=float).reshape(-1)
@@ -47,12 +48,12 @@ class SearchSpace:
             raise ValueError("search space: bounds must be finite")
         bad = np.flatnonzero(~(lower <= upper))
         if bad.size:
-            raise ValueError(f"search space: lower > upper for {[names[i] for i in bad]}")
+            raise ValueError(f"search space: lower > upper for {[names[i] for i in bad.tolist()]}")
         badlog = np.flatnonzero(log & (lower <= 0))
         if badlog.size:
             raise ValueError(
                 f"search space: log-scaled parameters need positive bounds: "
-                f"{[names[i] for i in badlog]}"
+                f"{[names[i] for i in badlog.tolist()]}"
             )
         free_deg = np.flatnonzero(~fixed & (lower == upper))
         fixed = fixed.copy()
@@ -65,10 +66,12 @@ class SearchSpace:
 
     @property
     def n_theta(self) -> int:
+        """Number of coordinates of theta."""
         return len(self.names)
 
     @property
     def free(self) -> np.ndarray:
+        """Boolean mask of the searched (not fixed) coordinates."""
         return ~self.fixed
 
     @property
@@ -78,6 +81,7 @@ class SearchSpace:
 
     @property
     def free_names(self) -> list[str]:
+        """Names of the searched (free) coordinates."""
         return [n for n, f in zip(self.names, self.free) if f]
 
     def _check(self, theta: np.ndarray) -> np.ndarray:
@@ -87,16 +91,20 @@ class SearchSpace:
         return theta
 
     def clip(self, theta: np.ndarray) -> np.ndarray:
+        """``theta`` clipped to the bounds."""
         return np.clip(self._check(theta), self.lower, self.upper)
 
     def contains(self, theta: np.ndarray, tol: float = 1e-12) -> bool:
+        """Whether ``theta`` lies within the bounds (up to ``tol`` times the span)."""
         theta = self._check(theta)
         span = np.maximum(self.upper - self.lower, 1.0)
         return bool(
             np.all(theta >= self.lower - tol * span) and np.all(theta <= self.upper + tol * span)
         )
 
-    def _warp(self, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, log: np.ndarray):
+    def _warp(
+        self, v: np.ndarray, lo: np.ndarray, hi: np.ndarray, log: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         v, lo, hi = v.copy(), lo.copy(), hi.copy()
         v[..., log] = np.log(np.maximum(v[..., log], 1e-300))
         lo[log], hi[log] = np.log(lo[log]), np.log(hi[log])
@@ -140,6 +148,7 @@ class SearchSpace:
         return out
 
     def to_dict(self) -> dict:
+        """The space as a plain dictionary."""
         return {
             "names": list(self.names),
             "lower": self.lower.tolist(),
