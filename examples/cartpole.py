@@ -41,7 +41,7 @@ L_NOMINAL = TRUE[1]  # the constraint is written with the nominal length
 def accelerations(x, u, p):
     """Cart and pole accelerations of the classic cart-pole (angle 0 = upright)."""
     m, ell, M = p[0], p[1], p[2]
-    _, v, phi, omega = x[0], x[1], x[2], x[3]
+    phi, omega = x[2], x[3]
     s, c = ca.sin(phi), ca.cos(phi)
     total = M + m
     tmp = (u[0] + m * ell * omega**2 * s) / total

@@ -28,7 +28,7 @@ from mpcmobo.experiment.job import Progress, make_study_learner, progress_event,
 from mpcmobo.experiment.logs import count_warnings, run_log
 from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
-from mpcmobo.experiment.settings import Settings, SettingsError, build_system
+from mpcmobo.experiment.settings import Settings, SettingsError, build_plant, build_system
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems.registry import is_registered, system_factory
 
@@ -56,8 +56,10 @@ def system_info(system) -> dict:
 
 
 def check_learners(settings: Settings) -> None:
-    """Every learner accepts its options (else a SettingsError naming them)."""
+    """The system can be built, its plant made and matched to it, and every learner accepts
+    its options (else a SettingsError naming them), before anything is written."""
     system = build_system(settings)
+    build_plant(settings, system).close()
     theta0 = system.parameterization.theta0
     for name in settings.learners:
         try:

@@ -102,7 +102,8 @@ def _sx_output(fn, args, label: str, n: int | None, expected: str):
         out = ca.SX(out)
     except Exception as err:  # noqa: BLE001 - any failure of user code is reported here
         raise SystemDefinitionError(
-            f"{label} cannot be evaluated on CasADi symbols: {type(err).__name__}: {err}"
+            f"{label} cannot be evaluated on CasADi symbols: {type(err).__name__}: "
+            + " ".join(str(err).split())  # one line
         ) from None
     if out.shape[1] != 1 and out.shape[0] == 1:
         out = out.T

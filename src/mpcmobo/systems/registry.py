@@ -40,6 +40,10 @@ class SystemSpecError(ValueError):
     """A system or plant that cannot be found, imported or built (one-line message)."""
 
 
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split())
+
+
 def register_system(name: str, factory: Callable[..., System], *, overwrite: bool = False) -> None:
     """Make ``get_system(name)`` build a system with ``factory(**options)``."""
     if not isinstance(name, str) or not name:
@@ -88,7 +92,7 @@ def load_object(spec: str, what: str = "system factory") -> Any:
             module = importlib.import_module(target)
         except Exception as err:  # noqa: BLE001 - user code: any failure is reported
             raise SystemSpecError(
-                f"{what} '{spec}': cannot import module '{target}': {type(err).__name__}: {err}"
+                f"{what} '{spec}': cannot import module '{target}': {type(err).__name__}: {_one_line(err)}"
             ) from None
     if not hasattr(module, attr):
         raise SystemSpecError(f"{what} '{spec}': '{target}' has no attribute '{attr}'")
@@ -118,7 +122,7 @@ def _load_file(path: Path, spec: str, what: str):
         if isinstance(err, KeyboardInterrupt):
             raise
         raise SystemSpecError(
-            f"{what} '{spec}': cannot import {path}: {type(err).__name__}: {err}"
+            f"{what} '{spec}': cannot import {path}: {type(err).__name__}: {_one_line(err)}"
         ) from None
     return module
 
@@ -165,7 +169,7 @@ def system_factory(spec: str) -> Callable[..., System]:
         except Exception as err:  # noqa: BLE001 - a broken plug-in is reported, not raised
             raise SystemSpecError(
                 f"plug-in system '{spec}' ({plugins[spec].value}) cannot be loaded: "
-                f"{type(err).__name__}: {err}"
+                f"{type(err).__name__}: {_one_line(err)}"
             ) from None
     raise SystemSpecError(
         f"unknown system '{spec}'; available: {', '.join(available_systems())}; or give a "
@@ -187,7 +191,7 @@ def get_system(spec: str, **options) -> System:
         if registered:
             raise
         raise SystemSpecError(
-            f"the system factory '{spec}' failed: {type(err).__name__}: {err}"
+            f"the system factory '{spec}' failed: {type(err).__name__}: {_one_line(err)}"
         ) from None
     if not isinstance(system, System):
         raise SystemSpecError(
@@ -220,13 +224,15 @@ def make_plant(spec: str | None, system: System):
             env = make()
         except Exception as err:  # noqa: BLE001 - user code: any failure is reported
             raise SystemSpecError(
-                f"the plant factory '{spec}' failed: {type(err).__name__}: {err}"
+                f"the plant factory '{spec}' failed: {type(err).__name__}: {_one_line(err)}"
             ) from None
     else:
         try:
             env = gymnasium.make(spec)
         except Exception as err:  # noqa: BLE001 - unknown ids, bad entry points
-            raise SystemSpecError(f"plant '{spec}': {type(err).__name__}: {err}") from None
+            raise SystemSpecError(
+                f"plant '{spec}': {type(err).__name__}: {_one_line(err)}"
+            ) from None
     if not isinstance(env, gymnasium.Env):
         raise SystemSpecError(
             f"the plant factory '{spec}' returned {type(env).__name__}, expected a gymnasium.Env"
