@@ -330,7 +330,12 @@ def _report(summary: dict, out: Path, seconds: float, no_plot: bool) -> None:
 
 
 def _summary_table(summary: dict) -> Table:
-    table = Table(title=f"{summary['system']}: J* = {_fmt(summary['J_star'])}")
+    if summary["J_star"] is None:  # no reference model: the results are against theta0
+        title = f"{summary['system']}: no J* (no reference model), J(theta0) = "
+        title += _fmt(summary["J_initial"])
+    else:
+        title = f"{summary['system']}: J* = {_fmt(summary['J_star'])}"
+    table = Table(title=title)
     for col in ("learner", "J_initial", "J_final", "to 2%", "to 5%", "wall time [s]"):
         table.add_column(col, justify="right")
     for name, s in summary["learners"].items():

@@ -18,7 +18,15 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems import (
@@ -50,13 +58,14 @@ class SystemSettings(_Section):
     """Which system (the MPC's model), which plant, and how the MPC is parameterised
     (overrides of ``System.mpc_spec``)."""
 
+    # factory before name: the name is checked only without a factory (``_known_system``)
+    factory: str | None = Field(
+        None, description="the system's factory, 'module:function' or 'path/file.py:function'"
+    )
     name: str = Field(
         "cstr", description="registered system or plug-in (`mpcmobo systems`); with factory: "
         "the name of the system it builds"
     )  # fmt: skip
-    factory: str | None = Field(
-        None, description="the system's factory, 'module:function' or 'path/file.py:function'"
-    )
     plant: str | None = Field(
         None,
         description="the plant: a gymnasium id or a factory of a gymnasium.Env "
@@ -82,19 +91,19 @@ class SystemSettings(_Section):
             raise ValueError("must be a non-empty string")
         return normalise_spec(v)  # a file path made absolute; the import is checked at build
 
-    @model_validator(mode="after")
-    def _known_system(self) -> SystemSettings:
-        if self.factory is None and self.name not in available_systems():
-            if is_factory_path(self.name):
-                raise ValueError(
-                    f"system.name: '{self.name}' is a factory path; give it as system.factory"
-                )
+    @field_validator("name")
+    @classmethod
+    def _known_system(cls, v: str, info: ValidationInfo) -> str:
+        if info.data.get("factory") is None and v not in available_systems():
+            if is_factory_path(v):
+                raise ValueError(f"'{v}' is a factory path; give it as system.factory")
+            if v.endswith(".py"):
+                raise ValueError(f"'{v}' names a file: add its function, '{v}:make_system'")
             raise ValueError(
-                f"system.name: unknown system '{self.name}'; allowed: "
-                f"{', '.join(available_systems())}; or a system.factory "
-                "('module:function' or 'path/file.py:function')"
+                f"unknown system '{v}'; allowed: {', '.join(available_systems())}; or a "
+                "system.factory ('module:function' or 'path/file.py:function')"
             )
-        return self
+        return v
 
     @property
     def spec(self) -> str:
