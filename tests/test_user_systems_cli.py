@@ -73,9 +73,8 @@ def test_a_system_in_a_file_runs_every_learner_on_two_workers_and_resumes(files,
     got, want = records(out), records(ref)
     assert len(got) == 12 and set(got.learner) == {"mpc-rl", "bo", "mobo", "hybrid"}
     pd.testing.assert_frame_equal(got, want)
-    summary = storage.read_json(out / "summary.json") if hasattr(storage, "read_json") else None
-    if summary is not None:
-        assert summary["system"] == "double_integrator" and summary["J_star"] is not None
+    summary = storage.read_json(out / "summary.json")
+    assert summary["system"] == "double_integrator" and summary["J_star"] is not None
 
 
 @pytest.mark.parametrize(

@@ -97,7 +97,7 @@ class Evaluator:
 
     def J_star(self) -> float | None:
         """J*: the perfect-model MPC with theta0 on the same starts; None without a reference
-        model (:data:`NO_J_STAR`)."""
+        model (:func:`no_J_star_reason` says why)."""
         if not self.has_J_star:
             return None
         return self.J_eval(None, model="perfect")
