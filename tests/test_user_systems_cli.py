@@ -113,7 +113,12 @@ def test_systems_lists_plugins_and_says_how_to_add_one(files, tmp_path, monkeypa
     (dist / "entry_points.txt").write_text("[mpcmobo.systems]\ndi = usersys:make_system\n")
     monkeypatch.syspath_prepend(str(files))
     monkeypatch.syspath_prepend(str(tmp_path))
-    res = runner.invoke(app, ["systems"], env={"COLUMNS": "250"})
+    from rich.console import Console
+
+    import mpcmobo.cli as cli
+
+    monkeypatch.setattr(cli, "console", Console(width=250))  # the table unwrapped
+    res = runner.invoke(app, ["systems"])
     assert res.exit_code == 0, res.output
     lines = {line.split()[1]: line for line in res.output.splitlines() if line.startswith("│")}
     assert "built-in" in lines["cstr"] and "plug-in" in lines["di"]
