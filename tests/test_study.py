@@ -185,12 +185,15 @@ def test_orphaned_worker_stops_after_its_checkpoint(tmp_path):
 
 
 def test_ray_backend_matches_serial(full_run, tmp_path):
-    """The optional Ray backend (pip install 'mpcmobo[ray]') gives the serial records."""
+    """The optional Ray backend (pip install 'mpcmobo[ray]') gives the serial records, with the
+    system given as a factory path that the Ray workers import themselves (issue 12)."""
     ray = pytest.importorskip("ray")
     out_full, _, _ = full_run
     out = tmp_path / "ray"
+    factory = tmp_path / "my_lq.py"
+    factory.write_text("from mpcmobo.systems import make_lq\n\ndef make():\n    return make_lq()\n")
     try:
-        run_study(small(workers=2, backend="ray"), out)
+        run_study(small(workers=2, backend="ray", system={"factory": f"{factory}:make"}), out)
     finally:
         ray.shutdown()
     a = storage.read_episodes(out_full).drop(columns=WALL)

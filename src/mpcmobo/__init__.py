@@ -1,10 +1,14 @@
 """mpcmobo: tune a model predictive controller with MPC-based RL, BO and multi-objective BO.
 
 The subpackages follow the paper's pipeline (``systems -> mpc -> rl -> bo -> learners ->
-experiment``); ``mpcmobo.__version__`` is the installed distribution's version.
+experiment``); ``mpcmobo.__version__`` is the installed distribution's version. Importing the
+package registers the paper's CSTR plant with gymnasium as ``mpcmobo/CSTR-v0`` (and the test bed
+``mpcmobo/LQ-v0``), lazily: the entry points are strings, nothing heavy is imported here.
 """
 
 from importlib.metadata import PackageNotFoundError, version
+
+import gymnasium as _gymnasium
 
 try:
     __version__: str = version("mpcmobo")
@@ -13,3 +17,12 @@ except PackageNotFoundError:  # pragma: no cover - a source tree that was never 
 """The installed distribution's version (``importlib.metadata``); ``mpcmobo --version``."""
 
 __all__ = ["__version__"]
+
+for _id, _name, _steps in (("mpcmobo/CSTR-v0", "cstr", 60), ("mpcmobo/LQ-v0", "lq", 30)):
+    if _id not in _gymnasium.registry:
+        _gymnasium.register(
+            id=_id,
+            entry_point="mpcmobo.systems.plant:SystemPlant",
+            kwargs={"system": _name},
+            max_episode_steps=_steps,
+        )

@@ -213,7 +213,7 @@ def run(
     system: str | None = typer.Option(
         None,
         "--system",
-        help="system name (`mpcmobo systems`)",
+        help="system: a name (`mpcmobo systems`), 'module:function' or 'file.py:function'",
         show_default=_default("system").name,
     ),
     learner: str | None = typer.Option(
@@ -266,7 +266,7 @@ def run(
         else:
             settings = load_settings(
                 config,
-                system__name=system,
+                system=_system_override(system),
                 learners=_learners(learner),
                 episodes=episodes,
                 steps=steps,
@@ -296,7 +296,16 @@ def run(
     _report(summary, out, time.perf_counter() - t0, no_plot)  # type: ignore[arg-type]  # --resume checked --out
 
 
-def _interrupted(out: Path | None, name: str, code: int) -> NoReturn:
+def _system_override(system: str | None) -> dict[str, Any] | None:
+    """``--system X``: a name, or a factory path (then it replaces the file's system)."""
+    if system is None:
+        return None
+    if ":" in system:
+        return {"factory": system}
+    return {"name": system, "factory": None}
+
+
+def _interrupted(out: Path | None, name: str, code: int) -> None:
     """An interrupted run: where its records are and how to continue it; exit ``code``."""
     if out is not None and RunDirectory(out).holds_run():
         err_console.print(
@@ -349,7 +358,12 @@ def _report(summary: dict, out: Path, seconds: float, no_plot: bool) -> None:
 
 
 def _summary_table(summary: dict) -> Table:
-    table = Table(title=f"{summary['system']}: J* = {_fmt(summary['J_star'])}")
+    if summary["J_star"] is None:  # no reference model: the results are against theta0
+        title = f"{summary['system']}: no J* (no reference model), J(theta0) = "
+        title += _fmt(summary["J_initial"])
+    else:
+        title = f"{summary['system']}: J* = {_fmt(summary['J_star'])}"
+    table = Table(title=title)
     for col in ("learner", "J_initial", "J_final", "to 2%", "to 5%", "wall time [s]"):
         table.add_column(col, justify="right")
     for name, s in summary["learners"].items():
@@ -435,38 +449,70 @@ def evaluate(
             f"run with: mpcmobo run --resume --out {directory})",
             1,
         )
-    evaluator = make_evaluator(settings, build_system(settings))
+    try:
+        evaluator = make_evaluator(settings, build_system(settings))
+    except SettingsError as err:
+        _fail(str(err), 2)
     J_star = evaluator.J_star()
     J0 = evaluator.J_eval(None)
     table = Table(title=f"{settings.system.name}: J* = {_fmt(J_star)}, J(theta0) = {_fmt(J0)}")
-    for col in ("learner", "seed", "episodes", "J_eval", "gap to J* [%]"):
+    # without a reference model (no J*), the gap is the improvement over theta0
+    gap_title = "gap to J* [%]" if J_star is not None else "improvement over theta0 [%]"
+    for col in ("learner", "seed", "episodes", "J_eval", gap_title):
         table.add_column(col, justify="right")
     for learner, s, episodes, incumbent in incumbents:
         J = evaluator.J_eval(incumbent)
-        gap = f"{100 * (J - J_star) / abs(J_star):.2f}"
+        if J_star is not None:
+            gap = f"{100 * (J - J_star) / abs(J_star):.2f}"
+        else:
+            gap = f"{100 * (J0 - J) / abs(J0):.2f}"
         table.add_row(learner, str(s), str(episodes), _fmt(J), gap)
     console.print(table)
 
 
-@app.command()
+ADD_SYSTEM_HELP = (
+    "Add a system: write a function that returns a mpcmobo.systems.System and run it with "
+    "--system path/to/file.py:make_system (or my_pkg.my_module:make_system, or "
+    '[system] factory = "..." in a --config file); install it as a plug-in with the entry '
+    'point group "mpcmobo.systems" in your package\'s pyproject.toml '
+    '([project.entry-points."mpcmobo.systems"] my_system = "my_pkg.my_module:make_system"). '
+    "See docs/user-systems.md."
+)
+
+
+@app.command(help="List the systems that can be run: built-in, registered and plug-ins.\n\n"
+             + ADD_SYSTEM_HELP)  # fmt: skip
 def systems() -> None:
-    """List the systems that can be run."""
-    from mpcmobo.systems import available_systems, get_system
+    """List the systems that can be run: built-in, registered and plug-ins."""
+    from mpcmobo.systems import SystemDefinitionError, SystemSpecError, get_system
+    from mpcmobo.systems.registry import describe_systems
 
     table = Table(title="systems")
-    for col in ("name", "states", "inputs", "theta", "steps", "description"):
+    for col in ("name", "source", "states", "inputs", "theta", "steps", "model", "description"):
         table.add_column(col)
-    for name in available_systems():
-        s = get_system(name)
+    for name, source in describe_systems():
+        try:
+            s = get_system(name)
+        except (SystemSpecError, SystemDefinitionError) as err:
+            table.add_row(
+                name, source, "", "", "", "", "", f"[red]cannot be built: {escape(str(err))}[/]"
+            )
+            continue
+        kind = "discrete" if s.discrete_time else "continuous"
+        if s.nh:
+            kind += f", {s.nh} path constraint{'s' if s.nh > 1 else ''}"
         table.add_row(
             name,
+            source,
             ", ".join(s.state_names),
             ", ".join(s.input_names),
             str(s.search_space.n_theta),
             str(s.episode_steps),
+            kind + ("" if s.has_reference_model else ", no J*"),
             s.description,
         )
     console.print(table)
+    console.print(ADD_SYSTEM_HELP, markup=False, highlight=False, soft_wrap=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

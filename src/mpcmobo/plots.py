@@ -71,6 +71,9 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]) -> Figure:
                    marker=".", ms=3)  # fmt: skip
         if J_star is not None:
             ax.axhline(J_star, color="tab:blue", ls="--", label=r"$J^\star$")
+        elif summary.get("J_initial") is not None:  # no reference model: against theta0
+            ax.axhline(summary["J_initial"], color="tab:green", ls=":",
+                       label=r"$J(\theta_0)$ (no $J^\star$)")  # fmt: skip
         ax.set_ylabel(r"$\tilde J$")
         vals = d["J_tilde"].to_numpy(float)
         if np.any(np.isfinite(vals)) and np.nanmin(vals) > 0:

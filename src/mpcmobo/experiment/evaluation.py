@@ -3,14 +3,16 @@
 ``J_eval(theta)`` is the mean, over a fixed seeded set of initial states, of the mean RL stage
 cost of a ``T_f``-step closed-loop episode of the imperfect-model MPC with parameters ``theta``,
 without exploration. ``J*`` is the same for the perfect-model MPC with ``theta0``: the closed-loop
-performance the learning should reach (the blue dashed line of Fig. 1).
+performance the learning should reach (the blue dashed line of Fig. 1). A system without a
+reference model has no J*: results are then relative to ``J_eval(theta0)`` (J_initial).
 """
 
 from __future__ import annotations
 
+import gymnasium
 import numpy as np
 
-from mpcmobo.experiment.settings import Settings
+from mpcmobo.experiment.settings import Settings, build_plant
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
@@ -31,10 +33,12 @@ class Evaluator:
         seed: int = 2025,
         steps: int | None = None,
         mpc_options: dict | None = None,
+        plant: gymnasium.Env | None = None,
     ) -> None:
         if n_starts < 1:
             raise ValueError(f"the evaluation needs at least one initial state, got {n_starts}")
         self.system = system
+        self.plant = plant  # None: the system's own equations
         self.steps = int(system.episode_steps if steps is None else steps)
         self.seed = int(seed)
         rng = np.random.default_rng(self.seed)
@@ -53,9 +57,22 @@ class Evaluator:
         """The evaluation episodes of ``theta`` (no exploration, no sensitivities)."""
         mpc = self.mpc(model)
         return [
-            rollout(self.system, mpc, theta, x0, self.steps, sensitivities=False)
-            for x0 in self.starts
+            rollout(
+                self.system,
+                mpc,
+                theta,
+                x0,
+                self.steps,
+                sensitivities=False,
+                plant=self.plant,
+                plant_seed=self.plant_seed(i),
+            )  # fmt: skip
+            for i, x0 in enumerate(self.starts)
         ]
+
+    def plant_seed(self, i: int) -> int:
+        """The plant's seed of the ``i``-th evaluation start (the same for every theta)."""
+        return int(np.random.SeedSequence([self.seed, 5, i]).generate_state(1)[0])
 
     def J_eval(self, theta: np.ndarray | None, model: str = "imperfect") -> float:
         """Mean over the fixed starts of the mean stage cost (cached per theta)."""
@@ -75,13 +92,32 @@ class Evaluator:
         theta = self.mpc(model).check_theta(theta)
         return (model, theta.tobytes()) in self._cache
 
-    def J_star(self) -> float:
-        """J*: the perfect-model MPC with theta0 on the same starts."""
+    @property
+    def has_J_star(self) -> bool:
+        """Whether J* exists: the system has a reference (perfect) model."""
+        return self.system.has_reference_model
+
+    def J_star(self) -> float | None:
+        """J*: the perfect-model MPC with theta0 on the same starts; None without a reference
+        model (:func:`no_J_star_reason` says why)."""
+        if not self.has_J_star:
+            return None
         return self.J_eval(None, model="perfect")
 
 
-def make_evaluator(settings: Settings, system: System) -> Evaluator:
-    """The evaluator of a study's settings (``[evaluation]`` and the MPC options)."""
+def no_J_star_reason(system: System) -> str:
+    """Why J* is absent for ``system`` (the value of ``J_star_missing`` in the records)."""
+    return (
+        f"the system '{system.name}' has no reference model (neither true_params nor "
+        "models['perfect']), so there is no perfect-model MPC: results are relative to "
+        "J_initial, the MPC with theta0"
+    )
+
+
+def make_evaluator(
+    settings: Settings, system: System, plant: gymnasium.Env | None = None
+) -> Evaluator:
+    """The evaluator of a study's settings (``[evaluation]``, the MPC options, the plant)."""
     ev = settings.evaluation
     return Evaluator(
         system,
@@ -89,4 +125,5 @@ def make_evaluator(settings: Settings, system: System) -> Evaluator:
         seed=ev.seed,
         steps=ev.steps if ev.steps is not None else settings.steps,
         mpc_options=settings.mpc.options(),
+        plant=build_plant(settings, system) if plant is None and settings.system.plant else plant,
     )

@@ -27,7 +27,7 @@ from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.loop import LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
-from mpcmobo.experiment.settings import Settings, build_system, validate_settings
+from mpcmobo.experiment.settings import Settings, build_plant, build_system, validate_settings
 from mpcmobo.learners import Learner, make_learner
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems.base import System
@@ -102,8 +102,9 @@ class Job:
         self.settings, self.run_dir = settings, run_dir
         self.learner, self.seed = learner, seed
         system = build_system(settings)
-        self.run = _learning_run(settings, system, learner, seed)
-        self.evaluator = make_evaluator(settings, system)
+        plant = build_plant(settings, system) if settings.system.plant else None
+        self.run = _learning_run(settings, system, learner, seed, plant)
+        self.evaluator = make_evaluator(settings, system, plant)
         # an interrupt during an MPC solve stops the job when the solve returns, never fails it
         interrupts.guard_solves(self.run.mpc)
         interrupts.guard_solves(self.evaluator.mpc("imperfect"))
@@ -247,7 +248,9 @@ def make_study_learner(
     return make_learner(name, system.search_space, theta0, seed=seed, contexts=contexts, **options)
 
 
-def _learning_run(settings: Settings, system: System, learner: str, seed: int) -> LearningRun:
+def _learning_run(
+    settings: Settings, system: System, learner: str, seed: int, plant=None
+) -> LearningRun:
     """The job's learning run: the learner tunes the imperfect-model MPC (eq. V0)."""
     mpc = ParametricMPC(system, model="imperfect", **settings.mpc.options())
     tuner = make_study_learner(settings, system, learner, mpc.theta0, seed)
@@ -267,6 +270,7 @@ def _learning_run(settings: Settings, system: System, learner: str, seed: int) -
         critic_min_valid_steps=settings.critic.min_valid_steps,
         critic_weighting=settings.critic.weighting,
         beta=settings.beta,
+        plant=plant,
     )
 
 

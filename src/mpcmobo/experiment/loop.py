@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 
+import gymnasium
 import numpy as np
 
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
@@ -23,7 +24,10 @@ class LearningRun:
     true plant with exploration noise, the compatible critic is fitted to the episode, the four
     objectives are computed, and the learner observes them. Initial states are drawn at random
     (``start_mode="random"``, the paper's setting) or cycle through a fixed seeded set
-    (``"cycle"``) so that candidates are compared on common starts.
+    (``"cycle"``) so that candidates are compared on common starts. The plant is a gymnasium
+    environment (default: the system's equations with ``true_params``), reset at the start of
+    each episode with a seed that depends only on (seed, episode), so a resumed run sees the
+    same plant.
     """
 
     def __init__(
@@ -44,10 +48,12 @@ class LearningRun:
         critic_min_valid_steps: int = 2,
         critic_weighting: str = "uniform",
         beta: float = 1.0,
+        plant: gymnasium.Env | None = None,
     ) -> None:
         if start_mode not in START_MODES:
             raise ValueError(f"start_mode must be one of {START_MODES}, got '{start_mode}'")
         self.system, self.learner, self.mpc = system, learner, mpc
+        self.plant = plant  # None: the system's own equations (SystemPlant)
         self.seed = int(seed)
         self.steps = int(system.episode_steps if steps is None else steps)
         std = np.zeros(system.nu) if exploration_std is None else exploration_std
@@ -73,6 +79,11 @@ class LearningRun:
         )
         self.episode = 0
         self.previous_Vc: float | None = None
+
+    def plant_seed(self) -> int:
+        """The plant's seed of this episode (its own noise, if any): a function of (seed,
+        episode), so it draws nothing from the other streams."""
+        return int(np.random.SeedSequence([self.seed, 7, 3, self.episode]).generate_state(1)[0])
 
     def next_start(self) -> np.ndarray:
         """The initial state of the next episode (the cycle of fixed starts, or a random one)."""
@@ -152,6 +163,8 @@ class LearningRun:
                 self.steps,
                 rng=self.rng_noise,
                 exploration=self.exploration,
+                plant=self.plant,
+                plant_seed=self.plant_seed(),
             )
             result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
         except (FloatingPointError, ValueError, RuntimeError) as err:

@@ -144,14 +144,16 @@ class Checkpoint:
 class Reference:
     """The study-level reference (``reference.pkl``), computed once per study: J* (the
     perfect-model MPC with theta0), J_eval(theta0), their evaluation episodes and what the
-    figures need to know about the system (``study.system_info``)."""
+    figures need to know about the system (``study.system_info``). Without a reference model
+    ``J_star`` is None and ``J_star_missing`` says why."""
 
-    J_star: float
+    J_star: float | None
     J_initial: float
     theta0: np.ndarray
     system: dict
     trajectories: list[Trajectory] = field(default_factory=list)
     wall_time_s: float | None = None
+    J_star_missing: str | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Reference:
@@ -163,6 +165,7 @@ class Reference:
             system=d["system"],
             trajectories=[Trajectory.from_dict(t) for t in d.get("trajectories", [])],
             wall_time_s=d.get("wall_time_s"),
+            J_star_missing=d.get("J_star_missing"),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -174,4 +177,5 @@ class Reference:
             "system": self.system,
             "trajectories": [t.to_dict() for t in self.trajectories],
             "wall_time_s": self.wall_time_s,
+            "J_star_missing": self.J_star_missing,
         }

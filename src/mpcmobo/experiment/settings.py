@@ -19,10 +19,26 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from mpcmobo.learners.registry import LEARNER_SPECS
-from mpcmobo.systems import System, available_systems, get_system
+from mpcmobo.systems import (
+    System,
+    SystemDefinitionError,
+    SystemSpecError,
+    available_systems,
+    get_system,
+    make_plant,
+)
+from mpcmobo.systems.registry import is_factory_path, normalise_spec
 
 # the learners the settings accept by name, and those the paper's study runs (the default)
 KNOWN_LEARNERS = tuple(LEARNER_SPECS)
@@ -40,23 +56,60 @@ class _Section(BaseModel):
 
 
 class SystemSettings(_Section):
-    """Which system, and how its MPC is parameterised (overrides of ``System.mpc_spec``)."""
+    """Which system (the MPC's model), which plant, and how the MPC is parameterised
+    (overrides of ``System.mpc_spec``)."""
 
-    name: str = Field("cstr", description="registered system name (`mpcmobo systems`)")
+    # factory before name: the name is checked only without a factory (``_known_system``)
+    factory: str | None = Field(
+        None, description="the system's factory, 'module:function' or 'path/file.py:function'"
+    )
+    name: str = Field(
+        "cstr", description="registered system or plug-in (`mpcmobo systems`); with factory: "
+        "the name of the system it builds"
+    )  # fmt: skip
+    plant: str | None = Field(
+        None,
+        description="the plant: a gymnasium id or a factory of a gymnasium.Env "
+        "('module:function', 'path/file.py:function'); default: the system's own equations",
+    )
     learn_model: list[str] = Field(
         default_factory=list, description="model parameters made learnable"
     )
     learn_backoff: bool = False
     learn_theta_c: bool = False
+    full_weights: bool = Field(
+        False, description="full positive-definite MPC weights (Cholesky factors in theta)"
+    )
     weight_log_range: float | None = Field(None, gt=0, le=20)
     model_log_range: float | None = Field(None, gt=0, le=10)
 
+    @field_validator("factory", "plant")
+    @classmethod
+    def _factory_path(cls, v: str | None) -> str | None:
+        if v is None:
+            return v
+        if not v:
+            raise ValueError("must be a non-empty string")
+        return normalise_spec(v)  # a file path made absolute; the import is checked at build
+
     @field_validator("name")
     @classmethod
-    def _known_system(cls, v: str) -> str:
-        if v not in available_systems():
-            raise ValueError(f"unknown system '{v}'; allowed: {', '.join(available_systems())}")
+    def _known_system(cls, v: str, info: ValidationInfo) -> str:
+        if info.data.get("factory") is None and v not in available_systems():
+            if is_factory_path(v):
+                raise ValueError(f"'{v}' is a factory path; give it as system.factory")
+            if v.endswith(".py"):
+                raise ValueError(f"'{v}' names a file: add its function, '{v}:make_system'")
+            raise ValueError(
+                f"unknown system '{v}'; allowed: {', '.join(available_systems())}; or a "
+                "system.factory ('module:function' or 'path/file.py:function')"
+            )
         return v
+
+    @property
+    def spec(self) -> str:
+        """What names the system for :func:`~mpcmobo.systems.get_system`."""
+        return self.factory if self.factory is not None else self.name
 
     def spec_overrides(self) -> dict[str, Any]:
         """The overrides of the system's ``MPCSpec`` that these settings ask for."""
@@ -67,6 +120,8 @@ class SystemSettings(_Section):
             out["learn_backoff"] = True
         if self.learn_theta_c:
             out["learn_theta_c"] = True
+        if self.full_weights:
+            out["full_weights"] = True
         for k in ("weight_log_range", "model_log_range"):
             if getattr(self, k) is not None:
                 out[k] = getattr(self, k)
@@ -210,8 +265,8 @@ class Settings(_Section):
             return self  # nothing system-specific to check; avoid building the system
         try:
             system = build_system(self)
-        except SettingsError:
-            raise
+        except SettingsError as err:
+            raise ValueError(str(err)) from None
         except Exception as err:  # noqa: BLE001 - reported as a settings problem
             raise ValueError(f"system settings: {err}") from None
         std = self.exploration.std
@@ -228,6 +283,8 @@ class Settings(_Section):
         system = build_system(self)
         spec = system.mpc_spec
         d = self.model_dump()
+        if self.system.factory is not None:
+            d["system"]["name"] = system.name
         d["system"]["weight_log_range"] = float(spec.weight_log_range)
         d["system"]["model_log_range"] = float(spec.model_log_range)
         d["mpc"]["horizon"] = int(spec.horizon if self.mpc.horizon is None else self.mpc.horizon)
@@ -256,9 +313,25 @@ def _drop_none(d: Any) -> Any:
 
 
 def build_system(settings: Settings) -> System:
-    """The system of the settings, with its MPC-spec overrides applied."""
-    spec = settings.system.spec_overrides()
-    return get_system(settings.system.name, **spec)
+    """The system of the settings, with its MPC-spec overrides applied; a system that cannot
+    be found, imported or built is a :class:`SettingsError` (one line, naming the key)."""
+    key = "system.factory" if settings.system.factory is not None else "system.name"
+    try:
+        return get_system(settings.system.spec, **settings.system.spec_overrides())
+    except (SystemSpecError, SystemDefinitionError) as err:
+        raise SettingsError(f"{key}: {err}") from None
+    except ValueError as err:  # an MPC setting the system refuses
+        raise SettingsError(f"system: {err}") from None
+
+
+def build_plant(settings: Settings, system: System):
+    """The plant of the settings (``system.plant``, default the system's equations), checked
+    against the system's sizes; a problem is a :class:`SettingsError`."""
+    try:
+        return make_plant(settings.system.plant, system)
+    except (SystemSpecError, SystemDefinitionError) as err:
+        key = "system.plant" if settings.system.plant is not None else "system"
+        raise SettingsError(f"{key}: {err}") from None
 
 
 # ---------------------------------------------------------------------- errors and loading

@@ -24,15 +24,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mpcmobo.experiment import interrupts, storage
-from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
+from mpcmobo.experiment.evaluation import make_evaluator, mean_cost, no_J_star_reason
 from mpcmobo.experiment.job import Progress, make_study_learner, progress_event, run_job
 from mpcmobo.experiment.logs import count_warnings, run_log
 from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
-from mpcmobo.experiment.settings import Settings, SettingsError, build_system
+from mpcmobo.experiment.settings import Settings, SettingsError, build_plant, build_system
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems.base import System
-from mpcmobo.systems.registry import system_factory
+from mpcmobo.systems.registry import is_registered, system_factory
 
 if TYPE_CHECKING:
     from concurrent.futures import Future, ProcessPoolExecutor
@@ -63,8 +63,10 @@ def system_info(system: System) -> dict:
 
 
 def check_learners(settings: Settings) -> None:
-    """Every learner accepts its options (else a SettingsError naming them)."""
+    """The system can be built, its plant made and matched to it, and every learner accepts
+    its options (else a SettingsError naming them), before anything is written."""
     system = build_system(settings)
+    build_plant(settings, system).close()
     theta0 = system.parameterization.theta0
     for name in settings.learners:
         try:
@@ -77,33 +79,51 @@ def compute_reference(settings: Settings) -> Reference:
     """J*, J_eval(theta0) and the evaluation episodes of theta0 ("initial") and perfect MPC."""
     system = build_system(settings)
     evaluator = make_evaluator(settings, system)
-    for model in ("imperfect", "perfect"):  # an interrupt ends a solve, never fails it
+    phases = [("initial", "imperfect", evaluator.mpc("imperfect").theta0.copy())]
+    if evaluator.has_J_star:
+        phases.append(("perfect", "perfect", None))
+    for _, model, _ in phases:  # an interrupt ends a solve, never fails it
         interrupts.guard_solves(evaluator.mpc(model))
-    theta0 = evaluator.mpc("imperfect").theta0.copy()
+    theta0 = phases[0][2]
     t0 = time.perf_counter()
     trajectories = []
     values = {}
-    for phase, model, theta in (("initial", "imperfect", theta0), ("perfect", "perfect", None)):
+    for phase, model, theta in phases:
         eps = evaluator.episodes(theta, model)
         values[phase] = mean_cost(eps)
         trajectories += [
             Trajectory(phase, -1, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
         ]
     return Reference(
-        J_star=values["perfect"],
+        J_star=values.get("perfect"),
         J_initial=values["initial"],
         theta0=theta0,
         system=system_info(system),
         trajectories=trajectories,
         wall_time_s=time.perf_counter() - t0,
+        J_star_missing=None if evaluator.has_J_star else no_J_star_reason(system),
     )
 
 
 # ---------------------------------------------------------------------- summary
-def _first_within(df: pd.DataFrame, J_star: float, tol: float) -> int | None:
+def _first_within(df, reference: Reference, tol: float) -> int | None:
+    """The first episode whose J_eval is within ``tol`` of J* or, without J*, that improves
+    on J_initial (theta0) by at least ``tol``."""
     ok = df[np.isfinite(df["J_eval_incumbent"])]
-    ok = ok[ok["J_eval_incumbent"] - J_star <= tol * abs(J_star)]
+    if reference.J_star is not None:
+        J_star = float(reference.J_star)
+        ok = ok[ok["J_eval_incumbent"] - J_star <= tol * abs(J_star)]
+    else:
+        J0 = float(reference.J_initial)
+        ok = ok[ok["J_eval_incumbent"] - J0 <= -tol * abs(J0)]
     return int(ok["episode"].min()) if len(ok) else None
+
+
+def _target(reference: Reference) -> str:
+    """What ``episodes_to_2pct`` / ``episodes_to_5pct`` count to (``episodes_to_target``)."""
+    if reference.J_star is not None:
+        return "J_eval within 2% / 5% of J_star"
+    return "J_eval at least 2% / 5% below J_initial (no J_star)"
 
 
 def _median_or_null(values: list[float | None]) -> float | None:
@@ -118,7 +138,7 @@ def _median_or_null(values: list[float | None]) -> float | None:
 
 
 def _seed_summary(
-    s: pd.DataFrame, settings: Settings, J_star: float, wall_time_s: float
+    s, settings: Settings, reference: Reference, wall_time_s: float
 ) -> dict[str, Any]:
     """The summary of one job from its rows ``s`` (sorted by episode)."""
     evaluated = s[np.isfinite(s["J_eval_incumbent"])]
@@ -126,8 +146,8 @@ def _seed_summary(
         "J_final": float(evaluated["J_eval_incumbent"].iloc[-1]) if len(evaluated) else None,
         "episodes_done": len(s),
         "complete": int(s["episode"].max()) == settings.episodes - 1,
-        "episodes_to_2pct": _first_within(s, J_star, 0.02),
-        "episodes_to_5pct": _first_within(s, J_star, 0.05),
+        "episodes_to_2pct": _first_within(s, reference, 0.02),
+        "episodes_to_5pct": _first_within(s, reference, 0.05),
         "theta_final": [float(x) for x in s["incumbent"].iloc[-1]],
         "wall_time_s": float(wall_time_s),
     }
@@ -139,10 +159,14 @@ def _learner_summary(
     """The summary of one learner: medians over its seeds' summaries ``per_seed``."""
     vals = list(per_seed.values())
     J_finals = [v["J_final"] for v in vals if v["J_final"] is not None]
+    J_final = float(np.median(J_finals)) if J_finals else None
     return {
-        "J_star": float(reference.J_star),
+        "J_star": None if reference.J_star is None else float(reference.J_star),
         "J_initial": float(reference.J_initial),
-        "J_final": float(np.median(J_finals)) if J_finals else None,
+        "J_final": J_final,
+        "improvement_over_theta0": None
+        if J_final is None
+        else 1.0 - J_final / float(reference.J_initial),
         "episodes_to_2pct": _median_or_null([v["episodes_to_2pct"] for v in vals]),
         "episodes_to_5pct": _median_or_null([v["episodes_to_5pct"] for v in vals]),
         "theta_final": vals[0]["theta_final"] if vals else None,
@@ -157,7 +181,6 @@ def _learner_summary(
 
 def summarize(settings: Settings, reference: Reference, df: pd.DataFrame, wall_times: dict) -> dict:
     """The per-learner summary of the records ``df`` (episodes.parquet)."""
-    J_star = float(reference.J_star)
     learners: dict[str, Any] = {}
     for name in settings.learners:
         sub = df[df["learner"] == name] if len(df) else df
@@ -166,11 +189,13 @@ def summarize(settings: Settings, reference: Reference, df: pd.DataFrame, wall_t
             s = sub[sub["seed"] == seed].sort_values("episode") if len(sub) else sub
             if len(s):
                 wall = wall_times.get((name, seed), math.nan)
-                per_seed[str(seed)] = _seed_summary(s, settings, J_star, wall)
+                per_seed[str(seed)] = _seed_summary(s, settings, reference, wall)
         learners[name] = _learner_summary(per_seed, settings, reference)
     return {
-        "system": settings.system.name,
-        "J_star": J_star,
+        "system": reference.system.get("name", settings.system.name),
+        "J_star": None if reference.J_star is None else float(reference.J_star),
+        "J_star_missing": reference.J_star_missing,
+        "episodes_to_target": _target(reference),
         "J_initial": float(reference.J_initial),
         "theta0": np.asarray(reference.theta0).tolist(),
         "theta_names": reference.system["theta_names"],
@@ -307,7 +332,10 @@ def _run_jobs(
         for n, s in jobs:
             run_job(learner_name=n, seed=s, on_episode=emit, **args)
         return
-    args = dict(args, system_factory=system_factory(settings.system.name))
+    if settings.system.factory is None and is_registered(settings.system.name):
+        # registered in this process: the workers get the factory (pickled by reference);
+        # factory paths and plug-ins are imported by the workers from the settings
+        args = dict(args, system_factory=system_factory(settings.system.name))
     watch = _Watch(run_dir, jobs, settings.episodes, emit)
     if settings.backend == "ray":
         _run_ray(jobs, args, settings.workers, watch)
@@ -363,7 +391,8 @@ def _run_processes(
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    _sendable(args["system_factory"])
+    if args.get("system_factory") is not None:
+        _sendable(args["system_factory"])
     ctx = mp.get_context("spawn")  # no CasADi / torch state is inherited through fork
     stop = watch.run_dir.path / STOP_FILE
     stop.unlink(missing_ok=True)  # left by a study that was killed while stopping

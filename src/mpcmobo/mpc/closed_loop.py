@@ -1,14 +1,23 @@
-"""Closed-loop episodes: the MPC (eq. Policy) driving the true plant, with exploration."""
+"""Closed-loop episodes: the MPC (eq. Policy) driving the plant, with exploration.
+
+The plant is a ``gymnasium.Env`` (:mod:`mpcmobo.systems.plant`): the loop calls
+``reset(seed=..., options={"x0": x0})`` and ``step(u)``, reads the measured state from the
+observation and the stage cost and constraint violation from ``info`` (``"stage_cost"``,
+``"violation"``; missing keys are computed with the system's model of them). Without a plant,
+the system's own equations with ``true_params`` are the plant.
+"""
 
 from __future__ import annotations
 
 from typing import Protocol
 
+import gymnasium
 import numpy as np
 
 from mpcmobo.mpc.parametric import MPCSolution, ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
 from mpcmobo.systems.base import System
+from mpcmobo.systems.plant import SystemPlant
 
 
 class Exploration(Protocol):
@@ -28,21 +37,29 @@ def rollout(
     rng: np.random.Generator | None = None,
     exploration: Exploration | None = None,
     sensitivities: bool = True,
+    plant: gymnasium.Env | None = None,
+    plant_seed: int | None = None,
 ) -> EpisodeRecord:
     """Run ``steps`` closed-loop steps from ``x0`` and record what the learners need.
 
-    At every step the MPC is solved at the plant state; its first input (or, if the solve
-    failed, the safe fallback of :meth:`ParametricMPC.fallback_action`) plus the exploration
-    noise, clipped to the input bounds, is applied to the true plant. The MPC is solved once more
-    at the final state so that ``V(x_T)`` exists. A failed solve never ends the episode.
+    ``plant``: the environment (default: the system's equations with ``true_params``), reset
+    with ``seed=plant_seed`` and ``options={"x0": x0}`` (``x0`` None: the environment draws
+    the start). At every step the MPC is solved at the measured state; its first input (or, if
+    the solve failed, the safe fallback of :meth:`ParametricMPC.fallback_action`) plus the
+    exploration noise, clipped to the input bounds, is applied to the plant. The MPC is solved
+    once more at the final state so that ``V(x_T)`` exists. A failed solve never ends the
+    episode; a plant that terminates ends it early (the record is shortened).
     """
     steps = int(system.episode_steps if steps is None else steps)
     if steps < 1:
         raise ValueError(f"an episode needs at least one step, got {steps}")
     theta = mpc.check_theta(theta)
-    x = system.check_state(x0)
     if exploration is not None and rng is None:
         raise ValueError("exploration noise needs a random generator (rng)")
+    plant = SystemPlant(system) if plant is None else plant
+    options = None if x0 is None else {"x0": system.check_state(x0)}
+    obs, _ = plant.reset(seed=plant_seed, options=options)
+    x = _measured(system, obs, "reset")
     rec = _blank_record(steps, system.nx, system.nu, theta, mpc.gamma)
     mpc.reset()
     for k in range(steps + 1):
@@ -51,9 +68,32 @@ def rollout(
         _record_solve(rec, k, sol, sensitivities)
         if k == steps:
             break
-        u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)  # type: ignore[arg-type]  # rng checked above
-        x = _apply(system, rec, k, x, system.clip_input(u))
+        u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)
+        x, terminated = _apply(system, plant, rec, k, x, system.clip_input(u))
+        if terminated:
+            steps = k + 1  # solve once more at the last state, then shorten the record
+    if rec.steps > steps:
+        _shorten(rec, steps)
     return rec
+
+
+def _measured(system: System, obs, where: str) -> np.ndarray:
+    """The state in the plant's observation (a copy; NaN or inf is a diverged plant)."""
+    x = np.array(obs, dtype=float).reshape(-1)
+    if x.shape != (system.nx,):
+        raise ValueError(
+            f"the plant's observation after {where} has {x.size} entries, the model "
+            f"'{system.name}' has {system.nx} states"
+        )
+    return x
+
+
+def _shorten(rec: EpisodeRecord, steps: int) -> None:
+    """Keep the first ``steps`` steps of a record (a plant that terminated early)."""
+    for name in ("u", "pi", "dpi", "L", "violation", "slack"):
+        setattr(rec, name, getattr(rec, name)[:steps])
+    for name in ("x", "V", "dV", "success", "solve_time"):
+        setattr(rec, name, getattr(rec, name)[: steps + 1])
 
 
 def _blank_record(steps: int, nx: int, nu: int, theta: np.ndarray, gamma: float) -> EpisodeRecord:
@@ -93,12 +133,17 @@ def _record_solve(rec: EpisodeRecord, k: int, sol: MPCSolution, sensitivities: b
             rec.slack[k] = sol.slack
 
 
-def _apply(system: System, rec: EpisodeRecord, k: int, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Apply ``u`` at ``x`` on the true plant: record u_k, L(x_k, u_k), the violation; x_{k+1}."""
+def _apply(
+    system: System, plant: gymnasium.Env, rec: EpisodeRecord, k: int, x: np.ndarray, u: np.ndarray
+) -> tuple[np.ndarray, bool]:
+    """Apply ``u`` at ``x`` on the plant: record u_k, L(x_k, u_k), the violation; x_{k+1} and
+    whether the plant terminated."""
     rec.u[k] = u
-    rec.L[k] = system.stage_cost(x, u)
-    rec.violation[k] = system.constraint_violation(x, u)
-    x = system.plant_step(x, u)
+    obs, _, terminated, _, info = plant.step(u)
+    L, violation = info.get("stage_cost"), info.get("violation")
+    rec.L[k] = system.stage_cost(x, u) if L is None else float(L)
+    rec.violation[k] = system.constraint_violation(x, u) if violation is None else float(violation)
+    x = _measured(system, obs, f"step {k}")
     if not np.all(np.isfinite(x)):
         raise FloatingPointError(f"the plant diverged at step {k}: state {x}")
-    return x
+    return x, bool(terminated)

@@ -10,6 +10,12 @@ The optimal control problem, with the cost of section 5 of the paper::
                u_lb <= u_i <= u_ub                                 (pure input bounds g(u) <= 0)
                x_lb + b_lb - eta_i <= x_i <= x_ub - b_ub + eta_i, i = 0..N           (eq. violation)
                eta_i >= 0                                                             (eq. slack)
+               h(x_i, u_i) <= eta^h_i, eta^h_i >= 0, i = 0..N (u_N := u_{N-1})   (path constraints)
+
+A system's general path constraints ``h(x, u) <= 0`` are relaxed like the state bounds, with
+slacks ``eta^h`` penalised by ``Gamma_h`` (l1) in the stage and terminal costs. With
+``MPCSpec.full_weights`` the weights ``T``, ``Q``, ``R`` are full matrices ``L L^T`` from the
+Cholesky entries in theta; otherwise diagonal as written above.
 
 The linear term ``G`` acts on deviations from the reference (the paper writes it on ``[x, u]``;
 the two differ by a constant, so the policy is the same and the value is better scaled).
@@ -50,7 +56,7 @@ from numpy.typing import ArrayLike
 
 from mpcmobo.mpc.codegen import compiled_library
 from mpcmobo.systems.base import System
-from mpcmobo.systems.parameterization import Parameterization
+from mpcmobo.systems.parameterization import Parameterization, weight_matrix
 
 _SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
 _JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
@@ -175,6 +181,10 @@ class ParametricMPC:
         self.Sx, self.Su = np.asarray(system.x_scale, float), np.asarray(system.u_scale, float)
         self.Gamma = np.full(self.nx, 1e5) if spec.Gamma is None else np.asarray(spec.Gamma, float)
         self.Gamma_f = self.Gamma if spec.Gamma_f is None else np.asarray(spec.Gamma_f, float)
+        self.nh = system.nh  # general path constraints h(x, u) <= 0, l1-relaxed
+        self.Gamma_h = np.asarray(system.Gamma_h if spec.Gamma_h is None else spec.Gamma_h, float)
+        self.Sh = np.asarray(system.h_scale, float) if self.nh else np.zeros(0)
+        self._slack_scale = np.concatenate([self.Sx, self.Sh])
         if cost_scale is None:
             cost_scale = float(np.sum(system.Q * self.Sx**2) + np.sum(system.R * self.Su**2)) / (
                 self.nx + self.nu
@@ -231,6 +241,9 @@ class ParametricMPC:
             mth = th[b["model"]]
             for j, idx in enumerate(P.model_param_index):
                 pm[idx] = mth[j]
+        if sysm.mpc_spec.full_weights:  # W = L L^T from the Cholesky entries
+            Tw, Qw = weight_matrix(Tw, nx), weight_matrix(Qw, nx)
+            Rw = weight_matrix(Rw, self.nu)
         x_lo, x_hi = ca.SX(ca.DM(sysm.x_lb)), ca.SX(ca.DM(sysm.x_ub))
         if "backoff" in b:  # constraint back-offs b_lb, b_ub (eq. violation)
             bo = th[b["backoff"]]
@@ -254,9 +267,10 @@ class ParametricMPC:
         g_eq, g_in = [], []
         cost = t.theta_c
         x_phys = x0
+        nh = self.nh
         for i in range(N + 1):
-            ze = w.add(f"eta{i}", [0.0] * nx, [np.inf] * nx, self._ie)  # slacks (eq. slack)
-            eta = Sx * ze
+            ze = w.add(f"eta{i}", [0.0] * (nx + nh), [np.inf] * (nx + nh), self._ie)  # eq. slack
+            eta, eta_h = (Sx * ze[:nx], self.Sh * ze[nx:]) if nh else (Sx * ze, None)
             g_in += self._state_rows(x_phys, eta, t)
             dx = x_phys - xr
             if i < N:
@@ -264,15 +278,20 @@ class ParametricMPC:
                 u_phys = ur + Su * zu
                 du = u_phys - ur
                 gi = self.gamma**i
-                cost += gi * (ca.dot(dx, t.Q * dx) + ca.dot(du, t.R * du) + ca.dot(self.Gamma, eta))
+                cost += gi * (_quad(dx, t.Q) + _quad(du, t.R) + ca.dot(self.Gamma, eta))
                 cost += ca.dot(t.G, ca.vertcat(dx, du))
+            if nh:  # h(x_i, u_i) <= eta^h_i; at stage N with the last input
+                h = sysm.path_function(x_phys, u_phys)
+                g_in += [(h[j] - eta_h[j]) / self.Sh[j] for j in range(nh)]
+                cost += (gi if i < N else self.gamma**N) * ca.dot(self.Gamma_h, eta_h)
+            if i < N:
                 zx = w.add(f"x{i + 1}", [-np.inf] * nx, [np.inf] * nx, self._ix)
                 x_next = xr + Sx * zx
                 g_eq.append((F(x_phys, u_phys, t.pm) - x_next) / Sx)  # (eq. mpc_model)
                 x_phys = x_next
             else:
                 cost += ca.dot(t.G[:nx], dx)
-                cost += self.gamma**N * (ca.dot(dx, t.T * dx) + ca.dot(self.Gamma_f, eta))
+                cost += self.gamma**N * (_quad(dx, t.T) + ca.dot(self.Gamma_f, eta))
         self._lbw, self._ubw = np.array(w.lb), np.array(w.ub)
         return ca.vertcat(*w.w), ca.vertcat(*g_eq), ca.vertcat(*g_in), cost / self.cost_scale
 
@@ -511,7 +530,7 @@ class ParametricMPC:
         plan_x = np.vstack(
             [x, self.system.x_ref + self.Sx * wopt[self._ix_flat].reshape(self.N, self.nx)]
         )
-        slack = float(np.sum(np.tile(self.Sx, self.N + 1) * wopt[self._ie_flat]))
+        slack = float(np.sum(np.tile(self._slack_scale, self.N + 1) * wopt[self._ie_flat]))
         value = float(out["f"]) * self.cost_scale
         action = self.system.clip_input(plan_u[0])
         sol = MPCSolution(
@@ -685,6 +704,13 @@ class _Decisions:
         self.lb += lb
         self.ub += ub
         return z
+
+
+def _quad(d, W):
+    """``d^T W d``: ``W`` a vector of diagonal weights or a full matrix."""
+    if W.shape[1] == 1:
+        return ca.dot(d, W * d)
+    return ca.dot(d, ca.mtimes(W, d))
 
 
 def _check_options(horizon: int, gamma: float, tau: float, linsol: str) -> None:

@@ -1,10 +1,17 @@
-"""Plants, models, costs and constraints; the CSTR of the paper."""
+"""Plants, models, costs and constraints; the CSTR of the paper; finding a user's system."""
 
-from mpcmobo.systems.base import System, rk4_step
+from mpcmobo.systems.base import System, SystemDefinitionError, rk4_step
 from mpcmobo.systems.cstr import make_cstr
 from mpcmobo.systems.lq import make_lq
 from mpcmobo.systems.parameterization import MPCSpec, Parameterization
-from mpcmobo.systems.registry import available_systems, get_system, register_system
+from mpcmobo.systems.registry import (
+    SystemSpecError,
+    available_systems,
+    describe_systems,
+    get_system,
+    make_plant,
+    register_system,
+)
 from mpcmobo.systems.space import SearchSpace
 
 register_system("cstr", make_cstr)
@@ -15,8 +22,12 @@ __all__ = [
     "Parameterization",
     "SearchSpace",
     "System",
+    "SystemDefinitionError",
+    "SystemSpecError",
     "available_systems",
+    "describe_systems",
     "get_system",
+    "make_plant",
     "make_cstr",
     "make_lq",
     "register_system",

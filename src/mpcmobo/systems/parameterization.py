@@ -24,6 +24,12 @@ class MPCSpec:
     ``Q_<x>`` stage state weights (nx), ``R_<u>`` stage input weights (nu), then the model
     parameters listed in ``learn_model`` (``model_<name>``) and, if ``learn_backoff``, state
     constraint back-offs ``b_lb_<x>``, ``b_ub_<x>`` (2 nx).
+
+    With ``full_weights``, the blocks ``T``, ``Q`` and ``R`` hold instead the lower-triangular
+    Cholesky factor ``L`` of a full weight matrix ``W = L L^T`` (entries ``LT_<a>_<b>``,
+    ``LQ_<a>_<b>``, ``LR_<a>_<b>``, row by row): its diagonal is searched in log scale, so ``W``
+    stays positive definite everywhere in the search box. ``Q0``, ``R0``, ``T0`` may then be
+    positive-definite matrices.
     """
 
     horizon: int = 10
@@ -41,6 +47,8 @@ class MPCSpec:
     model_log_range: float = 0.7
     learn_backoff: bool = False
     backoff_max: np.ndarray | None = None  # upper bound of each back-off (nx,)
+    full_weights: bool = False  # T, Q, R full positive-definite matrices (Cholesky factors)
+    Gamma_h: np.ndarray | None = None  # slack penalties of the path constraints (nh,)
 
     def with_overrides(self, owner: str = "system", **overrides: Any) -> MPCSpec:
         """A copy with some settings changed; an unknown setting is a ValueError."""
@@ -82,11 +90,11 @@ class Parameterization:
             False,
             not spec.learn_theta_c,
         )
-        b.add("T", [f"T_{s}" for s in xs], T0, T0 * np.exp(-r), T0 * np.exp(r), True, False)
+        _add_weights(b, "T", xs, T0, r, spec.full_weights)
         G0 = np.zeros(system.nx + system.nu)
         b.add("G", [f"G_{s}" for s in (*xs, *us)], G0, -G_bound, G_bound, False, False)
-        b.add("Q", [f"Q_{s}" for s in xs], Q0, Q0 * np.exp(-r), Q0 * np.exp(r), True, False)
-        b.add("R", [f"R_{s}" for s in us], R0, R0 * np.exp(-r), R0 * np.exp(r), True, False)
+        _add_weights(b, "Q", xs, Q0, r, spec.full_weights)
+        _add_weights(b, "R", us, R0, r, spec.full_weights)
         idx = _add_model_block(b, system, spec) if spec.learn_model else []
         if spec.learn_backoff:
             _add_backoff_block(b, system, spec)
@@ -134,18 +142,61 @@ class _Blocks:
         self.blocks[block] = slice(start, len(self.names))
 
 
-def _initial_weights(
-    system: System, spec: MPCSpec
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Q0, R0, T0 (positive, searched in log scale) and the |G| bounds."""
+def _add_weights(b: _Blocks, block: str, labels, W0: np.ndarray, r: float, full: bool) -> None:
+    """A weight block: the diagonal ``W0`` (log scale, theta0 * e^(+-r)) or, ``full``, the
+    Cholesky factor of ``W0`` (diagonal in log scale within sqrt(W0_ii) e^(+-r/2), the
+    off-diagonal entries within +-sqrt(W0_ii) e^(r/2))."""
+    if not full:
+        b.add(block, [f"{block}_{s}" for s in labels], W0, W0 * np.exp(-r), W0 * np.exp(r),
+              True, False)  # fmt: skip
+        return
+    L0 = np.linalg.cholesky(W0 if W0.ndim == 2 else np.diag(W0))
+    rows, cols = np.tril_indices(len(labels))
+    names = [f"L{block}_{labels[i]}_{labels[j]}" for i, j in zip(rows, cols)]
+    d = np.sqrt(np.diag(L0 @ L0.T))[rows]
+    diag = rows == cols
+    lo = np.where(diag, L0[rows, cols] * np.exp(-r / 2), -d * np.exp(r / 2))
+    hi = np.where(diag, L0[rows, cols] * np.exp(r / 2), d * np.exp(r / 2))
+    b.add(block, names, L0[rows, cols], lo, hi, False, False)
+    b.log[-1] = diag.copy()
+
+
+def weight_matrix(entries, n: int):
+    """``W = L L^T`` from the row-by-row lower-triangular entries of ``L`` (CasADi or numpy)."""
+    import casadi as ca
+
+    L = ca.SX.zeros(n, n) if isinstance(entries, ca.SX) else np.zeros((n, n))
+    k = 0
+    for i in range(n):
+        for j in range(i + 1):
+            L[i, j] = entries[k]
+            k += 1
+    return ca.mtimes(L, L.T) if isinstance(L, ca.SX) else L @ L.T
+
+
+def _initial_weights(system: System, spec: MPCSpec):
+    """Q0, R0, T0 (positive, searched in log scale; with ``full_weights`` also positive-definite
+    matrices) and the |G| bounds."""
     Q0 = system.Q if spec.Q0 is None else np.asarray(spec.Q0, float)
     R0 = system.R if spec.R0 is None else np.asarray(spec.R0, float)
     T0 = Q0 if spec.T0 is None else np.asarray(spec.T0, float)
-    if np.any(Q0 <= 0) or np.any(R0 <= 0) or np.any(T0 <= 0):
-        raise ValueError("MPC weights Q0, R0, T0 must be positive (they are searched in log scale)")
+    for name, W, n in (("Q0", Q0, system.nx), ("R0", R0, system.nu), ("T0", T0, system.nx)):
+        if W.ndim == 2 and spec.full_weights:
+            if W.shape != (n, n) or not np.allclose(W, W.T):
+                raise ValueError(f"mpc_spec.{name} must be a symmetric ({n}, {n}) matrix")
+            if np.any(np.linalg.eigvalsh(W) <= 0):
+                raise ValueError(f"mpc_spec.{name} must be positive definite")
+        elif W.shape != (n,):
+            raise ValueError(f"mpc_spec.{name} must have {n} entries, got shape {W.shape}")
+        elif np.any(W <= 0):
+            raise ValueError(
+                f"mpc_spec.{name} must be positive (MPC weights are searched in log scale)"
+            )
+    Qd = np.diag(Q0) if Q0.ndim == 2 else Q0
+    Rd = np.diag(R0) if R0.ndim == 2 else R0
     if spec.G_bound is None:
         # a linear term that moves the optimum by about one constraint half-width
-        G_bound = np.concatenate([2 * Q0 * system.x_scale, 2 * R0 * system.u_scale])
+        G_bound = np.concatenate([2 * Qd * system.x_scale, 2 * Rd * system.u_scale])
     else:
         G_bound = np.asarray(spec.G_bound, float)
     return Q0, R0, T0, G_bound

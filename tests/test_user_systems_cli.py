@@ -1,0 +1,127 @@
+"""Issue 12 through the command line: a user's system in a temporary file, run with every
+learner and two workers, interrupted and resumed; bad factories and mismatched plants exit with
+code 2, one line and no traceback; ``mpcmobo systems`` lists plug-ins.
+
+The timeouts only keep a broken build from hanging the suite; nothing is timed."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+from user_system_source import PLANT, SYSTEM
+
+from mpcmobo.cli import app
+from mpcmobo.experiment import storage
+
+runner = CliRunner()
+WALL = ["mpc_time_s", "learner_time_s", "eval_time_s"]
+GUARD_S = 240  # a hang guard, not a measurement
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("user")
+    (d / "usersys.py").write_text(SYSTEM)
+    (d / "userplant.py").write_text(PLANT)
+    (d / "broken.py").write_text("raise RuntimeError('this file does not import')\n")
+    return d
+
+
+def run_args(spec: str, out: Path, workers: int, *extra: str) -> list[str]:
+    return ["run", "--system", spec, "--learner", "all", "--episodes", "3", "--workers",
+            str(workers), "--out", str(out), "--no-plot", *extra]  # fmt: skip
+
+
+def records(out: Path) -> pd.DataFrame:
+    df = storage.read_episodes(out).drop(columns=WALL)
+    return df.sort_values(["learner", "seed", "episode"]).reset_index(drop=True)
+
+
+def test_a_system_in_a_file_runs_every_learner_on_two_workers_and_resumes(files, tmp_path):
+    """Acceptance: 3 episodes of each learner through the CLI with --workers 2 (the workers
+    import the factory from its path), interrupted by Ctrl-C and resumed; the records equal an
+    uninterrupted run's."""
+    spec = f"{files}/usersys.py:make_system"
+    out = tmp_path / "interrupted"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mpcmobo.cli", *run_args(spec, out, 2)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    jobs = out / "jobs"
+    deadline = time.monotonic() + GUARD_S
+    while proc.poll() is None and not (jobs.exists() and any(jobs.glob("*/checkpoint.pkl"))):
+        assert time.monotonic() < deadline, "no checkpoint"
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=GUARD_S)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    assert len(storage.read_episodes(out)) < 12  # interrupted before the end
+    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--quiet", "--no-plot"])
+    assert res.exit_code == 0, res.output
+    ref = tmp_path / "uninterrupted"
+    res = runner.invoke(app, [*run_args(spec, ref, 1), "--quiet"])
+    assert res.exit_code == 0, res.output
+    got, want = records(out), records(ref)
+    assert len(got) == 12 and set(got.learner) == {"mpc-rl", "bo", "mobo", "hybrid"}
+    pd.testing.assert_frame_equal(got, want)
+    summary = storage.read_json(out / "summary.json")
+    assert summary["system"] == "double_integrator" and summary["J_star"] is not None
+
+
+@pytest.mark.parametrize(
+    "spec, plant, message",
+    [
+        ("nope_pkg.nope:make_system", None, "cannot import module 'nope_pkg.nope'"),
+        ("{d}/missing.py:make_system", None, "file not found"),
+        ("{d}/broken.py:make_system", None, "RuntimeError: this file does not import"),
+        ("{d}/usersys.py:make_wrong_type", None, "returned dict, expected a mpcmobo.systems"),
+        ("{d}/usersys.py:make_broadcast", None, "returns shape (1, 1), expected (2 states, 1)"),
+        ("{d}/usersys.py:make_system", "{d}/userplant.py:make_env_3",
+         "observation space has shape (3,), but the model 'double_integrator' has 2 states"),
+        ("lq", "{d}/userplant.py:nope", "has no attribute 'nope'"),
+    ],
+)  # fmt: skip
+def test_bad_factories_and_plants_exit_2_with_one_line(files, tmp_path, spec, plant, message):
+    spec = spec.format(d=files)
+    args = ["run", "--system", spec, "--episodes", "1", "--workers", "1",
+            "--out", str(tmp_path / "o"), "--quiet"]  # fmt: skip
+    if plant is not None:
+        cfg = tmp_path / "c.toml"
+        cfg.write_text(f'[system]\nplant = "{plant.format(d=files)}"\n')
+        args += ["--config", str(cfg)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output
+    assert message in " ".join(res.output.split())
+    assert len(res.output.strip().splitlines()) == 1, res.output
+    assert not (tmp_path / "o" / "config.toml").exists()
+
+
+def test_systems_lists_plugins_and_says_how_to_add_one(files, tmp_path, monkeypatch):
+    dist = tmp_path / "userplug-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: userplug\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[mpcmobo.systems]\ndi = usersys:make_system\n")
+    monkeypatch.syspath_prepend(str(files))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from rich.console import Console
+
+    import mpcmobo.cli as cli
+
+    monkeypatch.setattr(cli, "console", Console(width=250))  # the table unwrapped
+    res = runner.invoke(app, ["systems"])
+    assert res.exit_code == 0, res.output
+    lines = {line.split()[1]: line for line in res.output.splitlines() if line.startswith("│")}
+    assert "built-in" in lines["cstr"] and "plug-in" in lines["di"]
+    assert "discrete, 1 path constraint" in lines["di"]
+    assert "--system path/to/file.py:make_system" in res.output
+    assert '"mpcmobo.systems"' in res.output
