@@ -15,6 +15,7 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import numpy as np
 import torch
@@ -249,7 +250,7 @@ def make_study_learner(
 
 
 def _learning_run(
-    settings: Settings, system: System, learner: str, seed: int, plant=None
+    settings: Settings, system: System, learner: str, seed: int, plant: Any = None
 ) -> LearningRun:
     """The job's learning run: the learner tunes the imperfect-model MPC (eq. V0)."""
     mpc = ParametricMPC(system, model="imperfect", **settings.mpc.options())

@@ -324,7 +324,7 @@ def build_system(settings: Settings) -> System:
         raise SettingsError(f"system: {err}") from None
 
 
-def build_plant(settings: Settings, system: System):
+def build_plant(settings: Settings, system: System) -> Any:
     """The plant of the settings (``system.plant``, default the system's equations), checked
     against the system's sizes; a problem is a :class:`SettingsError`."""
     try:

@@ -79,12 +79,14 @@ def compute_reference(settings: Settings) -> Reference:
     """J*, J_eval(theta0) and the evaluation episodes of theta0 ("initial") and perfect MPC."""
     system = build_system(settings)
     evaluator = make_evaluator(settings, system)
-    phases = [("initial", "imperfect", evaluator.mpc("imperfect").theta0.copy())]
+    phases: list[tuple[str, str, np.ndarray | None]] = [
+        ("initial", "imperfect", evaluator.mpc("imperfect").theta0.copy())
+    ]
     if evaluator.has_J_star:
         phases.append(("perfect", "perfect", None))
     for _, model, _ in phases:  # an interrupt ends a solve, never fails it
         interrupts.guard_solves(evaluator.mpc(model))
-    theta0 = phases[0][2]
+    theta0 = evaluator.mpc("imperfect").theta0.copy()
     t0 = time.perf_counter()
     trajectories = []
     values = {}
@@ -106,7 +108,7 @@ def compute_reference(settings: Settings) -> Reference:
 
 
 # ---------------------------------------------------------------------- summary
-def _first_within(df, reference: Reference, tol: float) -> int | None:
+def _first_within(df: pd.DataFrame, reference: Reference, tol: float) -> int | None:
     """The first episode whose J_eval is within ``tol`` of J* or, without J*, that improves
     on J_initial (theta0) by at least ``tol``."""
     ok = df[np.isfinite(df["J_eval_incumbent"])]
@@ -138,7 +140,7 @@ def _median_or_null(values: list[float | None]) -> float | None:
 
 
 def _seed_summary(
-    s, settings: Settings, reference: Reference, wall_time_s: float
+    s: pd.DataFrame, settings: Settings, reference: Reference, wall_time_s: float
 ) -> dict[str, Any]:
     """The summary of one job from its rows ``s`` (sorted by episode)."""
     evaluated = s[np.isfinite(s["J_eval_incumbent"])]

@@ -9,7 +9,7 @@ the system's own equations with ``true_params`` are the plant.
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Any, Protocol
 
 import gymnasium
 import numpy as np
@@ -68,7 +68,7 @@ def rollout(
         _record_solve(rec, k, sol, sensitivities)
         if k == steps:
             break
-        u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)
+        u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)  # type: ignore[arg-type]  # rng checked above
         x, terminated = _apply(system, plant, rec, k, x, system.clip_input(u))
         if terminated:
             steps = k + 1  # solve once more at the last state, then shorten the record
@@ -77,7 +77,7 @@ def rollout(
     return rec
 
 
-def _measured(system: System, obs, where: str) -> np.ndarray:
+def _measured(system: System, obs: Any, where: str) -> np.ndarray:
     """The state in the plant's observation (a copy; NaN or inf is a diverged plant)."""
     x = np.array(obs, dtype=float).reshape(-1)
     if x.shape != (system.nx,):

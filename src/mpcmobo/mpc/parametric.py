@@ -281,9 +281,9 @@ class ParametricMPC:
                 cost += gi * (_quad(dx, t.Q) + _quad(du, t.R) + ca.dot(self.Gamma, eta))
                 cost += ca.dot(t.G, ca.vertcat(dx, du))
             if nh:  # h(x_i, u_i) <= eta^h_i; at stage N with the last input
-                h = sysm.path_function(x_phys, u_phys)
-                g_in += [(h[j] - eta_h[j]) / self.Sh[j] for j in range(nh)]
-                cost += (gi if i < N else self.gamma**N) * ca.dot(self.Gamma_h, eta_h)
+                h = sysm.path_function(x_phys, u_phys)  # type: ignore[misc]  # nh > 0: set
+                g_in += [(h[j] - eta_h[j]) / self.Sh[j] for j in range(nh)]  # type: ignore[index]
+                cost += (gi if i < N else self.gamma**N) * ca.dot(self.Gamma_h, eta_h)  # type: ignore[arg-type]
             if i < N:
                 zx = w.add(f"x{i + 1}", [-np.inf] * nx, [np.inf] * nx, self._ix)
                 x_next = xr + Sx * zx
@@ -706,7 +706,7 @@ class _Decisions:
         return z
 
 
-def _quad(d, W):
+def _quad(d: Any, W: Any) -> Any:
     """``d^T W d``: ``W`` a vector of diagonal weights or a full matrix."""
     if W.shape[1] == 1:
         return ca.dot(d, W * d)

@@ -61,7 +61,7 @@ def _half_span(lb: np.ndarray, ub: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(span) & (span > 0), span / 2, 1.0)
 
 
-def _vec(a, n: int, label: str, finite: bool = False) -> np.ndarray:
+def _vec(a: ArrayLike, n: int, label: str, finite: bool = False) -> np.ndarray:
     """A float copy of ``a`` with ``n`` entries (a copy: a system never aliases its caller's
     arrays, e.g. the module constants ``cstr.TRUE_PARAMS``)."""
     try:
@@ -77,7 +77,7 @@ def _vec(a, n: int, label: str, finite: bool = False) -> np.ndarray:
     return a
 
 
-def _names(value, label: str, allow_empty: bool = False) -> tuple[str, ...]:
+def _names(value: Any, label: str, allow_empty: bool = False) -> tuple[str, ...]:
     """Names as a tuple of distinct non-empty strings."""
     if isinstance(value, str):
         raise SystemDefinitionError(f"{label} must be a list of names, got the string {value!r}")
@@ -95,7 +95,9 @@ def _names(value, label: str, allow_empty: bool = False) -> tuple[str, ...]:
     return names
 
 
-def _sx_output(fn, args, label: str, n: int | None, expected: str):
+def _sx_output(
+    fn: Callable[..., Any], args: Sequence[Any], label: str, n: int | None, expected: str
+) -> ca.SX:
     """Call ``fn`` on CasADi symbols; its output as an SX column of ``n`` rows (if given)."""
     try:
         out = fn(*args)
@@ -434,7 +436,7 @@ class System:
         x, u = self.check_state(x), self.check_input(u)
         return np.asarray(self.discrete_step(x, u, p)).reshape(-1)
 
-    def path_values(self, x, u) -> np.ndarray:
+    def path_values(self, x: ArrayLike, u: ArrayLike) -> np.ndarray:
         """``h(x, u)`` of the path constraints (empty without them)."""
         if self.path_function is None:
             return np.zeros(0)
@@ -442,7 +444,7 @@ class System:
         u = np.asarray(u, dtype=float).reshape(-1)
         return np.asarray(self.path_function(x, u)).reshape(-1)
 
-    def constraint_violation(self, x, u=None) -> float:
+    def constraint_violation(self, x: ArrayLike, u: ArrayLike | None = None) -> float:
         """Sum of the positive parts of the state-bound violations ``max(0, h(x))`` and, given
         ``u``, of the path constraints ``max(0, h(x, u))``."""
         x = np.asarray(x, dtype=float).reshape(-1)

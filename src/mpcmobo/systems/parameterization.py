@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
@@ -142,7 +143,9 @@ class _Blocks:
         self.blocks[block] = slice(start, len(self.names))
 
 
-def _add_weights(b: _Blocks, block: str, labels, W0: np.ndarray, r: float, full: bool) -> None:
+def _add_weights(
+    b: _Blocks, block: str, labels: Sequence[str], W0: np.ndarray, r: float, full: bool
+) -> None:
     """A weight block: the diagonal ``W0`` (log scale, theta0 * e^(+-r)) or, ``full``, the
     Cholesky factor of ``W0`` (diagonal in log scale within sqrt(W0_ii) e^(+-r/2), the
     off-diagonal entries within +-sqrt(W0_ii) e^(r/2))."""
@@ -152,7 +155,7 @@ def _add_weights(b: _Blocks, block: str, labels, W0: np.ndarray, r: float, full:
         return
     L0 = np.linalg.cholesky(W0 if W0.ndim == 2 else np.diag(W0))
     rows, cols = np.tril_indices(len(labels))
-    names = [f"L{block}_{labels[i]}_{labels[j]}" for i, j in zip(rows, cols)]
+    names = [f"L{block}_{labels[int(i)]}_{labels[int(j)]}" for i, j in zip(rows, cols)]
     d = np.sqrt(np.diag(L0 @ L0.T))[rows]
     diag = rows == cols
     lo = np.where(diag, L0[rows, cols] * np.exp(-r / 2), -d * np.exp(r / 2))
@@ -161,7 +164,7 @@ def _add_weights(b: _Blocks, block: str, labels, W0: np.ndarray, r: float, full:
     b.log[-1] = diag.copy()
 
 
-def weight_matrix(entries, n: int):
+def weight_matrix(entries: Any, n: int) -> Any:
     """``W = L L^T`` from the row-by-row lower-triangular entries of ``L`` (CasADi or numpy)."""
     import casadi as ca
 
@@ -174,7 +177,9 @@ def weight_matrix(entries, n: int):
     return ca.mtimes(L, L.T) if isinstance(L, ca.SX) else L @ L.T
 
 
-def _initial_weights(system: System, spec: MPCSpec):
+def _initial_weights(
+    system: System, spec: MPCSpec
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Q0, R0, T0 (positive, searched in log scale; with ``full_weights`` also positive-definite
     matrices) and the |G| bounds."""
     Q0 = system.Q if spec.Q0 is None else np.asarray(spec.Q0, float)
@@ -211,7 +216,7 @@ def _add_model_block(b: _Blocks, system: System, spec: MPCSpec) -> list[int]:
         if n not in pnames:
             raise ValueError(f"unknown model parameter '{n}'; known: {pnames}")
         idx.append(pnames.index(n))
-    p0 = system.models.get("imperfect", system.true_params)[idx]
+    p0 = system.models.get("imperfect", system.true_params)[idx]  # type: ignore[index]  # "imperfect" is required
     m = spec.model_log_range
     pos = p0 > 0
     lo_m = np.where(pos, p0 * np.exp(-m), p0 - m * np.abs(p0) - 1)

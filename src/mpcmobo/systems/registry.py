@@ -102,7 +102,7 @@ def load_object(spec: str, what: str = "system factory") -> Any:
     return obj
 
 
-def _load_file(path: Path, spec: str, what: str):
+def _load_file(path: Path, spec: str, what: str) -> Any:
     """Import a Python file once per process, as a module named after its path."""
     if not path.is_file():
         raise SystemSpecError(f"{what} '{spec}': file not found: {path}")
@@ -177,7 +177,7 @@ def system_factory(spec: str) -> Callable[..., System]:
     )
 
 
-def get_system(spec: str, **options) -> System:
+def get_system(spec: str, **options: Any) -> System:
     """Build the system named by ``spec`` with the MPC settings ``options`` (``MPCSpec``
     overrides). A registered factory receives them as keywords; a factory path or plug-in is
     called without arguments and the settings are applied with :meth:`System.with_spec`."""
@@ -208,7 +208,7 @@ def get_system(spec: str, **options) -> System:
     return system
 
 
-def make_plant(spec: str | None, system: System):
+def make_plant(spec: str | None, system: System) -> Any:
     """The plant of a study: ``spec`` a gymnasium id (``"mpcmobo/CSTR-v0"``) or a factory
     path returning a ``gymnasium.Env``; None: the system's own equations
     (:class:`~mpcmobo.systems.plant.SystemPlant`). Its spaces must match the model's sizes."""
