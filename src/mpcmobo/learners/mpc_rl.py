@@ -26,13 +26,13 @@ class MPCRL(Learner):
       (log coordinates for the weights), ``grad_z J = grad_theta J d theta / d z``: Adam's
       per-coordinate RMS scaling makes it free of the units of the cost, the unit cube of the
       units of theta;
-    * ``"trust"``: a step of length at most ``lr`` (default 0.05) in the unit cube along the
+    * ``"trust"``: a step of length at most ``lr`` in the unit cube along the
       running mean of the unit gradient directions (scale-free too, and shorter where the
       gradient is noise);
     * ``"gd"``: the paper's plain constant step ``theta <- theta - lr grad_theta J`` in theta
       itself, no clipping (issue 15's paper configuration).
 
-    ``lr = None`` takes the rule's default. ``lr_decay = c > 0`` makes the step size
+    ``lr`` (default 0.03) is the step size of every rule. ``lr_decay = c > 0`` makes the step size
     ``alpha / (1 + c t)`` after ``t`` steps (0, the default: a constant step). Episodes whose
     critic failed (or whose objectives are NaN) make no step.
 
@@ -62,7 +62,7 @@ class MPCRL(Learner):
         theta0: np.ndarray,
         seed: int = 0,
         *,
-        lr: float | None = None,
+        lr: float = 0.03,
         optimizer: str = "adam",
         beta1: float = 0.9,
         beta2: float = 0.999,
@@ -78,8 +78,6 @@ class MPCRL(Learner):
         contexts: ContextSpec | None = None,
     ) -> None:
         super().__init__(space, theta0, seed)
-        if lr is not None and (isinstance(lr, bool) or not isinstance(lr, int | float)):
-            raise ValueError(f"lr must be a positive number or None, got {lr!r}")
         if optimizer not in STEP_RULES:
             raise ValueError(
                 f"optimizer must be one of {', '.join(repr(k) for k in STEP_RULES)}, "
@@ -121,9 +119,9 @@ class MPCRL(Learner):
             self.pooled = PooledJudge(confidence=conf, bandwidth=float(self.deploy_bandwidth))
         self._init_judge()
 
-    def _make_rule(self, optimizer: str, lr: float | None) -> StepRule:
-        """The step rule ``optimizer`` with this learner's options (``lr`` None: its default)."""
-        kw = {} if lr is None else {"lr": float(lr)}
+    def _make_rule(self, optimizer: str, lr: float) -> StepRule:
+        """The step rule ``optimizer`` with this learner's options."""
+        kw = {"lr": float(lr)}
         if optimizer == "adam":
             kw.update(beta1=self.beta1, beta2=self.beta2, eps=self.eps, max_step=self.max_step)
         elif optimizer == "sgd":
