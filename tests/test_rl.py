@@ -518,7 +518,7 @@ def test_step_rules_reject_bad_settings(bad):
     from mpcmobo.rl.steps import STEP_RULES
 
     for cls in STEP_RULES.values():
-        with pytest.raises(ValueError, match="lr"):
+        with pytest.raises(ValueError, match="learning rate|lr_decay"):
             cls(**bad)
 
 

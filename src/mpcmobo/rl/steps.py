@@ -34,7 +34,7 @@ class StepRule:
 
     def __init__(self, lr: float, lr_decay: float = 0.0, max_step: float | None = None) -> None:
         if not lr > 0 or not np.isfinite(lr):
-            raise ValueError(f"learning rate lr must be positive, got {lr}")
+            raise ValueError(f"learning rate must be positive, got {lr}")
         if not lr_decay >= 0:
             raise ValueError(f"lr_decay must be >= 0, got {lr_decay}")
         if max_step is not None and not max_step > 0:
