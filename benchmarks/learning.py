@@ -8,7 +8,13 @@ episode, and the largest episode per seed), and wall time per episode split into
 learner. ``--system`` and ``--config`` (a settings file, e.g. learner options) are passed to
 the study.
 
+Peer rows (issue 11, item 6): ``--learners optuna-tpe optuna-gp`` runs Optuna's TPE and GP
+samplers through the same study (``benchmarks/optuna_learners.py``; needs the ``bench`` extra,
+``pip install -e ".[bench]"``). They are registered in this process only, so a run with them
+uses one worker.
+
     .venv/bin/python benchmarks/learning.py --episodes 50 --seeds 0 1 2 3 4 --out runs/bench-learning
+    .venv/bin/python benchmarks/learning.py --learners optuna-tpe optuna-gp --workers 1 --out runs/bench-optuna
     .venv/bin/python benchmarks/learning.py --table-only --out runs/a runs/b   # seeds pooled
 """
 
@@ -113,6 +119,12 @@ def main() -> None:
     )
     ap.add_argument("--table-only", action="store_true", help="only print the table of --out")
     args = ap.parse_args()
+    if any(name.startswith("optuna-") for name in args.learners):
+        from optuna_learners import register  # benchmarks/ is on sys.path when run as a script
+
+        register()
+        if args.workers != 1 and not args.table_only:
+            raise SystemExit("the optuna-* learners run with --workers 1 (this process only)")
     if not args.table_only:
         if len(args.out) != 1:
             raise SystemExit("one --out directory per run (several only with --table-only)")

@@ -227,8 +227,8 @@ class Settings(_Section):
     @classmethod
     def _known_learners(cls, v: list[str]) -> list[str]:
         for name in v:
-            if name not in KNOWN_LEARNERS:
-                raise ValueError(f"unknown learner '{name}'; allowed: {', '.join(KNOWN_LEARNERS)}")
+            if name not in LEARNER_SPECS:  # read live: register_learner may add to it
+                raise ValueError(f"unknown learner '{name}'; allowed: {', '.join(LEARNER_SPECS)}")
         if len(set(v)) != len(v):
             raise ValueError("each learner may appear only once")
         return v
@@ -237,9 +237,9 @@ class Settings(_Section):
     @classmethod
     def _options_tables(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
         for name in v:
-            if name not in KNOWN_LEARNERS:
+            if name not in LEARNER_SPECS:
                 raise ValueError(
-                    f"options for unknown learner '{name}'; allowed: {list(KNOWN_LEARNERS)}"
+                    f"options for unknown learner '{name}'; allowed: {list(LEARNER_SPECS)}"
                 )
         return v
 

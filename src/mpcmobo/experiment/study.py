@@ -318,7 +318,7 @@ def _pending(
             emit(progress_event(n, s, ckpt.rows, settings.episodes))
         if ckpt is None or len(ckpt.rows) < settings.episodes:
             pending.append((n, s))
-    pending.sort(key=lambda job: -JOB_COST[job[0]])
+    pending.sort(key=lambda job: -JOB_COST.get(job[0], LEARNER_SPECS[job[0]].job_cost))
     return pending
 
 

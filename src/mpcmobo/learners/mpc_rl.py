@@ -2,32 +2,58 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from mpcmobo.bo.context import ContextSpec
 from mpcmobo.learners.base import EpisodeResult, Learner
 from mpcmobo.learners.deploy import DeployRule
+from mpcmobo.rl.judge import PooledJudge
+from mpcmobo.rl.steps import STEP_RULES, StepRule
 from mpcmobo.systems.space import SearchSpace
+
+DEPLOY_MODES = ("iterate", "pooled", "gp")
+POOLED_CONFIDENCE = 0.99  # default deploy_confidence of the pooled judge
 
 
 class MPCRL(Learner):
     """``theta <- theta - alpha grad_theta J`` (eq. theta), projected onto the search bounds.
 
-    The CDPG gradient (eq. DPG) is taken with respect to theta; the step is made in the
-    normalised coordinates ``z`` of the search space (log coordinates for the weights), where
-    ``grad_z J = grad_theta J * d theta / d z``, so that one learning rate suits weights of 10 and
-    of 5000 alike. ``optimizer="adam"`` (default) rescales each coordinate by its running RMS;
-    ``"sgd"`` is the plain rule with the gradient norm clipped to ``max_step / alpha``.
-    ``lr_decay = c > 0`` makes the step size ``alpha / (1 + c t)`` after ``t`` steps (a
-    Robbins-Monro schedule; 0, the default, is the paper's constant step).
-    Episodes whose critic failed (or whose objectives are NaN) make no step.
+    The CDPG gradient (eq. DPG) is taken with respect to theta. The step rule
+    (:mod:`mpcmobo.rl.steps`) is chosen by ``optimizer``:
 
-    ``deploy_confidence = p`` (issue 11): the learner keeps stepping from its iterate but
-    deploys (``incumbent()``) its best verified theta: a GP on log f1 of its own episodes, over
-    ``(z, c)`` with ``context = "x0"`` (c the scaled initial state), judges the iterates by
-    their expected f1 over a fixed sample of initial states, and the deployed theta changes
-    only when a run theta is better with probability at least ``p``
-    (:class:`~mpcmobo.learners.deploy.DeployRule`). None (default): the iterate is deployed.
+    * ``"adam"`` (default; ``lr`` 0.03, step norm clipped to ``max_step``) and ``"sgd"``
+      (``lr * grad``, clipped), both in the normalised coordinates ``z`` of the search space
+      (log coordinates for the weights), ``grad_z J = grad_theta J d theta / d z``: Adam's
+      per-coordinate RMS scaling makes it free of the units of the cost, the unit cube of the
+      units of theta;
+    * ``"trust"``: a step of length at most ``lr`` in the unit cube along the
+      running mean of the unit gradient directions (scale-free too, and shorter where the
+      gradient is noise);
+    * ``"gd"``: the paper's plain constant step ``theta <- theta - lr grad_theta J`` in theta
+      itself, no clipping (issue 15's paper configuration).
+
+    ``lr`` (default 0.03) is the step size of every rule. ``lr_decay = c > 0`` makes the step size
+    ``alpha / (1 + c t)`` after ``t`` steps (0, the default: a constant step). Episodes whose
+    critic failed (or whose objectives are NaN) make no step.
+
+    Deployment (issue 11): the learner keeps stepping from its iterate, and ``deploy`` says
+    which theta it deploys (``incumbent()``, what J_eval measures):
+
+    * ``"pooled"`` (default): its best verified iterate, judged by its own episodes pooled over
+      nearby iterates (``deploy_bandwidth``, a length in the unit cube) and adjusted for their
+      initial states; the deployed theta changes only when another iterate is better with
+      probability ``deploy_confidence`` (default 0.99) (:class:`~mpcmobo.rl.judge.PooledJudge`);
+    * ``"gp"``: the first issue-11 judge, a GP on log f1 of its own episodes over ``(z, c)``
+      with ``context = "x0"`` (c the scaled initial state), expected f1 over a fixed sample of
+      initial states (:class:`~mpcmobo.learners.deploy.DeployRule`, ``deploy_confidence``
+      default 0.9). ``deploy = None`` with ``deploy_confidence`` set means ``"gp"`` (as before);
+    * ``"iterate"``: the iterate itself (the behaviour before issue 11).
+
+    Runs checkpointed before the ``deploy`` option existed resume with the rule they were run
+    with (the iterate deployed, or ``"gp"`` with ``deploy_confidence``) when ``deploy`` is left
+    at its default.
     """
 
     name = "mpc-rl"
@@ -43,41 +69,84 @@ class MPCRL(Learner):
         beta1: float = 0.9,
         beta2: float = 0.999,
         eps: float = 1e-8,
-        max_step: float = 0.1,
+        max_step: float | None = 0.1,
         lr_decay: float = 0.0,
+        deploy: str | None = None,
         deploy_confidence: float | None = None,
+        deploy_bandwidth: float = 0.1,
         context: str = "none",
         n_contexts: int = 16,
         incumbent_kappa: float = 0.0,
         contexts: ContextSpec | None = None,
     ) -> None:
         super().__init__(space, theta0, seed)
+        if optimizer not in STEP_RULES:
+            raise ValueError(
+                f"optimizer must be one of {', '.join(repr(k) for k in STEP_RULES)}, "
+                f"got {optimizer!r}"
+            )
+        if deploy is not None and deploy not in DEPLOY_MODES:
+            raise ValueError(
+                f"deploy must be one of {', '.join(repr(k) for k in DEPLOY_MODES)}, got {deploy!r}"
+            )
         if context not in ("none", "x0"):
             raise ValueError(f"context must be 'none' or 'x0', got {context!r}")
         if context == "x0" and contexts is None:
             raise ValueError("context = 'x0' needs the system's contexts (ContextSpec)")
+        self._deploy_option = deploy
+        self.lr, self.lr_decay = lr, float(lr_decay)
+        self.beta1, self.beta2, self.eps, self.max_step = beta1, beta2, eps, max_step
+        self.deploy_confidence, self.deploy_bandwidth = deploy_confidence, deploy_bandwidth
         self.context_spec = contexts
         self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
-        self.deploy_rule = (
-            None
-            if deploy_confidence is None
-            else DeployRule(
-                kappa=float(incumbent_kappa), deploy_confidence=float(deploy_confidence)
-            )
+        self.incumbent_kappa = float(incumbent_kappa)
+        self._configure(
+            optimizer,
+            deploy or ("gp" if deploy_confidence is not None else "pooled"),
         )
-        self._init_judge()
-        if optimizer not in ("adam", "sgd"):
-            raise ValueError(f"optimizer must be 'adam' or 'sgd', got '{optimizer}'")
-        if lr <= 0:
-            raise ValueError(f"learning rate must be positive, got {lr}")
-        if not lr_decay >= 0:
-            raise ValueError(f"lr_decay must be >= 0, got {lr_decay}")
-        self.lr, self.optimizer, self.lr_decay = float(lr), optimizer, float(lr_decay)
-        self.beta1, self.beta2, self.eps, self.max_step = beta1, beta2, eps, max_step
         self.z = space.to_unit(self.theta0)
-        self.m = np.zeros(space.dim)
-        self.v = np.zeros(space.dim)
-        self.t = 0
+
+    def _configure(self, optimizer: str, deploy: str) -> None:
+        """Build the step rule and the deployment judge (fresh state)."""
+        self.optimizer, self.deploy = optimizer, deploy
+        self.rule = self._make_rule(optimizer, self.lr)
+        self.deploy_rule = None
+        self.pooled = None
+        if deploy == "gp":
+            conf = 0.9 if self.deploy_confidence is None else float(self.deploy_confidence)
+            self.deploy_rule = DeployRule(kappa=self.incumbent_kappa, deploy_confidence=conf)
+        elif deploy == "pooled":
+            conf = POOLED_CONFIDENCE if self.deploy_confidence is None else self.deploy_confidence
+            conf = float(conf)
+            self.pooled = PooledJudge(confidence=conf, bandwidth=float(self.deploy_bandwidth))
+        self._init_judge()
+
+    def _make_rule(self, optimizer: str, lr: float) -> StepRule:
+        """The step rule ``optimizer`` with this learner's options."""
+        kw: dict[str, Any] = {"lr": float(lr)}
+        if optimizer == "adam":
+            kw.update(beta1=self.beta1, beta2=self.beta2, eps=self.eps, max_step=self.max_step)
+        elif optimizer == "sgd":
+            kw.update(max_step=self.max_step)
+        elif optimizer == "trust":
+            kw.update(beta1=self.beta1)
+        return STEP_RULES[optimizer](lr_decay=self.lr_decay, **kw)
+
+    # the moments and step count of the rule, under their old names (old checkpoints)
+    @property
+    def m(self) -> np.ndarray:
+        """The step rule's first moment (old name)."""
+        return self.rule.m
+
+    @property
+    def v(self) -> np.ndarray:
+        """The step rule's second moment (old name)."""
+        return self.rule.v
+
+    @property
+    def t(self) -> int:
+        """The step rule's step count (old name)."""
+        return self.rule.t
 
     def _theta(self) -> np.ndarray:
         return self.space.from_unit(self.z, base=self.theta0)
@@ -87,8 +156,8 @@ class MPCRL(Learner):
         return self._theta()
 
     def incumbent(self) -> np.ndarray:
-        """The deployed theta: the current one, or with a deploy rule the best verified one."""
-        if self.deploy_rule is None:
+        """The deployed theta: the iterate, or with a deployment judge the best verified one."""
+        if self.deploy == "iterate":
             return self._theta()
         if np.array_equal(self.deployed_z_, self.space.to_unit(self.theta0)):
             return self.theta0.copy()  # exactly theta0, not its round trip through z
@@ -102,15 +171,25 @@ class MPCRL(Learner):
         self.judge = None if self.deploy_rule is None else GPSurrogate(1, log_outcomes=(True,))
         self.X_ = np.zeros((0, self.space.dim + dc))  # (z, c) of the learner's own episodes
         self.F_ = np.zeros(0)  # their f1
+        self.X0_ = np.zeros((0, 0))  # their initial states (the pooled judge)
         self.deployed_z_ = self.space.to_unit(self.theta0)
         self._judge_pre_fit: dict | None = None
         self._deployed_pre_fit = self.deployed_z_.copy()
 
     def _observe_deploy(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        z = self.space.to_unit(self.space.clip(theta))
+        if self.pooled is not None:
+            x0 = np.zeros(0) if result.x0 is None else np.asarray(result.x0, float)
+            if len(self.F_) == 0:
+                self.X0_ = np.zeros((0, len(x0)))
+            self.X_ = np.vstack([self.X_, z])
+            self.X0_ = np.vstack([self.X0_, x0])
+            self.F_ = np.append(self.F_, result.f1)
+            self.deployed_z_ = self.pooled.choose(self.X_, self.X0_, self.F_, self.deployed_z_)
+            return
         dc = self.contexts.shape[1]
         c = np.zeros(0) if dc == 0 else self.context_spec.unit(result.x0)  # type: ignore[union-attr,arg-type]  # dc > 0: context x0
-        x = np.concatenate([self.space.to_unit(self.space.clip(theta)), c])
-        self.X_ = np.vstack([self.X_, x])
+        self.X_ = np.vstack([self.X_, np.concatenate([z, c])])
         self.F_ = np.append(self.F_, result.f1)
         self._judge_fit()
 
@@ -136,34 +215,37 @@ class MPCRL(Learner):
         DPG, eq. theta) in normalised coordinates; an episode without a valid gradient is
         skipped."""
         self.n_observed += 1
-        if self.deploy_rule is not None:
+        if self.deploy != "iterate":
             self._observe_deploy(theta, result)
         g = np.asarray(result.grad, dtype=float)
         if not result.critic_ok or not np.all(np.isfinite(g)) or not result.valid:
             return
         theta = self.space.clip(theta)
-        gz = g[self.space.free] * self.space.dtheta_dz(theta)
-        lr = self.lr / (1.0 + self.lr_decay * self.t)
-        if self.optimizer == "adam":
-            self.t += 1
-            self.m = self.beta1 * self.m + (1 - self.beta1) * gz
-            self.v = self.beta2 * self.v + (1 - self.beta2) * gz**2
-            mh = self.m / (1 - self.beta1**self.t)
-            vh = self.v / (1 - self.beta2**self.t)
-            step = lr * mh / (np.sqrt(vh) + self.eps)
-        else:
-            self.t += 1
-            step = lr * gz
-        norm = np.linalg.norm(step)
-        if norm > self.max_step:
-            step *= self.max_step / norm
-        self.z = np.clip(self.z - step, 0.0, 1.0)  # projection onto the bounds
+        free = self.space.free
+        if self.rule.coordinates == "unit":
+            gz = g[free] * self.space.dtheta_dz(theta)
+            self.z = np.clip(self.z - self.rule.step(gz), 0.0, 1.0)  # projection onto the bounds
+        else:  # a step in theta itself, projected onto the bounds
+            new = theta.copy()
+            new[free] = new[free] - self.rule.step(g[free])
+            self.z = self.space.to_unit(self.space.clip(new))
 
     def state_dict(self) -> dict:
         """The base state plus the Adam state (z, m, v, t) and the deploy rule's state."""
         d = super().state_dict()
-        d.update({"z": self.z.copy(), "m": self.m.copy(), "v": self.v.copy(), "t": self.t})
-        if self.deploy_rule is not None:
+        d["z"] = self.z.copy()
+        d["optimizer"], d["deploy"] = self.optimizer, self.deploy
+        d.update(self.rule.state_dict())  # m, v, t
+        if self.pooled is not None:
+            d.update(
+                {
+                    "judge_X": self.X_.copy(),
+                    "judge_F": self.F_.copy(),
+                    "judge_X0": self.X0_.copy(),
+                    "deployed_z": self.deployed_z_.copy(),
+                }
+            )
+        elif self.deploy_rule is not None:
             d.update(
                 {
                     "judge_X": self.X_.copy(),
@@ -177,14 +259,26 @@ class MPCRL(Learner):
     def load_state_dict(self, state: dict) -> None:
         """Continue from a :meth:`state_dict`."""
         super().load_state_dict(state)
-        self.z, self.m, self.v = (np.array(state[k], dtype=float) for k in ("z", "m", "v"))
-        self.t = int(state["t"])
-        if self.deploy_rule is not None:
-            self._init_judge()
-            if "judge_X" in state:  # else a checkpoint without deployment: start afresh
+        # a checkpoint from before the step-rule and deploy options: the rules it ran with
+        optimizer = state.get("optimizer", self.optimizer)
+        legacy_deploy = "gp" if self.deploy_confidence is not None else "iterate"
+        deploy = state.get("deploy", self._deploy_option or legacy_deploy)
+        if (optimizer, deploy) != (self.optimizer, self.deploy):
+            self._configure(optimizer, deploy)
+        self.z = np.array(state["z"], dtype=float)
+        self.rule.load_state_dict(state)
+        self._init_judge()
+        if self.pooled is not None:
+            if "judge_X" in state:
                 self.X_ = np.array(state["judge_X"], float)
                 self.F_ = np.array(state["judge_F"], float)
-                self.deployed_z_ = np.array(state["deployed_pre_fit"], float)
-                if state["judge_pre_fit"] is not None:
-                    self.judge.load_state_dict(state["judge_pre_fit"])  # type: ignore[union-attr]
-                    self._judge_fit()
+                self.X0_ = np.array(state["judge_X0"], float)
+                self.deployed_z_ = np.array(state["deployed_z"], float)
+        elif self.deploy_rule is not None and "judge_X" in state:
+            # else a checkpoint without deployment: start afresh
+            self.X_ = np.array(state["judge_X"], float)
+            self.F_ = np.array(state["judge_F"], float)
+            self.deployed_z_ = np.array(state["deployed_pre_fit"], float)
+            if state["judge_pre_fit"] is not None:
+                self.judge.load_state_dict(state["judge_pre_fit"])  # type: ignore[union-attr]
+                self._judge_fit()

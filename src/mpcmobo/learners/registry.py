@@ -46,6 +46,16 @@ LEARNERS: dict[str, type[Learner]] = {name: spec.cls for name, spec in LEARNER_S
 """The learner classes by name (from :data:`LEARNER_SPECS`)."""
 
 
+def register_learner(spec: LearnerSpec) -> None:
+    """Add a learner to this process's registry (e.g. a benchmark's peer learner). The
+    settings, the job scheduler and the figures read it from there; spawned worker processes
+    do not see it, so a study with such a learner runs with ``workers = 1``."""
+    if spec.name in LEARNER_SPECS and LEARNER_SPECS[spec.name] != spec:
+        raise ValueError(f"a different learner '{spec.name}' is already registered")
+    LEARNER_SPECS[spec.name] = spec
+    LEARNERS[spec.name] = spec.cls
+
+
 # the constructor arguments of every learner that are not options
 _NOT_OPTIONS = ("self", "space", "theta0", "seed")
 
