@@ -29,6 +29,7 @@ from mpcmobo.experiment.logs import count_warnings, run_log
 from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
 from mpcmobo.experiment.settings import Settings, SettingsError, build_system
+from mpcmobo.experiment.training_reference import training_references, training_summary
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems.registry import system_factory
 
@@ -82,6 +83,7 @@ def compute_reference(settings: Settings) -> Reference:
         trajectories += [
             Trajectory(phase, -1, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
         ]
+    training = training_references(settings, system)  # J~*, like for like (issue 15)
     return Reference(
         J_star=values["perfect"],
         J_initial=values["initial"],
@@ -89,6 +91,7 @@ def compute_reference(settings: Settings) -> Reference:
         system=system_info(system),
         trajectories=trajectories,
         wall_time_s=time.perf_counter() - t0,
+        training=training,
     )
 
 
@@ -198,6 +201,7 @@ def write_records(
     wall = {(c["learner"], c["seed"]): c["wall_time_s"] for c in ckpts}
     summary = summarize(settings, reference, df, wall)
     summary["reference_wall_time_s"] = reference.wall_time_s
+    summary.update(training_summary(reference))
     summary["warnings"] = count_warnings(out)
     storage.write_json(out / "summary.json", summary)
     return summary
