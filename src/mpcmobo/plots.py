@@ -99,21 +99,37 @@ def _save(fig, out: Path, name: str) -> list[Path]:
     return paths
 
 
+def _tick(y: float, _pos=None) -> str:
+    """A log axis tick as a plain number, labelled at mantissas 1, 2 and 5 only."""
+    if not np.isfinite(y) or y <= 0:
+        return ""
+    mantissa = y / 10 ** np.floor(np.log10(y) + 1e-9)
+    if not any(np.isclose(mantissa, m) for m in (1, 2, 5)):
+        return ""
+    if y >= 1e6 or y < 1e-3:
+        return f"{y:.0e}".replace("e+0", "e").replace("e-0", "e-")
+    return f"{y:.0f}" if y >= 1 else f"{y:.2g}"
+
+
 def _log_if_positive(ax, values) -> None:
     """A log y axis if the values are positive and span more than a factor of 10 (episode costs
-    span orders of magnitude); plain numbers on its ticks when it spans less than 100."""
+    span orders of magnitude), its ticks as plain numbers: the decades, and 2 and 5 x 10^k
+    between them when the drawn axis spans less than a factor of 100."""
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]
     if len(v) and v.min() > 0 and v.max() > 10 * v.min():
         ax.set_yscale("log")
-        if v.max() < 100 * v.min():
-            fmt = FuncFormatter(lambda y, _: f"{y:.3g}")
-            ax.yaxis.set_major_formatter(fmt)
-            ax.yaxis.set_minor_formatter(fmt)
+        ax.yaxis.set_major_formatter(FuncFormatter(_tick))
+
+        def minor(y, pos=None):  # 2 and 5 x 10^k only when the drawn axis spans < 100
+            lo, hi = ax.get_ylim()
+            return _tick(y) if 0 < lo and hi < 100 * lo else ""
+
+        ax.yaxis.set_minor_formatter(FuncFormatter(minor))
 
 
 def _note(ax, text: str) -> None:
-    ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", fontsize=8,
+    ax.text(0.5, 0.04, text, transform=ax.transAxes, ha="center", va="bottom", fontsize=8,
             color="tab:blue", bbox={"facecolor": "white", "edgecolor": "tab:blue"})  # fmt: skip
 
 
@@ -131,7 +147,8 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
         d = ep[ep.learner == name]
         ns = d.seed.nunique()
         c, label = COLORS.get(name, "tab:orange"), LABELS.get(name, name)
-        _curve(ax, d, "J_tilde", c, "per episode", ns, band=False, lw=0.6, alpha=0.4)
+        each = "per episode" + (" (median)" if ns > 1 else "")
+        _curve(ax, d, "J_tilde", c, each, ns, band=False, lw=0.6, alpha=0.4)
         m = moving_mean(d, "J_tilde", K)
         _curve(ax, m, "J_tilde_mean", c, f"{label}: mean of {K} episodes ({seeds_note(ns)})",
                ns, lw=1.6)  # fmt: skip
@@ -191,8 +208,8 @@ def _advantage_panel(ax, ep: pd.DataFrame, learners: list[str], window: int = 1)
         d = ep[ep.learner == name]
         ns, c, label = d.seed.nunique(), COLORS.get(name, "tab:orange"), LABELS.get(name, name)
         if window > 1:
-            _curve(ax, d, "mean_abs_A", c, f"{label}: per episode", ns, band=False, lw=0.6,
-                   alpha=0.4)  # fmt: skip
+            each = "per episode" + (" (median)" if ns > 1 else "")
+            _curve(ax, d, "mean_abs_A", c, f"{label}: {each}", ns, band=False, lw=0.6, alpha=0.4)
             m = moving_mean(d, "mean_abs_A", window)
             _curve(ax, m, "mean_abs_A_mean", c,
                    f"{label}: mean of {window} episodes ({seeds_note(ns)})", ns, lw=1.6)  # fmt: skip
@@ -201,7 +218,7 @@ def _advantage_panel(ax, ep: pd.DataFrame, learners: list[str], window: int = 1)
     ax.set_xlabel("episode")
     ax.set_ylabel(r"mean $|A^{w}|$")
     _log_if_positive(ax, ep.loc[ep.learner.isin(shown), "mean_abs_A"])
-    ax.legend(fontsize=8)
+    ax.legend(loc="best", fontsize=7, framealpha=0.85)
 
 
 def _pareto_panel(fig, ax3, ep: pd.DataFrame, learners: list[str]) -> None:
