@@ -10,8 +10,9 @@ with exploration, on the training starts) is drawn against J~* (the same f1 of t
 MPC on the same training starts with the same noise, ``summary.json`` ``J_tilde_star``), and
 J_eval of the deployed theta (undiscounted, no exploration, on the fixed evaluation starts)
 against J* (the same mean stage cost of the perfect-model MPC on the same starts). Per-episode
-J~ is drawn faint, its mean over the episodes that make J~* (one cycle of the starts) on top. A
-run made before J~* existed says so in the panel instead of drawing an unlike reference.
+J~ is drawn faint, and on top its mean over as many episodes as make J~* of a seed (one cycle
+of the starts; with random starts ``evaluation.n_starts``). A run made before J~* existed says
+so in the panel instead of drawing an unlike reference.
 Figures are plain :class:`matplotlib.figure.Figure` objects (no pyplot, no global backend): each is
 saved with the Agg canvas that ``savefig`` picks for PNG and PDF.
 """
