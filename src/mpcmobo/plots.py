@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.ticker import FuncFormatter
+from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from mpcmobo.bo.pareto import pareto_mask
 from mpcmobo.learners.registry import LEARNER_SPECS
@@ -151,8 +151,9 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
         each = "per episode" + (" (median)" if ns > 1 else "")
         _curve(ax, d, "J_tilde", c, each, ns, band=False, lw=0.6, alpha=0.4)
         m = moving_mean(d, "J_tilde", K)
-        _curve(ax, m, "J_tilde_mean", c, f"{label}: mean of {K} episodes ({seeds_note(ns)})",
-               ns, lw=1.6)  # fmt: skip
+        none = "" if m["J_tilde_mean"].notna().any() else ": none yet"
+        _curve(ax, m, "J_tilde_mean", c,
+               f"{label}: mean of {K} episodes ({seeds_note(ns)}){none}", ns, lw=1.6)  # fmt: skip
         if Jt_star is not None:
             ax.axhline(Jt_star, color="tab:blue", ls="--", lw=1.2,
                        label=r"$\tilde J^\star$: perfect-model MPC, same starts and noise"
@@ -187,6 +188,7 @@ def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]):
                          fontsize=9)  # fmt: skip
     for ax in axes[-1]:
         ax.set_xlabel("episode")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     fig.suptitle("Closed-loop performance per episode, each curve against its own reference")
     return fig
 
@@ -212,11 +214,13 @@ def _advantage_panel(ax, ep: pd.DataFrame, learners: list[str], window: int = 1)
             each = "per episode" + (" (median)" if ns > 1 else "")
             _curve(ax, d, "mean_abs_A", c, f"{label}: {each}", ns, band=False, lw=0.6, alpha=0.4)
             m = moving_mean(d, "mean_abs_A", window)
+            none = "" if m["mean_abs_A_mean"].notna().any() else ": none yet"
             _curve(ax, m, "mean_abs_A_mean", c,
-                   f"{label}: mean of {window} episodes ({seeds_note(ns)})", ns, lw=1.6)  # fmt: skip
+                   f"{label}: mean of {window} episodes ({seeds_note(ns)}){none}", ns, lw=1.6)  # fmt: skip
         else:
             _curve(ax, d, "mean_abs_A", c, f"{label} ({seeds_note(ns)})", ns, lw=1)
     ax.set_xlabel("episode")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(r"mean $|A^{w}|$")
     _log_if_positive(ax, ep.loc[ep.learner.isin(shown), "mean_abs_A"])
     ax.legend(loc="best", fontsize=7, framealpha=0.85)
