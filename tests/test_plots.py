@@ -1,20 +1,34 @@
-"""Figures 1-4 from the records of a small real run (two seeds: median and IQR bands)."""
+"""Figures 1-4 from the records of a small real run (lq, two learners, two seeds), checked for
+their content: the drawn lines are the medians of the records, the bands their quartiles, the
+legends say how many seeds, and each curve of Fig. 1 is drawn against a reference computed with
+the same formula on the same kind of episodes (issue 15)."""
 
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pandas as pd
 import pytest
+from matplotlib.collections import PolyCollection
 from matplotlib.colors import to_rgb
 from matplotlib.image import imread
 from typer.testing import CliRunner
 
 from mpcmobo.cli import app
-from mpcmobo.experiment.settings import load_settings
+from mpcmobo.experiment.evaluation import make_evaluator
+from mpcmobo.experiment.job import _learning_run
+from mpcmobo.experiment.rundir import RunDirectory
+from mpcmobo.experiment.settings import build_system, load_settings
 from mpcmobo.experiment.study import run_study
-from mpcmobo.plots import FIGURES, fig1, fig2, pareto_mask
+from mpcmobo.experiment.training_reference import training_references
+from mpcmobo.mpc import ParametricMPC, rollout
+from mpcmobo.plots import FIGURES, _traj_figure, fig1, fig2, pareto_mask
+from mpcmobo.rl.objectives import f1_closed_loop_cost, mean_stage_cost
+
+LEARNERS = ["mpc-rl", "bo"]
+K = 3  # n_cycle_starts: the episodes of J~* per seed and the window of the moving means
 
 
 @pytest.fixture(scope="module")
@@ -22,17 +36,40 @@ def small_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("plots") / "run"
     s = load_settings(
         None,
-        system={"name": "cstr"},
-        learners=["mpc-rl"],
-        episodes=4,
-        steps=8,
+        system={"name": "lq"},
+        learners=LEARNERS,
+        episodes=6,
+        steps=10,
         seeds=[0, 1],
+        start_mode="cycle",
+        n_cycle_starts=K,
         evaluation={"n_starts": 2, "eval_every": 2},
         records={"trajectory_every": 2},
         workers=1,
     )
     run_study(s, out)
     return out
+
+
+def _records(run):
+    ep = pd.read_parquet(run / "episodes.parquet")
+    summary = json.loads((run / "summary.json").read_text())
+    return ep, summary
+
+
+def _lines(ax) -> dict:
+    return {line.get_label(): line for line in ax.get_lines()}
+
+
+def _line(ax, *words):
+    """The one line of ``ax`` whose label holds every word."""
+    found = [ln for lab, ln in _lines(ax).items() if all(w in lab for w in words)]
+    assert len(found) == 1, (words, list(_lines(ax)))
+    return found[0]
+
+
+def _legend(ax) -> list[str]:
+    return [t.get_text() for t in ax.get_legend().get_texts()]
 
 
 def test_plot_writes_all_four_figures(small_run):
@@ -54,32 +91,171 @@ def test_plot_writes_all_four_figures(small_run):
         assert np.any(np.all(np.abs(img - green) < 0.02, axis=-1)), name
 
 
-def test_figures_draw_the_records(small_run):
-    """Figure 1 plots the records: per episode the median over seeds of J tilde and of the
-    evaluated incumbent's J_eval, and J* of the summary; the figure-2 advantage panel the
-    median of mean |A^w|."""
-    ep = pd.read_parquet(small_run / "episodes.parquet")
-    summary = json.loads((small_run / "summary.json").read_text())
-    assert ep.seed.nunique() == 2
-    ax = fig1(ep, summary, ["mpc-rl"]).axes[0]
-    lines = {line.get_label(): line for line in ax.get_lines()}
-    J = ep.groupby("episode")["J_tilde"].median()
-    curve = lines[r"$\tilde J$ MPC-RL"]
-    np.testing.assert_array_equal(curve.get_xdata(), J.index)
-    np.testing.assert_allclose(curve.get_ydata(), J.to_numpy())
-    ev = ep[np.isfinite(ep.J_eval_incumbent)].groupby("episode")["J_eval_incumbent"].median()
-    curve = lines[r"$J_{eval}$ incumbent"]
-    np.testing.assert_array_equal(curve.get_xdata(), ev.index)
-    np.testing.assert_allclose(curve.get_ydata(), ev.to_numpy())
-    np.testing.assert_allclose(lines[r"$J^\star$"].get_ydata(), summary["J_star"])
-    adv = fig2(ep, ["mpc-rl"]).axes[0].get_lines()[0]
-    np.testing.assert_allclose(adv.get_ydata(), ep.groupby("episode")["mean_abs_A"].median())
+def test_references_use_the_formula_of_their_curves(small_run):
+    """J~* is f1 (the function that gives every learner's J~) of the perfect-model MPC's
+    episodes from the learners' training starts with the learners' exploration noise; J* is the
+    mean stage cost (the function of J_eval) of the perfect-model MPC on the evaluation starts.
+    The episodes are drawn again here, independently of the study, and checked against the
+    records: the learners' own first episodes are reproduced exactly."""
+    ep, summary = _records(small_run)
+    settings = RunDirectory(small_run).saved_settings()
+    system = build_system(settings)
+    perfect = ParametricMPC(system, model="perfect", **settings.mpc.options())
+    assert summary["J_tilde_star_episodes"] == K
+    refs = []
+    for seed in settings.seeds:
+        # the curve: a learner's episodes, drawn again, give its recorded J~ = f1(episode)
+        learner_run = _learning_run(settings, system, "mpc-rl", seed)
+        rows = ep[(ep.learner == "mpc-rl") & (ep.seed == seed)].sort_values("episode")
+        for recorded in rows.head(K).itertuples():
+            row, record = learner_run.run_episode()
+            np.testing.assert_array_equal(row["x0"], recorded.x0)
+            assert row["J_tilde"] == recorded.J_tilde == f1_closed_loop_cost(record)
+        # the reference: f1 of the perfect-model MPC on the same starts with the same noise
+        run = _learning_run(settings, system, "mpc-rl", seed)
+        values = []
+        for episode in range(K):
+            x0 = run.next_start()
+            for name in LEARNERS:  # every learner's episode l started there
+                got = ep[(ep.learner == name) & (ep.seed == seed) & (ep.episode == episode)]
+                np.testing.assert_array_equal(got.x0.iloc[0], x0)
+            run.exploration.episode = episode
+            record = rollout(system, perfect, None, x0, run.steps, rng=run.rng_noise,
+                             exploration=run.exploration)  # fmt: skip
+            values.append(f1_closed_loop_cost(record))
+            run.episode += 1
+        assert summary["J_tilde_star_per_seed"][str(seed)] == pytest.approx(np.mean(values))
+        refs.append(np.mean(values))
+    assert summary["J_tilde_star"] == pytest.approx(np.median(refs))
+    # J* and J_eval: the mean stage cost on the evaluation starts, without exploration
+    evaluator = make_evaluator(settings, system)
+    steps = settings.evaluation.steps
+
+    def J(mpc, theta):
+        return np.mean([mean_stage_cost(rollout(system, mpc, theta, x0, steps))
+                        for x0 in evaluator.starts])  # fmt: skip
+
+    assert summary["J_star"] == pytest.approx(J(perfect, None))
+    imperfect = ParametricMPC(system, model="imperfect", **settings.mpc.options())
+    row = ep[np.isfinite(ep.J_eval_incumbent)].iloc[-1]
+    assert row.J_eval_incumbent == pytest.approx(J(imperfect, np.asarray(row.incumbent)))
+
+
+def test_training_reference_with_random_starts(small_run):
+    """With random starts, J~* of a seed is f1 on as many episodes as J* has starts
+    (evaluation.n_starts), from the seed's random training starts."""
+    settings = RunDirectory(small_run).saved_settings(start_mode="random")
+    system = build_system(settings)
+    refs = training_references(settings, system)
+    assert [r.seed for r in refs] == settings.seeds
+    for r in refs:
+        run = _learning_run(settings, system, "bo", r.seed)
+        assert len(r.J_tilde) == settings.evaluation.n_starts
+        for x0 in r.x0:
+            np.testing.assert_array_equal(x0, run.next_start())
+    assert refs[0].x0 != refs[1].x0
+
+
+def _three_seeds(ep: pd.DataFrame) -> pd.DataFrame:
+    """The records with a third seed whose costs are 10x seed 0's: its median differs from
+    its mean, and from the mean of the other two."""
+    extra = ep[ep.seed == 0].copy()
+    extra["seed"] = 2
+    for col in ("J_tilde", "J_eval_incumbent", "mean_abs_A"):
+        extra[col] *= 10
+    return pd.concat([ep, extra], ignore_index=True)
+
+
+@pytest.mark.parametrize("seeds", [2, 3])
+def test_fig1_draws_medians_against_references(small_run, seeds):
+    """Per learner: the per-episode median of J~, the median over seeds of its mean over K
+    episodes with the quartiles as a band, J~* of the summary; J_eval of the deployed theta
+    (the last evaluated incumbent, per seed) with its band, J* of the summary; legends with
+    the seed count."""
+    ep, summary = _records(small_run)
+    if seeds == 3:
+        ep = _three_seeds(ep)
+    fig = fig1(ep, summary, LEARNERS)
+    axes = np.array(fig.axes).reshape(len(LEARNERS), 2)
+    for (ax, ax_eval), name in zip(axes, LEARNERS):
+        d = ep[ep.learner == name].sort_values(["seed", "episode"])
+        raw = _line(ax, "per episode")
+        np.testing.assert_allclose(raw.get_ydata(), d.groupby("episode").J_tilde.median())
+        mean = d.groupby("seed").J_tilde.transform(lambda v: v.rolling(K).mean())
+        med = mean.groupby(d.episode).median().dropna()
+        curve = _line(ax, f"mean of {K} episodes")
+        np.testing.assert_array_equal(curve.get_xdata(), med.index)
+        np.testing.assert_allclose(curve.get_ydata(), med.to_numpy())
+        assert curve.get_xdata()[0] == K - 1  # a mean covers a whole cycle of the starts
+        (band,) = [c for c in ax.collections if isinstance(c, PolyCollection)]
+        edge = band.get_paths()[0].vertices[:, 1]
+        q = mean.groupby(d.episode).quantile([0.25, 0.75]).unstack().dropna()
+        for v in np.r_[q[0.25], q[0.75]]:  # the band runs from the lower to the upper quartile
+            assert np.isclose(edge, v).any(), (v, edge)
+        ref = _line(ax, r"\tilde J^\star")
+        np.testing.assert_allclose(ref.get_ydata(), summary["J_tilde_star"])
+        assert any(f"{seeds} seeds" in t for t in _legend(ax)), _legend(ax)
+        deployed = d.groupby("seed").J_eval_incumbent.ffill()
+        med = deployed.groupby(d.episode).median()
+        curve = _line(ax_eval, "deployed")
+        np.testing.assert_array_equal(curve.get_xdata(), med.index)
+        np.testing.assert_allclose(curve.get_ydata(), med.to_numpy())
+        np.testing.assert_allclose(_line(ax_eval, r"J^\star").get_ydata(), summary["J_star"])
+        assert any(f"{seeds} seeds" in t for t in _legend(ax_eval)), _legend(ax_eval)
+        assert [c for c in ax_eval.collections if isinstance(c, PolyCollection)]
+
+
+def test_fig1_one_seed_and_old_runs(small_run, tmp_path):
+    """One seed: single lines, no bands, "1 seed" in the legend. A run whose summary has no
+    J~* says so in the panel and draws no unlike reference; `mpcmobo plot` draws it."""
+    ep, summary = _records(small_run)
+    one = ep[(ep.seed == 0) & (ep.learner == "bo")]
+    ax, ax_eval = fig1(one, summary, ["bo"]).axes[:2]
+    for a in (ax, ax_eval):
+        assert not [c for c in a.collections if isinstance(c, PolyCollection)]
+        assert any("1 seed" in t for t in _legend(a)), _legend(a)
+    np.testing.assert_allclose(
+        _line(ax_eval, "deployed").get_ydata(), one.J_eval_incumbent.ffill().to_numpy()
+    )
+    old = {k: v for k, v in summary.items() if not k.startswith("J_tilde_star")}
+    ax = fig1(ep, old, ["bo"]).axes[0]
+    assert not [lab for lab in _lines(ax) if "tilde J^\\star" in lab]
+    assert "no like-for-like reference in this run" in [t.get_text() for t in ax.texts]
+    run = tmp_path / "old"
+    shutil.copytree(small_run, run, ignore=shutil.ignore_patterns("figures"))
+    (run / "summary.json").write_text(json.dumps(old))
+    res = CliRunner().invoke(app, ["plot", str(run)])
+    assert res.exit_code == 0, res.output
+
+
+def test_fig2_and_fig3_draw_the_records(small_run):
+    """Fig. 2: the mean over K episodes of mean |A^w|, median over seeds, with the seed count;
+    the Pareto panel names its seed. Fig. 3: the final incumbent's evaluation per start, median
+    over seeds."""
+    ep, summary = _records(small_run)
+    fig = fig2(_three_seeds(ep), LEARNERS, window=K)
+    ax = fig.axes[0]
+    d = _three_seeds(ep)
+    d = d[d.learner == "mpc-rl"].sort_values(["seed", "episode"])
+    mean = d.groupby("seed").mean_abs_A.transform(lambda v: v.rolling(K).mean())
+    curve = _line(ax, "MPC-RL", f"mean of {K}")
+    np.testing.assert_allclose(curve.get_ydata(), mean.groupby(d.episode).median().dropna())
+    assert "3 seeds" in curve.get_label()
+    assert "seed 0 of 3" in fig.axes[1].get_title()
+    tr = pd.read_parquet(small_run / "trajectories.parquet")
+    fig = _traj_figure(tr, summary["system_info"], "bo", "x")
+    final = tr[(tr.phase == "final") & (tr.learner == "bo")]
+    blue = [ln for ln in fig.axes[0].get_lines() if ln.get_color() == "tab:blue"]
+    assert len(blue) == final.start.nunique() == 2
+    for line, (_, g) in zip(blue, final.groupby("start")):
+        np.testing.assert_allclose(line.get_ydata(), g.groupby("t").x_p.median())
+    assert any("2 seeds" in t.get_text() for t in fig.legends[0].get_texts())
 
 
 def test_plot_errors(small_run, tmp_path):
     res = CliRunner().invoke(app, ["plot", str(tmp_path)])
     assert res.exit_code == 2 and "config.toml" in res.output
-    res = CliRunner().invoke(app, ["plot", str(small_run), "--learner", "bo"])
+    res = CliRunner().invoke(app, ["plot", str(small_run), "--learner", "mobo"])
     assert res.exit_code == 2 and "not in this run" in res.output
 
 

@@ -2,7 +2,17 @@
 
 Inputs: ``DIR/episodes.parquet``, ``DIR/trajectories.parquet`` and ``DIR/summary.json`` (J* and
 the system's names, references and limits). Outputs: ``DIR/figures/fig{1..4}_*.{png,pdf}``.
-With several seeds, per-episode curves are the median over seeds with the interquartile band.
+With several seeds, per-episode curves are the median over seeds with the interquartile band,
+and the legend says how many seeds; a run with one seed draws single lines.
+
+Fig. 1 compares like with like (issue 15): the training curve J~ (f1, eq. cl_perf: discounted,
+with exploration, on the training starts) is drawn against J~* (the same f1 of the perfect-model
+MPC on the same training starts with the same noise, ``summary.json`` ``J_tilde_star``), and
+J_eval of the deployed theta (undiscounted, no exploration, on the fixed evaluation starts)
+against J* (the same mean stage cost of the perfect-model MPC on the same starts). Per-episode
+J~ is drawn faint, and on top its mean over as many episodes as make J~* of a seed (one cycle
+of the starts; with random starts ``evaluation.n_starts``). A run made before J~* existed says
+so in the panel instead of drawing an unlike reference.
 Figures are plain :class:`matplotlib.figure.Figure` objects (no pyplot, no global backend): each is
 saved with the Agg canvas that ``savefig`` picks for PNG and PDF.
 """
@@ -17,6 +27,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -30,19 +41,59 @@ LABELS = {name: spec.label for name, spec in LEARNER_SPECS.items()}
 FIGURES = ("fig1_performance", "fig2_advantage_pareto", "fig3_states", "fig4_inputs")
 
 
+def seeds_note(n_seeds: int) -> str:
+    """What a curve of ``n_seeds`` seeds shows, for its legend entry."""
+    return "1 seed" if n_seeds == 1 else f"median, IQR of {n_seeds} seeds"
+
+
 def _band(df: pd.DataFrame, col: str) -> pd.DataFrame:
     """Median and quartiles over seeds of ``col`` per episode."""
     g = df.groupby("episode")[col]
     return pd.DataFrame({"med": g.median(), "q1": g.quantile(0.25), "q3": g.quantile(0.75)})
 
 
-def _curve(
-    ax: Axes, df: pd.DataFrame, col: str, color: str, label: str, n_seeds: int, **kw: Any
-) -> None:
+def _curve(ax: Axes, df: pd.DataFrame, col: str, color: str, label: str, n_seeds: int,
+           band: bool = True, **kw: Any) -> None:  # fmt: skip
+    """The median over seeds of ``col`` per episode, and with several seeds its interquartile
+    band (unless ``band`` is False)."""
     b = _band(df, col).dropna(subset=["med"])
     ax.plot(b.index, b["med"], color=color, label=label, **kw)
-    if n_seeds > 1:
-        ax.fill_between(b.index, b["q1"], b["q3"], color=color, alpha=0.25, linewidth=0)
+    if n_seeds > 1 and band:
+        step: dict[str, Any] = {"step": "post"} if kw.get("drawstyle") == "steps-post" else {}
+        ax.fill_between(b.index, b["q1"], b["q3"], color=color, alpha=0.25, linewidth=0, **step)
+
+
+def moving_mean(df: pd.DataFrame, col: str, window: int) -> pd.DataFrame:
+    """``df`` (one learner) with ``{col}_mean``: per seed, the mean of ``col`` over the last
+    ``window`` episodes (NaN for the first ``window - 1`` episodes and over a window holding a
+    NaN episode): with cycled starts one mean covers every start once, as J~* does."""
+    d = df.sort_values(["seed", "episode"]).copy()
+    d[f"{col}_mean"] = d.groupby("seed")[col].transform(
+        lambda v: v.rolling(window, min_periods=window).mean()
+    )
+    return d
+
+
+def deployed_J_eval(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` (one learner) with ``J_eval_deployed``: per seed, J_eval of the last evaluated
+    incumbent at every episode (the evaluation schedule evaluates at episode 0, so every
+    episode has one), so that the median over seeds is taken over all seeds at every episode."""
+    d = df.sort_values(["seed", "episode"]).copy()
+    d["J_eval_deployed"] = d.groupby("seed")["J_eval_incumbent"].ffill()
+    return d
+
+
+def reference_window(summary: dict) -> int:
+    """The number of episodes of J~* per seed, also the window of the moving means: from the
+    summary, or for a run without J~* from its settings (as
+    :func:`mpcmobo.experiment.training_reference.training_reference_episodes` chooses it)."""
+    n = summary.get("J_tilde_star_episodes")
+    if n:
+        return int(n)
+    st = summary.get("settings", {})
+    if st.get("start_mode", "cycle") == "cycle":
+        return int(st.get("n_cycle_starts", 6))
+    return int(st.get("evaluation", {}).get("n_starts", 10))
 
 
 def _save(fig: Figure, out: Path, name: str) -> list[Path]:
@@ -54,65 +105,144 @@ def _save(fig: Figure, out: Path, name: str) -> list[Path]:
     return paths
 
 
+def _tick(y: float, _pos: Any = None) -> str:
+    """A log axis tick as a plain number, labelled at mantissas 1, 2 and 5 only."""
+    if not np.isfinite(y) or y <= 0:
+        return ""
+    mantissa = y / 10 ** np.floor(np.log10(y) + 1e-9)
+    if not any(np.isclose(mantissa, m) for m in (1, 2, 5)):
+        return ""
+    if y >= 1e6 or y < 1e-3:
+        return f"{y:.0e}".replace("e+0", "e").replace("e-0", "e-")
+    return f"{y:.0f}" if y >= 1 else f"{y:.2g}"
+
+
+def _log_if_positive(ax: Axes, values: Any) -> None:
+    """A log y axis if the values are positive and span more than a factor of 10 (episode costs
+    span orders of magnitude), its ticks as plain numbers: the decades, and 2 and 5 x 10^k
+    between them when the drawn axis spans less than a factor of 100."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if len(v) and v.min() > 0 and v.max() > 10 * v.min():
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(FuncFormatter(_tick))
+
+        def minor(
+            y: float, pos: Any = None
+        ) -> str:  # 2 and 5 x 10^k only when the drawn axis spans < 100
+            lo, hi = ax.get_ylim()
+            return _tick(y) if 0 < lo and hi < 100 * lo else ""
+
+        ax.yaxis.set_minor_formatter(FuncFormatter(minor))
+
+
+def _note(ax: Axes, text: str) -> None:
+    ax.text(0.5, 0.04, text, transform=ax.transAxes, ha="center", va="bottom", fontsize=8,
+            color="tab:blue", bbox={"facecolor": "white", "edgecolor": "tab:blue"})  # fmt: skip
+
+
 def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]) -> Figure:
-    """Fig. 1: J tilde per episode and J_eval of the incumbent against J*, one panel per learner."""
+    """Fig. 1, like with like: per learner, the training curve J~ against J~* (left) and
+    J_eval of the deployed theta against J* (right); each pair is computed the same way."""
     n = len(learners)
-    fig = Figure(figsize=(8.5, 2.4 * n))
-    axes = fig.subplots(n, 1, sharex=True, squeeze=False)
-    J_star = summary["J_star"]
-    for ax, name in zip(axes[:, 0], learners):
+    K = reference_window(summary)
+    fig = Figure(figsize=(12, 2.7 * n + 0.4), layout="constrained")
+    axes = fig.subplots(n, 2, sharex=True, squeeze=False)
+    J_star, Jt_star = summary.get("J_star"), summary.get("J_tilde_star")
+    per_seed = [v for v in (summary.get("J_tilde_star_per_seed") or {}).values() if v is not None]
+    n_eval = summary.get("settings", {}).get("evaluation", {}).get("n_starts")
+    for (ax, ax_eval), name in zip(axes, learners):
         d = ep[ep.learner == name]
         ns = d.seed.nunique()
-        c = COLORS.get(name, "tab:orange")
-        _curve(ax, d, "J_tilde", c, rf"$\tilde J$ {LABELS.get(name, name)}", ns, lw=1)
-        ev = d[np.isfinite(d["J_eval_incumbent"])]
-        if len(ev):
-            _curve(ax, ev, "J_eval_incumbent", "black", r"$J_{eval}$ incumbent", ns, lw=1.2,
-                   marker=".", ms=3)  # fmt: skip
+        c, label = COLORS.get(name, "tab:orange"), LABELS.get(name, name)
+        each = "per episode" + (" (median)" if ns > 1 else "")
+        _curve(ax, d, "J_tilde", c, each, ns, band=False, lw=0.6, alpha=0.4)
+        m = moving_mean(d, "J_tilde", K)
+        none = "" if m["J_tilde_mean"].notna().any() else ": none yet"
+        _curve(ax, m, "J_tilde_mean", c,
+               f"{label}: mean of {K} episodes ({seeds_note(ns)}){none}", ns, lw=1.6)  # fmt: skip
+        if Jt_star is not None:
+            ax.axhline(Jt_star, color="tab:blue", ls="--", lw=1.2,
+                       label=r"$\tilde J^\star$: perfect-model MPC, same starts and noise"
+                       + (f" (median of {len(per_seed)} seeds)" if len(per_seed) > 1 else ""))  # fmt: skip
+            if len(per_seed) > 1:
+                q1, q3 = np.quantile(per_seed, [0.25, 0.75])
+                ax.axhspan(q1, q3, color="tab:blue", alpha=0.12, lw=0)
+        else:
+            _note(ax, "no like-for-like reference in this run")
+        _log_if_positive(ax, np.r_[d["J_tilde"].to_numpy(float), per_seed])
+        ax.set_ylabel(rf"{label}: $\tilde J$")
+        ax.legend(loc="best", fontsize=7, framealpha=0.85)
+        e = deployed_J_eval(d)
+        _curve(ax_eval, e, "J_eval_deployed", c,
+               rf"{label}: $J_{{eval}}$ of the deployed $\theta$ ({seeds_note(ns)})", ns,
+               lw=1.6, drawstyle="steps-post")  # fmt: skip
+        if ns == 1:  # the evaluated episodes
+            ev = e[np.isfinite(e["J_eval_incumbent"])]
+            ax_eval.plot(ev.episode, ev.J_eval_incumbent, ls="none", marker=".", ms=4, color=c)
         if J_star is not None:
-            ax.axhline(J_star, color="tab:blue", ls="--", label=r"$J^\star$")
+            ax_eval.axhline(J_star, color="tab:blue", ls="--", lw=1.2,
+                            label=r"$J^\star$: perfect-model MPC, same starts")  # fmt: skip
         elif summary.get("J_initial") is not None:  # no reference model: against theta0
-            ax.axhline(summary["J_initial"], color="tab:green", ls=":",
-                       label=r"$J(\theta_0)$ (no $J^\star$)")  # fmt: skip
-        ax.set_ylabel(r"$\tilde J$")
-        vals = d["J_tilde"].to_numpy(float)
-        if np.any(np.isfinite(vals)) and np.nanmin(vals) > 0:
-            ax.set_yscale("log")  # episode costs span orders of magnitude
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, borderaxespad=0)
-    axes[-1, 0].set_xlabel("episode")
-    fig.suptitle("Closed-loop performance per episode")
+            ax_eval.axhline(summary["J_initial"], color="tab:green", ls=":", lw=1.2,
+                            label=r"$J(\theta_0)$ (no $J^\star$ in this run)")  # fmt: skip
+        else:
+            _note(ax_eval, "no J* in this run")
+        _log_if_positive(ax_eval, np.r_[e["J_eval_deployed"].to_numpy(float), J_star or np.nan])
+        ax_eval.set_ylabel(rf"{label}: $J_{{eval}}$")
+        ax_eval.legend(loc="best", fontsize=7, framealpha=0.85)
+    starts = f"{n_eval} fixed evaluation starts" if n_eval else "fixed evaluation starts"
+    axes[0, 0].set_title(r"training: $\tilde J$ = f1 (discounted, with exploration, "
+                         "training starts)", fontsize=9)  # fmt: skip
+    axes[0, 1].set_title(rf"evaluation: $J_{{eval}}$ (undiscounted, no exploration, {starts})",
+                         fontsize=9)  # fmt: skip
+    for ax in axes[-1]:
+        ax.set_xlabel("episode")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    fig.suptitle("Closed-loop performance per episode, each curve against its own reference")
     return fig
 
 
-def fig2(ep: pd.DataFrame, learners: list[str]) -> Figure:
-    """Fig. 2: mean |A^w| per episode, and the MOBO observations with their Pareto front."""
-    fig = Figure(figsize=(11, 4.2))
-    _advantage_panel(fig.add_subplot(1, 2, 1), ep, learners)
+def fig2(ep: pd.DataFrame, learners: list[str], window: int = 1) -> Figure:
+    """Fig. 2: mean |A^w| per episode (and its mean over ``window`` episodes), and the MOBO
+    observations with their Pareto front."""
+    fig = Figure(figsize=(12, 4.4), layout="constrained")
+    _advantage_panel(fig.add_subplot(1, 2, 1), ep, learners, window)
     _pareto_panel(fig, fig.add_subplot(1, 2, 2, projection="3d"), ep, learners)
     return fig
 
 
-def _advantage_panel(ax: Axes, ep: pd.DataFrame, learners: list[str]) -> None:
-    """Mean |A^w| per episode of the critic-based learners (median and IQR over seeds)."""
+def _advantage_panel(ax: Axes, ep: pd.DataFrame, learners: list[str], window: int = 1) -> None:
+    """Mean |A^w| per episode of the critic-based learners (median and IQR over seeds); with
+    ``window > 1`` the per-episode median is drawn faint and the mean over ``window`` episodes
+    (median and IQR over seeds) on top."""
     shown = [n for n in ("mpc-rl", "mobo") if n in learners] or learners
     for name in shown:
         d = ep[ep.learner == name]
-        _curve(ax, d, "mean_abs_A", COLORS.get(name, "tab:orange"), LABELS.get(name, name),
-               d.seed.nunique(), lw=1)  # fmt: skip
+        ns, c, label = d.seed.nunique(), COLORS.get(name, "tab:orange"), LABELS.get(name, name)
+        if window > 1:
+            each = "per episode" + (" (median)" if ns > 1 else "")
+            _curve(ax, d, "mean_abs_A", c, f"{label}: {each}", ns, band=False, lw=0.6, alpha=0.4)
+            m = moving_mean(d, "mean_abs_A", window)
+            none = "" if m["mean_abs_A_mean"].notna().any() else ": none yet"
+            _curve(ax, m, "mean_abs_A_mean", c,
+                   f"{label}: mean of {window} episodes ({seeds_note(ns)}){none}", ns, lw=1.6)  # fmt: skip
+        else:
+            _curve(ax, d, "mean_abs_A", c, f"{label} ({seeds_note(ns)})", ns, lw=1)
     ax.set_xlabel("episode")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(r"mean $|A^{w}|$")
-    vals = ep.loc[ep.learner.isin(shown), "mean_abs_A"].to_numpy(float)
-    if np.any(np.isfinite(vals)) and np.nanmin(vals) > 0:
-        ax.set_yscale("log")
-    ax.legend(fontsize=8)
+    _log_if_positive(ax, ep.loc[ep.learner.isin(shown), "mean_abs_A"])
+    ax.legend(loc="best", fontsize=7, framealpha=0.85)
 
 
 def _pareto_panel(fig: Figure, ax3: Axes3D, ep: pd.DataFrame, learners: list[str]) -> None:
     """The observed objectives (f1, f2, f4, or f3 without f4) of the first seed of MOBO (else
-    the last learner), with their Pareto front."""
+    the last learner), with their Pareto front (a front is one seed's: the title says which)."""
     src = "mobo" if "mobo" in learners else learners[-1]
     d = ep[ep.learner == src]
-    d = d[d.seed == d.seed.min()]
+    n_seeds, seed = d.seed.nunique(), d.seed.min()
+    d = d[d.seed == seed]
     cols = ["f1", "f2", "f4"] if np.isfinite(d["f4"]).any() else ["f1", "f2", "f3"]
     Y = d[cols].to_numpy(float)
     ok = np.all(np.isfinite(Y), axis=1)
@@ -136,7 +266,8 @@ def _pareto_panel(fig: Figure, ax3: Axes3D, ep: pd.DataFrame, learners: list[str
     ax3.set_ylabel(labels[1])
     ax3.set_zlabel(labels[2])
     ax3.set_box_aspect(None, zoom=0.85)  # room for the z label
-    ax3.set_title(f"Pareto front of the {LABELS.get(src, src)} observations", fontsize=9)
+    of = f", seed {seed} of {n_seeds}" if n_seeds > 1 else ""
+    ax3.set_title(f"Pareto front of the {LABELS.get(src, src)} observations{of}", fontsize=9)
 
 
 def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str) -> Figure:
@@ -144,7 +275,7 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str) -> Figur
     ref = info["x_ref"] if kind == "x" else info["u_ref"]
     lb = info["x_lb"] if kind == "x" else info["u_lb"]
     ub = info["x_ub"] if kind == "x" else info["u_ub"]
-    fig = Figure(figsize=(7, 2.2 * len(names)))
+    fig = Figure(figsize=(7, 2.2 * len(names) + 0.8), layout="constrained")
     axes = fig.subplots(len(names), 1, sharex=True, squeeze=False)
     initial = tr[(tr.phase == "initial")]
     learning = tr[(tr.phase == "learning") & (tr.learner == learner)]
@@ -161,14 +292,17 @@ def _traj_figure(tr: pd.DataFrame, info: dict, learner: str, kind: str) -> Figur
             if lim is not None and np.isfinite(lim):
                 ax.axhline(lim, color="red", ls="--", lw=1)
         ax.set_ylabel(n)
+    n_learn, n_final = learning.seed.nunique(), final.seed.nunique()
+    of = f": median and IQR of {n_final} seeds, per start" if n_final > 1 else ""
+    learning_label = "during learning" + (f" ({n_learn} seeds)" if n_learn > 1 else "")
     handles = [
-        Line2D([], [], color="tab:green", label="imperfect MPC"),
-        Line2D([], [], color="grey", label="during learning"),
-        Line2D([], [], color="tab:blue", label=f"learned MPC ({LABELS.get(learner, learner)})"),
+        Line2D([], [], color="tab:green", label="imperfect MPC (theta0)"),
+        Line2D([], [], color="grey", label=learning_label),
+        Line2D([], [], color="tab:blue", label=f"learned MPC ({LABELS.get(learner, learner)}{of})"),
         Line2D([], [], color="tab:orange", ls="--", label="reference"),
         Line2D([], [], color="red", ls="--", label="limits"),
     ]
-    axes[0, 0].legend(handles=handles, fontsize=7, loc="upper right", ncol=2)
+    fig.legend(handles=handles, fontsize=7, loc="outside lower center", ncol=3)
     axes[-1, 0].set_xlabel("time [min]" if info.get("name") == "cstr" else "time")
     fig.suptitle("States" if kind == "x" else "Control inputs")
     return fig
@@ -204,7 +338,7 @@ def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:
     out = run_dir / "figures"
     out.mkdir(exist_ok=True)
     paths = _save(fig1(ep, summary, learners), out, FIGURES[0])
-    paths += _save(fig2(ep, learners), out, FIGURES[1])
+    paths += _save(fig2(ep, learners, reference_window(summary)), out, FIGURES[1])
     paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2])
     paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3])
     return paths

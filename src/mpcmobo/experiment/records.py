@@ -140,12 +140,41 @@ class Checkpoint:
         return np.asarray(self.rows[-1].incumbent, dtype=float) if self.rows else None
 
 
+@dataclass(frozen=True)
+class TrainingReference:
+    """The like-for-like reference of the training curve J~ (f1, eq. cl_perf) for one seed:
+    f1 of ``len(J_tilde)`` episodes of the perfect-model MPC (theta0) from the same initial
+    states ``x0`` and with the same exploration noise as the first episodes of every learner
+    of that seed (:func:`mpcmobo.experiment.study.training_reference`). Its mean is J~* of the
+    seed."""
+
+    seed: int
+    J_tilde: list[float]
+    x0: list[list[float]]
+
+    @property
+    def mean(self) -> float:
+        """J~* of the seed: the mean f1 of its episodes (NaN if one diverged)."""
+        return float(np.mean(self.J_tilde)) if self.J_tilde else math.nan
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TrainingReference:
+        """From :meth:`to_dict`'s plain dict."""
+        return cls(int(d["seed"]), [float(v) for v in d["J_tilde"]], [list(x) for x in d["x0"]])
+
+    def to_dict(self) -> dict[str, Any]:
+        """A plain dict (stored in ``reference.pkl``)."""
+        return {"seed": self.seed, "J_tilde": list(self.J_tilde), "x0": list(self.x0)}
+
+
 @dataclass
 class Reference:
     """The study-level reference (``reference.pkl``), computed once per study: J* (the
     perfect-model MPC with theta0), J_eval(theta0), their evaluation episodes and what the
     figures need to know about the system (``study.system_info``). Without a reference model
-    ``J_star`` is None and ``J_star_missing`` says why."""
+    ``J_star`` is None and ``J_star_missing`` says why. ``training``: the like-for-like reference
+    of the training curve, one :class:`TrainingReference` per seed (empty in runs made before it
+    existed, or without a reference model)."""
 
     J_star: float | None
     J_initial: float
@@ -154,6 +183,7 @@ class Reference:
     trajectories: list[Trajectory] = field(default_factory=list)
     wall_time_s: float | None = None
     J_star_missing: str | None = None
+    training: list[TrainingReference] = field(default_factory=list)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Reference:
@@ -166,6 +196,7 @@ class Reference:
             trajectories=[Trajectory.from_dict(t) for t in d.get("trajectories", [])],
             wall_time_s=d.get("wall_time_s"),
             J_star_missing=d.get("J_star_missing"),
+            training=[TrainingReference.from_dict(t) for t in d.get("training", [])],
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -178,4 +209,5 @@ class Reference:
             "trajectories": [t.to_dict() for t in self.trajectories],
             "wall_time_s": self.wall_time_s,
             "J_star_missing": self.J_star_missing,
+            "training": [t.to_dict() for t in self.training],
         }

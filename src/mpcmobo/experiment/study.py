@@ -30,6 +30,7 @@ from mpcmobo.experiment.logs import count_warnings, run_log
 from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
 from mpcmobo.experiment.settings import Settings, SettingsError, build_plant, build_system
+from mpcmobo.experiment.training_reference import training_references, training_summary
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import is_registered, system_factory
@@ -96,6 +97,8 @@ def compute_reference(settings: Settings) -> Reference:
         trajectories += [
             Trajectory(phase, -1, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
         ]
+    # J~*, like for like (issue 15): needs the perfect model
+    training = training_references(settings, system) if evaluator.has_J_star else []
     return Reference(
         J_star=values.get("perfect"),
         J_initial=values["initial"],
@@ -104,6 +107,7 @@ def compute_reference(settings: Settings) -> Reference:
         trajectories=trajectories,
         wall_time_s=time.perf_counter() - t0,
         J_star_missing=None if evaluator.has_J_star else no_J_star_reason(system),
+        training=training,
     )
 
 
@@ -234,6 +238,7 @@ def write_records(
     wall = {(c["learner"], c["seed"]): c["wall_time_s"] for c in ckpts}
     summary = summarize(settings, reference, df, wall)
     summary["reference_wall_time_s"] = reference.wall_time_s
+    summary.update(training_summary(reference))
     summary["warnings"] = count_warnings(out)
     storage.write_json(out / "summary.json", summary)
     return summary
