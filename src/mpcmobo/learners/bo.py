@@ -442,8 +442,14 @@ class _GPLearner(Learner):
     def _fit_data(self) -> tuple[np.ndarray, np.ndarray]:
         """Inputs (z, c) and outputs (objectives, and the violation if constrained)."""
         X = np.hstack([self.Z_, self.C_])
-        Y = self.Y_ if self.violation_budget is None else np.hstack([self.Y_, self.V_[:, None]])
-        return X, Y
+        if self.violation_budget is None:
+            return X, self.Y_
+        # an unknown violation (NaN: not reported) does not cost the episode's objectives: it
+        # counts as the largest violation seen so far (0 if none), pessimistically
+        V = self.V_
+        worst = float(np.max(V[np.isfinite(V)])) if np.any(np.isfinite(V)) else 0.0
+        V = np.where(np.isfinite(V), V, worst)
+        return X, np.hstack([self.Y_, V[:, None]])
 
     def _auto_budget(self) -> float:
         """``violation_budget = "auto"``: a multiple of theta0's expected violation over the
