@@ -235,8 +235,10 @@ def test_mobo_halves_its_ehvi_search_after_reduce_effort_after(cstr, monkeypatch
 
     monkeypatch.setattr(bo_module, "propose_ehvi", fake_ehvi)
     space = cstr.search_space
+    # the non-contextual EHVI path (the old defaults); the contextual one calls search_effort
+    # through _safe_effort
     mobo = make_learner("mobo", space, cstr.parameterization.theta0, n_init=2,
-                        reduce_effort_after=4)  # fmt: skip
+                        reduce_effort_after=4, **OLD_RULE)  # fmt: skip
     for k in range(6):
         th = mobo.propose()
         mobo.observe(th, _result([1000.0 + 100 * k, 10.0 - k, k % 2, 0]))
