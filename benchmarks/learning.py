@@ -37,9 +37,10 @@ def _median_episodes(values: list) -> str:
     return "-" if not np.isfinite(m) else f"{m:g}"
 
 
-def table(outs: list[Path]) -> str:
+def table(outs: list[Path], only_seeds: list[int] | None = None) -> str:
     """One markdown row per learner; with several run directories (same J*) the seeds of a
-    learner are pooled, in the order given."""
+    learner are pooled, in the order given. ``only_seeds``: only these seeds (e.g. the
+    complete seeds of a run that was stopped)."""
     summaries = [json.loads((out / "summary.json").read_text()) for out in outs]
     J_star = summaries[0]["J_star"]
     if any(not np.isclose(s["J_star"], J_star) for s in summaries):
@@ -62,17 +63,21 @@ def table(outs: list[Path]) -> str:
             for s in summaries
             if name in s["learners"]
             for k in sorted(s["learners"][name]["per_seed"], key=int)
+            if only_seeds is None or int(k) in only_seeds
         ]
         to5 = [p["episodes_to_5pct"] for p in per]
         to2 = [p["episodes_to_2pct"] for p in per]
         ratio = [p["J_final"] / J_star if p["J_final"] is not None else np.nan for p in per]
         d = df[df["learner"] == name]
+        if only_seeds is not None:
+            d = d[d["seed"].isin(only_seeds)]
         J0 = summaries[0]["J_initial"]
         seeds = [
             int(k)
             for s in summaries
             if name in s["learners"]
             for k in sorted(s["learners"][name]["per_seed"], key=int)
+            if only_seeds is None or int(k) in only_seeds
         ]
         worst, regress, vmax = [], 0, []
         for seed in seeds:
@@ -118,6 +123,9 @@ def main() -> None:
         help="run directory; with --table-only, several directories pool their seeds",
     )
     ap.add_argument("--table-only", action="store_true", help="only print the table of --out")
+    ap.add_argument(
+        "--only-seeds", type=int, nargs="+", default=None, help="table: only these seeds"
+    )
     args = ap.parse_args()
     if any(name.startswith("optuna-") for name in args.learners):
         from optuna_learners import register  # benchmarks/ is on sys.path when run as a script
@@ -140,7 +148,7 @@ def main() -> None:
         )
         resume = (args.out[0] / "config.toml").exists()
         run_study(None if resume else settings, args.out[0], resume=resume)
-    print(table(args.out))
+    print(table(args.out, args.only_seeds))
 
 
 if __name__ == "__main__":

@@ -216,5 +216,84 @@ def test_safe_design_starts_from_theta0_outward(cstr, spec):
     np.testing.assert_array_equal(safe.design[0], z0)
     assert np.max(np.abs(safe.design - z0)) <= 0.1 + 1e-12
     np.testing.assert_array_equal(safe.incumbent(), theta0)  # exactly theta0, no round trip
-    plain = make_learner("mobo", space, theta0, n_init=5)
+    # without a budget (off: the default has one since session 5) the whole cube
+    plain = make_learner("mobo", space, theta0, n_init=5, violation_budget="off")
     assert np.max(np.abs(plain.design - z0)) > 0.3
+
+
+def test_deploy_rule_verifies_a_candidate_before_it_deploys_it(rng):
+    """deploy_min_runs: a better candidate with too few runs is proposed for verification,
+    not deployed; with enough runs it is deployed, unless one of its own episodes did worse
+    than the deployed theta would have from the same start (the paired check)."""
+    sur, _, _ = _surrogate(rng, log=(True, True))
+    C = np.linspace(0, 1, 4)[:, None]
+    lo, hi = np.array([0.05, 0.5]), np.array([0.95, 0.5])
+    rule = DeployRule(kappa=0.0, deploy_confidence=0.9, min_runs=3)
+    Z = np.vstack([lo, hi])
+    d = rule.decide(sur, Z, hi, C, None, 0, runs=lambda z: 2)
+    np.testing.assert_array_equal(d.deployed, hi)
+    np.testing.assert_array_equal(d.verify, lo)
+    d = rule.decide(sur, Z, hi, C, None, 0, runs=lambda z: 3)
+    np.testing.assert_array_equal(d.deployed, lo)
+    assert d.verify is None
+    d = rule.decide(sur, Z, hi, C, None, 0, runs=lambda z: 3, paired=lambda z, c: False)
+    np.testing.assert_array_equal(d.deployed, hi)
+    assert d.verify is None
+    # choose() (used by MPC-RL) keeps its old meaning: no run count, no paired check
+    np.testing.assert_array_equal(rule.choose(sur, Z, hi, C, None, 0), lo)
+    with pytest.raises(ValueError, match="deploy_min_runs"):
+        DeployRule(min_runs=0)
+
+
+def test_gp_learners_deploy_only_thetas_run_deploy_min_runs_times(cstr, spec):
+    """At the defaults, a theta is deployed only after verification episodes: the learner
+    records them ("verify" in proposal_kinds_), and the deployed theta was run at least
+    deploy_min_runs (3) times, each episode better than theta0's."""
+    space, theta0 = cstr.search_space, cstr.parameterization.theta0
+    small = {k: v for k, v in SMALL.items() if k != "n_init"}
+    lr = make_learner("bo", space, theta0, seed=0, contexts=spec, n_init=4, **small)
+    rng = np.random.default_rng(0)
+    z0 = space.to_unit(theta0)
+    f1_of = {}
+    for _ in range(16):
+        th = lr.propose()
+        z = space.to_unit(space.clip(th))
+        # theta0's cost 1000; far better away from theta0 (a clear signal), same start noise
+        f1 = 1000.0 * np.exp(-4 * np.linalg.norm(z - z0) + 0.05 * rng.normal())
+        f1_of.setdefault(np.round(z, 9).tobytes(), []).append(f1)
+        res = EpisodeResult(np.array([f1, 1, 0, 0]), np.zeros(14), True, x0=cstr.x0_lb)
+        res.violation = 0.0
+        lr.observe(th, res)
+    assert "verify" in lr.proposal_kinds_ and lr.n_verifications >= 2
+    inc = space.to_unit(lr.incumbent())
+    assert not np.allclose(lr.incumbent(), theta0)  # it did learn
+    assert len(f1_of[np.round(inc, 9).tobytes()]) >= 3
+
+
+def test_runs_from_before_the_safe_defaults_resume_with_the_old_defaults(cstr, spec):
+    """A learner state written before session 5 (no "design" key) was made with the old
+    defaults: options left at their defaults take the old values; options set explicitly
+    keep theirs. New states keep the new defaults."""
+    space, theta0 = cstr.search_space, cstr.parameterization.theta0
+    new = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL)
+    assert new.safe_mode and new.context == "x0" and new.deploy_rule.min_runs == 3
+    state = new.state_dict()
+    again = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL)
+    again.load_state_dict(state)
+    assert again.context == "x0" and again.deploy_rule.deploy_confidence == 0.9
+    state.pop("design")
+    old = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL)
+    old.load_state_dict(state)
+    assert not old.safe_mode and old.context == "none" and old.violation_budget is None
+    assert old.deploy_rule.deploy_confidence is None and old.deploy_rule.min_runs == 1
+    explicit = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL, **SAFE)
+    explicit.load_state_dict(state)
+    assert explicit.context == "x0" and explicit.deploy_rule.deploy_confidence == 0.9
+    assert explicit.deploy_rule.min_runs == 1  # did not exist before: its old value
+
+
+def test_the_old_behaviour_is_reachable_by_options(cstr, spec):
+    space, theta0 = cstr.search_space, cstr.parameterization.theta0
+    off = {"context": "none", "violation_budget": "off", "deploy_confidence": 0.0}
+    lr = make_learner("mobo", space, theta0, contexts=spec, deploy_min_runs=1, **off)
+    assert not lr.safe_mode and lr.violation_budget is None

@@ -142,6 +142,9 @@ def test_learner_lowers_f1_on_short_cstr_run(cstr, cstr_mpc, name):
         assert offsets[0][0] == pytest.approx(-offsets[1][0]) and offsets[0][0] != 0
 
 
+OLD_RULE = {"violation_budget": "off", "deploy_confidence": 0.0, "deploy_min_runs": 1}
+
+
 def test_incumbent_prefers_supported_points_when_risk_averse(cstr):
     """Ten noisy episodes of one theta (z = 0.3) against one lucky episode elsewhere: with
     kappa = 0 the incumbent is the lowest predicted f1, with kappa = 3 the well-supported
@@ -153,7 +156,10 @@ def test_incumbent_prefers_supported_points_when_risk_averse(cstr):
     f1 = np.r_[1000 * np.exp(0.5 * rng.normal(size=10)), 700.0]
     picks = {}
     for kappa in (0.0, 3.0):
-        bo = make_learner("bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa)
+        # the old incumbent rule (no deployment rule: the safe default needs runs and evidence)
+        bo = make_learner(
+            "bo", space, cstr.parameterization.theta0, incumbent_kappa=kappa, **OLD_RULE
+        )
         for z, f in zip(Z, f1, strict=True):
             bo.observe(space.from_unit(z, base=bo.theta0), _result([f, 0, 0, 0]))
         picks[kappa] = space.to_unit(bo.incumbent())
@@ -229,8 +235,10 @@ def test_mobo_halves_its_ehvi_search_after_reduce_effort_after(cstr, monkeypatch
 
     monkeypatch.setattr(bo_module, "propose_ehvi", fake_ehvi)
     space = cstr.search_space
+    # the non-contextual EHVI path (the old defaults); the contextual one calls search_effort
+    # through _safe_effort
     mobo = make_learner("mobo", space, cstr.parameterization.theta0, n_init=2,
-                        reduce_effort_after=4)  # fmt: skip
+                        reduce_effort_after=4, **OLD_RULE)  # fmt: skip
     for k in range(6):
         th = mobo.propose()
         mobo.observe(th, _result([1000.0 + 100 * k, 10.0 - k, k % 2, 0]))

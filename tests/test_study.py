@@ -52,8 +52,16 @@ def test_records_layout_and_eval_policy(full_run):
         assert col in df.columns
     s0 = df[df.seed == 0].set_index("episode")
     evaluated = sorted(s0.index[np.isfinite(s0["J_eval_incumbent"])])
-    # the MPC-RL incumbent changes every episode: evaluated at 0, every 3, and the last
-    assert evaluated == [0, 3, 6]
+    # evaluated at 0, at the last episode, and where the deployed theta differs from the last
+    # evaluated one with at least eval_every = 3 episodes since (MPC-RL deploys its best
+    # verified iterate, so it need not change every episode)
+    expected, last = [0], 0
+    inc = [np.asarray(v, float) for v in s0["incumbent"]]
+    for ep in range(1, 7):
+        if ep == 6 or (not np.array_equal(inc[ep], inc[last]) and ep - last >= 3):
+            expected.append(ep)
+            last = ep
+    assert evaluated == expected
     assert [e for e in events if e["kind"] == "episode"][-1]["episode"] == 7
     tr = storage.read_trajectories(out)
     assert set(tr.phase) == {"initial", "perfect", "learning", "final"}

@@ -19,32 +19,60 @@ excluded every theta including theta0's neighbours, and the learner re-ran theta
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
-from mpcmobo.bo.context import expected_outcome_samples
+from mpcmobo.bo.context import expected_outcome_means, expected_outcome_samples
 from mpcmobo.bo.surrogate import GPSurrogate
 
 BUDGET_FACTOR = 2.0  # default budget: this multiple of theta0's own violation (+ floor)
 
 
 @dataclass(frozen=True)
+class Decision:
+    """The outcome of the deployment rule after a fit: the deployed theta (unit cube), and a
+    candidate to run again as a verification episode (None: nothing to verify)."""
+
+    deployed: np.ndarray
+    verify: np.ndarray | None = None
+
+
+def theta_key(z: np.ndarray) -> bytes:
+    """Identity of a unit-cube theta up to the round trip through theta (1e-9)."""
+    return np.round(np.asarray(z, float), 9).tobytes()
+
+
+@dataclass(frozen=True)
 class DeployRule:
-    """Options of the deployment and safety rules (see the module docstring)."""
+    """Options of the deployment and safety rules (see the module docstring).
+
+    ``min_runs`` (``deploy_min_runs``): a candidate is deployed only once it has been run on at
+    least that many starts; a promising candidate with fewer runs (more likely better than the
+    deployed theta than not) is proposed again, as a verification episode. ``shortlist``: the
+    number of best candidates by the cheap first pass (posterior means,
+    :func:`~mpcmobo.bo.context.expected_outcome_means`) that are judged by joint samples.
+    """
 
     kappa: float = 1.0
     deploy_confidence: float | None = None
     safety_confidence: float = 0.9
     n_samples: int = 128
+    min_runs: int = 1
+    shortlist: int = 8
 
     def __post_init__(self) -> None:
         if self.deploy_confidence is not None and not 0.5 <= self.deploy_confidence < 1:
             raise ValueError(
-                f"deploy_confidence must be in [0.5, 1) or None, got {self.deploy_confidence}"
+                f"deploy_confidence must be in [0.5, 1), or 0 or unset (the old rule), got "
+                f"{self.deploy_confidence}"
             )
         if not 0.5 <= self.safety_confidence < 1:
             raise ValueError(f"safety_confidence must be in [0.5, 1), got {self.safety_confidence}")
+        if self.min_runs < 1:
+            raise ValueError(f"deploy_min_runs must be at least 1, got {self.min_runs}")
 
     def safe(self, samples: np.ndarray, budget: float | None) -> np.ndarray:
         """(n,) True where the expected violation's upper quantile is within the budget
@@ -59,6 +87,26 @@ class DeployRule:
         f1 = samples[:, :, 0]
         return f1.mean(axis=0) + self.kappa * f1.std(axis=0)
 
+    def shortlisted(
+        self,
+        surrogate: GPSurrogate,
+        Z: np.ndarray,
+        current: np.ndarray,
+        contexts: np.ndarray,
+        budget: float | None,
+    ) -> np.ndarray:
+        """The cheap first pass: the ``shortlist`` rows of ``Z`` with the lowest expected f1
+        (posterior means) among those not surely unsafe, and ``current``."""
+        E, U = expected_outcome_means(
+            surrogate, Z, contexts, quantile=None if budget is None else 0.5
+        )
+        score = E[:, 0].copy()
+        if budget is not None:  # the median bound: points far over the budget drop out here
+            score[U[:, -1] > budget] = np.inf  # type: ignore[index]  # a quantile was asked
+        keep = np.argsort(score, kind="stable")[: self.shortlist]
+        keep = keep[np.isfinite(score[keep])]
+        return np.unique(np.vstack([Z[keep], current[None, :]]), axis=0)
+
     def choose(
         self,
         surrogate: GPSurrogate,
@@ -69,20 +117,51 @@ class DeployRule:
         seed: int,
     ) -> np.ndarray:
         """The deployed unit-cube theta after a fit: ``current`` unless a safe observed theta
-        in ``Z`` is confidently better (or ``deploy_confidence`` is None: the best safe one)."""
+        in ``Z`` is confidently better (or ``deploy_confidence`` is None: the best safe one);
+        :meth:`decide` without ``min_runs`` and the paired check."""
+        rule = self if self.min_runs == 1 else replace(self, min_runs=1)
+        return rule.decide(surrogate, Z, current, contexts, budget, seed).deployed
+
+    def decide(
+        self,
+        surrogate: GPSurrogate,
+        Z: np.ndarray,
+        current: np.ndarray,
+        contexts: np.ndarray,
+        budget: float | None,
+        seed: int,
+        runs: Callable[[np.ndarray], int] | None = None,
+        paired: Any = None,
+    ) -> Decision:
+        """:meth:`choose` with the evidence rules: the deployed theta and a candidate to verify.
+
+        ``runs(z) -> int``: how many episodes ``z`` has had (for ``min_runs``);
+        ``paired(z, current) -> bool``: the like-for-like check on ``z``'s own episodes (each
+        observed cost against ``current``'s prediction at the same start); candidates that
+        fail it are not considered (neither deployed nor verified). Both optional.
+        """
         Z = np.unique(np.atleast_2d(Z), axis=0)
         if len(Z) == 0:
-            return current
+            return Decision(current)
+        if self.deploy_confidence is not None and len(Z) > self.shortlist:
+            Z = self.shortlisted(surrogate, Z, current, contexts, budget)
+        if self.deploy_confidence is not None and paired is not None:
+            # a candidate one of whose own episodes did worse than the deployed theta would
+            # have done from the same start is out: one bad start is evidence enough
+            keep = [theta_key(z) == theta_key(current) or paired(z, current) for z in Z]
+            Z = Z[np.asarray(keep, dtype=bool)]
+            if len(Z) == 0:
+                return Decision(current)
         S = expected_outcome_samples(surrogate, Z, contexts, n_samples=self.n_samples, seed=seed)
         ok = self.safe(S, budget)
         if not ok.any():
-            return current
+            return Decision(current)
         score = np.where(ok, self.score(S), np.inf)
         best = Z[int(np.argmin(score))]
-        if np.array_equal(best, current):
-            return current
+        if theta_key(best) == theta_key(current):
+            return Decision(current)
         if self.deploy_confidence is None:
-            return best.copy()
+            return Decision(best.copy())
         J = expected_outcome_samples(
             surrogate,
             np.vstack([best, current]),
@@ -92,7 +171,27 @@ class DeployRule:
             joint=True,
         )[:, :, 0]
         p = float(np.mean(J[:, 0] < J[:, 1]))
-        return best.copy() if p >= self.deploy_confidence else current
+        n_runs = self.min_runs if runs is None else int(runs(best))
+        if n_runs < self.min_runs:  # promising but not yet replicated: run it again
+            return Decision(current, best.copy() if p >= 0.5 else None)
+        if p < self.deploy_confidence or not self.dominates(surrogate, best, current, contexts):
+            return Decision(current)
+        return Decision(best.copy())
+
+    @staticmethod
+    def dominates(
+        surrogate: GPSurrogate, new: np.ndarray, current: np.ndarray, contexts: np.ndarray
+    ) -> bool:
+        """True when the posterior mean of f1 at ``new`` is no worse than at ``current`` from
+        every one of the contexts: a theta better on average but predicted worse from some
+        starts (on the CSTR: the lower steady-state branch) is not deployed."""
+        C = np.asarray(contexts, float)
+        if C.ndim != 2 or C.shape[1] == 0:
+            return True
+        K = len(C)
+        X = np.vstack([np.hstack([np.repeat(z[None, :], K, axis=0), C]) for z in (new, current)])
+        mt, _ = surrogate.posterior_model_space(X)
+        return bool(np.all(mt[:K, 0] >= mt[K:, 0]))  # model space is maximised
 
 
 def default_budget(theta0_violation: float, floor: float) -> float:
