@@ -233,3 +233,12 @@ def test_unsendable_system_factory_is_a_study_error(tmp_path):
     register_system("lambda-lq", lambda **o: make_lq(**o), overwrite=True)
     with pytest.raises(StudyError, match="cannot be sent to worker processes"):
         run_study(small(system={"name": "lambda-lq"}, episodes=2, workers=2), tmp_path / "x")
+
+
+def test_evaluation_schedule_every_eval_every_when_the_incumbent_changes():
+    from mpcmobo.experiment.job import EvaluationSchedule
+
+    changing = EvaluationSchedule(episodes=7, eval_every=3, trajectory_every=3)
+    assert [e for e in range(7) if changing.step(e, np.array([float(e)]))] == [0, 3, 6]
+    fixed = EvaluationSchedule(episodes=7, eval_every=3, trajectory_every=3)
+    assert [e for e in range(7) if fixed.step(e, np.zeros(1))] == [0, 6]
