@@ -246,12 +246,12 @@ def test_deploy_rule_verifies_a_candidate_before_it_deploys_it(rng):
 
 
 def test_gp_learners_deploy_only_thetas_run_deploy_min_runs_times(cstr, spec):
-    """At the defaults, a theta is deployed only after verification episodes: the learner
+    """With the safe options, a theta is deployed only after verification episodes: the learner
     records them ("verify" in proposal_kinds_), and the deployed theta was run at least
-    deploy_min_runs (3) times, each episode better than theta0's."""
+    deploy_min_runs (3, its default) times, each episode better than theta0's."""
     space, theta0 = cstr.search_space, cstr.parameterization.theta0
     small = {k: v for k, v in SMALL.items() if k != "n_init"}
-    lr = make_learner("bo", space, theta0, seed=0, contexts=spec, n_init=4, **small)
+    lr = make_learner("bo", space, theta0, seed=0, contexts=spec, n_init=4, **small, **SAFE)
     rng = np.random.default_rng(0)
     z0 = space.to_unit(theta0)
     f1_of = {}
@@ -270,26 +270,26 @@ def test_gp_learners_deploy_only_thetas_run_deploy_min_runs_times(cstr, spec):
     assert len(f1_of[np.round(inc, 9).tobytes()]) >= 3
 
 
-def test_runs_from_before_the_safe_defaults_resume_with_the_old_defaults(cstr, spec):
-    """A learner state written before session 5 (no "design" key) was made with the old
-    defaults: options left at their defaults take the old values; options set explicitly
-    keep theirs. New states keep the new defaults."""
+def test_runs_from_before_session_5_resume_with_the_values_of_their_time(cstr, spec):
+    """The safe design is off by default. Switched on, it uses deploy_min_runs = 3 (and
+    n_contexts = 8); a learner state written before session 5 (no "design" key) resumes with
+    the values of that time for the options it left at their defaults (deploy_min_runs 1),
+    while options set explicitly keep theirs."""
     space, theta0 = cstr.search_space, cstr.parameterization.theta0
-    new = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL)
+    plain = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL)
+    assert not plain.safe_mode and plain.context == "none" and plain.violation_budget is None
+    assert plain.deploy_rule.deploy_confidence is None
+    new = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL, **SAFE)
     assert new.safe_mode and new.context == "x0" and new.deploy_rule.min_runs == 3
     state = new.state_dict()
-    again = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL)
+    again = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL, **SAFE)
     again.load_state_dict(state)
-    assert again.context == "x0" and again.deploy_rule.deploy_confidence == 0.9
+    assert again.context == "x0" and again.deploy_rule.min_runs == 3
     state.pop("design")
-    old = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL)
+    old = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL, **SAFE)
     old.load_state_dict(state)
-    assert not old.safe_mode and old.context == "none" and old.violation_budget is None
-    assert old.deploy_rule.deploy_confidence is None and old.deploy_rule.min_runs == 1
-    explicit = make_learner("mobo", space, theta0, seed=1, contexts=spec, **SMALL, **SAFE)
-    explicit.load_state_dict(state)
-    assert explicit.context == "x0" and explicit.deploy_rule.deploy_confidence == 0.9
-    assert explicit.deploy_rule.min_runs == 1  # did not exist before: its old value
+    assert old.context == "x0" and old.deploy_rule.deploy_confidence == 0.9
+    assert old.deploy_rule.min_runs == 1  # did not exist before: its old value
 
 
 def test_the_old_behaviour_is_reachable_by_options(cstr, spec):
