@@ -91,10 +91,6 @@ class _DefaultStr(str):
     the same value given explicitly): see :data:`LEGACY_DEFAULTS`."""
 
 
-class _DefaultFloat(float):
-    """As :class:`_DefaultStr`, for a number."""
-
-
 class _DefaultInt(int):
     """As :class:`_DefaultStr`, for an integer."""
 
@@ -131,14 +127,14 @@ DESIGN_VERSION = 2  # learner states of the safe-by-default design carry {"desig
 
 
 def _is_default(value: Any) -> bool:
-    return isinstance(value, (_DefaultStr, _DefaultFloat, _DefaultInt, _DefaultAny))
+    return isinstance(value, (_DefaultStr, _DefaultInt, _DefaultAny))
 
 
 def _plain(value: Any) -> Any:
     """The value of a default marker (as a plain str/float/int), or the value itself."""
     if isinstance(value, _DefaultAny):
         return value.value
-    for cls, base in ((_DefaultStr, str), (_DefaultFloat, float), (_DefaultInt, int)):
+    for cls, base in ((_DefaultStr, str), (_DefaultInt, int)):
         if isinstance(value, cls):
             return base(value)
     return value
@@ -259,8 +255,6 @@ class _GPLearner(Learner):
         }
         # the options left at their defaults (for resuming pre-session-5 checkpoints)
         self._defaulted = {k for k, v in safe.items() if _is_default(v)}
-        if context is CONTEXT_DEFAULT and contexts is None:
-            safe["context"] = "none"  # built outside a study without contexts: theta alone
         self._safe_options = {k: _plain(v) for k, v in safe.items()}
         self._safety_confidence = safety_confidence
         self._trust_radius = trust_radius
