@@ -6,13 +6,13 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
-from mpcmobo.experiment.settings import SettingsError, load_settings, validate_settings
+from mpcmobo.experiment.settings import load_settings, validate_settings
 from mpcmobo.experiment.study import check_learners
 
 PAPER = Path(__file__).parents[1] / "benchmarks" / "configs" / "paper.toml"
-# MPC-RL options of branch i11-rl (the paper's constant step rule, the iterate deployed), marked
-# PENDING in the file: refused by the learner until that branch is merged
-PENDING = {"optimizer": "gd", "deploy": "iterate"}
+# the paper's constant step rule in theta itself (eq. theta) with its step size, and the iterate
+# deployed (no judge)
+PAPER_RL = {"optimizer": "gd", "lr": 0.003, "deploy": "iterate"}
 
 
 def test_paper_config_loads_with_the_papers_protocol():
@@ -28,15 +28,10 @@ def test_paper_config_loads_with_the_papers_protocol():
 
 
 def test_paper_config_learner_options():
-    """Every learner accepts its options; the PENDING ones of MPC-RL are checked as soon as
-    the learner has them, and until then the learner refuses them by name."""
+    """Every learner accepts its options, and MPC-RL steps and deploys as the paper does."""
     data = tomllib.loads(PAPER.read_text())
     options = data["learner_options"]["mpc-rl"]
-    assert {k: options[k] for k in PENDING} == PENDING
-    try:
-        check_learners(validate_settings(data))
-    except SettingsError as err:
-        assert any(k in str(err) for k in PENDING), err
-        for k in PENDING:
-            del options[k]
-        check_learners(validate_settings(data))
+    assert {k: options[k] for k in PAPER_RL} == PAPER_RL
+    check_learners(validate_settings(data))
+    assert data["learner_options"]["bo"]["context"] == "none"
+    assert data["learner_options"]["mobo"]["context"] == "none"
