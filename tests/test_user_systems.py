@@ -16,7 +16,7 @@ from cstr_reference import fd_sensitivities
 from gymnasium.utils.env_checker import check_env
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from user_system_source import PLANT, SYSTEM
+from user_system_source import write_user_files
 
 import mpcmobo  # noqa: F401 - registers mpcmobo/CSTR-v0
 from mpcmobo.experiment import storage
@@ -37,11 +37,7 @@ from mpcmobo.systems.registry import describe_systems
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
-    d = tmp_path_factory.mktemp("user")
-    (d / "usersys.py").write_text(SYSTEM)
-    (d / "userplant.py").write_text(PLANT)
-    (d / "broken.py").write_text("def make_system(:\n")
-    return d
+    return write_user_files(tmp_path_factory.mktemp("user"))
 
 
 def lq_fields(**changes) -> dict:

@@ -16,7 +16,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 from typer.testing import CliRunner
-from user_system_source import PLANT, SYSTEM
+from user_system_source import write_user_files
 
 from mpcmobo.cli import app
 from mpcmobo.experiment import storage
@@ -28,11 +28,7 @@ GUARD_S = 240  # a hang guard, not a measurement
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
-    d = tmp_path_factory.mktemp("user")
-    (d / "usersys.py").write_text(SYSTEM)
-    (d / "userplant.py").write_text(PLANT)
-    (d / "broken.py").write_text("raise RuntimeError('this file does not import')\n")
-    return d
+    return write_user_files(tmp_path_factory.mktemp("user"))
 
 
 def run_args(spec: str, out: Path, workers: int, *extra: str) -> list[str]:
@@ -82,7 +78,7 @@ def test_a_system_in_a_file_runs_every_learner_on_two_workers_and_resumes(files,
     [
         ("nope_pkg.nope:make_system", None, "cannot import module 'nope_pkg.nope'"),
         ("{d}/missing.py:make_system", None, "file not found"),
-        ("{d}/broken.py:make_system", None, "RuntimeError: this file does not import"),
+        ("{d}/raises.py:make_system", None, "RuntimeError: this file does not import"),
         ("{d}/usersys.py:make_wrong_type", None, "returned dict, expected a mpcmobo.systems"),
         ("{d}/usersys.py:make_broadcast", None, "returns shape (1, 1), expected (2 states, 1)"),
         ("{d}/usersys.py:make_system", "{d}/userplant.py:make_env_3",

@@ -1,6 +1,8 @@
 """Sources of user-defined systems and plants that the tests write into temporary files
 (issue 12): a system is then found by its path, ``file.py:make_system``, as a user's would be."""
 
+from pathlib import Path
+
 SYSTEM = '''
 import casadi as ca
 import numpy as np
@@ -97,3 +99,18 @@ def make_env():
 def make_env_3():
     return Integrator(n_obs=3)
 '''
+
+
+BROKEN = {
+    "broken.py": "def make_system(:\n",  # a syntax error
+    "raises.py": "raise RuntimeError('this file does not import')\n",
+}
+
+
+def write_user_files(d: Path) -> Path:
+    """Write the system, the plant and the files that do not import into directory ``d``."""
+    (d / "usersys.py").write_text(SYSTEM)
+    (d / "userplant.py").write_text(PLANT)
+    for name, source in BROKEN.items():
+        (d / name).write_text(source)
+    return d
