@@ -70,8 +70,8 @@ def claim1(label: str, ep: pd.DataFrame, s: dict) -> list[str]:
     """Fig. 1: ranking and speed of the learners."""
     J, J0, Jt = s["J_star"], s["J_initial"], s.get("J_tilde_star")
     rows = [
-        f"**{label}** (J* = {J:.1f}, J_eval(theta0) = {J0:.0f} = {J0 / J:.2f} x J*"
-        + (f", J~* = {Jt:.1f}" if Jt else "")
+        f"**{label}** (J* = {J:.5g}, J_eval(theta0) = {J0:.5g} = {J0 / J:.2f} x J*"
+        + (f", J~* = {Jt:.5g}" if Jt else "")
         + ")",
         "",
         "| learner | seeds | episodes | final J_eval/J* median (worst) | best J_eval/J* median "
@@ -88,9 +88,8 @@ def claim1(label: str, ep: pd.DataFrame, s: dict) -> list[str]:
             ev = g["J_eval_incumbent"].dropna()
             final.append(g["J_dep"].iloc[-1] / J)
             best.append(ev.min() / J)
-            hits.append(
-                "/".join(str(first_within(g, (1 + p) * J) or "-") for p in (0.10, 0.05, 0.02))
-            )
+            firsts = [first_within(g, (1 + p) * J) for p in (0.10, 0.05, 0.02)]
+            hits.append("/".join("-" if e is None else str(e) for e in firsts))
             if Jt:
                 tail.append(np.nanmean(g["J_tilde"].iloc[-100:]) / Jt)
         n_ep = int(d.groupby("seed").episode.max().min()) + 1

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -262,3 +263,27 @@ def test_plot_errors(small_run, tmp_path):
 def test_pareto_mask():
     Y = np.array([[1.0, 2.0], [2.0, 1.0], [2.0, 2.0], [0.5, 3.0], [np.nan, 0.0], [1.0, 2.0]])
     assert pareto_mask(Y).tolist() == [True, True, False, True, False, True]
+
+
+def test_reproduction_tables_match_the_summary(small_run):
+    """benchmarks/reproduction.py (the tables of docs/reproduction.md): per learner, the final
+    J_eval/J* of its claim-1 row is the median over seeds of summary.json's J_final / J*, the
+    episode counts are summary.json's, and every claim prints a row per learner."""
+    import importlib.util
+
+    path = Path(__file__).parents[1] / "benchmarks" / "reproduction.py"
+    spec = importlib.util.spec_from_file_location("reproduction", path)
+    rep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rep)
+    ep, tr, summary = rep.load(small_run)
+    rows = {r.split(" | ")[0].lstrip("| "): r.split(" | ") for r in rep.claim1("x", ep, summary)}
+    for name in LEARNERS:
+        per_seed = summary["learners"][name]["per_seed"].values()
+        final = np.median([v["J_final"] / summary["J_star"] for v in per_seed])
+        assert rows[name][3].split(" ")[0] == f"{final:.2f}"
+        to2 = [v["episodes_to_2pct"] for v in per_seed]
+        cells = [c.split("/")[2] for c in rows[name][5].split(", ")]
+        assert cells == [str(v) if v is not None else "-" for v in to2]
+    for fn, data in ((rep.claim3, tr), (rep.claim4, ep)):
+        body = "\n".join(fn("x", data, summary))
+        assert all(name in body for name in LEARNERS)
