@@ -321,7 +321,9 @@ def test_state_dict_reproduces_next_proposal():
     np.testing.assert_array_equal(e1, e2)
 
 
-@pytest.mark.parametrize("opts", [{"method": "lognehvi"}, {"alpha": 0.01}, {"max_baseline": 2}])
+@pytest.mark.parametrize(
+    "opts", [{"method": "lognehvi"}, {"alpha": 0.01}, {"max_baseline": 2}, {"direct_samples": True}]
+)
 def test_ehvi_variants_propose_in_cube(opts):
     X = sobol(10, 2, seed=6)
     Y = branin_currin(X)

@@ -184,3 +184,86 @@ def test_front_pruning_against_greedy_contributions(front_surrogate, drop):
     hv_kept = moocore.hypervolume(C[kept], ref=r)
     hv_greedy = moocore.hypervolume(C[greedy], ref=r)
     assert hv_kept >= 0.999 * hv_greedy, (hv_kept, hv_greedy)
+
+
+def test_single_point_shortcut_is_botorchs_logehvi_bit_for_bit(mobo_acquisition):
+    """The q = 1 path of the acquisition (issue 13, speed) gives BoTorch's own qLogEHVI values
+    and gradients exactly, for one candidate per batch; q = 2 takes BoTorch's general code."""
+    from botorch.acquisition.multi_objective.logei import qLogExpectedHypervolumeImprovement
+
+    acq = mobo_acquisition[-1][0]
+    assert isinstance(acq, acquisition._SingleLogEHVI)
+    plain = qLogExpectedHypervolumeImprovement(
+        acq.model,
+        ref_point=acq.ref_point,
+        partitioning=acquisition.FastNondominatedPartitioning(
+            ref_point=acq.ref_point, Y=torch.empty(0, 4, dtype=torch.float64)
+        ),
+        sampler=acq.sampler,
+    )
+    # the same boxes as the captured acquisition
+    plain.cell_lower_bounds, plain.cell_upper_bounds = acq.cell_lower_bounds, acq.cell_upper_bounds
+    assert acq.cell_lower_bounds.shape[0] > 1
+    d = acq.model.Xs.shape[-1]
+    gen = torch.Generator().manual_seed(3)
+    for shape in [(1, 1, d), (5, 1, d), (3, 2, d)]:
+        X0 = torch.rand(*shape, generator=gen, dtype=torch.float64)
+        X1 = X0.clone().requires_grad_(True)
+        X2 = X0.clone().requires_grad_(True)
+        v1, v2 = acq(X1), plain(X2)
+        (g1,) = torch.autograd.grad(v1.sum(), X1)
+        (g2,) = torch.autograd.grad(v2.sum(), X2)
+        assert torch.equal(v1, v2), shape
+        assert torch.equal(g1, g2), shape
+
+
+def test_posterior_mean_alone_is_the_posterior_mean_bit_for_bit(mobo_acquisition):
+    sur = mobo_acquisition[0]
+    X = np.random.default_rng(2).uniform(size=(7, sur.train_X.shape[1]))
+    mt, _ = sur.posterior_model_space(X)
+    assert np.array_equal(sur.posterior_mean_model_space(X), mt)
+
+
+def test_direct_samples_give_the_same_acquisition_up_to_rounding(mobo_acquisition):
+    """``direct_samples``: the quasi-MC samples straight from the posterior mean and standard
+    deviation give BoTorch's values and gradients up to rounding, and the same for q = 2
+    (which takes BoTorch's path)."""
+    acq = mobo_acquisition[-1][0]
+    direct = acquisition._SingleLogEHVI(
+        acq.model,
+        ref_point=acq.ref_point,
+        partitioning=acquisition.FastNondominatedPartitioning(
+            ref_point=acq.ref_point, Y=torch.empty(0, 4, dtype=torch.float64)
+        ),
+        sampler=type(acq.sampler)(sample_shape=acq.sampler.sample_shape, seed=acq.sampler.seed),
+    )
+    direct.direct_samples = True
+    calls = []
+    single = acq.model.mean_std_single
+
+    def counted(X):
+        calls.append(X.shape)
+        return single(X)
+
+    object.__setattr__(acq.model, "mean_std_single", counted)
+    direct.cell_lower_bounds, direct.cell_upper_bounds = (
+        acq.cell_lower_bounds,
+        acq.cell_upper_bounds,
+    )
+    d = acq.model.Xs.shape[-1]
+    gen = torch.Generator().manual_seed(4)
+    for shape in [(5, 1, d), (1, 1, d), (3, 2, d)]:
+        X0 = torch.rand(*shape, generator=gen, dtype=torch.float64)
+        X1 = X0.clone().requires_grad_(True)
+        X2 = X0.clone().requires_grad_(True)
+        v1, v2 = acq(X1), direct(X2)
+        (g1,) = torch.autograd.grad(v1.sum(), X1)
+        (g2,) = torch.autograd.grad(v2.sum(), X2)
+        torch.testing.assert_close(v2, v1, rtol=1e-9, atol=1e-9)
+        torch.testing.assert_close(g2, g1, rtol=1e-7, atol=1e-9)
+    assert len(calls) == 2  # the q = 1 batches took the direct path, q = 2 did not
+    object.__delattr__(acq.model, "mean_std_single")
+    mean, std = acq.model.mean_std_single(X0[:, :1])
+    post = acq.model.posterior(X0[:, :1])
+    torch.testing.assert_close(mean, post.mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(std, post.variance.sqrt(), rtol=1e-9, atol=1e-12)

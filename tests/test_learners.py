@@ -249,6 +249,12 @@ def test_mobo_halves_its_ehvi_search_after_reduce_effort_after(cstr, monkeypatch
     with pytest.raises(ValueError, match="reduce_effort_after"):
         make_learner("mobo", space, cstr.parameterization.theta0, reduce_effort_after=-1)
 
+    # direct_samples (issue 13, speed): off by default, reaches the EHVI options and survives
+    # the halving of the search
+    assert not mobo.ehvi.direct_samples
+    fast = make_learner("mobo", space, cstr.parameterization.theta0, direct_samples=True)
+    assert fast.ehvi.direct_samples and fast.search_effort(10**6)[0].direct_samples
+
 
 @pytest.mark.parametrize("name", ["bo", "mobo", "hybrid"])
 def test_gp_learners_run_and_deploy_theta0_itself(cstr, name):

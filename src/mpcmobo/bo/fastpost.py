@@ -65,6 +65,7 @@ class ExactIndependentGP(Model):
         K = torch.exp(-0.5 * _sqdist(self.Xs, self.Xs))
         K = K + noise.detach().view(-1, 1, 1) * torch.eye(n, dtype=K.dtype)
         L = torch.linalg.cholesky(K)
+        self.L = L  # (m, n, n) lower Cholesky factor of the standardised K + noise
         eye = torch.eye(n, dtype=K.dtype).expand(self._m, n, n)
         self.LinvT = torch.linalg.solve_triangular(L, eye, upper=False).transpose(-1, -2)
         r = (train_Y_std.detach() - constant.detach().unsqueeze(-1)).unsqueeze(-1)
@@ -101,6 +102,43 @@ class ExactIndependentGP(Model):
         """Empty: the model is not batched."""
         return torch.Size([])
 
+    def _scaled(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The inputs ``X`` (..., q, d) flattened and scaled per output, ``Z`` (m, N, d), and
+        their cross covariances with the training inputs, ``Ks`` (m, N, n)."""
+        Xf = X.reshape(-1, X.shape[-1])  # (N, d), N = prod(batch) * q
+        Z = Xf.unsqueeze(0) / self.ls.unsqueeze(1)  # (m, N, d)
+        return Z, torch.exp(-0.5 * _sqdist(Z, self.Xs))  # (m, N, n)
+
+    def _latent_mean(self, Ks: torch.Tensor) -> torch.Tensor:
+        """Posterior mean (m, N) in standardised units."""
+        return self.c.unsqueeze(-1) + (Ks * self.alpha.unsqueeze(1)).sum(-1)
+
+    def posterior_mean(self, X: torch.Tensor) -> torch.Tensor:
+        """The posterior mean (..., q, m) at ``X`` (..., q, d) alone: the same numbers as
+        ``posterior(X).mean``, bit for bit, without the O(n^2) covariance products."""
+        batch, q = X.shape[:-2], X.shape[-2]
+        _, Ks = self._scaled(X)
+        mean = self._latent_mean(Ks).reshape(self._m, -1, q) * self.y_std.view(-1, 1, 1)
+        mean = mean + self.y_mean.view(-1, 1, 1)  # (m, B, q)
+        return mean.permute(1, 2, 0).reshape(*batch, q, self._m)
+
+    def mean_std_single(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posterior mean and standard deviation (..., 1, m) of single points ``X`` (..., 1, d),
+        differentiable, for the direct quasi-MC samples of :class:`~mpcmobo.bo.acquisition.\
+_SingleLogEHVI`: the variance ``1 - |L^-1 k_*|^2`` by a triangular solve (half the memory
+        traffic of the dense product of :meth:`posterior`), no posterior objects. The same
+        numbers as :meth:`posterior` up to rounding (not bit for bit)."""
+        if X.shape[-2] != 1:
+            raise ValueError("mean_std_single takes one point per batch (q = 1)")
+        batch = X.shape[:-2]
+        _, Ks = self._scaled(X)  # (m, N, n)
+        mean = self._latent_mean(Ks) * self.y_std.view(-1, 1) + self.y_mean.view(-1, 1)
+        W = torch.linalg.solve_triangular(self.L, Ks.transpose(-1, -2), upper=False)  # (m, n, N)
+        # the kernel has no output scale: k(x, x) = 1; a variance lost to rounding is floored
+        var = (1.0 - (W * W).sum(-2)).clamp_min(1e-12) * (self.y_std**2).view(-1, 1)
+        shape = (*batch, 1, self._m)
+        return mean.transpose(0, 1).reshape(shape), var.sqrt().transpose(0, 1).reshape(shape)
+
     def posterior(
         self,
         X: torch.Tensor,
@@ -114,10 +152,8 @@ class ExactIndependentGP(Model):
         if output_indices is not None or observation_noise is not False:
             raise NotImplementedError
         batch, (q, d) = X.shape[:-2], X.shape[-2:]
-        Xf = X.reshape(-1, d)  # (N, d), N = prod(batch) * q
-        Z = Xf.unsqueeze(0) / self.ls.unsqueeze(1)  # (m, N, d)
-        Ks = torch.exp(-0.5 * _sqdist(Z, self.Xs))  # (m, N, n)
-        mean = self.c.unsqueeze(-1) + (Ks * self.alpha.unsqueeze(1)).sum(-1)  # (m, N)
+        Z, Ks = self._scaled(X)  # (m, N, d), (m, N, n)
+        mean = self._latent_mean(Ks)  # (m, N)
         V = Ks @ self.LinvT  # (m, N, n): rows are (L^{-1} k_*)^T
         Vb = V.reshape(self._m, -1, q, V.shape[-1])  # (m, B, q, n)
         Zb = Z.reshape(self._m, -1, q, d)

@@ -386,6 +386,15 @@ class GPSurrogate:
             var = post.variance.squeeze(-2).clamp_min(0.0).numpy().copy()
         return mean, np.sqrt(var)
 
+    def posterior_mean_model_space(self, X: np.ndarray) -> np.ndarray:
+        """The mean (n, m) of :meth:`posterior_model_space` alone (the same numbers, bit for
+        bit), without the cost of the standard deviations."""
+        if self.model is None:
+            raise RuntimeError("fit() first")
+        tX = torch.as_tensor(_as_2d(X), dtype=DTYPE).unsqueeze(-2)  # (n, 1, d)
+        with torch.no_grad():
+            return self.fast_model.posterior_mean(tX).squeeze(-2).numpy().copy()
+
     def predict(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Posterior mean and std (n, m) of the costs in the original minimisation units.
 

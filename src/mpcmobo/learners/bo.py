@@ -695,7 +695,10 @@ class MOBOLearner(_GPLearner):
 
     The EHVI search (``mc_samples`` quasi-MC samples, ``num_restarts`` L-BFGS-B restarts from
     the best of ``raw_samples`` random points) is halved once ``reduce_effort_after``
-    observations are in (None: never), see :meth:`search_effort`.
+    observations are in (None: never), see :meth:`search_effort`. ``direct_samples = True``
+    draws the quasi-MC samples straight from the posterior mean and standard deviation
+    (:class:`~mpcmobo.bo.EHVIOptions`): a faster search whose records differ from the default's
+    in their last digits, so it is an option until measured (``docs/benchmarks.md``).
     """
 
     name = "mobo"
@@ -712,6 +715,7 @@ class MOBOLearner(_GPLearner):
         max_baseline: int = 32,
         reduce_effort_after: int | None = 100,
         method: str = "logehvi",
+        direct_samples: bool = False,
         hybrid_every: int = 0,
         hybrid_step: float = 0.05,
         log_outcomes: tuple[bool, ...] | None = (True, True, False, False),
@@ -724,7 +728,12 @@ class MOBOLearner(_GPLearner):
         if hybrid_every < 0:
             raise ValueError(f"hybrid_every must be >= 0, got {hybrid_every}")
         self.ref_margin = ref_margin
-        self.ehvi = EHVIOptions(mc_samples=mc_samples, max_baseline=max_baseline, method=method)
+        self.ehvi = EHVIOptions(
+            mc_samples=mc_samples,
+            max_baseline=max_baseline,
+            method=method,
+            direct_samples=bool(direct_samples),
+        )
         self.hybrid_every, self.hybrid_step = int(hybrid_every), float(hybrid_step)
 
     def _init_state(self) -> None:
