@@ -208,7 +208,8 @@ class _SingleLogEHVI(qLogExpectedHypervolumeImprovement):
         return self._compute_log_qehvi(samples=samples, X=X)
 
     def _compute_log_qehvi(self, samples: Tensor, X: Tensor | None = None) -> Tensor:
-        obj = self.objective(samples, X=X)  # mc_samples x batch_shape x q x m
+        # torch types a Module attribute as Tensor; BoTorch set it to an MCMultiOutputObjective
+        obj = self.objective(samples, X=X)  # type: ignore[operator]  # mc x batch x q x m
         if (
             obj.shape[-2] != 1
             or self.constraints is not None
