@@ -89,6 +89,7 @@ def test_fallback_on_forced_solver_failure(cstr):
     first = good.solve(x, good.theta0)
     good._run_solver = lambda *a, **k: (False, "forced", 0, None, None)
     good._newton_solve = lambda p: None  # the Newton steps fail too
+    good._barrier_solve = lambda p: None  # and the barrier path
     failed = good.solve(x, good.theta0)
     assert not failed.success
     np.testing.assert_allclose(failed.action, first.plan_u[1])
@@ -186,7 +187,8 @@ def _active_theta(mpc):
 
 @pytest.mark.parametrize("active", [False, True])
 def test_newton_path_gives_the_ipopt_solution(cstr, active):
-    ipopt, newton = ParametricMPC(cstr, newton_steps=0), ParametricMPC(cstr, newton_steps=6)
+    ipopt = ParametricMPC(cstr, newton_steps=0, barrier_steps=0)
+    newton = ParametricMPC(cstr, newton_steps=6)
     x = np.array([100.0, 0.15, 430.0])
     theta = _active_theta(newton) if active else newton.theta0
     used = 0
