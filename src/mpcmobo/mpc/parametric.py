@@ -64,6 +64,10 @@ from mpcmobo.systems.parameterization import Parameterization, weight_matrix
 
 _SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
 _MAX_BACKTRACKS = 10  # halvings of a barrier-path step before it gives up (IPOPT solves)
+# a barrier path whose steps are cut below 0.1 by the fraction-to-boundary rule this many times
+# in a row gives up (on the benchmark's states, converging paths had at most 9 such steps in a
+# row, the ones that ran out of steps 15 or more)
+_STALL_STEPS = 12
 _JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
 # options of CasADi's nlpsol itself (not IPOPT's): passed without the "ipopt." prefix
 _CASADI_NLPSOL_KEYS = (
@@ -733,11 +737,15 @@ class ParametricMPC:
             pos = np.searchsorted(self._lb_idx, idx)  # the slacks' bounds eta >= 0
             mu[self.nin + pos] = mu_bar / (w[idx] - self._lbw[idx])
         y = np.concatenate([w, lam, mu])
-        steps = 0
+        steps = short = 0
         while steps < self._barrier_steps:
             steps += 1
             dy, a, _, r2, y1, r1, r1_2, h1, m1, f1 = self._barrier_fn(y, p, mu_bar)
             a, r2 = float(a), float(r2)
+            # jamming: the fraction-to-boundary rule keeps cutting the steps short
+            short = short + 1 if a < 0.1 else 0
+            if short >= _STALL_STEPS:
+                return None
             r1, r1_2, h1, m1 = float(r1), float(r1_2), float(h1), float(m1)
             t = a
             for _ in range(_MAX_BACKTRACKS):
