@@ -404,13 +404,29 @@ class ParametricMPC:
         )
         self._h_fn = ca.Function("barrier_h", [wv, p], [H, ca.gradient(f, wv)], kkt_opts)
         # second-order check of a barrier-path solution: the barrier Hessian
-        # W + dH^T diag(mu / -H) dH and the equality Jacobian (its null space: numpy)
+        # K = W + dH^T diag(mu / -H) dH reduced to the null space of the equality Jacobian A
         dHdw = ca.jacobian(H, wv)
         K = ca.hessian(lagr, wv)[0] + ca.mtimes(dHdw.T, ca.mtimes(ca.diag(mu / -H), dHdw))
-        self._soc_fn = ca.Function(
-            "barrier_soc", [wv, lam, mu, p], [ca.densify(K), ca.densify(ca.jacobian(geq, wv))]
-        )
+        parts = ca.Function("barrier_soc_parts", [wv, lam, mu, p], [K, ca.jacobian(geq, wv)])
+        self._soc_fn = self._reduced_hessian_function(parts, kkt_opts)
         self._row_slack, self._row_coef = self._slack_rows(gin, wv)
+
+    def _reduced_hessian_function(self, parts: ca.Function, opts: dict) -> ca.Function:
+        """(w, lam, mu, p) -> Z^T K Z (dense), Z a basis of the null space of the equality
+        Jacobian A: the predicted states are the dependent variables (their block A_x is square
+        and invertible, multiple shooting), so ``Z = [-A_x^-1 A_r; I]`` in (states, the rest)."""
+        ix = self._ix_flat.tolist()
+        ir = np.setdiff1d(np.arange(self.nw), self._ix_flat).tolist()
+        W = ca.MX.sym("w", self.nw)
+        L = ca.MX.sym("lam", self.neq)
+        MU = ca.MX.sym("mu", self.nH)
+        P = ca.MX.sym("p", self.nx + self.n_theta)
+        K, A = parts(W, L, MU, P)
+        S = -ca.solve(A[:, ix], ca.densify(A[:, ir]), self._linsol)
+        Kxr = K[ix, ir]
+        M = K[ir, ir] + ca.mtimes(Kxr.T, S) + ca.mtimes(S.T, Kxr)
+        M = M + ca.mtimes(S.T, ca.mtimes(K[ix, ix], S))
+        return ca.Function("barrier_soc", [W, L, MU, P], [ca.densify(M)])
 
     def _newton_function(
         self,
@@ -775,20 +791,19 @@ class ParametricMPC:
         if self._soc_buffer is None:  # evaluated into numpy arrays (a DM's conversion is slow)
             buf, run = self._soc_fn.buffer()
             arrays = [np.zeros(nw), np.zeros(neq), np.zeros(self.nH), np.zeros(p.size)]
-            K, At = np.zeros((nw, nw)), np.zeros((nw, neq))  # column-major: At is A^T
+            M = np.zeros((nw - neq, nw - neq))  # symmetric: column-major is the same
             for i, a in enumerate(arrays):
                 buf.set_arg(i, memoryview(a))
-            buf.set_res(0, memoryview(K))
-            buf.set_res(1, memoryview(At))
-            self._soc_buffer = (buf, run, arrays, K, At)
-        _, run, arrays, K, At = self._soc_buffer
+            buf.set_res(0, memoryview(M))
+            self._soc_buffer = (buf, run, arrays, M)
+        _, run, arrays, M = self._soc_buffer
         for a, v in zip(arrays, (y[:nw], y[nw : nw + neq], y[nw + neq :], p)):
             a[:] = v
         run()
-        q, _ = np.linalg.qr(At, mode="complete")
-        Z = q[:, neq:]
+        if not np.all(np.isfinite(M)):
+            return False
         try:
-            np.linalg.cholesky(Z.T @ K @ Z)
+            np.linalg.cholesky(M)
         except np.linalg.LinAlgError:
             return False
         return True
