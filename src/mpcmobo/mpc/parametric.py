@@ -408,10 +408,10 @@ class ParametricMPC:
         dHdw = ca.jacobian(H, wv)
         K = ca.hessian(lagr, wv)[0] + ca.mtimes(dHdw.T, ca.mtimes(ca.diag(mu / -H), dHdw))
         parts = ca.Function("barrier_soc_parts", [wv, lam, mu, p], [K, ca.jacobian(geq, wv)])
-        self._soc_fn = self._reduced_hessian_function(parts, kkt_opts)
+        self._soc_fn = self._reduced_hessian_function(parts)
         self._row_slack, self._row_coef = self._slack_rows(gin, wv)
 
-    def _reduced_hessian_function(self, parts: ca.Function, opts: dict) -> ca.Function:
+    def _reduced_hessian_function(self, parts: ca.Function) -> ca.Function:
         """(w, lam, mu, p) -> Z^T K Z (dense), Z a basis of the null space of the equality
         Jacobian A: the predicted states are the dependent variables (their block A_x is square
         and invertible, multiple shooting), so ``Z = [-A_x^-1 A_r; I]`` in (states, the rest)."""
@@ -723,8 +723,8 @@ class ParametricMPC:
         The warm start is made strictly interior: the slack of every row with ``H >= 0`` is
         enlarged until ``mu_r H_r = -mu_0``, with the row's multiplier ``mu_r`` raised to the
         slack's cost (the slack's stationarity) and the slack's bound multiplier set from
-        complementarity, ``z eta = mu_0``. Then Newton steps on ``R_mu(y, p) = 0`` follow a decreasing barrier
-        ``mu_0 -> tau`` (IPOPT's rule: ``mu <- max(tau, min(0.2 mu, mu^1.5))`` once
+        complementarity, ``z eta = mu_0``. Then Newton steps on ``R_mu(y, p) = 0`` follow a
+        decreasing barrier ``mu_0 -> tau`` (IPOPT's rule: ``mu <- max(tau, min(0.2 mu, mu^1.5))`` once
         ``|R_mu|_inf <= 10 mu``), with the fraction-to-boundary rule and a backtracking line
         search on ``|R_mu|_2``. Returns what ``_newton_solve`` returns when ``|R_tau|_inf <= tol``
         at a strictly interior point within ``barrier_steps`` Newton steps, else None."""
@@ -743,7 +743,7 @@ class ParametricMPC:
             # the row's multiplier takes the slack's cost (the slack's stationarity) and the
             # row moves inside to barrier complementarity, mu_r H_r = -mu_bar
             slack, coef = self._row_slack[rows], -self._row_coef[rows]
-            mu[rows] = np.maximum(mu[rows], dfdw[slack] / coef)
+            mu[rows] = np.maximum(mu[rows], np.maximum(dfdw[slack] / coef, mu_bar))
             need = (Hg[rows] + mu_bar / mu[rows]) / coef
             inc: dict[int, float] = {}
             for c, d in zip(slack.tolist(), need.tolist()):
