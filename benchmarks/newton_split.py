@@ -2,11 +2,11 @@
 
 On the states of ``benchmarks/step_time.py`` (4 closed-loop CSTR episodes of 60 steps, initial
 states from ``default_rng(0)``), the default :class:`mpcmobo.mpc.ParametricMPC` (Newton steps
-at tau first, then the barrier path, IPOPT when neither converges) is timed step by step, with
-both sensitivities; the steps are split by the path that solved them. ``--barrier-steps 0``: the
-default of before the barrier path (Newton steps, then IPOPT).
+at tau first, IPOPT when they do not converge; with ``--barrier-steps 30`` the barrier path
+between them) is timed step by step, with both sensitivities; the steps are split by the path
+that solved them.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/newton_split.py [--codegen] [--barrier-steps 0]
+    PYTHONPATH=src .venv/bin/python benchmarks/newton_split.py [--codegen] [--barrier-steps 30]
 """
 
 from __future__ import annotations

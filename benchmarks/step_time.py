@@ -291,12 +291,13 @@ class MpcrlPeer:
 
 # name -> ParametricMPC options; the first one drives the closed loop.
 VARIANTS: dict[str, dict] = {
-    # up to 6 Newton steps on the barrier KKT system from the shifted previous solution, then
-    # (issue 13, session 6) the barrier path of at most 30 Newton steps from mu_0 = 1e-3 down
-    # to tau, IPOPT (shifted primal-dual warm start, no lam_p) when neither converges; adjoint
+    # up to 6 Newton steps on the barrier KKT system from the shifted previous solution, IPOPT
+    # (shifted primal-dual warm start, no lam_p) when they do not converge; adjoint
     # sensitivities (sparse QR)
     "default": {},
-    "newton": {"barrier_steps": 0},  # the Newton steps at tau, then IPOPT (the old default)
+    # then (issue 13, session 6; not the default) the barrier path of at most 30 Newton steps
+    # from mu_0 = 1e-3 down to tau before IPOPT ("default" in runs J-L of docs/benchmarks.md)
+    "barrier": {"barrier_steps": 30},
     "ipopt": {"newton_steps": 0, "barrier_steps": 0},  # IPOPT only
     # IPOPT only, with lam_p: the default before issue 13's second part
     "ipopt_lam_p": {
@@ -322,8 +323,8 @@ VARIANTS: dict[str, dict] = {
     },
     # generated C, compiled once per machine and problem, cached on disk
     "codegen_ipopt": {"codegen": True, "newton_steps": 0, "barrier_steps": 0},
-    "codegen_newton": {"codegen": True, "barrier_steps": 0},  # and the Newton steps at tau
-    "codegen": {"codegen": True},  # generated C, the Newton steps and the barrier path
+    "codegen": {"codegen": True},  # generated C and the Newton steps
+    "codegen_barrier": {"codegen": True, "barrier_steps": 30},  # and the barrier path
     # CasADi's jit: compiled again at every build
     "jit": {"jit": True, "newton_steps": 0, "barrier_steps": 0},
 }

@@ -89,7 +89,6 @@ def test_fallback_on_forced_solver_failure(cstr):
     first = good.solve(x, good.theta0)
     good._run_solver = lambda *a, **k: (False, "forced", 0, None, None)
     good._newton_solve = lambda p: None  # the Newton steps fail too
-    good._barrier_solve = lambda p: None  # and the barrier path
     failed = good.solve(x, good.theta0)
     assert not failed.success
     np.testing.assert_allclose(failed.action, first.plan_u[1])

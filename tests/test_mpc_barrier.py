@@ -17,7 +17,9 @@ X_VIOLATING = [np.array([89.0, 0.15, 430.0]), np.array([88.0, 0.2, 425.0])]
 @pytest.fixture(scope="module")
 def pair(cstr):
     """(IPOPT only, the default MPC)."""
-    return ParametricMPC(cstr, newton_steps=0, barrier_steps=0), ParametricMPC(cstr)
+    return ParametricMPC(cstr, newton_steps=0, barrier_steps=0), ParametricMPC(
+        cstr, barrier_steps=30
+    )
 
 
 def _warm(cstr, mpc, theta):
@@ -67,7 +69,7 @@ def test_closed_loop_with_the_barrier_path_is_ipopts(cstr, pair):
 
 
 def test_barrier_sensitivities_match_central_differences(cstr):
-    mpc = ParametricMPC(cstr)
+    mpc = ParametricMPC(cstr, barrier_steps=30)
     th = mpc.theta0.copy()
     _warm(cstr, mpc, th)
     prev = _snapshot(mpc)
@@ -138,8 +140,8 @@ def test_barrier_options_are_checked(cstr):
 
 def test_runs_saved_before_the_setting_resume_without_it(tmp_path):
     # a run whose config.toml has no barrier_steps was made without the barrier path
-    new = Settings()
-    assert new.mpc.barrier_steps == 30 and new.mpc.options()["barrier_steps"] == 30
+    new = Settings(mpc={"barrier_steps": 30})
+    assert Settings().mpc.barrier_steps == 0 and new.mpc.options()["barrier_steps"] == 30
     text = settings_to_toml(new)
     (tmp_path / "config.toml").write_text(text)
     assert RunDirectory(tmp_path).saved_settings().mpc.barrier_steps == 30

@@ -123,8 +123,8 @@ def test_cache_directory_follows_the_environment(monkeypatch, tmp_path):
 @needs_cc
 def test_compiled_barrier_path_gives_the_interpreted_numbers(lq, cache):
     # a warm start, then a state beyond x_ub: the barrier path, compiled and interpreted
-    interp = ParametricMPC(lq)
-    compiled = ParametricMPC(lq, codegen=True, cache_dir=cache)
+    interp = ParametricMPC(lq, barrier_steps=30)
+    compiled = ParametricMPC(lq, codegen=True, cache_dir=cache, barrier_steps=30)
     for m in (interp, compiled):
         m.solve(np.array([9.5, 0.0]), m.theta0)
     x = np.array([10.2, 0.0])
