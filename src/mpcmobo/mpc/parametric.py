@@ -153,9 +153,10 @@ class ParametricMPC:
         Accepted under the same test as the Newton steps (``|R|_inf <= tol`` at tau, strictly
         interior) and only at a local minimum of the barrier problem (its Hessian positive
         definite on the null space of the equality constraints); otherwise IPOPT solves.
-        0 (the default): off. Not the default because a short mpc-rl run on the CSTR
-        (``tests/test_learners.py``) learned differently with it (30): away from theta0 it can
-        return another solution than IPOPT (not found on the benchmark's states at theta0).
+        0 (the default): off. Not the default (yet): it changes the last digits of the
+        sensitivities, and a short seeded mpc-rl run on the CSTR (``tests/test_learners.py``)
+        amplifies such differences into another outcome (as it does between IPOPT only and the
+        Newton steps); see ``docs/benchmarks.md``, step time.
     barrier_mu0:
         The first barrier parameter of that path (scaled units), in (0, 1); IPOPT's warm
         solver starts at 1e-3 too (``mu_init``).
