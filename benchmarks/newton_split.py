@@ -1,11 +1,12 @@
-"""Where the default MPC step's time goes: the steps the Newton path solves vs the IPOPT steps.
+"""Where the default MPC step's time goes: the steps the Newton steps, the barrier path and IPOPT solve.
 
 On the states of ``benchmarks/step_time.py`` (4 closed-loop CSTR episodes of 60 steps, initial
 states from ``default_rng(0)``), the default :class:`mpcmobo.mpc.ParametricMPC` (Newton steps
-first, IPOPT when they do not converge) is timed step by step, with both sensitivities; the
-steps are split by the path that solved them.
+at tau first, IPOPT when they do not converge; with ``--barrier-steps 30`` the barrier path
+between them) is timed step by step, with both sensitivities; the steps are split by the path
+that solved them.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/newton_split.py [--codegen]
+    PYTHONPATH=src .venv/bin/python benchmarks/newton_split.py [--codegen] [--barrier-steps 30]
 """
 
 from __future__ import annotations
@@ -23,14 +24,21 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--codegen", action="store_true")
     ap.add_argument("--episodes", type=int, default=4)
+    ap.add_argument("--barrier-steps", type=int, default=None, help="default: the MPC's")
     args = ap.parse_args(argv)
     s = get_system("cstr")
-    mpc = ParametricMPC(s, "imperfect", codegen=args.codegen)
+    opts = {} if args.barrier_steps is None else {"barrier_steps": args.barrier_steps}
+    mpc = ParametricMPC(s, "imperfect", codegen=args.codegen, **opts)
     rng = np.random.default_rng(0)
     x0s = [s.sample_initial_state(rng) for _ in range(args.episodes)]
     mpc.solve(x0s[0], mpc.theta0)  # first-call allocations
-    paths: dict[str, list[float]] = {"newton": [], "ipopt warm": [], "ipopt cold": []}
-    newton_steps = []
+    paths: dict[str, list[float]] = {
+        "newton": [],
+        "barrier": [],
+        "ipopt warm": [],
+        "ipopt cold": [],
+    }
+    newton_steps, barrier_steps = [], []
     for x0 in x0s:
         mpc.reset()
         x = x0.copy()
@@ -41,6 +49,9 @@ def main(argv=None) -> None:
             if sol.status == "Newton_Succeeded":
                 paths["newton"].append(dt)
                 newton_steps.append(sol.iterations)
+            elif sol.status == "Barrier_Succeeded":
+                paths["barrier"].append(dt)
+                barrier_steps.append(sol.iterations)
             else:
                 paths["ipopt cold" if k == 0 else "ipopt warm"].append(dt)
             x = s.plant_step(x, sol.action)
@@ -54,6 +65,8 @@ def main(argv=None) -> None:
                 f"{1e3 * np.median(v):6.2f} ms, mean {1e3 * np.mean(v):6.2f} ms"
             )
     print(f"  Newton steps per Newton-path solve: mean {np.mean(newton_steps):.2f}")
+    if barrier_steps:
+        print(f"  Newton steps per barrier-path solve: mean {np.mean(barrier_steps):.2f}")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,8 @@ For every state of a few 60-step closed-loop CSTR episodes, this times
   in ``mpcrl`` 1.4.1 driven by its ``LstdDpgAgent`` (:class:`MpcrlPeer`): its solve plus its
   dpi/dtheta per step.
 
-For our variants the step is split into components: the solver (IPOPT calls and Newton steps;
+For our variants the step is split into components: the solver (IPOPT calls, Newton steps and
+the barrier path;
 of the IPOPT calls, IPOPT's own function-evaluation time from its statistics), the two
 sensitivities, and the rest (Python); ``build_s`` is the construction time of the MPC (with
 ``codegen``, the first build in a run compiles into an empty cache directory, the second one
@@ -294,20 +295,38 @@ VARIANTS: dict[str, dict] = {
     # (shifted primal-dual warm start, no lam_p) when they do not converge; adjoint
     # sensitivities (sparse QR)
     "default": {},
-    "ipopt": {"newton_steps": 0},  # IPOPT only
+    # then (issue 13, session 6; not the default) the barrier path of at most 30 Newton steps
+    # from mu_0 = 1e-3 down to tau before IPOPT ("default" in runs J-L of docs/benchmarks.md)
+    "barrier": {"barrier_steps": 30},
+    "ipopt": {"newton_steps": 0, "barrier_steps": 0},  # IPOPT only
     # IPOPT only, with lam_p: the default before issue 13's second part
-    "ipopt_lam_p": {"newton_steps": 0, "solver_options": {"calc_lam_p": True}},
+    "ipopt_lam_p": {
+        "newton_steps": 0,
+        "barrier_steps": 0,
+        "solver_options": {"calc_lam_p": True},
+    },
     "cold": {"warm_start": False},  # no warm start (so no Newton steps either)
-    "warm_mu_init_1e-5": {"newton_steps": 0, "warm_options": {"mu_init": 1e-5}},
-    "warm_mu_adaptive": {"newton_steps": 0, "warm_options": {"mu_strategy": "adaptive"}},
+    "warm_mu_init_1e-5": {
+        "newton_steps": 0,
+        "barrier_steps": 0,
+        "warm_options": {"mu_init": 1e-5},
+    },
+    "warm_mu_adaptive": {
+        "newton_steps": 0,
+        "barrier_steps": 0,
+        "warm_options": {"mu_strategy": "adaptive"},
+    },
     "hess_lbfgs": {
         "newton_steps": 0,
+        "barrier_steps": 0,
         "solver_options": {"hessian_approximation": "limited-memory"},
     },
     # generated C, compiled once per machine and problem, cached on disk
-    "codegen_ipopt": {"codegen": True, "newton_steps": 0},
+    "codegen_ipopt": {"codegen": True, "newton_steps": 0, "barrier_steps": 0},
     "codegen": {"codegen": True},  # generated C and the Newton steps
-    "jit": {"jit": True, "newton_steps": 0},  # CasADi's jit: compiled again at every build
+    "codegen_barrier": {"codegen": True, "barrier_steps": 30},  # and the barrier path
+    # CasADi's jit: compiled again at every build
+    "jit": {"jit": True, "newton_steps": 0, "barrier_steps": 0},
 }
 # run by default (jit: a 20-45 s compile at every build; codegen does the same, cached)
 DEFAULT_VARIANTS = [v for v in VARIANTS if v != "jit"]
@@ -348,17 +367,19 @@ class _Components:
             finally:
                 self.sens += time.perf_counter() - t0
 
-        newton_solve = mpc._newton_solve
+        def timed(fn):
+            def run(*args):
+                t0 = time.perf_counter()
+                try:
+                    return fn(*args)
+                finally:
+                    self.solver += time.perf_counter() - t0
 
-        def timed_newton(*args):
-            t0 = time.perf_counter()
-            try:
-                return newton_solve(*args)
-            finally:
-                self.solver += time.perf_counter() - t0
+            return run
 
         mpc._run_solver, mpc._sensitivities = timed_run, timed_sens
-        mpc._newton_solve = timed_newton
+        mpc._newton_solve = timed(mpc._newton_solve)
+        mpc._barrier_solve = timed(mpc._barrier_solve)
 
     def take(self) -> tuple[float, float, float]:
         out = (self.solver, self.sens, self.fun)
@@ -387,6 +408,7 @@ def run(
     fails = {n: 0 for n in names}
     du = {n: [] for n in mpcs}  # |action - baseline action|, a sanity check of "same problem"
     du_first = {n: [] for n in names}  # |action - first variant's action|: "same policy"
+    paths = {n: {"newton": 0, "barrier": 0, "ipopt": 0} for n in mpcs}  # which path solved
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
     theta0 = next(iter(mpcs.values())).theta0
@@ -421,6 +443,8 @@ def run(
                     dt = time.perf_counter() - t0
                     parts[n].append(comps[n].take())
                     ok, it = sol.success, sol.iterations
+                    path = {"Newton_Succeeded": "newton", "Barrier_Succeeded": "barrier"}
+                    paths[n][path.get(sol.status, "ipopt")] += 1
                     actions[n] = sol.action
                     ok = ok and bool(np.all(np.isfinite(sol.dpi_dtheta)))
                 times[n].append(dt)
@@ -454,6 +478,8 @@ def run(
             **ratio,
             "max_du_vs_baseline": float(np.max(du[n])) if n in du and du[n] else None,
             "max_du_vs_first": float(np.max(du_first[n])) if du_first[n] else None,
+            # steps where the action differs from the first variant's by more than 1e-4
+            "n_du_vs_first_gt_1e-4": int(np.sum(np.array(du_first[n]) > 1e-4)),
             "variant": variants.get(n, _BASELINE_LABELS.get(n)),
         }
         if n in mpcs:
@@ -464,6 +490,7 @@ def run(
                 median_sens_ms=float(np.median(a[:, 1])),
                 median_fun_ms=float(np.median(a[:, 2])),
                 median_other_ms=float(np.median(t - a[:, 0] - a[:, 1])),
+                paths=paths[n],
             )
     return res
 
@@ -508,13 +535,14 @@ def main(argv=None) -> None:
         f"{first!r} median. ratio_mx: the same against baseline_mx"
     )
     print(
-        "components (medians, ms): solver = IPOPT calls and Newton steps, fun = IPOPT's "
+        "components (medians, ms): solver = IPOPT calls, Newton steps and the barrier path, "
+        "fun = IPOPT's "
         "function evaluations; sens = both sensitivities; other = the rest of the step (Python)"
     )
     hdr = (
         f"{'variant':<18} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
-        f"{'ratio':>6} {'ratio_mx':>8} {'du_first':>9} {'solver':>6} {'fun':>6} {'sens':>6} "
-        f"{'other':>6} {'build s':>7}"
+        f"{'ratio':>6} {'ratio_mx':>8} {'du_first':>9} {'n>1e-4':>6} {'solver':>6} {'fun':>6} "
+        f"{'sens':>6} {'other':>6} {'build s':>7} {'Newton/barrier/IPOPT':>20}"
     )
     print(hdr)
     for n, r in res.items():
@@ -522,13 +550,15 @@ def main(argv=None) -> None:
         duf = f"{r['max_du_vs_first']:>9.1e}" if r["max_du_vs_first"] is not None else " " * 9
         comp = (
             f"{r['median_solver_ms']:>6.2f} {r['median_fun_ms']:>6.2f} "
-            f"{r['median_sens_ms']:>6.2f} {r['median_other_ms']:>6.2f} {r['build_s']:>7.2f}"
+            f"{r['median_sens_ms']:>6.2f} {r['median_other_ms']:>6.2f} {r['build_s']:>7.2f} "
+            f"{'/'.join(str(v) for v in r['paths'].values()):>20}"
             if "build_s" in r
             else ""
         )
         print(
             f"{n:<18} {r['median_ms']:>7.2f} {r['mean_ms']:>7.2f} {r['p95_ms']:>7.2f} "
-            f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rmx} {duf} {comp}"
+            f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rmx} {duf} "
+            f"{r['n_du_vs_first_gt_1e-4']:>6d} {comp}"
         )
     if args.json:
         with open(args.json, "w") as fh:
