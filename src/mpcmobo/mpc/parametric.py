@@ -795,9 +795,10 @@ class ParametricMPC:
             buf, run = self._soc_fn.buffer()
             arrays = [np.zeros(nw), np.zeros(neq), np.zeros(self.nH), np.zeros(p.size)]
             M = np.zeros((nw - neq, nw - neq))  # symmetric: column-major is the same
+            # CasADi's stubs ask for a size the Python binding takes from the buffer itself
             for i, a in enumerate(arrays):
-                buf.set_arg(i, memoryview(a))
-            buf.set_res(0, memoryview(M))
+                buf.set_arg(i, memoryview(a))  # type: ignore[call-arg, arg-type]
+            buf.set_res(0, memoryview(M))  # type: ignore[call-arg, arg-type]
             self._soc_buffer = (buf, run, arrays, M)
         _, run, arrays, M = self._soc_buffer
         for a, v in zip(arrays, (y[:nw], y[nw : nw + neq], y[nw + neq :], p)):
