@@ -36,9 +36,16 @@ def hand_rk4(x, u, mult=(1, 1, 1, 1, 1), dt=0.05):
     return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
-def fd_sensitivities(mpc, x, theta, rel_step=1e-5):
+def fd_sensitivities(mpc, x, theta, rel_step=1e-5, solve=None):
     """Central differences of the MPC's first input and value in each theta coordinate (step
-    ``rel_step * max(1, |theta_i|)``), solved without sensitivities: (dpi (n_theta, nu), dV)."""
+    ``rel_step * max(1, |theta_i|)``), solved without sensitivities: (dpi (n_theta, nu), dV).
+    ``solve(theta, sensitivities)``, if given, replaces ``mpc.solve(x, ...)`` (e.g. to restore a
+    warm start before each solve)."""
+    if solve is None:
+
+        def solve(th, sens):
+            return mpc.solve(x, th, sens)
+
     theta = np.asarray(theta, dtype=float)
     dpi = np.zeros((theta.size, mpc.system.nu))
     dV = np.zeros(theta.size)
@@ -47,7 +54,7 @@ def fd_sensitivities(mpc, x, theta, rel_step=1e-5):
         tp, tm = theta.copy(), theta.copy()
         tp[i] += h
         tm[i] -= h
-        sp, sm = mpc.solve(x, tp, False), mpc.solve(x, tm, False)
+        sp, sm = solve(tp, False), solve(tm, False)
         dpi[i] = (sp.action - sm.action) / (2 * h)
         dV[i] = (sp.value - sm.value) / (2 * h)
     return dpi, dV

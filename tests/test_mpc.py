@@ -219,15 +219,7 @@ def test_newton_sensitivities_match_central_differences(cstr):
         return sol
 
     sol = solve(th, True)
-    dpi, dV = np.zeros_like(sol.dpi_dtheta), np.zeros_like(sol.dV_dtheta)
-    for i in range(th.size):
-        h = 1e-5 * max(1.0, abs(th[i]))
-        tp, tm = th.copy(), th.copy()
-        tp[i] += h
-        tm[i] -= h
-        sp, sm = solve(tp, False), solve(tm, False)
-        dpi[i] = (sp.action - sm.action) / (2 * h)
-        dV[i] = (sp.value - sm.value) / (2 * h)
+    dpi, dV = fd_sensitivities(mpc, x, th, solve=solve)
     # q_c sits at its bound: its sensitivities are ~1e-7, at the level of the differences' noise
     tol_pi = 1e-4 * np.abs(dpi).max(axis=0) + 1e-6 * np.abs(dpi).max()
     assert np.all(np.abs(sol.dpi_dtheta - dpi) <= tol_pi)

@@ -3,6 +3,7 @@ the shifted plan, the same solution as IPOPT, exact sensitivities, the fallbacks
 
 import numpy as np
 import pytest
+from cstr_reference import fd_sensitivities
 
 from mpcmobo.experiment.rundir import RunDirectory
 from mpcmobo.experiment.settings import Settings, settings_to_toml
@@ -82,15 +83,7 @@ def test_barrier_sensitivities_match_central_differences(cstr):
         return sol
 
     sol = solve(th, True)
-    dpi, dV = np.zeros_like(sol.dpi_dtheta), np.zeros_like(sol.dV_dtheta)
-    for i in range(th.size):
-        h = 1e-5 * max(1.0, abs(th[i]))
-        tp, tm = th.copy(), th.copy()
-        tp[i] += h
-        tm[i] -= h
-        sp, sm = solve(tp, False), solve(tm, False)
-        dpi[i] = (sp.action - sm.action) / (2 * h)
-        dV[i] = (sp.value - sm.value) / (2 * h)
+    dpi, dV = fd_sensitivities(mpc, x, th, solve=solve)
     tol_pi = 1e-4 * np.abs(dpi).max(axis=0) + 1e-6 * np.abs(dpi).max()
     assert np.all(np.abs(sol.dpi_dtheta - dpi) <= tol_pi)
     assert np.all(np.abs(sol.dV_dtheta - dV) <= 1e-4 * np.abs(dV) + 1e-6 * np.abs(dV).max())
