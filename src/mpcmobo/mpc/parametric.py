@@ -101,6 +101,15 @@ class MPCSolution:
     info: dict = field(default_factory=dict)
 
 
+def _fraction_to_boundary(mu: ca.MX, dmu: ca.MX, H: ca.MX, dH: ca.MX) -> ca.MX:
+    """The step length ``a <= 1`` of a Newton step after which the multipliers ``mu + a dmu``
+    and (to first order) the inequalities ``H + a dH`` keep 0.5 % of their distance to 0."""
+    big = ca.DM(1e300)
+    a_mu = ca.mmin(ca.if_else(dmu < 0, -mu / dmu, big))
+    a_H = ca.mmin(ca.if_else(dH > 0, -H / dH, big))
+    return ca.fmin(1.0, 0.995 * ca.fmin(a_mu, a_H))
+
+
 class ParametricMPC:
     """The MPC of eq. (V0) for a :class:`~mpcmobo.systems.System`, built once, solved many times.
 
@@ -455,12 +464,7 @@ class ParametricMPC:
         P = ca.MX.sym("p", p.numel())
         Rv, J, Hv = res(Y, P)
         dy = ca.solve(J, -Rv, self._linsol)
-        mu, dmu = Y[nw + neq :], dy[nw + neq :]
-        dHv = dH(Y[:nw], P, dy[:nw])
-        big = ca.DM(1e300)
-        a_mu = ca.mmin(ca.if_else(dmu < 0, -mu / dmu, big))
-        a_H = ca.mmin(ca.if_else(dHv > 0, -Hv / dHv, big))
-        a = ca.fmin(1.0, 0.995 * ca.fmin(a_mu, a_H))
+        a = _fraction_to_boundary(Y[nw + neq :], dy[nw + neq :], Hv, dH(Y[:nw], P, dy[:nw]))
         Y1 = Y + a * dy
         res1, f1, h1 = point(Y1, P)
         out = [Y1, ca.norm_inf(Rv), res1, f1, h1, ca.mmin(Y1[nw + neq :]), ca.mmax(Hv)]
@@ -501,12 +505,7 @@ class ParametricMPC:
         M = ca.MX.sym("mu_bar")
         Rv, J, Hv = res(Y, P, M)
         dy = ca.solve(J, -Rv, self._linsol)
-        muv, dmu = Y[nw + neq :], dy[nw + neq :]
-        dHv = dH(Y[:nw], P, dy[:nw])
-        big = ca.DM(1e300)
-        a_mu = ca.mmin(ca.if_else(dmu < 0, -muv / dmu, big))
-        a_H = ca.mmin(ca.if_else(dHv > 0, -Hv / dHv, big))
-        a = ca.fmin(1.0, 0.995 * ca.fmin(a_mu, a_H))
+        a = _fraction_to_boundary(Y[nw + neq :], dy[nw + neq :], Hv, dH(Y[:nw], P, dy[:nw]))
         Y1 = Y + a * dy
         r1, r1_2, h1, m1, f1 = point(Y1, P, M)
         out = [dy, a, ca.norm_inf(Rv), ca.norm_2(Rv), Y1, r1, r1_2, h1, m1, f1]
