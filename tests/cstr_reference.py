@@ -58,3 +58,23 @@ def fd_sensitivities(mpc, x, theta, rel_step=1e-5, solve=None):
         dpi[i] = (sp.action - sm.action) / (2 * h)
         dV[i] = (sp.value - sm.value) / (2 * h)
     return dpi, dV
+
+
+def assert_warm_sensitivities_match_fd(mpc, x, theta, status):
+    """The MPC's exact sensitivities at ``x`` against :func:`fd_sensitivities`, every solve
+    warm-started from the MPC's current warm start (restored before each one) and ending with
+    ``status`` (the solver path under test)."""
+    prev = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in mpc._prev.items()}
+
+    def solve(th, sens):
+        mpc._prev = dict(prev)
+        sol = mpc.solve(x, th, sens)
+        assert sol.status == status
+        return sol
+
+    sol = solve(theta, True)
+    dpi, dV = fd_sensitivities(mpc, x, theta, solve=solve)
+    # an input at its bound has sensitivities ~1e-7, at the level of the differences' noise
+    tol_pi = 1e-4 * np.abs(dpi).max(axis=0) + 1e-6 * np.abs(dpi).max()
+    assert np.all(np.abs(sol.dpi_dtheta - dpi) <= tol_pi)
+    assert np.all(np.abs(sol.dV_dtheta - dV) <= 1e-4 * np.abs(dV) + 1e-6 * np.abs(dV).max())

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import scipy.sparse.linalg
-from cstr_reference import fd_sensitivities
+from cstr_reference import assert_warm_sensitivities_match_fd, fd_sensitivities
 
 from mpcmobo.mpc import ParametricMPC, rollout
 from mpcmobo.rl import GaussianExploration
@@ -210,20 +210,7 @@ def test_newton_sensitivities_match_central_differences(cstr):
     th = _active_theta(mpc)  # q_c held at its bound: the multipliers of that bound matter
     for _ in range(5):  # a few closed-loop steps: a warm start
         x = cstr.plant_step(x, mpc.solve(x, th, False).action)
-    prev = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in mpc._prev.items()}
-
-    def solve(theta, sens):
-        mpc._prev = dict(prev)
-        sol = mpc.solve(x, theta, sens)
-        assert sol.status == "Newton_Succeeded"
-        return sol
-
-    sol = solve(th, True)
-    dpi, dV = fd_sensitivities(mpc, x, th, solve=solve)
-    # q_c sits at its bound: its sensitivities are ~1e-7, at the level of the differences' noise
-    tol_pi = 1e-4 * np.abs(dpi).max(axis=0) + 1e-6 * np.abs(dpi).max()
-    assert np.all(np.abs(sol.dpi_dtheta - dpi) <= tol_pi)
-    assert np.all(np.abs(sol.dV_dtheta - dV) <= 1e-4 * np.abs(dV) + 1e-6 * np.abs(dV).max())
+    assert_warm_sensitivities_match_fd(mpc, x, th, "Newton_Succeeded")
 
 
 def test_newton_steps_must_be_a_count(cstr):
