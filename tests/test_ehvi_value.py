@@ -186,6 +186,29 @@ def test_front_pruning_against_greedy_contributions(front_surrogate, drop):
     assert hv_kept >= 0.999 * hv_greedy, (hv_kept, hv_greedy)
 
 
+def _with_boxes_of(acq, cls, sampler):
+    """A ``cls`` acquisition on ``acq``'s model and reference point with ``sampler`` and the
+    same hypervolume boxes as ``acq`` (the captured acquisition of the fixture)."""
+    new = cls(
+        acq.model,
+        ref_point=acq.ref_point,
+        partitioning=acquisition.FastNondominatedPartitioning(
+            ref_point=acq.ref_point, Y=torch.empty(0, 4, dtype=torch.float64)
+        ),
+        sampler=sampler,
+    )
+    new.cell_lower_bounds, new.cell_upper_bounds = acq.cell_lower_bounds, acq.cell_upper_bounds
+    return new
+
+
+def _value_and_grad(acqf, X0):
+    """The acquisition's values at ``X0`` and the gradient of their sum."""
+    X = X0.clone().requires_grad_(True)
+    v = acqf(X)
+    (g,) = torch.autograd.grad(v.sum(), X)
+    return v, g
+
+
 def test_single_point_shortcut_is_botorchs_logehvi_bit_for_bit(mobo_acquisition):
     """The q = 1 path of the acquisition (issue 13, speed) gives BoTorch's own qLogEHVI values
     and gradients exactly, for one candidate per batch; q = 2 takes BoTorch's general code."""
@@ -193,26 +216,13 @@ def test_single_point_shortcut_is_botorchs_logehvi_bit_for_bit(mobo_acquisition)
 
     acq = mobo_acquisition[-1][0]
     assert isinstance(acq, acquisition._SingleLogEHVI)
-    plain = qLogExpectedHypervolumeImprovement(
-        acq.model,
-        ref_point=acq.ref_point,
-        partitioning=acquisition.FastNondominatedPartitioning(
-            ref_point=acq.ref_point, Y=torch.empty(0, 4, dtype=torch.float64)
-        ),
-        sampler=acq.sampler,
-    )
-    # the same boxes as the captured acquisition
-    plain.cell_lower_bounds, plain.cell_upper_bounds = acq.cell_lower_bounds, acq.cell_upper_bounds
+    plain = _with_boxes_of(acq, qLogExpectedHypervolumeImprovement, acq.sampler)
     assert acq.cell_lower_bounds.shape[0] > 1
     d = acq.model.Xs.shape[-1]
     gen = torch.Generator().manual_seed(3)
     for shape in [(1, 1, d), (5, 1, d), (3, 2, d)]:
         X0 = torch.rand(*shape, generator=gen, dtype=torch.float64)
-        X1 = X0.clone().requires_grad_(True)
-        X2 = X0.clone().requires_grad_(True)
-        v1, v2 = acq(X1), plain(X2)
-        (g1,) = torch.autograd.grad(v1.sum(), X1)
-        (g2,) = torch.autograd.grad(v2.sum(), X2)
+        (v1, g1), (v2, g2) = _value_and_grad(acq, X0), _value_and_grad(plain, X0)
         assert torch.equal(v1, v2), shape
         assert torch.equal(g1, g2), shape
 
@@ -229,14 +239,8 @@ def test_direct_samples_give_the_same_acquisition_up_to_rounding(mobo_acquisitio
     deviation give BoTorch's values and gradients up to rounding, and the same for q = 2
     (which takes BoTorch's path)."""
     acq = mobo_acquisition[-1][0]
-    direct = acquisition._SingleLogEHVI(
-        acq.model,
-        ref_point=acq.ref_point,
-        partitioning=acquisition.FastNondominatedPartitioning(
-            ref_point=acq.ref_point, Y=torch.empty(0, 4, dtype=torch.float64)
-        ),
-        sampler=type(acq.sampler)(sample_shape=acq.sampler.sample_shape, seed=acq.sampler.seed),
-    )
+    sampler = type(acq.sampler)(sample_shape=acq.sampler.sample_shape, seed=acq.sampler.seed)
+    direct = _with_boxes_of(acq, acquisition._SingleLogEHVI, sampler)
     direct.direct_samples = True
     calls = []
     single = acq.model.mean_std_single
@@ -246,19 +250,11 @@ def test_direct_samples_give_the_same_acquisition_up_to_rounding(mobo_acquisitio
         return single(X)
 
     object.__setattr__(acq.model, "mean_std_single", counted)
-    direct.cell_lower_bounds, direct.cell_upper_bounds = (
-        acq.cell_lower_bounds,
-        acq.cell_upper_bounds,
-    )
     d = acq.model.Xs.shape[-1]
     gen = torch.Generator().manual_seed(4)
     for shape in [(5, 1, d), (1, 1, d), (3, 2, d)]:
         X0 = torch.rand(*shape, generator=gen, dtype=torch.float64)
-        X1 = X0.clone().requires_grad_(True)
-        X2 = X0.clone().requires_grad_(True)
-        v1, v2 = acq(X1), direct(X2)
-        (g1,) = torch.autograd.grad(v1.sum(), X1)
-        (g2,) = torch.autograd.grad(v2.sum(), X2)
+        (v1, g1), (v2, g2) = _value_and_grad(acq, X0), _value_and_grad(direct, X0)
         torch.testing.assert_close(v2, v1, rtol=1e-9, atol=1e-9)
         torch.testing.assert_close(g2, g1, rtol=1e-7, atol=1e-9)
     assert len(calls) == 2  # the q = 1 batches took the direct path, q = 2 did not
