@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mpcmobo.plots import deployed_J_eval
+
 WINDOWS = [(0, 50), (50, 200), (200, 400), (400, 600)]
 
 
@@ -36,13 +38,6 @@ def load(run: Path) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
     ep = pd.read_parquet(run / "episodes.parquet")
     tr = pd.read_parquet(run / "trajectories.parquet")
     return ep, tr, json.loads((run / "summary.json").read_text())
-
-
-def deployed(d: pd.DataFrame) -> pd.DataFrame:
-    """Per seed and episode, J_eval of the last evaluated deployed theta (forward filled)."""
-    d = d.sort_values(["seed", "episode"]).copy()
-    d["J_dep"] = d.groupby("seed")["J_eval_incumbent"].ffill()
-    return d
 
 
 def first_within(d: pd.DataFrame, target: float) -> int | None:
@@ -80,13 +75,13 @@ def claim1(label: str, ep: pd.DataFrame, s: dict) -> list[str]:
         "|---|---|---|---|---|---|---|",
     ]
     for name in s["learners"]:
-        d = deployed(ep[ep.learner == name])
+        d = deployed_J_eval(ep[ep.learner == name])
         seeds = sorted(d.seed.unique())
         final, best, hits, tail = [], [], [], []
         for sd in seeds:
             g = d[d.seed == sd]
             ev = g["J_eval_incumbent"].dropna()
-            final.append(g["J_dep"].iloc[-1] / J)
+            final.append(g["J_eval_deployed"].iloc[-1] / J)
             best.append(ev.min() / J)
             firsts = [first_within(g, (1 + p) * J) for p in (0.10, 0.05, 0.02)]
             hits.append("/".join("-" if e is None else str(e) for e in firsts))
@@ -188,7 +183,7 @@ def claim4(label: str, ep: pd.DataFrame, s: dict) -> list[str]:
         "|---|---|---|---|---|---|---|",
     ]
     for name in s["learners"]:
-        d = deployed(ep[ep.learner == name])
+        d = deployed_J_eval(ep[ep.learner == name])
         by = d.groupby("seed")
         mean_v = by["violation"].mean().tolist()
         max_v = by["violation"].max().tolist()
