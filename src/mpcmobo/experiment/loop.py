@@ -11,7 +11,7 @@ import numpy as np
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
-from mpcmobo.rl.objectives import mean_stage_cost
+from mpcmobo.rl.objectives import F3_MODES, mean_stage_cost
 from mpcmobo.systems.base import System
 
 START_MODES = ("random", "cycle")
@@ -48,6 +48,7 @@ class LearningRun:
         critic_min_valid_steps: int = 2,
         critic_weighting: str = "uniform",
         beta: float = 1.0,
+        f3: str = "paper",
         plant: gymnasium.Env | None = None,
     ) -> None:
         if start_mode not in START_MODES:
@@ -67,6 +68,9 @@ class LearningRun:
             weighting=critic_weighting,
         )
         self.beta = float(beta)
+        if f3 not in F3_MODES:
+            raise ValueError(f"f3 must be one of {F3_MODES}, got '{f3}'")
+        self.f3 = f3
         self.start_mode = start_mode
         # separate streams: initial states, exploration noise
         ss = np.random.SeedSequence([self.seed, 7])
@@ -79,6 +83,7 @@ class LearningRun:
         )
         self.episode = 0
         self.previous_Vc: float | None = None
+        self.previous_nu: np.ndarray | None = None  # the last fitted critic's nu (f3 "same_states")
 
     def plant_seed(self) -> int:
         """The plant's seed of this episode (its own noise, if any): a function of (seed,
@@ -166,7 +171,16 @@ class LearningRun:
                 plant=self.plant,
                 plant_seed=self.plant_seed(),
             )
-            result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
+            result, cr = episode_result(
+                record,
+                self.critic,
+                self.previous_Vc,
+                self.beta,
+                f3=self.f3,
+                previous_nu=self.previous_nu,
+            )
+            if cr.ok and np.all(np.isfinite(cr.nu)):
+                self.previous_nu = np.asarray(cr.nu, float).copy()
         except (FloatingPointError, ValueError, RuntimeError) as err:
             result = EpisodeResult(
                 objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
@@ -179,6 +193,7 @@ class LearningRun:
         return {
             "episode": self.episode,
             "previous_Vc": self.previous_Vc,
+            "previous_nu": self.previous_nu,
             "rng_start": self.rng_start.bit_generator.state,
             "rng_noise": self.rng_noise.bit_generator.state,
             "learner": self.learner.state_dict(),
@@ -188,6 +203,7 @@ class LearningRun:
         """Continue from a :meth:`state_dict`."""
         self.episode = int(state["episode"])
         self.previous_Vc = state["previous_Vc"]
+        self.previous_nu = state.get("previous_nu")  # absent in checkpoints before issue 11
         self.rng_start.bit_generator.state = state["rng_start"]
         self.rng_noise.bit_generator.state = state["rng_noise"]
         self.learner.load_state_dict(state["learner"])
