@@ -409,6 +409,7 @@ def run(
     du = {n: [] for n in mpcs}  # |action - baseline action|, a sanity check of "same problem"
     du_first = {n: [] for n in names}  # |action - first variant's action|: "same policy"
     paths = {n: {"newton": 0, "barrier": 0, "ipopt": 0} for n in mpcs}  # which path solved
+    path_times = {n: {"newton": [], "barrier": [], "ipopt": []} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
     theta0 = next(iter(mpcs.values())).theta0
@@ -445,6 +446,7 @@ def run(
                     ok, it = sol.success, sol.iterations
                     path = {"Newton_Succeeded": "newton", "Barrier_Succeeded": "barrier"}
                     paths[n][path.get(sol.status, "ipopt")] += 1
+                    path_times[n][path.get(sol.status, "ipopt")].append(dt)
                     actions[n] = sol.action
                     ok = ok and bool(np.all(np.isfinite(sol.dpi_dtheta)))
                 times[n].append(dt)
@@ -491,6 +493,10 @@ def run(
                 median_fun_ms=float(np.median(a[:, 2])),
                 median_other_ms=float(np.median(t - a[:, 0] - a[:, 1])),
                 paths=paths[n],
+                # median step time [ms] of the steps each path solved (None: no such step)
+                median_ms_by_path={
+                    k: float(np.median(v) * 1e3) if v else None for k, v in path_times[n].items()
+                },
             )
     return res
 
@@ -560,6 +566,11 @@ def main(argv=None) -> None:
             f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rmx} {duf} "
             f"{r['n_du_vs_first_gt_1e-4']:>6d} {comp}"
         )
+    print("median step [ms] by the path that solved it (Newton steps / barrier path / IPOPT):")
+    for n, r in res.items():
+        if "median_ms_by_path" in r:
+            by = r["median_ms_by_path"].values()
+            print(f"  {n:<18} " + " / ".join("-" if v is None else f"{v:.2f}" for v in by))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(res, fh, indent=2, default=str)

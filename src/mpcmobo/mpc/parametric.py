@@ -110,6 +110,55 @@ def _fraction_to_boundary(mu: ca.MX, dmu: ca.MX, H: ca.MX, dH: ca.MX) -> ca.MX:
     return ca.fmin(1.0, 0.995 * ca.fmin(a_mu, a_H))
 
 
+class _NumpyCall:
+    """A CasADi function evaluated into preallocated numpy arrays: ``f(*args)`` returns its
+    outputs (2-d arrays in the function's shapes, floats for scalars), the numbers of ``fn(*args)``
+    bit for bit, without converting every argument and result to a ``DM`` (that conversion was
+    half the time of a compiled Newton step's call). The buffers are made at the first call, so
+    a fresh MPC holds plain CasADi functions only. The returned arrays are copies."""
+
+    def __init__(self, fn: ca.Function) -> None:
+        self.fn = fn
+        self._state: tuple | None = None
+
+    def _setup(self) -> tuple:
+        fn = self.fn
+        buf, run = fn.buffer()
+        args = []
+        for i in range(fn.n_in()):
+            if fn.nnz_in(i) != fn.numel_in(i):  # not expected: every input here is dense
+                raise ValueError(f"{fn.name()}: input {i} is sparse")
+            args.append(np.zeros(fn.nnz_in(i)))
+            # CasADi's stubs ask for a size the Python binding takes from the buffer itself
+            buf.set_arg(i, memoryview(args[-1]))  # type: ignore[call-arg, arg-type]
+        res, shapes = [], []
+        for i in range(fn.n_out()):
+            sp = fn.sparsity_out(i)
+            res.append(np.zeros(sp.nnz()))
+            buf.set_res(i, memoryview(res[-1]))  # type: ignore[call-arg, arg-type]
+            dense = sp.nnz() == sp.numel()
+            shapes.append((sp.size1(), sp.size2(), None if dense else np.array(sp.find())))
+        self._state = (buf, run, args, res, shapes)
+        return self._state
+
+    def __call__(self, *values: Any) -> tuple:
+        _, run, args, res, shapes = self._state or self._setup()
+        for a, v in zip(args, values):
+            a[:] = v
+        run()
+        out: list = []
+        for r, (n1, n2, nz) in zip(res, shapes):
+            if nz is not None:  # structural zeros: scatter (column-major positions)
+                d = np.zeros(n1 * n2)
+                d[nz] = r
+                r = d
+            if n1 * n2 == 1:
+                out.append(float(r[0]))
+            else:
+                out.append(r.reshape((n1, n2), order="F").copy())
+        return tuple(out)
+
+
 class ParametricMPC:
     """The MPC of eq. (V0) for a :class:`~mpcmobo.systems.System`, built once, solved many times.
 
@@ -254,6 +303,13 @@ class ParametricMPC:
                 self._barrier_point = ca.external("barrier_point", str(lib))
                 self._h_fn = ca.external("barrier_h", str(lib))
                 self._soc_fn = ca.external("barrier_soc", str(lib))
+        # the functions of the Newton steps, the barrier path and the sensitivities, called
+        # on numpy buffers (the same numbers, without a DM per argument)
+        self._newton_call = _NumpyCall(self._newton_fn)
+        self._barrier_call = _NumpyCall(self._barrier_fn)
+        self._point_call = _NumpyCall(self._barrier_point)
+        self._h_call = _NumpyCall(self._h_fn)
+        self._sens_call = _NumpyCall(self._sens)
         self._solver = ca.nlpsol("mpc", "ipopt", nlp, cold)
         self._solver_warm: ca.Function | None = (
             ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
@@ -704,7 +760,7 @@ class ParametricMPC:
         if not np.all(mu > 0):
             return None
         for k in range(1, self._newton + 1):
-            y_next, *scalars = self._newton_fn(y, p)
+            y_next, *scalars = self._newton_call(y, p)
             res0, res, f, h_max, mu_min, h0_max = (float(v) for v in scalars)
             # not interior (the new state violates a row of the old plan), not converging
             # (from the 2nd step on, the residual must fall tenfold per step), or out of steps
@@ -736,7 +792,7 @@ class ParametricMPC:
         mu_bar = self._barrier_mu0
         w = prev["w_shift"].copy()
         lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
-        Hg, dfdw = (np.asarray(v).reshape(-1) for v in self._h_fn(w, p))
+        Hg, dfdw = (np.asarray(v).reshape(-1) for v in self._h_call(w, p))
         Hg = Hg[: self.nin]
         rows = np.flatnonzero(Hg >= 0)  # not interior: the new state violates them
         if np.any(self._row_slack[rows] < 0):
@@ -758,7 +814,7 @@ class ParametricMPC:
         steps = short = 0
         while steps < self._barrier_steps:
             steps += 1
-            dy, a, _, r2, y1, r1, r1_2, h1, m1, f1 = self._barrier_fn(y, p, mu_bar)
+            dy, a, _, r2, y1, r1, r1_2, h1, m1, f1 = self._barrier_call(y, p, mu_bar)
             a, r2 = float(a), float(r2)
             # jamming: the fraction-to-boundary rule keeps cutting the steps short
             short = short + 1 if a < 0.1 else 0
@@ -771,7 +827,7 @@ class ParametricMPC:
                     break
                 t *= 0.5
                 y1 = y + t * np.asarray(dy).reshape(-1)
-                r1, r1_2, h1, m1, f1 = (float(v) for v in self._barrier_point(y1, p, mu_bar))
+                r1, r1_2, h1, m1, f1 = (float(v) for v in self._point_call(y1, p, mu_bar))
             else:
                 return None  # the residual does not fall along the Newton direction
             y = np.asarray(y1).reshape(-1)
@@ -900,7 +956,7 @@ class ParametricMPC:
         """(dpi/dtheta, dV/dtheta) at a solution (eq. nabla_pi, grad V); ``mult``: its
         (lambda, mu) when known (Newton), else recovered from CasADi's multipliers."""
         lam, mu = self._multipliers(w, lam_g, lam_x) if mult is None else mult
-        dpi, dV = self._sens(w, lam, mu, p)
+        dpi, dV = self._sens_call(w, lam, mu, p)
         dpi, dV = np.asarray(dpi), np.asarray(dV).reshape(-1)
         if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
             raise ValueError("non-finite sensitivity (singular KKT matrix)")
