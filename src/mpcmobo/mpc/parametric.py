@@ -310,12 +310,12 @@ class ParametricMPC:
         self._point_call = _NumpyCall(self._barrier_point)
         self._h_call = _NumpyCall(self._h_fn)
         self._sens_call = _NumpyCall(self._sens)
+        self._soc_call = _NumpyCall(self._soc_fn)
         self._solver = ca.nlpsol("mpc", "ipopt", nlp, cold)
         self._solver_warm: ca.Function | None = (
             ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
         )
         self._prev: dict | None = None
-        self._soc_buffer: tuple | None = None
 
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
@@ -475,26 +475,14 @@ class ParametricMPC:
         # K = W + dH^T diag(mu / -H) dH reduced to the null space of the equality Jacobian A
         dHdw = ca.jacobian(H, wv)
         K = ca.hessian(lagr, wv)[0] + ca.mtimes(dHdw.T, ca.mtimes(ca.diag(mu / -H), dHdw))
-        parts = ca.Function("barrier_soc_parts", [wv, lam, mu, p], [K, ca.jacobian(geq, wv)])
-        self._soc_fn = self._reduced_hessian_function(parts)
-        self._row_slack, self._row_coef = self._slack_rows(gin, wv)
-
-    def _reduced_hessian_function(self, parts: ca.Function) -> ca.Function:
-        """(w, lam, mu, p) -> Z^T K Z (dense), Z a basis of the null space of the equality
-        Jacobian A: the predicted states are the dependent variables (their block A_x is square
-        and invertible, multiple shooting), so ``Z = [-A_x^-1 A_r; I]`` in (states, the rest)."""
+        # in the blocks of (the predicted states, the rest), dense: the reduction to the null
+        # space is done in numpy (_is_local_minimum; as one CasADi function it took longer)
         ix = self._ix_flat.tolist()
         ir = np.setdiff1d(np.arange(self.nw), self._ix_flat).tolist()
-        W = ca.MX.sym("w", self.nw)
-        L = ca.MX.sym("lam", self.neq)
-        MU = ca.MX.sym("mu", self.nH)
-        P = ca.MX.sym("p", self.nx + self.n_theta)
-        K, A = parts(W, L, MU, P)
-        S = -ca.solve(A[:, ix], ca.densify(A[:, ir]), self._linsol)
-        Kxr = K[ix, ir]
-        M = K[ir, ir] + ca.mtimes(Kxr.T, S) + ca.mtimes(S.T, Kxr)
-        M = M + ca.mtimes(S.T, ca.mtimes(K[ix, ix], S))
-        return ca.Function("barrier_soc", [W, L, MU, P], [ca.densify(M)])
+        A = ca.jacobian(geq, wv)
+        blocks = [K[ix, ix], K[ix, ir], K[ir, ir], A[:, ix], A[:, ir]]
+        self._soc_fn = ca.Function("barrier_soc", [wv, lam, mu, p], [ca.densify(b) for b in blocks])
+        self._row_slack, self._row_coef = self._slack_rows(gin, wv)
 
     def _newton_function(
         self,
@@ -845,27 +833,29 @@ class ParametricMPC:
         Jacobian at y (second-order sufficient condition of the barrier problem): a root of R
         that the residual line search reached may be a saddle point, which IPOPT (inertia
         correction) would not return."""
-        nw, neq = self.nw, self.neq
-        if self._soc_buffer is None:  # evaluated into numpy arrays (a DM's conversion is slow)
-            buf, run = self._soc_fn.buffer()
-            arrays = [np.zeros(nw), np.zeros(neq), np.zeros(self.nH), np.zeros(p.size)]
-            M = np.zeros((nw - neq, nw - neq))  # symmetric: column-major is the same
-            # CasADi's stubs ask for a size the Python binding takes from the buffer itself
-            for i, a in enumerate(arrays):
-                buf.set_arg(i, memoryview(a))  # type: ignore[call-arg, arg-type]
-            buf.set_res(0, memoryview(M))  # type: ignore[call-arg, arg-type]
-            self._soc_buffer = (buf, run, arrays, M)
-        _, run, arrays, M = self._soc_buffer
-        for a, v in zip(arrays, (y[:nw], y[nw : nw + neq], y[nw + neq :], p)):
-            a[:] = v
-        run()
-        if not np.all(np.isfinite(M)):
+        M = self._reduced_hessian(y, p)
+        if M is None:
             return False
         try:
             np.linalg.cholesky(M)
         except np.linalg.LinAlgError:
             return False
         return True
+
+    def _reduced_hessian(self, y: np.ndarray, p: np.ndarray) -> np.ndarray | None:
+        """``Z^T K Z`` at y: the barrier Hessian ``K = W + dH^T diag(mu / -H) dH`` on the null
+        space of the equality Jacobian ``A``, with ``Z = [-A_x^-1 A_r; I]`` in (the predicted
+        states, the rest) (the states are the dependent variables: their block ``A_x`` is square
+        and invertible, multiple shooting). None when it is not finite."""
+        nw, neq = self.nw, self.neq
+        Kxx, Kxr, Krr, Ax, Ar = self._soc_call(y[:nw], y[nw : nw + neq], y[nw + neq :], p)
+        try:
+            S = -np.linalg.solve(Ax, Ar)
+        except np.linalg.LinAlgError:
+            return None
+        KxrS = Kxr.T @ S
+        M = Krr + KxrS + KxrS.T + S.T @ (Kxx @ S)
+        return M if np.all(np.isfinite(M)) else None
 
     def _newton_result(
         self, y: np.ndarray, f: float, status: str, steps: int
