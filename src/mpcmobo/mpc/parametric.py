@@ -214,7 +214,9 @@ class ParametricMPC:
         0 (the default): off. Not the default (yet): it changes the last digits of the
         sensitivities, and a short seeded mpc-rl run on the CSTR (``tests/test_learners.py``)
         amplifies such differences into another outcome (as it does between IPOPT only and the
-        Newton steps); see ``docs/benchmarks.md``, step time.
+        Newton steps); and where two local minima compete it can reach another one than IPOPT
+        (one state of the step-time benchmark's 240, with the default MPC's closed loop); see
+        ``docs/benchmarks.md``, step time.
     barrier_mu0:
         The first barrier parameter of that path (scaled units), in (0, 1); IPOPT's warm
         solver starts at 1e-3 too (``mu_init``).
