@@ -325,6 +325,9 @@ VARIANTS: dict[str, dict] = {
     "codegen_ipopt": {"codegen": True, "newton_steps": 0, "barrier_steps": 0},
     "codegen": {"codegen": True},  # generated C and the Newton steps
     "codegen_barrier": {"codegen": True, "barrier_steps": 30},  # and the barrier path
+    # the barrier path only from interior warm starts (violated rows: IPOPT), session 7
+    "barrier_interior": {"barrier_steps": 30, "barrier_push": False},
+    "codegen_barrier_interior": {"codegen": True, "barrier_steps": 30, "barrier_push": False},
     # CasADi's jit: compiled again at every build
     "jit": {"jit": True, "newton_steps": 0, "barrier_steps": 0},
 }

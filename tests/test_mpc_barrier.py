@@ -155,3 +155,36 @@ def test_the_reduced_hessian_is_the_barrier_hessian_on_the_null_space(cstr, pair
         d = np.sqrt(np.abs(np.diag(M)))
         np.testing.assert_allclose((M - Z.T @ K @ Z) / np.outer(d, d), 0.0, atol=1e-9)
         assert mpc._is_local_minimum(y, pt) == minimum
+
+
+def test_barrier_path_from_interior_starts_only(cstr, pair):
+    # barrier_push=False: a violated row sends the solve to IPOPT without a barrier attempt;
+    # from the interior warm starts of the benchmark's first episode (the Newton steps at tau
+    # converge too slowly there) the path gives IPOPT's solution and sensitivities
+    ipopt, _ = pair
+    mpc = ParametricMPC(cstr, barrier_steps=30, barrier_push=False)
+    calls = []
+    call = mpc._barrier_call
+    mpc._barrier_call = lambda *a: calls.append(1) or call(*a)
+    try:
+        _warm(cstr, mpc, mpc.theta0)
+        calls.clear()
+        sol = mpc.solve(X_VIOLATING[0], mpc.theta0)
+        assert sol.success and sol.status not in ("Newton_Succeeded", "Barrier_Succeeded")
+        assert not calls
+    finally:
+        mpc._barrier_call = call
+    x = cstr.sample_initial_state(np.random.default_rng(0))
+    for m in (ipopt, mpc):
+        m.reset()
+    used = 0
+    for _ in range(5):
+        sa, sb = ipopt.solve(x, ipopt.theta0), mpc.solve(x, mpc.theta0)
+        assert sa.success and sb.success
+        used += sb.status == "Barrier_Succeeded"
+        np.testing.assert_allclose(sb.action, sa.action, rtol=0, atol=1e-5)
+        scale = np.abs(sa.dpi_dtheta).max(axis=0)
+        assert np.all(np.abs(sb.dpi_dtheta - sa.dpi_dtheta) <= 1e-4 * scale)
+        np.testing.assert_allclose(sb.dV_dtheta, sa.dV_dtheta, rtol=1e-4, atol=1e-6)
+        x = cstr.plant_step(x, sa.action)
+    assert used >= 2

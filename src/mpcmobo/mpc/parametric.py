@@ -220,6 +220,13 @@ class ParametricMPC:
     barrier_mu0:
         The first barrier parameter of that path (scaled units), in (0, 1); IPOPT's warm
         solver starts at 1e-3 too (``mu_init``).
+    barrier_push:
+        True (the default): where the new state violates rows of the shifted plan, the barrier
+        path starts after pushing them inside through their slacks. False: the barrier path
+        only runs from a strictly interior warm start (the Newton steps at tau did not converge
+        there, typically too slowly), and IPOPT solves where rows are violated. With False the
+        path reached IPOPT's local solution on every state of the step-time benchmark, with
+        True not on one state where two local minima compete (``docs/benchmarks.md``).
     """
 
     def __init__(
@@ -243,6 +250,7 @@ class ParametricMPC:
         newton_steps: int = 6,
         barrier_steps: int = 0,
         barrier_mu0: float = 1e-3,
+        barrier_push: bool = True,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
@@ -260,6 +268,7 @@ class ParametricMPC:
             raise ValueError(f"barrier_mu0 must be in (0, 1), got {barrier_mu0}")
         self._barrier_steps = int(barrier_steps)
         self._barrier_mu0 = max(float(barrier_mu0), float(tau))
+        self._barrier_push = bool(barrier_push)
         self._tol = float(tol)
         self.tau = float(tau)
         self.warm_start = bool(warm_start)
@@ -785,6 +794,8 @@ class ParametricMPC:
         Hg, dfdw = (np.asarray(v).reshape(-1) for v in self._h_call(w, p))
         Hg = Hg[: self.nin]
         rows = np.flatnonzero(Hg >= 0)  # not interior: the new state violates them
+        if rows.size and not self._barrier_push:
+            return None  # only from interior starts (barrier_push=False): IPOPT solves
         if np.any(self._row_slack[rows] < 0):
             return None  # a row without a slack to push it inside
         if rows.size:
