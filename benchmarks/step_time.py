@@ -27,8 +27,8 @@ loads the library: set ``MPCMOBO_CACHE_DIR`` to a new directory to see both).
 ``du_first`` is the largest |action - the first variant's action| over all steps: the same
 policy gives about 1e-7, a different local solution in the constraint-violating phases tens.
 
-The measurements of all variants and the baseline are interleaved state by state (the order
-rotates each step), so load from other processes on the shared machine hits them alike. The
+The measurements of all variants and the baseline are interleaved state by state (in a new
+random order each step), so load from other processes on the shared machine hits them alike. The
 plant is stepped with the first variant's action, so every solver sees the same states.
 Reported: median and 95th percentile per row; ``ratio`` = baseline median / variant median
 (on a baseline row: that baseline's median / the first variant's median), ``ratio_mx`` the
@@ -415,6 +415,7 @@ def run(
     path_times = {n: {"newton": [], "barrier": [], "ipopt": []} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
+    order_rng = np.random.default_rng(seed + 1)
     theta0 = next(iter(mpcs.values())).theta0
     first = names[0]
     # one untimed solve per variant and baseline (first-call allocations)
@@ -433,8 +434,11 @@ def run(
             b.reset()
         x = x0.copy()
         episode_steps = {n: [] for n in bases}
-        for k in range(steps):
-            order = names[k % len(names) :] + names[: k % len(names)]
+        for _ in range(steps):
+            # a new random order every step (seeded): with a rotation the variants kept their
+            # neighbours, and one that ran after another calling the same compiled library
+            # found its code in warm caches (docs/benchmarks.md, step time, session 7)
+            order = [names[i] for i in order_rng.permutation(len(names))]
             actions = {}
             for n in order:
                 if n in bases:
