@@ -7,6 +7,7 @@ between them) is timed step by step, with both sensitivities; the steps are spli
 that solved them.
 
     PYTHONPATH=src .venv/bin/python benchmarks/newton_split.py [--codegen] [--barrier-steps 30]
+        [--no-barrier-push]
 """
 
 from __future__ import annotations
@@ -25,9 +26,16 @@ def main(argv=None) -> None:
     ap.add_argument("--codegen", action="store_true")
     ap.add_argument("--episodes", type=int, default=4)
     ap.add_argument("--barrier-steps", type=int, default=None, help="default: the MPC's")
+    ap.add_argument(
+        "--no-barrier-push",
+        action="store_true",
+        help="the barrier path only from interior warm starts (barrier_push=False)",
+    )
     args = ap.parse_args(argv)
     s = get_system("cstr")
-    opts = {} if args.barrier_steps is None else {"barrier_steps": args.barrier_steps}
+    opts: dict = {} if args.barrier_steps is None else {"barrier_steps": args.barrier_steps}
+    if args.no_barrier_push:
+        opts["barrier_push"] = False
     mpc = ParametricMPC(s, "imperfect", codegen=args.codegen, **opts)
     rng = np.random.default_rng(0)
     x0s = [s.sample_initial_state(rng) for _ in range(args.episodes)]

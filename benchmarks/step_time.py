@@ -27,8 +27,8 @@ loads the library: set ``MPCMOBO_CACHE_DIR`` to a new directory to see both).
 ``du_first`` is the largest |action - the first variant's action| over all steps: the same
 policy gives about 1e-7, a different local solution in the constraint-violating phases tens.
 
-The measurements of all variants and the baseline are interleaved state by state (the order
-rotates each step), so load from other processes on the shared machine hits them alike. The
+The measurements of all variants and the baseline are interleaved state by state (in a new
+random order each step), so load from other processes on the shared machine hits them alike. The
 plant is stepped with the first variant's action, so every solver sees the same states.
 Reported: median and 95th percentile per row; ``ratio`` = baseline median / variant median
 (on a baseline row: that baseline's median / the first variant's median), ``ratio_mx`` the
@@ -325,6 +325,9 @@ VARIANTS: dict[str, dict] = {
     "codegen_ipopt": {"codegen": True, "newton_steps": 0, "barrier_steps": 0},
     "codegen": {"codegen": True},  # generated C and the Newton steps
     "codegen_barrier": {"codegen": True, "barrier_steps": 30},  # and the barrier path
+    # the barrier path only from interior warm starts (violated rows: IPOPT), session 7
+    "barrier_interior": {"barrier_steps": 30, "barrier_push": False},
+    "codegen_barrier_interior": {"codegen": True, "barrier_steps": 30, "barrier_push": False},
     # CasADi's jit: compiled again at every build
     "jit": {"jit": True, "newton_steps": 0, "barrier_steps": 0},
 }
@@ -409,8 +412,10 @@ def run(
     du = {n: [] for n in mpcs}  # |action - baseline action|, a sanity check of "same problem"
     du_first = {n: [] for n in names}  # |action - first variant's action|: "same policy"
     paths = {n: {"newton": 0, "barrier": 0, "ipopt": 0} for n in mpcs}  # which path solved
+    path_times = {n: {"newton": [], "barrier": [], "ipopt": []} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
+    order_rng = np.random.default_rng(seed + 1)
     theta0 = next(iter(mpcs.values())).theta0
     first = names[0]
     # one untimed solve per variant and baseline (first-call allocations)
@@ -429,8 +434,11 @@ def run(
             b.reset()
         x = x0.copy()
         episode_steps = {n: [] for n in bases}
-        for k in range(steps):
-            order = names[k % len(names) :] + names[: k % len(names)]
+        for _ in range(steps):
+            # a new random order every step (seeded): with a rotation the variants kept their
+            # neighbours, and one that ran after another calling the same compiled library
+            # found its code in warm caches (docs/benchmarks.md, step time, session 7)
+            order = [names[i] for i in order_rng.permutation(len(names))]
             actions = {}
             for n in order:
                 if n in bases:
@@ -445,6 +453,7 @@ def run(
                     ok, it = sol.success, sol.iterations
                     path = {"Newton_Succeeded": "newton", "Barrier_Succeeded": "barrier"}
                     paths[n][path.get(sol.status, "ipopt")] += 1
+                    path_times[n][path.get(sol.status, "ipopt")].append(dt)
                     actions[n] = sol.action
                     ok = ok and bool(np.all(np.isfinite(sol.dpi_dtheta)))
                 times[n].append(dt)
@@ -491,6 +500,10 @@ def run(
                 median_fun_ms=float(np.median(a[:, 2])),
                 median_other_ms=float(np.median(t - a[:, 0] - a[:, 1])),
                 paths=paths[n],
+                # median step time [ms] of the steps each path solved (None: no such step)
+                median_ms_by_path={
+                    k: float(np.median(v) * 1e3) if v else None for k, v in path_times[n].items()
+                },
             )
     return res
 
@@ -560,6 +573,11 @@ def main(argv=None) -> None:
             f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rmx} {duf} "
             f"{r['n_du_vs_first_gt_1e-4']:>6d} {comp}"
         )
+    print("median step [ms] by the path that solved it (Newton steps / barrier path / IPOPT):")
+    for n, r in res.items():
+        if "median_ms_by_path" in r:
+            by = r["median_ms_by_path"].values()
+            print(f"  {n:<18} " + " / ".join("-" if v is None else f"{v:.2f}" for v in by))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(res, fh, indent=2, default=str)

@@ -216,3 +216,24 @@ def test_newton_sensitivities_match_central_differences(cstr):
 def test_newton_steps_must_be_a_count(cstr):
     with pytest.raises(ValueError, match="newton_steps must be an integer >= 0, got -1"):
         ParametricMPC(cstr, newton_steps=-1)
+
+
+def test_numpy_call_gives_the_function_outputs_bit_for_bit():
+    # the buffer-based call of the Newton, barrier and sensitivity functions: the numbers of
+    # the CasADi call itself, in its shapes (a matrix, a scalar, a structurally sparse output)
+    import casadi as ca
+
+    from mpcmobo.mpc.parametric import _NumpyCall
+
+    a, b = ca.MX.sym("a", 3), ca.MX.sym("b", 2)
+    fn = ca.Function(
+        "f", [a, b], [ca.sin(a) * b[0], ca.dot(a, a) + b[1], ca.mtimes(a, b.T), ca.tril(a @ a.T)]
+    )
+    call = _NumpyCall(fn)
+    rng = np.random.default_rng(0)
+    for _ in range(3):  # the buffers are reused
+        x, y = rng.normal(size=3), rng.normal(size=2)
+        got, want = call(x, y), fn(x, y)
+        assert isinstance(got[1], float) and got[1] == float(want[1])
+        for g, w in zip(got[:1] + got[2:], want[:1] + want[2:]):
+            assert g.shape == w.shape and np.array_equal(g, np.asarray(w))

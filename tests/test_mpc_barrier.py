@@ -126,3 +126,65 @@ def test_runs_saved_before_the_setting_resume_without_it(tmp_path):
     )
     (tmp_path / "config.toml").write_text(old)
     assert RunDirectory(tmp_path).saved_settings().mpc.barrier_steps == 0
+
+
+def test_the_reduced_hessian_is_the_barrier_hessian_on_the_null_space(cstr, pair):
+    # M = Z^T K Z for a basis Z of the null space of the equality Jacobian A (A Z = 0), at a
+    # minimum and at a saddle (the curvature of the cost reversed)
+    ipopt, mpc = pair
+    nw, neq = mpc.nw, mpc.neq
+    p = np.concatenate([X_CALM, mpc.theta0])
+    ok, _, _, out, w = mpc._run_solver(X_CALM, p, False)
+    assert ok
+    lam, mu = mpc._multipliers(
+        w, np.asarray(out["lam_g"]).ravel(), np.asarray(out["lam_x"]).ravel()
+    )
+    y = np.concatenate([w, lam, mu])
+    th = mpc.theta0.copy()
+    for block in ("Q", "R", "T"):
+        th[mpc.param.blocks[block]] *= -1.0
+    for theta, minimum in ((mpc.theta0, True), (th, False)):
+        pt = np.concatenate([X_CALM, theta])
+        Kxx, Kxr, Krr, Ax, Ar = mpc._soc_call(y[:nw], y[nw : nw + neq], y[nw + neq :], pt)
+        K = np.block([[Kxx, Kxr], [Kxr.T, Krr]])
+        A = np.hstack([Ax, Ar])
+        Z = np.vstack([-np.linalg.solve(Ax, Ar), np.eye(Ar.shape[1])])
+        np.testing.assert_allclose(A @ Z, 0.0, atol=1e-9 * np.abs(A).max())
+        M = mpc._reduced_hessian(y, pt)
+        # compared entry by entry at the scale of their diagonal (which spans 1 to 1e11)
+        d = np.sqrt(np.abs(np.diag(M)))
+        np.testing.assert_allclose((M - Z.T @ K @ Z) / np.outer(d, d), 0.0, atol=1e-9)
+        assert mpc._is_local_minimum(y, pt) == minimum
+
+
+def test_barrier_path_from_interior_starts_only(cstr, pair):
+    # barrier_push=False: a violated row sends the solve to IPOPT without a barrier attempt;
+    # from the interior warm starts of the benchmark's first episode (the Newton steps at tau
+    # converge too slowly there) the path gives IPOPT's solution and sensitivities
+    ipopt, _ = pair
+    mpc = ParametricMPC(cstr, barrier_steps=30, barrier_push=False)
+    calls = []
+    call = mpc._barrier_call
+    mpc._barrier_call = lambda *a: calls.append(1) or call(*a)
+    try:
+        _warm(cstr, mpc, mpc.theta0)
+        calls.clear()
+        sol = mpc.solve(X_VIOLATING[0], mpc.theta0)
+        assert sol.success and sol.status not in ("Newton_Succeeded", "Barrier_Succeeded")
+        assert not calls
+    finally:
+        mpc._barrier_call = call
+    x = cstr.sample_initial_state(np.random.default_rng(0))
+    for m in (ipopt, mpc):
+        m.reset()
+    used = 0
+    for _ in range(5):
+        sa, sb = ipopt.solve(x, ipopt.theta0), mpc.solve(x, mpc.theta0)
+        assert sa.success and sb.success
+        used += sb.status == "Barrier_Succeeded"
+        np.testing.assert_allclose(sb.action, sa.action, rtol=0, atol=1e-5)
+        scale = np.abs(sa.dpi_dtheta).max(axis=0)
+        assert np.all(np.abs(sb.dpi_dtheta - sa.dpi_dtheta) <= 1e-4 * scale)
+        np.testing.assert_allclose(sb.dV_dtheta, sa.dV_dtheta, rtol=1e-4, atol=1e-6)
+        x = cstr.plant_step(x, sa.action)
+    assert used >= 2

@@ -110,6 +110,55 @@ def _fraction_to_boundary(mu: ca.MX, dmu: ca.MX, H: ca.MX, dH: ca.MX) -> ca.MX:
     return ca.fmin(1.0, 0.995 * ca.fmin(a_mu, a_H))
 
 
+class _NumpyCall:
+    """A CasADi function evaluated into preallocated numpy arrays: ``f(*args)`` returns its
+    outputs (2-d arrays in the function's shapes, floats for scalars), the numbers of ``fn(*args)``
+    bit for bit, without converting every argument and result to a ``DM`` (that conversion was
+    half the time of a compiled Newton step's call). The buffers are made at the first call, so
+    a fresh MPC holds plain CasADi functions only. The returned arrays are copies."""
+
+    def __init__(self, fn: ca.Function) -> None:
+        self.fn = fn
+        self._state: tuple | None = None
+
+    def _setup(self) -> tuple:
+        fn = self.fn
+        buf, run = fn.buffer()
+        args = []
+        for i in range(fn.n_in()):
+            if fn.nnz_in(i) != fn.numel_in(i):  # not expected: every input here is dense
+                raise ValueError(f"{fn.name()}: input {i} is sparse")
+            args.append(np.zeros(fn.nnz_in(i)))
+            # CasADi's stubs ask for a size the Python binding takes from the buffer itself
+            buf.set_arg(i, memoryview(args[-1]))  # type: ignore[call-arg, arg-type]
+        res, shapes = [], []
+        for i in range(fn.n_out()):
+            sp = fn.sparsity_out(i)
+            res.append(np.zeros(sp.nnz()))
+            buf.set_res(i, memoryview(res[-1]))  # type: ignore[call-arg, arg-type]
+            dense = sp.nnz() == sp.numel()
+            shapes.append((sp.size1(), sp.size2(), None if dense else np.array(sp.find())))
+        self._state = (buf, run, args, res, shapes)
+        return self._state
+
+    def __call__(self, *values: Any) -> tuple:
+        _, run, args, res, shapes = self._state or self._setup()
+        for a, v in zip(args, values):
+            a[:] = v
+        run()
+        out: list = []
+        for r, (n1, n2, nz) in zip(res, shapes):
+            if nz is not None:  # structural zeros: scatter (column-major positions)
+                d = np.zeros(n1 * n2)
+                d[nz] = r
+                r = d
+            if n1 * n2 == 1:
+                out.append(float(r[0]))
+            else:
+                out.append(r.reshape((n1, n2), order="F").copy())
+        return tuple(out)
+
+
 class ParametricMPC:
     """The MPC of eq. (V0) for a :class:`~mpcmobo.systems.System`, built once, solved many times.
 
@@ -165,10 +214,19 @@ class ParametricMPC:
         0 (the default): off. Not the default (yet): it changes the last digits of the
         sensitivities, and a short seeded mpc-rl run on the CSTR (``tests/test_learners.py``)
         amplifies such differences into another outcome (as it does between IPOPT only and the
-        Newton steps); see ``docs/benchmarks.md``, step time.
+        Newton steps); and where two local minima compete it can reach another one than IPOPT
+        (one state of the step-time benchmark's 240, with the default MPC's closed loop); see
+        ``docs/benchmarks.md``, step time.
     barrier_mu0:
         The first barrier parameter of that path (scaled units), in (0, 1); IPOPT's warm
         solver starts at 1e-3 too (``mu_init``).
+    barrier_push:
+        True (the default): where the new state violates rows of the shifted plan, the barrier
+        path starts after pushing them inside through their slacks. False: the barrier path
+        only runs from a strictly interior warm start (the Newton steps at tau did not converge
+        there, typically too slowly), and IPOPT solves where rows are violated. With False the
+        path reached IPOPT's local solution on every state of the step-time benchmark, with
+        True not on one state where two local minima compete (``docs/benchmarks.md``).
     """
 
     def __init__(
@@ -192,6 +250,7 @@ class ParametricMPC:
         newton_steps: int = 6,
         barrier_steps: int = 0,
         barrier_mu0: float = 1e-3,
+        barrier_push: bool = True,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
@@ -209,6 +268,7 @@ class ParametricMPC:
             raise ValueError(f"barrier_mu0 must be in (0, 1), got {barrier_mu0}")
         self._barrier_steps = int(barrier_steps)
         self._barrier_mu0 = max(float(barrier_mu0), float(tau))
+        self._barrier_push = bool(barrier_push)
         self._tol = float(tol)
         self.tau = float(tau)
         self.warm_start = bool(warm_start)
@@ -254,12 +314,19 @@ class ParametricMPC:
                 self._barrier_point = ca.external("barrier_point", str(lib))
                 self._h_fn = ca.external("barrier_h", str(lib))
                 self._soc_fn = ca.external("barrier_soc", str(lib))
+        # the functions of the Newton steps, the barrier path and the sensitivities, called
+        # on numpy buffers (the same numbers, without a DM per argument)
+        self._newton_call = _NumpyCall(self._newton_fn)
+        self._barrier_call = _NumpyCall(self._barrier_fn)
+        self._point_call = _NumpyCall(self._barrier_point)
+        self._h_call = _NumpyCall(self._h_fn)
+        self._sens_call = _NumpyCall(self._sens)
+        self._soc_call = _NumpyCall(self._soc_fn)
         self._solver = ca.nlpsol("mpc", "ipopt", nlp, cold)
         self._solver_warm: ca.Function | None = (
             ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
         )
         self._prev: dict | None = None
-        self._soc_buffer: tuple | None = None
 
     # ------------------------------------------------------------------ construction
     def _build(self) -> None:
@@ -419,26 +486,14 @@ class ParametricMPC:
         # K = W + dH^T diag(mu / -H) dH reduced to the null space of the equality Jacobian A
         dHdw = ca.jacobian(H, wv)
         K = ca.hessian(lagr, wv)[0] + ca.mtimes(dHdw.T, ca.mtimes(ca.diag(mu / -H), dHdw))
-        parts = ca.Function("barrier_soc_parts", [wv, lam, mu, p], [K, ca.jacobian(geq, wv)])
-        self._soc_fn = self._reduced_hessian_function(parts)
-        self._row_slack, self._row_coef = self._slack_rows(gin, wv)
-
-    def _reduced_hessian_function(self, parts: ca.Function) -> ca.Function:
-        """(w, lam, mu, p) -> Z^T K Z (dense), Z a basis of the null space of the equality
-        Jacobian A: the predicted states are the dependent variables (their block A_x is square
-        and invertible, multiple shooting), so ``Z = [-A_x^-1 A_r; I]`` in (states, the rest)."""
+        # in the blocks of (the predicted states, the rest), dense: the reduction to the null
+        # space is done in numpy (_is_local_minimum; as one CasADi function it took longer)
         ix = self._ix_flat.tolist()
         ir = np.setdiff1d(np.arange(self.nw), self._ix_flat).tolist()
-        W = ca.MX.sym("w", self.nw)
-        L = ca.MX.sym("lam", self.neq)
-        MU = ca.MX.sym("mu", self.nH)
-        P = ca.MX.sym("p", self.nx + self.n_theta)
-        K, A = parts(W, L, MU, P)
-        S = -ca.solve(A[:, ix], ca.densify(A[:, ir]), self._linsol)
-        Kxr = K[ix, ir]
-        M = K[ir, ir] + ca.mtimes(Kxr.T, S) + ca.mtimes(S.T, Kxr)
-        M = M + ca.mtimes(S.T, ca.mtimes(K[ix, ix], S))
-        return ca.Function("barrier_soc", [W, L, MU, P], [ca.densify(M)])
+        A = ca.jacobian(geq, wv)
+        blocks = [K[ix, ix], K[ix, ir], K[ir, ir], A[:, ix], A[:, ir]]
+        self._soc_fn = ca.Function("barrier_soc", [wv, lam, mu, p], [ca.densify(b) for b in blocks])
+        self._row_slack, self._row_coef = self._slack_rows(gin, wv)
 
     def _newton_function(
         self,
@@ -704,7 +759,7 @@ class ParametricMPC:
         if not np.all(mu > 0):
             return None
         for k in range(1, self._newton + 1):
-            y_next, *scalars = self._newton_fn(y, p)
+            y_next, *scalars = self._newton_call(y, p)
             res0, res, f, h_max, mu_min, h0_max = (float(v) for v in scalars)
             # not interior (the new state violates a row of the old plan), not converging
             # (from the 2nd step on, the residual must fall tenfold per step), or out of steps
@@ -736,9 +791,11 @@ class ParametricMPC:
         mu_bar = self._barrier_mu0
         w = prev["w_shift"].copy()
         lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
-        Hg, dfdw = (np.asarray(v).reshape(-1) for v in self._h_fn(w, p))
+        Hg, dfdw = (np.asarray(v).reshape(-1) for v in self._h_call(w, p))
         Hg = Hg[: self.nin]
         rows = np.flatnonzero(Hg >= 0)  # not interior: the new state violates them
+        if rows.size and not self._barrier_push:
+            return None  # only from interior starts (barrier_push=False): IPOPT solves
         if np.any(self._row_slack[rows] < 0):
             return None  # a row without a slack to push it inside
         if rows.size:
@@ -758,7 +815,7 @@ class ParametricMPC:
         steps = short = 0
         while steps < self._barrier_steps:
             steps += 1
-            dy, a, _, r2, y1, r1, r1_2, h1, m1, f1 = self._barrier_fn(y, p, mu_bar)
+            dy, a, _, r2, y1, r1, r1_2, h1, m1, f1 = self._barrier_call(y, p, mu_bar)
             a, r2 = float(a), float(r2)
             # jamming: the fraction-to-boundary rule keeps cutting the steps short
             short = short + 1 if a < 0.1 else 0
@@ -771,7 +828,7 @@ class ParametricMPC:
                     break
                 t *= 0.5
                 y1 = y + t * np.asarray(dy).reshape(-1)
-                r1, r1_2, h1, m1, f1 = (float(v) for v in self._barrier_point(y1, p, mu_bar))
+                r1, r1_2, h1, m1, f1 = (float(v) for v in self._point_call(y1, p, mu_bar))
             else:
                 return None  # the residual does not fall along the Newton direction
             y = np.asarray(y1).reshape(-1)
@@ -789,27 +846,29 @@ class ParametricMPC:
         Jacobian at y (second-order sufficient condition of the barrier problem): a root of R
         that the residual line search reached may be a saddle point, which IPOPT (inertia
         correction) would not return."""
-        nw, neq = self.nw, self.neq
-        if self._soc_buffer is None:  # evaluated into numpy arrays (a DM's conversion is slow)
-            buf, run = self._soc_fn.buffer()
-            arrays = [np.zeros(nw), np.zeros(neq), np.zeros(self.nH), np.zeros(p.size)]
-            M = np.zeros((nw - neq, nw - neq))  # symmetric: column-major is the same
-            # CasADi's stubs ask for a size the Python binding takes from the buffer itself
-            for i, a in enumerate(arrays):
-                buf.set_arg(i, memoryview(a))  # type: ignore[call-arg, arg-type]
-            buf.set_res(0, memoryview(M))  # type: ignore[call-arg, arg-type]
-            self._soc_buffer = (buf, run, arrays, M)
-        _, run, arrays, M = self._soc_buffer
-        for a, v in zip(arrays, (y[:nw], y[nw : nw + neq], y[nw + neq :], p)):
-            a[:] = v
-        run()
-        if not np.all(np.isfinite(M)):
+        M = self._reduced_hessian(y, p)
+        if M is None:
             return False
         try:
             np.linalg.cholesky(M)
         except np.linalg.LinAlgError:
             return False
         return True
+
+    def _reduced_hessian(self, y: np.ndarray, p: np.ndarray) -> np.ndarray | None:
+        """``Z^T K Z`` at y: the barrier Hessian ``K = W + dH^T diag(mu / -H) dH`` on the null
+        space of the equality Jacobian ``A``, with ``Z = [-A_x^-1 A_r; I]`` in (the predicted
+        states, the rest) (the states are the dependent variables: their block ``A_x`` is square
+        and invertible, multiple shooting). None when it is not finite."""
+        nw, neq = self.nw, self.neq
+        Kxx, Kxr, Krr, Ax, Ar = self._soc_call(y[:nw], y[nw : nw + neq], y[nw + neq :], p)
+        try:
+            S = -np.linalg.solve(Ax, Ar)
+        except np.linalg.LinAlgError:
+            return None
+        KxrS = Kxr.T @ S
+        M = Krr + KxrS + KxrS.T + S.T @ (Kxx @ S)
+        return M if np.all(np.isfinite(M)) else None
 
     def _newton_result(
         self, y: np.ndarray, f: float, status: str, steps: int
@@ -900,7 +959,7 @@ class ParametricMPC:
         """(dpi/dtheta, dV/dtheta) at a solution (eq. nabla_pi, grad V); ``mult``: its
         (lambda, mu) when known (Newton), else recovered from CasADi's multipliers."""
         lam, mu = self._multipliers(w, lam_g, lam_x) if mult is None else mult
-        dpi, dV = self._sens(w, lam, mu, p)
+        dpi, dV = self._sens_call(w, lam, mu, p)
         dpi, dV = np.asarray(dpi), np.asarray(dV).reshape(-1)
         if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
             raise ValueError("non-finite sensitivity (singular KKT matrix)")
