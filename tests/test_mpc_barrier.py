@@ -122,10 +122,21 @@ def test_runs_saved_before_the_setting_resume_without_it(tmp_path):
     (tmp_path / "config.toml").write_text(text)
     assert RunDirectory(tmp_path).saved_settings().mpc.barrier_steps == 30
     old = "\n".join(
-        line for line in text.splitlines() if not line.startswith(("barrier_steps", "barrier_mu0"))
+        line
+        for line in text.splitlines()
+        if not line.startswith(("barrier_steps", "barrier_mu0", "barrier_push"))
     )
     (tmp_path / "config.toml").write_text(old)
     assert RunDirectory(tmp_path).saved_settings().mpc.barrier_steps == 0
+
+
+def test_barrier_push_setting_reaches_the_mpc(cstr):
+    # [mpc] barrier_push (default true: the behaviour before the option) is passed to the MPC
+    assert Settings().mpc.barrier_push is True
+    options = Settings(mpc={"barrier_steps": 30, "barrier_push": False}).mpc.options()
+    mpc = ParametricMPC(cstr, **{k: v for k, v in options.items() if k != "codegen"})
+    assert mpc._barrier_push is False
+    assert ParametricMPC(cstr, barrier_steps=30)._barrier_push is True
 
 
 def test_the_reduced_hessian_is_the_barrier_hessian_on_the_null_space(cstr, pair):
