@@ -14,6 +14,7 @@ import pytest
 from mpcmobo.bo import AcqfSearch, GPSurrogate, propose_ei
 from mpcmobo.bo.trust import TrustRegion, TrustState, trust_region_from_option
 from mpcmobo.learners import EpisodeResult, make_learner
+from mpcmobo.learners.bo import _DefaultAny
 from mpcmobo.learners.registry import LearnerOptionError
 from mpcmobo.systems import get_system
 
@@ -128,12 +129,14 @@ def test_trust_state_resumes_exactly_and_old_states_resume_without_it(name):
     b.load_state_dict(state)
     assert b.trust_ == a.trust_
     np.testing.assert_array_equal(a.propose(), b.propose())
-    # a state written before session 7 (no "trust_region" key): a learner whose option is
-    # at its default resumes without a trust region, as the run was made
-    old = make_learner(name, space, theta0, seed=3, **FAST)
-    old_state = old.state_dict()
-    old_state.pop("trust_region")
-    old_state.pop("trust_pre_fit")
-    again = make_learner(name, space, theta0, seed=3, **FAST)
-    again.load_state_dict(old_state)
-    assert again.trust_region is None and again.trust_ is None
+    # a state written before session 7 (no "trust_region" key) was made without a trust
+    # region: a learner whose option is at its default (a marked default, as the option
+    # would be if "auto" became the default) resumes without one; an explicit one keeps it
+    old_state = {k: v for k, v in state.items() if k not in ("trust_region", "trust_pre_fit")}
+    marked = make_learner(name, space, theta0, seed=3, trust_region=_DefaultAny("auto"), **FAST)
+    assert marked.trust_region is not None
+    marked.load_state_dict(old_state)
+    assert marked.trust_region is None and marked.trust_ is None
+    explicit = make_learner(name, space, theta0, seed=3, trust_region="auto", **FAST)
+    explicit.load_state_dict(old_state)
+    assert explicit.trust_region is not None

@@ -49,6 +49,20 @@ of the unit cube (``z0``: theta0's point), a learner's own :class:`SearchSpace` 
 theta0 and the gain lies within 0.08 of ``z0``; on the CSTR the good theta is far from theta0,
 so it is not a default (``docs/benchmarks.md``, "GP learners on `lq`").
 
+``trust_region`` (``"off"`` by default; session 7, :mod:`mpcmobo.bo.trust`, after TuRBO): the
+acquisition (EI, EHVI, or the contextual one of the safe design) is maximised only in a box of
+side ``L`` of the unit cube centred at the deployed theta (theta0 at first); the initial design
+fills the first box around theta0. A proposal whose point becomes the deployed theta is a
+success, any other a failure (the same rule for mobo: its deployed theta is chosen by f1);
+``L`` doubles after ``success_tolerance`` successes in a row, halves after
+``failure_tolerance`` (default ``max(4, d)``) failures in a row, up to ``length_max``, and
+restarts at ``length_init`` below ``length_min``. ``"auto"`` takes the defaults of
+:class:`~mpcmobo.bo.trust.TrustRegion` (``L`` 0.2 at first, at most 1.6); a table sets its
+fields. With it on it replaces ``trust_radius`` in the safe design (the initial design and the
+safe fallback use its box). Unlike ``search_radius`` the box moves with the deployed theta and
+grows with evidence, so it can reach a good theta far from theta0 (the CSTR's). Measured in
+``docs/benchmarks.md``, "A trust region for the GP learners (session 7)".
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
@@ -747,6 +761,7 @@ class _GPLearner(Learner):
         if "trust_region" not in state and self._trust_defaulted and self.trust_region:
             # a checkpoint from before session 7 ran without a trust region
             self.trust_region = None
+            self.trust_ = self._pre_fit_trust = None
             self.design = self._initial_design()
         super().load_state_dict(state)
         self.proposal_kinds_ = list(state.get("proposal_kinds", []))
