@@ -758,8 +758,9 @@ class _GPLearner(Learner):
     def load_state_dict(self, state: dict) -> None:
         if state.get("design") is None and self._defaulted:
             self._use_legacy_defaults()  # a checkpoint from before the safe defaults
-        if "trust_region" not in state and self._trust_defaulted and self.trust_region:
-            # a checkpoint from before session 7 ran without a trust region
+        if state.get("trust_region") is None and self._trust_defaulted and self.trust_region:
+            # the run was made without a trust region (before session 7, or while "off" was
+            # the default): it continues without one
             self.trust_region = None
             self.trust_ = self._pre_fit_trust = None
             self.design = self._initial_design()
