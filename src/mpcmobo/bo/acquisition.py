@@ -96,9 +96,21 @@ def _prepare(surrogate: GPSurrogate, X: np.ndarray, Y: np.ndarray) -> np.ndarray
     return surrogate.train_X  # type: ignore[return-value]  # set by fit
 
 
-def _optimize(acq: AcquisitionFunction, d: int, seed: int, search: AcqfSearch) -> np.ndarray:
-    """The maximiser (d,) of ``acq`` on [0,1]^d, seeded."""
-    bounds = torch.stack([torch.zeros(d, dtype=DTYPE), torch.ones(d, dtype=DTYPE)])
+Box = tuple[np.ndarray, np.ndarray]
+
+
+def _optimize(
+    acq: AcquisitionFunction, d: int, seed: int, search: AcqfSearch, box: Box | None = None
+) -> np.ndarray:
+    """The maximiser (d,) of ``acq`` on [0,1]^d, or on the sub-box ``box = (lower, upper)``
+    of it (a trust region, :mod:`mpcmobo.bo.trust`), seeded."""
+    if box is None:
+        bounds = torch.stack([torch.zeros(d, dtype=DTYPE), torch.ones(d, dtype=DTYPE)])
+    else:
+        lo, hi = (np.asarray(b, dtype=np.float64).reshape(d) for b in box)
+        if not (np.all(0 <= lo) and np.all(lo <= hi) and np.all(hi <= 1)):
+            raise ValueError(f"box must satisfy 0 <= lower <= upper <= 1, got {lo}, {hi}")
+        bounds = torch.as_tensor(np.stack([lo, hi]), dtype=DTYPE)
     with torch.random.fork_rng(), gpytorch.settings.max_cholesky_size(MAX_CHOLESKY):
         torch.manual_seed(seed)
         cand, _ = optimize_acqf(
@@ -114,7 +126,8 @@ def _optimize(acq: AcquisitionFunction, d: int, seed: int, search: AcqfSearch) -
                 "init_batch_limit": 128,
             },
         )
-    return np.clip(cand.detach().numpy().reshape(d).astype(np.float64), 0.0, 1.0)
+    z = cand.detach().numpy().reshape(d).astype(np.float64)
+    return np.clip(z, bounds[0].numpy(), bounds[1].numpy())
 
 
 def propose_ei(
@@ -124,8 +137,10 @@ def propose_ei(
     *,
     seed: int,
     search: AcqfSearch = AcqfSearch(),
+    box: Box | None = None,
 ) -> np.ndarray:
-    """Next point (d,) in [0,1]^d maximising log expected improvement of one cost.
+    """Next point (d,) in [0,1]^d (in ``box`` when given) maximising log expected improvement
+    of one cost.
 
     eq. EI / acq_EI, written for the maximised target ``t = -g(y)`` with ``Z = (mu - t*)/sigma``:
     ``EI = sigma (Z Phi(Z) + phi(Z))``, optimised as ``log EI`` (BoTorch's
@@ -140,7 +155,7 @@ def propose_ei(
     best_f = float(mt[:, 0].max())  # incumbent: best posterior mean (noisy EI)
     model = surrogate.fast_model  # same posterior, faster
     acq = LogExpectedImprovement(model, best_f=best_f)  # eq. acq_EI (log form)
-    return _optimize(acq, Xf.shape[1], seed, search)
+    return _optimize(acq, Xf.shape[1], seed, search, box)
 
 
 def posterior_front(
@@ -299,6 +314,7 @@ def propose_ehvi(
     seed: int,
     options: EHVIOptions = EHVIOptions(),
     search: AcqfSearch = AcqfSearch(),
+    box: Box | None = None,
 ) -> np.ndarray:
     """Next point (d,) in [0,1]^d maximising (log) expected hypervolume improvement (eq. EHVI).
 
@@ -318,7 +334,8 @@ def propose_ehvi(
         baseline points ``X_baseline`` (the front is then integrated over the joint posterior
         at the baseline, one decomposition per MC sample: slower, accounts for noise).
 
-    ``search`` bounds the maximisation (:class:`AcqfSearch`).
+    ``search`` bounds the maximisation (:class:`AcqfSearch`); ``box = (lower, upper)``
+    restricts it to a sub-box of the cube (a trust region, :mod:`mpcmobo.bo.trust`).
     """
     Xf = _prepare(surrogate, X, Y)
     ref = np.asarray(ref_point, dtype=np.float64).reshape(-1)
@@ -333,4 +350,4 @@ def propose_ehvi(
         acq = _logehvi(surrogate, Xf, base, tref, sampler, alpha, options.direct_samples)
     else:
         acq = _lognehvi(surrogate, Xf, base, tref, sampler, alpha, seed)
-    return _optimize(acq, Xf.shape[1], seed, search)
+    return _optimize(acq, Xf.shape[1], seed, search, box)

@@ -324,8 +324,9 @@ def propose_context(
     budget: float | None = None,
     search: AcqfSearch | None = None,
     safe_points: np.ndarray | None = None,
+    box: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """Next unit-cube theta (d,) maximising the (constrained) log EHVI (``n_objectives > 1``)
+    """Next unit-cube theta (d,) (in ``box = (lower, upper)`` when given) maximising the (constrained) log EHVI (``n_objectives > 1``)
     or log EI (one objective) of the expected outcomes over ``contexts``.
 
     ``surrogate`` is fitted on ``(z, c)`` rows ``Xf``; its outputs are the objectives, plus the
@@ -390,4 +391,4 @@ def propose_context(
             objective=GenericMCObjective(lambda s, X=None: objective(s, X)[..., 0]),  # type: ignore[misc]
             constraints=constraints,
         )
-    return _optimize(acq, d, seed, search)
+    return _optimize(acq, d, seed, search, box)

@@ -49,6 +49,20 @@ of the unit cube (``z0``: theta0's point), a learner's own :class:`SearchSpace` 
 theta0 and the gain lies within 0.08 of ``z0``; on the CSTR the good theta is far from theta0,
 so it is not a default (``docs/benchmarks.md``, "GP learners on `lq`").
 
+``trust_region`` (``"off"`` by default; session 7, :mod:`mpcmobo.bo.trust`, after TuRBO): the
+acquisition (EI, EHVI, or the contextual one of the safe design) is maximised only in a box of
+side ``L`` of the unit cube centred at the deployed theta (theta0 at first); the initial design
+fills the first box around theta0. A proposal whose point becomes the deployed theta is a
+success, any other a failure (the same rule for mobo: its deployed theta is chosen by f1);
+``L`` doubles after ``success_tolerance`` successes in a row, halves after
+``failure_tolerance`` (default ``max(4, d)``) failures in a row, up to ``length_max``, and
+restarts at ``length_init`` below ``length_min``. ``"auto"`` takes the defaults of
+:class:`~mpcmobo.bo.trust.TrustRegion` (``L`` 0.2 at first, at most 1.6); a table sets its
+fields. With it on it replaces ``trust_radius`` in the safe design (the initial design and the
+safe fallback use its box). Unlike ``search_radius`` the box moves with the deployed theta and
+grows with evidence, so it can reach a good theta far from theta0 (the CSTR's). Measured in
+``docs/benchmarks.md``, "A trust region for the GP learners (session 7)".
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
@@ -79,12 +93,14 @@ from mpcmobo.bo import (
     propose_ei,
     reference_point,
 )
+from mpcmobo.bo.acquisition import Box
 from mpcmobo.bo.context import (
     ContextSpec,
     expected_outcome_means,
     expected_outcome_samples,
     propose_context,
 )
+from mpcmobo.bo.trust import TrustState, trust_region_from_option
 from mpcmobo.learners.base import EpisodeResult, Learner
 from mpcmobo.learners.deploy import DeployRule, default_budget, theta_key
 from mpcmobo.systems.space import SearchSpace
@@ -122,6 +138,9 @@ N_CONTEXTS_DEFAULT = _DefaultInt(8)
 BUDGET_DEFAULT = _DefaultAny(None)
 DEPLOY_DEFAULT = _DefaultAny(None)
 MIN_RUNS_DEFAULT = _DefaultInt(3)
+# session 7: the trust region (mpcmobo.bo.trust); a checkpoint whose learner state has no
+# "trust_region" key was made without one and resumes without one if the option is defaulted
+TRUST_DEFAULT = _DefaultAny("off")
 LEGACY_DEFAULTS: dict[str, Any] = {
     "context": "none",
     "n_contexts": 16,
@@ -276,9 +295,12 @@ class _GPLearner(Learner):
         trust_radius: float = 0.1,
         contexts: ContextSpec | None = None,
         search_radius: float | None = None,
+        trust_region: Any = TRUST_DEFAULT,
         **removed: Any,
     ) -> None:
         self.search_radius = _check_radius(search_radius)
+        self._trust_defaulted = _is_default(trust_region)
+        self.trust_region = trust_region_from_option(_plain(trust_region))
         if self.search_radius is not None:
             space = local_space(space, theta0, self.search_radius)
         super().__init__(space, theta0, seed)
@@ -411,12 +433,16 @@ class _GPLearner(Learner):
     def _initial_design(self) -> np.ndarray:
         """theta0, then scrambled Sobol points (seeded): ``n_init`` rows in unit coordinates.
         With a violation budget the Sobol points fill the trust region of radius
-        ``trust_radius`` around theta0 (safe exploration starts from theta0 outward)."""
+        ``trust_radius`` around theta0 (safe exploration starts from theta0 outward); with
+        ``trust_region`` on they fill its first box (side ``length_init``) around theta0."""
         z0 = self.space.to_unit(self.theta0)
         sob = qmc.Sobol(d=self.space.dim, scramble=True, seed=self.seed).random(
             max(1, 2 ** int(np.ceil(np.log2(max(1, self.n_init)))))
         )
-        if self.violation_budget is not None:
+        if self.trust_region is not None:  # the first trust region (it replaces trust_radius)
+            lo, hi = self.trust_region.box(z0, self.trust_region.length_init)
+            sob = lo + (hi - lo) * sob
+        elif self.violation_budget is not None:
             sob = np.clip(z0 + self.trust_radius * (2 * sob - 1), 0, 1)
         return np.vstack([z0, sob])[: self.n_init]
 
@@ -443,6 +469,11 @@ class _GPLearner(Learner):
         # what each proposal was: "design", "search", "safe" (the trust-region fallback),
         # "verify" (a candidate run again before it may be deployed), "gradient" (hybrid)
         self.proposal_kinds_: list[str] = []
+        # the trust region's length and counters (None: no trust region), and before the last fit
+        self.trust_: TrustState | None = (
+            None if self.trust_region is None else self.trust_region.start()
+        )
+        self._pre_fit_trust = self.trust_
 
     # -------------------------------------------------------------- data
     def _theta(self, z: np.ndarray) -> np.ndarray:
@@ -502,9 +533,41 @@ class _GPLearner(Learner):
         return self.budget_ if self.violation_budget is not None else None
 
     def _fit(self) -> None:
-        """Fit the GP(s) on the finite observations; the pre-fit state makes resume exact."""
+        """Fit the GP(s) on the finite observations, choose the deployed theta, move the trust
+        region; the pre-fit state makes resume exact."""
         self._pre_fit_state = self.surrogate.state_dict()
         self._pre_fit_incumbent = self._incumbent_z.copy()
+        self._pre_fit_trust = self.trust_
+        self._fit_and_deploy()
+        self._update_trust(self._pre_fit_incumbent)
+
+    def _update_trust(self, previous: np.ndarray) -> None:
+        """One step of the trust region (:mod:`mpcmobo.bo.trust`) per observation after the
+        initial design: a success when the point just run became the deployed theta (it was
+        not before), a failure otherwise. The same rule for bo, mobo and hybrid: the box is
+        centred at the deployed theta, which is chosen by f1 (the incumbent rule), so it
+        moves and grows exactly when the deployed theta does; a point that only extends the
+        Pareto front in f2..f4 does not move what is deployed."""
+        n = self.Z_.shape[0]
+        if self.trust_region is None or self.trust_ is None or n <= self.n_init:
+            return
+        last = theta_key(self.Z_[-1])
+        success = theta_key(self._incumbent_z) == last and theta_key(previous) != last
+        self.trust_ = self.trust_region.update(self.trust_, success, self.space.dim)
+
+    def _trust_box(self) -> Box | None:
+        """The current trust region (lower, upper) around the deployed theta, or None."""
+        if self.trust_region is None or self.trust_ is None:
+            return None
+        return self.trust_region.box(self._incumbent_z, self.trust_.length)
+
+    def _box_kwargs(self) -> dict[str, Box]:
+        """``{"box": the trust region}`` for a proposer, or nothing without a trust region (the
+        call is then the one made before session 7)."""
+        box = self._trust_box()
+        return {} if box is None else {"box": box}
+
+    def _fit_and_deploy(self) -> None:
         if np.count_nonzero(self._finite()) < 2:
             self._fitted = False
             return
@@ -571,7 +634,9 @@ class _GPLearner(Learner):
         if n < self.n_init:
             return self._proposed("design", self.design[n])
         if not self._fitted:  # every observation so far failed: keep exploring the design
-            return self._proposed("design", self.rng.uniform(size=self.space.dim))
+            u = self.rng.uniform(size=self.space.dim)
+            box = self._trust_box()
+            return self._proposed("design", u if box is None else box[0] + (box[1] - box[0]) * u)
         if self._verify_z is not None:
             return self._proposed("verify", self._verify_z)
         if self.safe_mode:
@@ -631,6 +696,7 @@ class _GPLearner(Learner):
             budget=budget,
             search=search,
             safe_points=safe,
+            box=self._trust_box(),
         )
         if budget is None:
             self.proposal_kinds_.append("search")
@@ -646,10 +712,17 @@ class _GPLearner(Learner):
         return 64, self.search
 
     def _trust_region_point(self, seed: int, n_safe: int, budget: float) -> np.ndarray:
+        """The best safe point (lowest expected f1) of 128 Sobol points of the trust region:
+        the ``trust_region`` box when on, else the cube of radius ``trust_radius sqrt(n_safe)``
+        around the deployed theta."""
         center = self._incumbent_z
-        radius = min(0.5, self.trust_radius * np.sqrt(max(1, n_safe)))
         sob = qmc.Sobol(d=self.space.dim, scramble=True, seed=seed).random(128)
-        cand = np.clip(center + radius * (2 * sob - 1), 0, 1)
+        box = self._trust_box()
+        if box is not None:  # the trust region replaces the radius trust_radius sqrt(#safe)
+            cand = box[0] + (box[1] - box[0]) * sob
+        else:
+            radius = min(0.5, self.trust_radius * np.sqrt(max(1, n_safe)))
+            cand = np.clip(center + radius * (2 * sob - 1), 0, 1)
         E, U = expected_outcome_means(
             self.surrogate, cand, self.contexts, quantile=self.deploy_rule.safety_confidence
         )
@@ -680,6 +753,10 @@ class _GPLearner(Learner):
                 "design": DESIGN_VERSION,
                 "proposal_kinds": list(self.proposal_kinds_),
                 "exact_theta0": self._exact_theta0,
+                "trust_region": None if self.trust_ is None else self.trust_.to_dict(),
+                "trust_pre_fit": None
+                if self._pre_fit_trust is None
+                else self._pre_fit_trust.to_dict(),
             }
         )
         return d
@@ -687,6 +764,12 @@ class _GPLearner(Learner):
     def load_state_dict(self, state: dict) -> None:
         if state.get("design") is None and self._defaulted:
             self._use_legacy_defaults()  # a checkpoint from before the safe defaults
+        if state.get("trust_region") is None and self._trust_defaulted and self.trust_region:
+            # the run was made without a trust region (before session 7, or while "off" was
+            # the default): it continues without one
+            self.trust_region = None
+            self.trust_ = self._pre_fit_trust = None
+            self.design = self._initial_design()
         super().load_state_dict(state)
         self.proposal_kinds_ = list(state.get("proposal_kinds", []))
         self._exact_theta0 = state.get("exact_theta0")  # None: a checkpoint from before
@@ -704,6 +787,12 @@ class _GPLearner(Learner):
             state.get("incumbent_pre_fit", state["incumbent_z"]), float
         )
         self._fitted = False
+        if self.trust_region is not None:
+            pre = state.get("trust_pre_fit")
+            self.trust_ = self.trust_region.start() if pre is None else TrustState.from_dict(pre)
+            self._pre_fit_trust = self.trust_
+            if state["surrogate_pre_fit"] is None and state.get("trust_region") is not None:
+                self.trust_ = TrustState.from_dict(state["trust_region"])
         if state["surrogate_pre_fit"] is not None:
             # replay the last fit from the state it started from: same model, same counters
             self.surrogate.load_state_dict(state["surrogate_pre_fit"])
@@ -718,7 +807,9 @@ class BOLearner(_GPLearner):
     outputs = (0,)
 
     def _acquire(self, seed: int) -> np.ndarray:
-        return propose_ei(self.surrogate, self.Z_, self.Y_, seed=seed, search=self.search)
+        return propose_ei(
+            self.surrogate, self.Z_, self.Y_, seed=seed, search=self.search, **self._box_kwargs()
+        )
 
 
 class MOBOLearner(_GPLearner):
@@ -816,7 +907,8 @@ class MOBOLearner(_GPLearner):
         norm = np.max(np.abs(gz))
         if not np.isfinite(norm) or norm == 0:
             return None
-        return self._theta(np.clip(self._incumbent_z - self.hybrid_step * gz / norm, 0, 1))
+        lo, hi = self._trust_box() or (0.0, 1.0)  # a step stays in the trust region
+        return self._theta(np.clip(self._incumbent_z - self.hybrid_step * gz / norm, lo, hi))
 
     def search_effort(self, n: int) -> tuple[EHVIOptions, AcqfSearch]:
         """The EHVI options and search of this learner's proposal after ``n`` observations
@@ -833,7 +925,14 @@ class MOBOLearner(_GPLearner):
             ref = reference_point(self.Y_[self._finite()], margin=self.ref_margin)
         options, search = self.search_effort(self.Z_.shape[0])
         return propose_ehvi(
-            self.surrogate, self.Z_, self.Y_, ref, seed=seed, options=options, search=search
+            self.surrogate,
+            self.Z_,
+            self.Y_,
+            ref,
+            seed=seed,
+            options=options,
+            search=search,
+            **self._box_kwargs(),
         )
 
     def state_dict(self) -> dict:
