@@ -49,7 +49,8 @@ of the unit cube (``z0``: theta0's point), a learner's own :class:`SearchSpace` 
 theta0 and the gain lies within 0.08 of ``z0``; on the CSTR the good theta is far from theta0,
 so it is not a default (``docs/benchmarks.md``, "GP learners on `lq`").
 
-``trust_region`` (``"off"`` by default; session 7, :mod:`mpcmobo.bo.trust`, after TuRBO): the
+``trust_region`` (``"auto"``, the default since session 7; ``"off"`` the search of the whole
+box before it; :mod:`mpcmobo.bo.trust`, after TuRBO): the
 acquisition (EI, EHVI, or the contextual one of the safe design) is maximised only in a box of
 side ``L`` of the unit cube centred at the deployed theta (theta0 at first); the initial design
 fills the first box around theta0. A proposal whose point becomes the deployed theta is a
@@ -138,9 +139,11 @@ N_CONTEXTS_DEFAULT = _DefaultInt(8)
 BUDGET_DEFAULT = _DefaultAny(None)
 DEPLOY_DEFAULT = _DefaultAny(None)
 MIN_RUNS_DEFAULT = _DefaultInt(3)
-# session 7: the trust region (mpcmobo.bo.trust); a checkpoint whose learner state has no
-# "trust_region" key was made without one and resumes without one if the option is defaulted
-TRUST_DEFAULT = _DefaultAny("off")
+# session 7: the trust region (mpcmobo.bo.trust) is the default of bo, mobo and hybrid (measured
+# in docs/benchmarks.md, "Ten seeds in both start modes" and "A trust region for the GP
+# learners"); a checkpoint whose learner state has no "trust_region" key was made without one
+# and resumes without one when the option is left at its default
+TRUST_DEFAULT = _DefaultAny("auto")
 LEGACY_DEFAULTS: dict[str, Any] = {
     "context": "none",
     "n_contexts": 16,
