@@ -141,7 +141,7 @@ def test_trust_state_resumes_exactly_and_old_states_resume_without_it(name):
     explicit.load_state_dict(old_state)
     assert explicit.trust_region is not None
     # a state written with the trust region off (its key None) resumes without one too
-    off_state = make_learner(name, space, theta0, seed=3, **FAST).state_dict()
+    off_state = make_learner(name, space, theta0, seed=3, trust_region="off", **FAST).state_dict()
     assert off_state["trust_region"] is None
     marked = make_learner(name, space, theta0, seed=3, trust_region=_DefaultAny("auto"), **FAST)
     marked.load_state_dict(off_state)

@@ -212,12 +212,17 @@ def test_safe_design_starts_from_theta0_outward(cstr, spec):
     it (unit cube); without one, global Sobol points."""
     space, theta0 = cstr.search_space, cstr.parameterization.theta0
     z0 = space.to_unit(theta0)
-    safe = make_learner("mobo", space, theta0, n_init=5, violation_budget="auto", contexts=spec)
+    safe = make_learner(
+        "mobo", space, theta0, n_init=5, violation_budget="auto", contexts=spec, trust_region="off"
+    )
     np.testing.assert_array_equal(safe.design[0], z0)
     assert np.max(np.abs(safe.design - z0)) <= 0.1 + 1e-12
     np.testing.assert_array_equal(safe.incumbent(), theta0)  # exactly theta0, no round trip
-    # without a budget (off: the default has one since session 5) the whole cube
-    plain = make_learner("mobo", space, theta0, n_init=5, violation_budget="off")
+    # without a budget and without the trust region (the default since session 7, whose first
+    # box of side 0.2 the design fills instead) the whole cube
+    plain = make_learner(
+        "mobo", space, theta0, n_init=5, violation_budget="off", trust_region="off"
+    )
     assert np.max(np.abs(plain.design - z0)) > 0.3
 
 

@@ -59,8 +59,8 @@ def test_nan_and_inf_objectives_are_recorded_not_fitted(tmp_path, monkeypatch, l
     original = loop.episode_result
     calls = []
 
-    def corrupt(record, critic, previous_Vc, beta=1.0):
-        result, cr = original(record, critic, previous_Vc, beta)
+    def corrupt(record, critic, previous_Vc, beta=1.0, **kw):
+        result, cr = original(record, critic, previous_Vc, beta, **kw)
         k = len(calls)
         calls.append(k)
         if k in bad:

@@ -229,7 +229,7 @@ def test_mobo_halves_its_ehvi_search_after_reduce_effort_after(cstr, monkeypatch
 
     seen = []
 
-    def fake_ehvi(surrogate, X, Y, ref, *, seed, options, search):
+    def fake_ehvi(surrogate, X, Y, ref, *, seed, options, search, box=None):
         seen.append((X.shape[0], options.mc_samples, search.num_restarts, search.raw_samples))
         return np.full(X.shape[1], 0.5)
 

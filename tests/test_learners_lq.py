@@ -313,7 +313,10 @@ def test_gp_learners_search_radius_keeps_every_proposal_near_theta0(name):
     space, theta0 = s.search_space, s.parameterization.theta0
     z0 = space.to_unit(theta0)
     r = 0.1
-    learner = make_learner(name, space, theta0, seed=3, search_radius=r, n_init=3)
+    # (the trust region, on by default, would search a smaller box inside: off here)
+    learner = make_learner(
+        name, space, theta0, seed=3, search_radius=r, n_init=3, trust_region="off"
+    )
     rng = np.random.default_rng(0)
     Z = []
     for k in range(6):
