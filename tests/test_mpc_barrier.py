@@ -89,17 +89,22 @@ def test_a_saddle_point_goes_to_ipopt(cstr, pair):
     np.testing.assert_allclose(sb.action, sa.action, rtol=0, atol=1e-7)
 
 
-def test_the_local_minimum_check(cstr, pair):
-    # at IPOPT's barrier solution the barrier Hessian is positive definite on the null space
-    # of the equality constraints; with the curvature of the cost reversed it is not
-    ipopt, mpc = pair
+def _ipopt_primal_dual(mpc):
+    """The parameters at the calm state and IPOPT's primal-dual solution y = (w, lam, mu)."""
     p = np.concatenate([X_CALM, mpc.theta0])
     ok, _, _, out, w = mpc._run_solver(X_CALM, p, False)
     assert ok
     lam, mu = mpc._multipliers(
         w, np.asarray(out["lam_g"]).ravel(), np.asarray(out["lam_x"]).ravel()
     )
-    y = np.concatenate([w, lam, mu])
+    return p, np.concatenate([w, lam, mu])
+
+
+def test_the_local_minimum_check(cstr, pair):
+    # at IPOPT's barrier solution the barrier Hessian is positive definite on the null space
+    # of the equality constraints; with the curvature of the cost reversed it is not
+    ipopt, mpc = pair
+    p, y = _ipopt_primal_dual(mpc)
     assert mpc._is_local_minimum(y, p)
     th = mpc.theta0.copy()
     for block in ("Q", "R", "T"):
@@ -144,13 +149,7 @@ def test_the_reduced_hessian_is_the_barrier_hessian_on_the_null_space(cstr, pair
     # minimum and at a saddle (the curvature of the cost reversed)
     ipopt, mpc = pair
     nw, neq = mpc.nw, mpc.neq
-    p = np.concatenate([X_CALM, mpc.theta0])
-    ok, _, _, out, w = mpc._run_solver(X_CALM, p, False)
-    assert ok
-    lam, mu = mpc._multipliers(
-        w, np.asarray(out["lam_g"]).ravel(), np.asarray(out["lam_x"]).ravel()
-    )
-    y = np.concatenate([w, lam, mu])
+    p, y = _ipopt_primal_dual(mpc)
     th = mpc.theta0.copy()
     for block in ("Q", "R", "T"):
         th[mpc.param.blocks[block]] *= -1.0
