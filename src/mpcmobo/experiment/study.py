@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import os
 import pickle
+import signal
 import time
 from collections.abc import Callable, Collection
 from pathlib import Path
@@ -409,10 +410,20 @@ def _run_processes(
         initializer=interrupts.init_worker,
         initargs=(os.getpid(), str(stop)),
     )
-    futures = {
-        pool.submit(run_job, learner_name=n, seed=s, parent_pid=os.getpid(), **args): (n, s)
-        for n, s in jobs
-    }
+    # the workers are spawned by the submits below; they start with SIGINT blocked (a signal
+    # mask survives fork and exec), so a Ctrl-C while a worker still imports, before
+    # init_worker ignores SIGINT, cannot raise inside its start-up; a SIGINT that reaches the
+    # study meanwhile is delivered to it when the mask is restored
+    masked = hasattr(signal, "pthread_sigmask")
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if masked else None
+    try:
+        futures = {
+            pool.submit(run_job, learner_name=n, seed=s, parent_pid=os.getpid(), **args): (n, s)
+            for n, s in jobs
+        }
+    finally:
+        if masked and old_mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
     remaining = set(futures)
     try:
         while remaining:
