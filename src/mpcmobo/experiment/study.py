@@ -414,15 +414,18 @@ def _run_processes(
     # mask survives fork and exec), so a Ctrl-C while a worker still imports, before
     # init_worker ignores SIGINT, cannot raise inside its start-up; a SIGINT that reaches the
     # study meanwhile is delivered to it when the mask is restored
-    masked = hasattr(signal, "pthread_sigmask")
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT}) if masked else None
+    old_mask = (
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        if hasattr(signal, "pthread_sigmask")  # not on Windows
+        else None
+    )
     try:
         futures = {
             pool.submit(run_job, learner_name=n, seed=s, parent_pid=os.getpid(), **args): (n, s)
             for n, s in jobs
         }
     finally:
-        if masked and old_mask is not None:
+        if old_mask is not None:
             signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
     remaining = set(futures)
     try:

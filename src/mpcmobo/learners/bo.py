@@ -564,12 +564,6 @@ class _GPLearner(Learner):
             return None
         return self.trust_region.box(self._incumbent_z, self.trust_.length)
 
-    def _box_kwargs(self) -> dict[str, Box]:
-        """``{"box": the trust region}`` for a proposer, or nothing without a trust region (the
-        call is then the one made before session 7)."""
-        box = self._trust_box()
-        return {} if box is None else {"box": box}
-
     def _fit_and_deploy(self) -> None:
         if np.count_nonzero(self._finite()) < 2:
             self._fitted = False
@@ -811,7 +805,7 @@ class BOLearner(_GPLearner):
 
     def _acquire(self, seed: int) -> np.ndarray:
         return propose_ei(
-            self.surrogate, self.Z_, self.Y_, seed=seed, search=self.search, **self._box_kwargs()
+            self.surrogate, self.Z_, self.Y_, seed=seed, search=self.search, box=self._trust_box()
         )
 
 
@@ -935,7 +929,7 @@ class MOBOLearner(_GPLearner):
             seed=seed,
             options=options,
             search=search,
-            **self._box_kwargs(),
+            box=self._trust_box(),
         )
 
     def state_dict(self) -> dict:
