@@ -91,7 +91,7 @@ def test_summary_matches_records(full_run):
     df = storage.read_episodes(out)
     J_star = on_disk["J_star"]
     s = on_disk["learners"]["mpc-rl"]
-    finals = []
+    finals, worst, regressions = [], [], 0
     for seed in (0, 1):
         sub = df[df.seed == seed].sort_values("episode")
         last = sub.iloc[-1]
@@ -101,8 +101,16 @@ def test_summary_matches_records(full_run):
         assert per["theta_final"] == pytest.approx(list(last.incumbent))
         ok = sub[sub.J_eval_incumbent - J_star <= 0.02 * abs(J_star)]
         assert per["episodes_to_2pct"] == (int(ok.episode.min()) if len(ok) else None)
+        J = sub.J_eval_incumbent[np.isfinite(sub.J_eval_incumbent)]
+        assert per["J_worst"] == J.max()
+        assert per["regressions"] == int((J > on_disk["J_initial"]).sum())
+        assert per["violation_mean"] == pytest.approx(sub.violation.mean())
         finals.append(last.J_eval_incumbent)
+        worst.append(per["J_worst"])
+        regressions += per["regressions"]
     assert s["J_final"] == pytest.approx(float(np.median(finals)))
+    assert s["J_final_worst"] == max(finals) and s["J_worst"] == max(worst)
+    assert s["regressions"] == regressions
     assert s["J_star"] == J_star and s["J_initial"] == on_disk["J_initial"]
     assert s["theta_names"][0] == "theta_c" and len(s["theta_names"]) == len(s["theta_final"])
     assert s["wall_time_s"] > 0
@@ -242,3 +250,32 @@ def test_evaluation_schedule_every_eval_every_when_the_incumbent_changes():
     assert [e for e in range(7) if changing.step(e, np.array([float(e)]))] == [0, 3, 6]
     fixed = EvaluationSchedule(episodes=7, eval_every=3, trajectory_every=3)
     assert [e for e in range(7) if fixed.step(e, np.zeros(1))] == [0, 6]
+
+
+def test_summary_counts_the_deployed_thetas_worst_evaluation_and_regressions():
+    """Issue 11, item 3: per seed the worst J_eval of the deployed theta over the run (not the
+    last), the evaluations above J_eval(theta0) and the mean violation; per learner the worst
+    seed's final, the worst deployed J_eval of any seed and the regressions summed."""
+    from mpcmobo.experiment.records import Reference
+    from mpcmobo.experiment.study import summarize
+
+    settings = small(episodes=4, seeds=[0, 1])
+    ref = Reference(
+        J_star=1.0, J_initial=6.0, theta0=np.zeros(2), system={"theta_names": ["a", "b"]}
+    )
+    nan = math.nan
+    J = {0: [6.0, 9.0, nan, 2.0], 1: [6.0, 7.0, 8.0, 5.0]}
+    df = pd.DataFrame(
+        [
+            {"learner": "mpc-rl", "seed": seed, "episode": k, "J_eval_incumbent": J[seed][k],
+             "violation": float(k + seed), "incumbent": np.zeros(2)}
+            for seed in (0, 1) for k in range(4)
+        ]
+    )  # fmt: skip
+    s = summarize(settings, ref, df, {})["learners"]["mpc-rl"]
+    per = s["per_seed"]
+    assert (per["0"]["J_final"], per["0"]["J_worst"], per["0"]["regressions"]) == (2.0, 9.0, 1)
+    assert (per["1"]["J_final"], per["1"]["J_worst"], per["1"]["regressions"]) == (5.0, 8.0, 2)
+    assert per["0"]["violation_mean"] == 1.5 and per["1"]["violation_mean"] == 2.5
+    assert (s["J_final"], s["J_final_worst"], s["J_worst"]) == (3.5, 5.0, 9.0)
+    assert (s["regressions"], s["seeds_with_regressions"]) == (3, 2)

@@ -364,13 +364,15 @@ def _summary_table(summary: dict) -> Table:
     else:
         title = f"{summary['system']}: J* = {_fmt(summary['J_star'])}"
     table = Table(title=title)
-    for col in ("learner", "J_initial", "J_final", "to 2%", "to 5%", "wall time [s]"):
+    cols = ("learner", "J_initial", "J_final", "worst deployed", "to 2%", "to 5%", "wall time [s]")
+    for col in cols:
         table.add_column(col, justify="right")
     for name, s in summary["learners"].items():
         table.add_row(
             name,
             _fmt(s["J_initial"]),
             _fmt(s["J_final"]),
+            _fmt(s.get("J_worst")),
             str(s["episodes_to_2pct"]) if s["episodes_to_2pct"] is not None else "-",
             str(s["episodes_to_5pct"]) if s["episodes_to_5pct"] is not None else "-",
             f"{s['wall_time_s']:.1f}",

@@ -149,8 +149,15 @@ def _seed_summary(
 ) -> dict[str, Any]:
     """The summary of one job from its rows ``s`` (sorted by episode)."""
     evaluated = s[np.isfinite(s["J_eval_incumbent"])]
+    J = evaluated["J_eval_incumbent"].to_numpy(float)
+    violation = s["violation"].to_numpy(float)
     return {
-        "J_final": float(evaluated["J_eval_incumbent"].iloc[-1]) if len(evaluated) else None,
+        "J_final": float(J[-1]) if len(J) else None,
+        # issue 11, item 3: the worst J_eval of the deployed theta over the run, and how many
+        # evaluations found it worse than theta0 (J_eval > J_initial)
+        "J_worst": float(J.max()) if len(J) else None,
+        "regressions": int(np.count_nonzero(J > float(reference.J_initial))),
+        "violation_mean": float(np.nanmean(violation)) if np.isfinite(violation).any() else None,
         "episodes_done": len(s),
         "complete": int(s["episode"].max()) == settings.episodes - 1,
         "episodes_to_2pct": _first_within(s, reference, 0.02),
@@ -167,6 +174,7 @@ def _learner_summary(
     vals = list(per_seed.values())
     J_finals = [v["J_final"] for v in vals if v["J_final"] is not None]
     J_final = float(np.median(J_finals)) if J_finals else None
+    worst = [v["J_worst"] for v in vals if v["J_worst"] is not None]
     return {
         "J_star": None if reference.J_star is None else float(reference.J_star),
         "J_initial": float(reference.J_initial),
@@ -176,6 +184,11 @@ def _learner_summary(
         else 1.0 - J_final / float(reference.J_initial),
         "episodes_to_2pct": _median_or_null([v["episodes_to_2pct"] for v in vals]),
         "episodes_to_5pct": _median_or_null([v["episodes_to_5pct"] for v in vals]),
+        # the worst seed: its final J_eval, and the worst deployed J_eval of any seed
+        "J_final_worst": max(J_finals) if J_finals else None,
+        "J_worst": max(worst) if worst else None,
+        "regressions": int(sum(v["regressions"] for v in vals)),
+        "seeds_with_regressions": sum(1 for v in vals if v["regressions"] > 0),
         "theta_final": vals[0]["theta_final"] if vals else None,
         "theta_names": reference.system["theta_names"],
         "wall_time_s": float(sum(v["wall_time_s"] for v in vals)) if vals else 0.0,
