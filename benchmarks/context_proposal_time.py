@@ -1,18 +1,19 @@
-"""Wall time of one mobo learner step with the issue-11 design (contextual GP over (z, x0),
-constrained EHVI over the contexts, the deployment rule; the default since session 5), at n
-synthetic observations, on the CSTR's search space and initial-state box.
+"""Wall time of one mobo learner step with the issue-11 safe design (contextual GP over (z, x0),
+constrained EHVI over the contexts, the deployment rule: ``benchmarks/configs/safe_context.toml``,
+opt-in), at n synthetic observations, on the CSTR's search space and initial-state box.
 
 Synthetic data as in ``benchmarks/proposal_time.py`` (4 conflicting objectives of z) with a
 context effect ``+ 0.5 |c - 0.5|^2`` on every objective, positive costs, and a violation
 ``exp(3 (z_0 - 0.7)) * u`` (u uniform): a fitted step (observe: GP fit + deployment rule) and a
 proposal (constrained EHVI + safety filter) are timed separately, ``--reps`` times each at every
 n (the fits after the first are conditioning fits, as in a learner loop). Three learners on the
-same data in the same run: the defaults (8 contexts), the defaults with 16 contexts (session
-4's number), and the old defaults (no context, no budget, no deployment rule). CPU time
+same data in the same run: the safe design (8 contexts), the same with 16 contexts (session
+4's number), and the defaults (no context, no budget, no deployment rule; since session 7 all
+three with the trust region, the default). CPU time
 (``time.process_time``, one torch thread) is reported besides wall time: on the shared
 machine the wall time moves with the load, the CPU time much less.
 
-    .venv/bin/python benchmarks/context_proposal_time.py --n 100 400
+    .venv/bin/python benchmarks/context_proposal_time.py --n 100 400 600
 """
 
 from __future__ import annotations
@@ -28,10 +29,11 @@ from mpcmobo.learners.base import EpisodeResult
 from mpcmobo.learners.bo import MOBOLearner
 from mpcmobo.systems import get_system
 
+SAFE = dict(context="x0", violation_budget=1.0, deploy_confidence=0.9)
 VARIANTS = {
-    "defaults": dict(violation_budget=1.0),
-    "defaults, 16 contexts": dict(violation_budget=1.0, n_contexts=16),
-    "old defaults": dict(context="none", violation_budget="off", deploy_confidence=0.0),
+    "safe design": SAFE,
+    "safe design, 16 contexts": {**SAFE, "n_contexts": 16},
+    "defaults": {},
 }
 
 
