@@ -68,8 +68,6 @@ _MAX_BACKTRACKS = 10  # halvings of a barrier-path step before it gives up (IPOP
 # in a row gives up (on the benchmark's states, converging paths had at most 9 such steps in a
 # row, the ones that ran out of steps 15 or more)
 _STALL_STEPS = 12
-RELAX_MU_MIN = 1.0
-RELAX_S0 = None
 _JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
 # options of CasADi's nlpsol itself (not IPOPT's): passed without the "ipopt." prefix
 _CASADI_NLPSOL_KEYS = (
@@ -253,8 +251,6 @@ class ParametricMPC:
         barrier_steps: int = 0,
         barrier_mu0: float = 1e-3,
         barrier_push: bool = True,
-        barrier_relax: bool = False,
-        stage0_repair: bool = False,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
@@ -273,10 +269,6 @@ class ParametricMPC:
         self._barrier_steps = int(barrier_steps)
         self._barrier_mu0 = max(float(barrier_mu0), float(tau))
         self._barrier_push = bool(barrier_push)
-        self._barrier_relax = bool(barrier_relax)
-        self._path_check = 0
-        self._repair = bool(stage0_repair)
-        self.path_log: list = []
         self._tol = float(tol)
         self.tau = float(tau)
         self.warm_start = bool(warm_start)
@@ -330,8 +322,6 @@ class ParametricMPC:
         self._h_call = _NumpyCall(self._h_fn)
         self._sens_call = _NumpyCall(self._sens)
         self._soc_call = _NumpyCall(self._soc_fn)
-        self._relax_call = _NumpyCall(self._relax_fn)
-        self._relax_point_call = _NumpyCall(self._relax_point)
         self._solver = ca.nlpsol("mpc", "ipopt", nlp, cold)
         self._solver_warm: ca.Function | None = (
             ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
@@ -492,9 +482,6 @@ class ParametricMPC:
             wv, y, p, mu_bar, R_bar, Jy, H, f, kkt_opts
         )
         self._h_fn = ca.Function("barrier_h", [wv, p], [H, ca.gradient(f, wv)], kkt_opts)
-        self._relax_fn, self._relax_point = self._relaxed_functions(
-            wv, y, p, mu_bar, R_bar, Jy, H, f, kkt_opts
-        )
         # second-order check of a barrier-path solution: the barrier Hessian
         # K = W + dH^T diag(mu / -H) dH reduced to the null space of the equality Jacobian A
         dHdw = ca.jacobian(H, wv)
@@ -579,79 +566,10 @@ class ParametricMPC:
         out = [dy, a, ca.norm_inf(Rv), ca.norm_2(Rv), Y1, r1, r1_2, h1, m1, f1]
         return ca.Function("barrier", [Y, P, M], out), point
 
-    def _relaxed_functions(
-        self,
-        wv: ca.SX,
-        y: ca.SX,
-        p: ca.SX,
-        mu_bar: ca.SX,
-        R: ca.SX,
-        Jy: ca.SX,
-        H: ca.SX,
-        f: ca.SX,
-        opts: dict,
-    ) -> tuple[ca.Function, ca.Function]:
-        """The barrier path's Newton step and merit with the general inequalities relaxed as
-        IPOPT relaxes them: ``g(w) - s = 0``, ``s < 0``, ``mu s + mu_bar = 0``.
-
-        With the slack ``s`` eliminated (``ds = dg dw + g(w) - s``) the step solves the KKT
-        system of ``R_mu`` with the complementarity diagonal ``H_r`` of every general row
-        replaced by ``s_r`` (the right-hand side is ``-R_mu`` itself), so a start that violates
-        rows (``g_r(w) > 0``) keeps its primal point and only ``s`` starts inside; at
-        ``s = g(w)`` it is the step of ``barrier``.
-
-        ``relax``: (y, s, p, mu_bar) -> (dy, ds, a_max, |R~(y, s)|_2, y1, s1, |R~(y1, s1)|_inf,
-        |R~(y1, s1)|_2, |R_mu(y1)|_inf, max H(y1), max s1, min mu1, f(y1)) with ``R~`` the
-        residual of the relaxed system and the fraction-to-boundary rule on ``mu`` and on
-        ``(s, H of the simple bounds)``. ``relax_point``: (y, s, p, mu_bar) -> (|R~|_inf,
-        |R~|_2, |R_mu|_inf, max H, max s, min mu, f) at a trial point of the line search."""
-        nw, neq, nin = self.nw, self.neq, self.nin
-        s = ca.SX.sym("s", nin)
-        mu = y[nw + neq :]
-        Hg = H[:nin]
-        J2 = ca.SX(Jy)
-        for r in range(nin):  # d(mu_r s_r)/d mu_r = s_r
-            J2[nw + neq + r, nw + neq + r] = s[r]
-        Rt = ca.vertcat(R[: nw + neq], Hg - s, mu[:nin] * s + mu_bar, R[nw + neq + nin :])
-        dw = ca.SX.sym("dw", nw)
-        res = ca.Function("relax_res", [y, s, p, mu_bar], [R, J2, H], opts)
-        point = ca.Function(
-            "relax_point",
-            [y, s, p, mu_bar],
-            [
-                ca.norm_inf(Rt),
-                ca.norm_2(Rt),
-                ca.norm_inf(R),
-                ca.mmax(H),
-                ca.mmax(s),
-                ca.mmin(mu),
-                f,
-            ],
-            opts,
-        )
-        dH = ca.Function("relax_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)], opts)
-        Y = ca.MX.sym("y", self._ny)
-        S = ca.MX.sym("s", nin)
-        P = ca.MX.sym("p", p.numel())
-        M = ca.MX.sym("mu_bar")
-        Rv, J, Hv = res(Y, S, P, M)
-        Rt0 = ca.vertcat(Rv[: nw + neq], Hv[:nin] - S, Y[nw + neq : nw + neq + nin] * S + M)
-        Rt0 = ca.vertcat(Rt0, Rv[nw + neq + nin :])
-        dy = ca.solve(J, -Rv, self._linsol)
-        dHv = dH(Y[:nw], P, dy[:nw])
-        ds = dHv[:nin] + Hv[:nin] - S
-        a = _fraction_to_boundary(
-            Y[nw + neq :], dy[nw + neq :], ca.vertcat(S, Hv[nin:]), ca.vertcat(ds, dHv[nin:])
-        )
-        Y1, S1 = Y + a * dy, S + a * ds
-        out = [dy, ds, a, ca.norm_2(Rt0), Y1, S1, *point(Y1, S1, P, M)]
-        return ca.Function("relax", [Y, S, P, M], out), point
-
     def _slack_rows(self, gin: ca.SX, wv: ca.SX) -> tuple[np.ndarray, np.ndarray]:
         """For every row of ``gin``: the position in ``w`` of its slack and the slack's
         (negative, constant) coefficient in the row (the rows are ``... - eta <= 0``)."""
-        Jsym = ca.jacobian(gin, wv)
-        jac = ca.Function("jac_gin", [wv], [Jsym])
+        jac = ca.Function("jac_gin", [wv], [ca.jacobian(gin, wv)])
         J = np.asarray(jac(np.zeros(self.nw)))
         slack = np.full(self.nin, -1)
         coef = np.zeros(self.nin)
@@ -659,24 +577,6 @@ class ParametricMPC:
             cols = [c for c in self._ie_flat if J[r, c] < 0]
             if len(cols) == 1:
                 slack[r], coef[r] = cols[0], J[r, cols[0]]
-        # rows whose only variable is their slack (the stage-0 state bounds: x_0 is the
-        # parameter x), and slacks that appear in such rows only: a violated pure row is
-        # repaired exactly by its slack alone (_repair_pure_rows)
-        sp = Jsym.sparsity()
-        row_cols = [[] for _ in range(self.nin)]
-        for r, c in zip(*sp.get_triplet()):
-            row_cols[r].append(c)
-        pure = np.array([slack[r] >= 0 and row_cols[r] == [slack[r]] for r in range(self.nin)])
-        col_rows: dict[int, list[int]] = {}
-        for r in range(self.nin):
-            for c in row_cols[r]:
-                col_rows.setdefault(int(c), []).append(r)
-        self._pure_slack_rows = {
-            int(c): np.array(rs)
-            for c, rs in col_rows.items()
-            if c in set(self._ie_flat.tolist()) and all(pure[r] for r in rs)
-        }
-        self._pure_rows = pure
         return slack, coef
 
     def _sensitivity_function(self, linsol: str) -> ca.Function:
@@ -855,11 +755,6 @@ class ParametricMPC:
             return None
         w = prev["w_shift"]
         lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
-        if self._repair:
-            repaired = self._repair_pure_rows(w, mu, p)
-            if repaired is None:
-                return None
-            w, mu = repaired
         y = np.concatenate([w, lam, mu])
         if not np.all(mu > 0):
             return None
@@ -876,58 +771,6 @@ class ParametricMPC:
             if k == self._newton or (k >= 2 and res > 0.1 * res0):
                 return None
         return self._newton_result(y, f, "Newton_Succeeded", k)
-
-    def _repair_pure_rows(
-        self, w: np.ndarray, mu: np.ndarray, p: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """The warm start with every violated row that depends on its slack only (the stage-0
-        state bounds, ``x_0`` being the parameter ``x``) repaired exactly (``stage0_repair``).
-
-        Such a slack ``z`` appears in no other row, and its cost is linear (gradient ``g``), so
-        its barrier problem at tau is one-dimensional and separate from the rest:
-        ``g + sum_r c_r tau / -(b_r + c_r z) - tau / z = 0`` (rows ``b_r + c_r z <= 0``,
-        ``c_r < 0``; the bound ``z >= 0``), an increasing function of ``z`` solved to machine
-        precision by bisection; the rows' and the bound's multipliers follow from
-        complementarity. Returns (w, mu) with those slacks and multipliers replaced (the rest
-        of the warm start as it was), or None when another row is violated."""
-        Hg, dfdw = (np.asarray(v).reshape(-1) for v in self._h_call(w, p))
-        Hg = Hg[: self.nin]
-        bad = Hg >= 0
-        if not np.any(bad):
-            return w, mu
-        if not np.all(self._pure_rows[bad]):
-            return None
-        w, mu, tau = w.copy(), mu.copy(), self.tau
-        cols = {int(c) for c in self._row_slack[np.flatnonzero(bad)]}
-        for c in cols:
-            rows = self._pure_slack_rows.get(c)
-            if rows is None:
-                return None
-            cr = self._row_coef[rows]
-            br = Hg[rows] - cr * w[c]
-            g = float(dfdw[c])
-
-            def phi(z: float, cr: np.ndarray = cr, br: np.ndarray = br, g: float = g) -> float:
-                return g + float(np.sum(cr * tau / -(br + cr * z))) - tau / z
-
-            lo = max(0.0, float(np.max(-br / cr)))  # the domain: z > lo
-            hi = max(2 * lo, 1.0)
-            while phi(hi) <= 0:
-                hi *= 2
-            for _ in range(200):  # bisection to the last bit (phi increases on (lo, inf))
-                mid = 0.5 * (lo + hi)
-                if mid <= lo or mid >= hi:
-                    break
-                if phi(mid) > 0:
-                    hi = mid
-                else:
-                    lo = mid
-            z = hi
-            w[c] = z
-            mu[rows] = tau / -(br + cr * z)
-            pos = np.searchsorted(self._lb_idx, c)
-            mu[self.nin + pos] = tau / (z - self._lbw[c])
-        return w, mu
 
     def _barrier_solve(
         self, p: np.ndarray
@@ -953,8 +796,6 @@ class ParametricMPC:
         rows = np.flatnonzero(Hg >= 0)  # not interior: the new state violates them
         if rows.size and not self._barrier_push:
             return None  # only from interior starts (barrier_push=False): IPOPT solves
-        if rows.size and self._barrier_relax:
-            return self._relaxed_solve(w, lam, mu, Hg, rows, p)
         if np.any(self._row_slack[rows] < 0):
             return None  # a row without a slack to push it inside
         if rows.size:
@@ -991,72 +832,12 @@ class ParametricMPC:
             else:
                 return None  # the residual does not fall along the Newton direction
             y = np.asarray(y1).reshape(-1)
-            if self._path_check and not self._is_local_minimum(y, p):
-                self.path_log.append(("nonconvex", steps))
-                if self._path_check == 2:
-                    return None
             if mu_bar <= self.tau:
                 if r1 <= self._tol:
                     if not self._is_local_minimum(y, p):
                         return None  # a saddle point of the barrier problem: IPOPT solves
                     return self._newton_result(y, float(f1), "Barrier_Succeeded", steps)
             elif r1 <= 10 * mu_bar:
-                mu_bar = max(self.tau, min(0.2 * mu_bar, mu_bar**1.5))
-        return None
-
-    def _relaxed_solve(
-        self,
-        w: np.ndarray,
-        lam: np.ndarray,
-        mu: np.ndarray,
-        Hg: np.ndarray,
-        rows: np.ndarray,
-        p: np.ndarray,
-    ) -> tuple[dict, np.ndarray, str, int, tuple[np.ndarray, np.ndarray]] | None:
-        """The barrier path from a warm start that violates the general rows ``rows``, with
-        those rows relaxed as IPOPT relaxes them (``barrier_relax``): the primal start is kept,
-        every general row gets a slack ``s = g(w)``, the violated rows' slacks start inside
-        (``s_r = -mu_0 / mu_r``), and Newton steps on the relaxed system (``_relaxed_functions``)
-        drive ``g(w) - s`` to 0 while the barrier decreases from ``mu_0`` to tau, as in
-        ``_barrier_solve``. The result passes the same tests (``|R_tau|_inf <= tol`` at a
-        strictly interior point, the second-order check)."""
-        mu_bar = self._barrier_mu0
-        mu = mu.copy()
-        mu[rows] = np.maximum(mu[rows], RELAX_MU_MIN * mu_bar)
-        s = Hg.copy()
-        s[rows] = -mu_bar / mu[rows] if RELAX_S0 is None else -RELAX_S0
-        y = np.concatenate([w, lam, mu])
-        steps = short = 0
-        while steps < self._barrier_steps:
-            steps += 1
-            dy, ds, a, r2, y1, s1, r1t, r1_2, r1, h1, s1max, m1, f1 = self._relax_call(
-                y, s, p, mu_bar
-            )
-            a, r2 = float(a), float(r2)
-            short = short + 1 if a < 0.1 else 0
-            if short >= _STALL_STEPS:
-                return None
-            r1t, r1_2, r1, h1 = float(r1t), float(r1_2), float(r1), float(h1)
-            s1max, m1 = float(s1max), float(m1)
-            t = a
-            for _ in range(_MAX_BACKTRACKS):
-                if s1max < 0 and m1 > 0 and np.isfinite(r1_2) and r1_2 <= (1 - 1e-4 * t) * r2:
-                    break
-                t *= 0.5
-                y1 = y + t * np.asarray(dy).reshape(-1)
-                s1 = s + t * np.asarray(ds).reshape(-1)
-                r1t, r1_2, r1, h1, s1max, m1, f1 = (
-                    float(v) for v in self._relax_point_call(y1, s1, p, mu_bar)
-                )
-            else:
-                return None  # the residual does not fall along the Newton direction
-            y, s = np.asarray(y1).reshape(-1), np.asarray(s1).reshape(-1)
-            if mu_bar <= self.tau:
-                if r1 <= self._tol and h1 < 0:
-                    if not self._is_local_minimum(y, p):
-                        return None  # a saddle point of the barrier problem: IPOPT solves
-                    return self._newton_result(y, float(f1), "Barrier_Succeeded", steps)
-            elif r1t <= 10 * mu_bar:
                 mu_bar = max(self.tau, min(0.2 * mu_bar, mu_bar**1.5))
         return None
 
