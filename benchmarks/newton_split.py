@@ -4,7 +4,10 @@ On the states of ``benchmarks/step_time.py`` (4 closed-loop CSTR episodes of 60 
 states from ``default_rng(0)``), the default :class:`mpcmobo.mpc.ParametricMPC` (Newton steps
 at tau first, IPOPT when they do not converge; with ``--barrier-steps 30`` the barrier path
 between them) is timed step by step, with both sensitivities; the steps are split by the path
-that solved them.
+that solved them. The warm steps that fall back to IPOPT are also split by their warm start:
+whether the new state makes rows of the shifted plan violated (``H >= 0``, so the Newton steps
+at tau cannot start) and at which stages, or the start is interior and the Newton steps did not
+converge (too slow a residual decrease, or out of steps).
 
     PYTHONPATH=src .venv/bin/python benchmarks/newton_split.py [--codegen] [--barrier-steps 30]
         [--no-barrier-push]
@@ -47,10 +50,18 @@ def main(argv=None) -> None:
         "ipopt cold": [],
     }
     newton_steps, barrier_steps = [], []
+    why: dict[str, int] = {}  # the warm IPOPT steps by their warm start
+    m = mpc.nin // (mpc.N + 1)  # general rows per stage (stage i: rows i*m .. (i+1)*m - 1)
     for x0 in x0s:
         mpc.reset()
         x = x0.copy()
         for k in range(60):
+            start = None
+            if mpc._prev is not None:  # which rows of the shifted plan the new state violates
+                p = np.concatenate([x, mpc.theta0])
+                H = np.asarray(mpc._h_call(mpc._prev["w_shift"], p)[0]).reshape(-1)[: mpc.nin]
+                stages = sorted({int(r) // m for r in np.flatnonzero(H >= 0)})
+                start = f"violated rows at stages {stages}" if stages else "interior start"
             t0 = time.perf_counter()
             sol = mpc.solve(x, mpc.theta0, sensitivities=True)
             dt = time.perf_counter() - t0
@@ -62,6 +73,8 @@ def main(argv=None) -> None:
                 barrier_steps.append(sol.iterations)
             else:
                 paths["ipopt cold" if k == 0 else "ipopt warm"].append(dt)
+                if start is not None:
+                    why[start] = why.get(start, 0) + 1
             x = s.plant_step(x, sol.action)
     n = sum(len(v) for v in paths.values())
     everything = np.concatenate([np.array(v) for v in paths.values()])
@@ -75,6 +88,8 @@ def main(argv=None) -> None:
     print(f"  Newton steps per Newton-path solve: mean {np.mean(newton_steps):.2f}")
     if barrier_steps:
         print(f"  Newton steps per barrier-path solve: mean {np.mean(barrier_steps):.2f}")
+    for start, count in sorted(why.items()):
+        print(f"  warm IPOPT steps, {start}: {count}")
 
 
 if __name__ == "__main__":
