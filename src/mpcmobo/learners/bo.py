@@ -144,6 +144,16 @@ MIN_RUNS_DEFAULT = _DefaultInt(3)
 # learners"); a checkpoint whose learner state has no "trust_region" key was made without one
 # and resumes without one when the option is left at its default
 TRUST_DEFAULT = _DefaultAny("auto")
+# session 8 (issue 11 item 3): which rule deploys on the default path. "incumbent": the observed
+# point with the best risk-averse f1 after every fit (IncumbentRule, the rule before); "verified":
+# a candidate is deployed only after deploy_min_runs episodes and with P(better) >=
+# deploy_confidence (DeployRule). A checkpoint whose learner state has no "deploy" key was made
+# with "incumbent" and resumes with it when the option is left at its default
+DEPLOY_MODES = ("incumbent", "verified")
+DEPLOY_MODE_DEFAULT = _DefaultStr("incumbent")
+VERIFIED_CONFIDENCE = 0.9  # deploy = "verified": deploy_confidence when left unset
+VERIFIED_MIN_RUNS = 2  # ... deploy_min_runs when left at its default
+VERIFIED_MAX_RUNS_FACTOR = 2  # ... deploy_max_runs when unset: this multiple of the min runs
 LEGACY_DEFAULTS: dict[str, Any] = {
     "context": "none",
     "n_contexts": 16,
@@ -299,9 +309,26 @@ class _GPLearner(Learner):
         contexts: ContextSpec | None = None,
         search_radius: float | None = None,
         trust_region: Any = TRUST_DEFAULT,
+        deploy: str = DEPLOY_MODE_DEFAULT,
+        deploy_max_runs: int | None = None,
         **removed: Any,
     ) -> None:
         self.search_radius = _check_radius(search_radius)
+        if deploy not in DEPLOY_MODES:
+            raise ValueError(
+                f"deploy must be one of {', '.join(repr(k) for k in DEPLOY_MODES)}, got {deploy!r}"
+            )
+        if deploy_max_runs is not None and (
+            isinstance(deploy_max_runs, bool)
+            or not isinstance(deploy_max_runs, (int, np.integer))
+            or deploy_max_runs < 1
+        ):
+            raise ValueError(
+                f"deploy_max_runs must be an integer >= 1 or unset, got {deploy_max_runs!r}"
+            )
+        self._deploy_defaulted = _is_default(deploy)
+        self.deploy = _plain(deploy)
+        self._max_runs = None if deploy_max_runs is None else int(deploy_max_runs)
         self._trust_defaulted = _is_default(trust_region)
         self.trust_region = trust_region_from_option(_plain(trust_region))
         if self.search_radius is not None:
@@ -393,6 +420,15 @@ class _GPLearner(Learner):
             raise ValueError(f"violation_budget must be >= 0, got {violation_budget}")
         if not 0 < trust_radius <= 1:
             raise ValueError(f"trust_radius must be in (0, 1], got {trust_radius}")
+        verified = self.deploy == "verified"
+        max_runs = self._max_runs
+        if verified:  # the evidence rule on any path, with its own defaults
+            if deploy_confidence is None:
+                deploy_confidence = VERIFIED_CONFIDENCE
+            if "deploy_min_runs" in self._defaulted:
+                deploy_min_runs = VERIFIED_MIN_RUNS
+            if max_runs is None:
+                max_runs = VERIFIED_MAX_RUNS_FACTOR * int(deploy_min_runs)
         self.context = context
         self.context_spec = contexts
         self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
@@ -402,11 +438,16 @@ class _GPLearner(Learner):
             deploy_confidence=None if deploy_confidence is None else float(deploy_confidence),
             safety_confidence=float(safety_confidence),
             min_runs=int(deploy_min_runs),
+            max_runs=max_runs,
         )
         self.trust_radius = float(trust_radius)
-        # the issue-11 path (contextual expectation, safety, deployment rule) or the old one
+        # the issue-11 path (contextual expectation, safety, deployment rule) or the old one;
+        # deploy = "verified" alone keeps the default search (EI / EHVI) and only changes
+        # which theta is deployed
         self.safe_mode = (
-            context == "x0" or violation_budget is not None or deploy_confidence is not None
+            context == "x0"
+            or violation_budget is not None
+            or (deploy_confidence is not None and not verified)
         )
 
     @property
@@ -556,6 +597,13 @@ class _GPLearner(Learner):
             return
         last = theta_key(self.Z_[-1])
         success = theta_key(self._incumbent_z) == last and theta_key(previous) != last
+        if self.deploy == "verified" and not success:
+            # deploy = "verified": a verification episode (a theta run before) and a search
+            # point that earned one are evidence being gathered, not failures of the box
+            repeat = any(theta_key(z) == last for z in self.Z_[:-1])
+            earned = self._verify_z is not None and theta_key(self._verify_z) == last
+            if repeat or earned:
+                return
         self.trust_ = self.trust_region.update(self.trust_, success, self.space.dim)
 
     def _trust_box(self) -> Box | None:
@@ -572,6 +620,9 @@ class _GPLearner(Learner):
             self.surrogate.fit(self.Z_, self.Y_, groups=self.starts_)
             self._fitted = True
             Zf = self.Z_[self._finite()]
+            if self.deploy == "verified":
+                self._decide(Zf)
+                return
             self._incumbent_z = Zf[self.incumbent_rule.choose(self.surrogate, Zf)].copy()
             return
         X, Y = self._fit_data()
@@ -583,9 +634,14 @@ class _GPLearner(Learner):
         self._fitted = True
         if self.violation_budget == "auto":
             self.budget_ = self._auto_budget()
+        self._decide(self.Z_[ok])
+
+    def _decide(self, Z: np.ndarray) -> None:
+        """The deployment rule (:class:`~mpcmobo.learners.deploy.DeployRule`) on the observed
+        thetas ``Z``: the deployed theta, and a candidate to run again (verification)."""
         decision = self.deploy_rule.decide(
             self.surrogate,
-            self.Z_[ok],
+            Z,
             self._incumbent_z,
             self.contexts,
             self._safe_budget(),
@@ -751,6 +807,7 @@ class _GPLearner(Learner):
                 "proposal_kinds": list(self.proposal_kinds_),
                 "exact_theta0": self._exact_theta0,
                 "trust_region": None if self.trust_ is None else self.trust_.to_dict(),
+                "deploy": self.deploy,
                 "trust_pre_fit": None
                 if self._pre_fit_trust is None
                 else self._pre_fit_trust.to_dict(),
@@ -759,6 +816,17 @@ class _GPLearner(Learner):
         return d
 
     def load_state_dict(self, state: dict) -> None:
+        if self._deploy_defaulted and state.get("deploy", "incumbent") != self.deploy:
+            # the option left at its default: the run continues with the rule it was made
+            # with (no "deploy" key: made before session 8, with the incumbent rule)
+            self.deploy = state.get("deploy", "incumbent")
+            self._configure_safe(
+                **self._safe_options,
+                safety_confidence=self._safety_confidence,
+                trust_radius=self._trust_radius,
+                contexts=self._contexts_spec,
+                kappa=self._kappa,
+            )
         if state.get("design") is None and self._defaulted:
             self._use_legacy_defaults()  # a checkpoint from before the safe defaults
         if state.get("trust_region") is None and self._trust_defaulted and self.trust_region:
