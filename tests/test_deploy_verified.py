@@ -21,7 +21,7 @@ from mpcmobo.learners.registry import LearnerOptionError
 from mpcmobo.systems import get_system
 
 FAST = {"n_init": 3, "num_restarts": 2, "raw_samples": 32, "maxiter": 20}
-OFFSETS = (0.0, 1.0, -1.0)  # log-cost effect of the three cycled starts
+OFFSETS = (0.0, 1.0, -1.0, 0.5, -0.5)  # log-cost effect of the cycled starts
 
 
 @pytest.fixture(scope="module")
@@ -73,21 +73,53 @@ def test_a_candidate_seen_once_is_verified_and_deployed_only_on_evidence(lq):
     np.testing.assert_allclose(space.to_unit(runs["incumbent"].incumbent()), good)
 
 
+def test_the_deployed_theta_is_run_where_it_lacks_a_start_to_compare_with(lq):
+    """Cycled starts: a promising candidate is run again only from a start the deployed theta
+    was run from too; before that, the deployed theta itself is run ("baseline") from the next
+    start. Only those like-for-like episodes count towards deploy_min_runs."""
+    space, theta0 = lq
+    z0 = space.to_unit(theta0)
+    good, bad = z0.copy(), z0.copy()
+    good[0], bad[0] = z0[0] + 0.1, z0[0] - 0.1
+    lr = make_learner("bo", space, theta0, seed=0, deploy="verified", trust_region="off", **FAST)
+    _observe(lr, space, z0, 0, z0)
+    _observe(lr, space, bad, 1, z0)
+    _observe(lr, space, good, 2, z0)  # theta0 was not run from start 2: no match yet
+    assert lr._matched_runs(good) == 0 and _key(lr._verify_z) == _key(good)
+    np.testing.assert_array_equal(lr.propose(), theta0)  # the next start, 3, for theta0
+    assert lr.proposal_kinds_[-1] == "baseline"
+    _observe(lr, space, z0, 3, z0)
+    np.testing.assert_array_equal(lr.incumbent(), theta0)
+    np.testing.assert_array_equal(lr.propose(), theta0)  # and 4 (the candidate is still unmatched)
+    lr.proposal_kinds_.pop()
+    _observe(lr, space, z0, 4, z0)
+    _observe(lr, space, z0, 0, z0)  # the cycle wraps: 5 starts, the next is 1
+    assert lr._next_start() == 1
+    assert lr.proposal_kinds_ == ["baseline"]
+
+
 def test_a_candidate_that_did_worse_from_one_start_is_not_deployed(lq):
-    """Two episodes of the candidate, one of them worse than theta0 would have been from the
-    same start (the paired check): not deployed, whatever the GP's average says."""
+    """Three episodes of the candidate, far better than theta0 from two starts and a little
+    worse (30%) from the third (the paired check): not deployed, whatever the GP's average says.
+    Without the third episode it is deployed."""
     space, theta0 = lq
     z0 = space.to_unit(theta0)
     good = z0.copy()
     good[0] = z0[0] + 0.1
-    lr = make_learner("bo", space, theta0, seed=0, deploy="verified", trust_region="off", **FAST)
-    for s in range(3):
-        _observe(lr, space, z0, s, z0)
-    _observe(lr, space, good, 1, z0)
     theta = space.from_unit(good, base=theta0)
-    worse = np.array([1.2 * _cost(z0, z0, 2), 1.0, 0.0, 0.0])  # 20% worse than theta0 at start 2
-    lr.observe(theta, EpisodeResult(worse, np.zeros(space.n_theta), True, start_id=2))
-    np.testing.assert_array_equal(lr.incumbent(), theta0)
+    deployed = {}
+    for third in (False, True):
+        lr = make_learner("bo", space, theta0, seed=0, deploy="verified", trust_region="off",
+                          deploy_min_runs=2 + third, **FAST)  # fmt: skip
+        for s in range(3):
+            _observe(lr, space, z0, s, z0)
+        for s in (0, 1) + ((2,) if third else ()):
+            f1 = _cost(z0, z0, s) * (1.3 if s == 2 else 0.5)  # 30% worse from start 2
+            lr.observe(theta, EpisodeResult(np.array([f1, 1, 0, 0]), np.zeros(space.n_theta),
+                                            True, start_id=s))  # fmt: skip
+        deployed[third] = space.to_unit(lr.incumbent())
+    np.testing.assert_allclose(deployed[False], good)
+    np.testing.assert_array_equal(deployed[True], z0)
 
 
 def test_decide_runs_a_promising_candidate_again_up_to_max_runs():

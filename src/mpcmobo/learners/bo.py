@@ -511,7 +511,8 @@ class _GPLearner(Learner):
         self._exact_theta0: bool | None = True  # see _theta
         self._verify_z: np.ndarray | None = None  # a candidate to run again (deploy_min_runs)
         # what each proposal was: "design", "search", "safe" (the trust-region fallback),
-        # "verify" (a candidate run again before it may be deployed), "gradient" (hybrid)
+        # "verify" (a candidate run again before it may be deployed), "baseline" (deploy =
+        # "verified": the deployed theta run from a start it lacks), "gradient" (hybrid)
         self.proposal_kinds_: list[str] = []
         # the trust region's length and counters (None: no trust region), and before the last fit
         self.trust_: TrustState | None = (
@@ -646,8 +647,8 @@ class _GPLearner(Learner):
             self.contexts,
             self._safe_budget(),
             seed=1234 + self.Z_.shape[0],
-            runs=self._runs,
-            paired=self._paired_better,
+            runs=self._matched_runs if self.deploy == "verified" else self._runs,
+            paired=self._paired_verified if self.deploy == "verified" else self._paired_better,
         )
         self._incumbent_z = decision.deployed
         self._verify_z = decision.verify
@@ -676,6 +677,76 @@ class _GPLearner(Learner):
         mt, _ = self.surrogate.posterior_model_space(Xc)
         return bool(np.all(t_obs > mt[:, 0]))  # model space is maximised
 
+    def _rows_of(self, z: np.ndarray) -> np.ndarray:
+        """Rows of the finite observations run with the unit-cube theta ``z``."""
+        key = theta_key(z)
+        return np.array(
+            [i for i in np.flatnonzero(self._finite()) if theta_key(self.Z_[i]) == key], dtype=int
+        )
+
+    def _cycled(self) -> bool:
+        """Whether the episodes cycle through fixed starts (``start_id >= 0``)."""
+        return len(self.starts_) > 0 and bool(np.all(self.starts_ >= 0))
+
+    def _matched_runs(self, z: np.ndarray) -> int:
+        """``deploy = "verified"``'s evidence count: with cycled starts, the episodes of ``z``
+        from starts on which the deployed theta was run too (like for like); with random
+        starts (nothing to match), all its episodes."""
+        rows = self._rows_of(z)
+        if not self._cycled():
+            return len(rows)
+        own = set(self.starts_[self._rows_of(self._incumbent_z)].tolist())
+        return sum(1 for i in rows if int(self.starts_[i]) in own)
+
+    def _next_start(self) -> int | None:
+        """The start of the next episode under cycled starts (``episode mod n``: after the
+        first wrap ``n`` is known, before it the next index), None with random starts."""
+        if not self._cycled():
+            return None
+        last = int(self.starts_[-1])
+        wrapped = len(self.starts_) > 1 and bool(np.any(np.diff(self.starts_) < 0))
+        return (last + 1) % (int(self.starts_.max()) + 1) if wrapped else last + 1
+
+    def _verification(self) -> tuple[str, np.ndarray]:
+        """The episode that gathers evidence on the candidate ``_verify_z``: the candidate
+        itself, or (``deploy = "verified"``, cycled starts) the deployed theta when it has not
+        yet been run from the next start, so that the candidate's episodes there can be
+        compared like for like ("baseline")."""
+        assert self._verify_z is not None
+        nxt = self._next_start() if self.deploy == "verified" else None
+        if nxt is not None:
+            own = set(self.starts_[self._rows_of(self._incumbent_z)].tolist())
+            if nxt not in own:
+                return "baseline", self._incumbent_z.copy()
+        return "verify", self._verify_z
+
+    def _paired_verified(self, z: np.ndarray, current: np.ndarray) -> bool:
+        """``deploy = "verified"``'s like-for-like check: each episode of ``z`` from a cycled
+        start on which ``current`` was run too is compared with the mean of ``current``'s own
+        observed episodes from that start (no model: the per-start offsets are poorly
+        estimated from few episodes); the others with :meth:`_paired_better`'s prediction.
+        True when ``z`` did better in every one of its episodes."""
+        key, cur = theta_key(z), theta_key(current)
+        ok = self._finite()
+        T = self.surrogate.to_model_space(self._fit_data()[1])[:, 0]  # maximised
+        rows = [i for i in np.flatnonzero(ok) if theta_key(self.Z_[i]) == key]
+        if not rows:
+            return False
+        own = [i for i in np.flatnonzero(ok) if theta_key(self.Z_[i]) == cur]
+        rest = []
+        for i in rows:
+            same = [j for j in own if self.starts_[i] >= 0 and self.starts_[j] == self.starts_[i]]
+            if not same:
+                rest.append(i)
+            elif not T[i] > np.mean(T[same]):
+                return False
+        if not rest:
+            return True
+        t_obs = T[rest] - self.surrogate._group_matrix(self.starts_[rest])[:, 0]
+        Xc = np.hstack([np.repeat(current[None, :], len(rest), axis=0), self.C_[rest]])
+        mt, _ = self.surrogate.posterior_model_space(Xc)
+        return bool(np.all(t_obs > mt[:, 0]))
+
     def incumbent(self) -> np.ndarray:
         return self._theta(self._incumbent_z)
 
@@ -691,7 +762,7 @@ class _GPLearner(Learner):
             box = self._trust_box()
             return self._proposed("design", u if box is None else box[0] + (box[1] - box[0]) * u)
         if self._verify_z is not None:
-            return self._proposed("verify", self._verify_z)
+            return self._proposed(*self._verification())
         if self.safe_mode:
             return self._theta(self._acquire_safe(self._next_seed()))
         return self._proposed("search", self._acquire(self._next_seed()))
