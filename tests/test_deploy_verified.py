@@ -177,14 +177,15 @@ def test_verified_rule_resumes_exactly(lq, name):
         th = a.propose()
         _observe(a, space, space.to_unit(space.clip(th)), k % 3, z0, rng)
         if a._verify_z is not None:
-            states.append((a.state_dict(), a._verify_z.copy()))
+            states.append((a.state_dict(), a._verify_z.copy(), a._verification()))
     assert states, "no verification was asked for"
-    state, pending = states[0]
+    state, pending, (kind, z) = states[0]
     assert state["deploy"] == "verified"
     b = make_learner(name, space, theta0, seed=99, deploy="verified", **FAST)
     b.load_state_dict(state)
     np.testing.assert_array_equal(b._verify_z, pending)
-    np.testing.assert_array_equal(space.to_unit(space.clip(b.propose())), pending)
+    np.testing.assert_allclose(space.to_unit(space.clip(b.propose())), z, atol=1e-12)
+    assert b.proposal_kinds_[-1] == kind
     last = make_learner(name, space, theta0, seed=99, deploy="verified", **FAST)
     last.load_state_dict(a.state_dict())
     np.testing.assert_array_equal(last.incumbent(), a.incumbent())
