@@ -64,6 +64,26 @@ safe fallback use its box). Unlike ``search_radius`` the box moves with the depl
 grows with evidence, so it can reach a good theta far from theta0 (the CSTR's). Measured in
 ``docs/benchmarks.md``, "A trust region for the GP learners (session 7)".
 
+``deploy`` (session 8, issue 11 item 3; ``"incumbent"`` by default, the rule above, applied
+after every fit): ``"verified"`` keeps the search (EI / EHVI in the trust region) and changes
+only which theta is deployed. A candidate (the observed theta with the best risk-averse
+expected f1) replaces the deployed theta only when it has ``deploy_min_runs`` (default 2 here)
+episodes of evidence, did better in every one of its episodes than the deployed theta from
+the same start, and is better with posterior probability ``deploy_confidence`` (default 0.9
+here) on joint GP samples (:meth:`DeployRule.decide <mpcmobo.learners.deploy.DeployRule.decide>`).
+With cycled starts the evidence is like for like: only the candidate's episodes from a start
+the deployed theta was run from count, compared with the deployed theta's observed cost from
+that start, and a promising candidate is run again ("verify") when the next start is one the
+deployed theta has, else the deployed theta is run from it ("baseline"); a candidate more
+likely better than not but not yet convincing is run again up to ``deploy_max_runs`` (default
+twice the minimum). With random starts nothing can be matched: the candidate's episodes are
+compared with the GP's prediction of the deployed theta. Verification and baseline episodes,
+and a search point that earns a verification, are neither successes nor failures of the trust
+region; a candidate that becomes the deployed theta is a success. The first version of the
+rule (the GP's probability and per-start offsets alone) regressed on ``lq``: with few
+episodes per start the offsets are not identified (``docs/benchmarks.md``, "A deployment rule
+that needs evidence").
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
