@@ -64,6 +64,26 @@ safe fallback use its box). Unlike ``search_radius`` the box moves with the depl
 grows with evidence, so it can reach a good theta far from theta0 (the CSTR's). Measured in
 ``docs/benchmarks.md``, "A trust region for the GP learners (session 7)".
 
+``deploy`` (session 8, issue 11 item 3; ``"incumbent"`` by default, the rule above, applied
+after every fit): ``"verified"`` keeps the search (EI / EHVI in the trust region) and changes
+only which theta is deployed. A candidate (the observed theta with the best risk-averse
+expected f1) replaces the deployed theta only when it has ``deploy_min_runs`` (default 2 here)
+episodes of evidence, did better in every one of its episodes than the deployed theta from
+the same start, and is better with posterior probability ``deploy_confidence`` (default 0.9
+here) on joint GP samples (:meth:`DeployRule.decide <mpcmobo.learners.deploy.DeployRule.decide>`).
+With cycled starts the evidence is like for like: only the candidate's episodes from a start
+the deployed theta was run from count, compared with the deployed theta's observed cost from
+that start, and a promising candidate is run again ("verify") when the next start is one the
+deployed theta has, else the deployed theta is run from it ("baseline"); a candidate more
+likely better than not but not yet convincing is run again up to ``deploy_max_runs`` (default
+twice the minimum). With random starts nothing can be matched: the candidate's episodes are
+compared with the GP's prediction of the deployed theta. Verification and baseline episodes,
+and a search point that earns a verification, are neither successes nor failures of the trust
+region; a candidate that becomes the deployed theta is a success. The first version of the
+rule (the GP's probability and per-start offsets alone) regressed on ``lq``: with few
+episodes per start the offsets are not identified (``docs/benchmarks.md``, "A deployment rule
+that needs evidence").
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
@@ -144,6 +164,16 @@ MIN_RUNS_DEFAULT = _DefaultInt(3)
 # learners"); a checkpoint whose learner state has no "trust_region" key was made without one
 # and resumes without one when the option is left at its default
 TRUST_DEFAULT = _DefaultAny("auto")
+# session 8 (issue 11 item 3): which rule deploys on the default path. "incumbent": the observed
+# point with the best risk-averse f1 after every fit (IncumbentRule, the rule before); "verified":
+# a candidate is deployed only after deploy_min_runs episodes and with P(better) >=
+# deploy_confidence (DeployRule). A checkpoint whose learner state has no "deploy" key was made
+# with "incumbent" and resumes with it when the option is left at its default
+DEPLOY_MODES = ("incumbent", "verified")
+DEPLOY_MODE_DEFAULT = _DefaultStr("incumbent")
+VERIFIED_CONFIDENCE = 0.9  # deploy = "verified": deploy_confidence when left unset
+VERIFIED_MIN_RUNS = 2  # ... deploy_min_runs when left at its default
+VERIFIED_MAX_RUNS_FACTOR = 2  # ... deploy_max_runs when unset: this multiple of the min runs
 LEGACY_DEFAULTS: dict[str, Any] = {
     "context": "none",
     "n_contexts": 16,
@@ -299,9 +329,26 @@ class _GPLearner(Learner):
         contexts: ContextSpec | None = None,
         search_radius: float | None = None,
         trust_region: Any = TRUST_DEFAULT,
+        deploy: str = DEPLOY_MODE_DEFAULT,
+        deploy_max_runs: int | None = None,
         **removed: Any,
     ) -> None:
         self.search_radius = _check_radius(search_radius)
+        if deploy not in DEPLOY_MODES:
+            raise ValueError(
+                f"deploy must be one of {', '.join(repr(k) for k in DEPLOY_MODES)}, got {deploy!r}"
+            )
+        if deploy_max_runs is not None and (
+            isinstance(deploy_max_runs, bool)
+            or not isinstance(deploy_max_runs, (int, np.integer))
+            or deploy_max_runs < 1
+        ):
+            raise ValueError(
+                f"deploy_max_runs must be an integer >= 1 or unset, got {deploy_max_runs!r}"
+            )
+        self._deploy_defaulted = _is_default(deploy)
+        self.deploy = _plain(deploy)
+        self._max_runs = None if deploy_max_runs is None else int(deploy_max_runs)
         self._trust_defaulted = _is_default(trust_region)
         self.trust_region = trust_region_from_option(_plain(trust_region))
         if self.search_radius is not None:
@@ -393,6 +440,15 @@ class _GPLearner(Learner):
             raise ValueError(f"violation_budget must be >= 0, got {violation_budget}")
         if not 0 < trust_radius <= 1:
             raise ValueError(f"trust_radius must be in (0, 1], got {trust_radius}")
+        verified = self.deploy == "verified"
+        max_runs = self._max_runs
+        if verified:  # the evidence rule on any path, with its own defaults
+            if deploy_confidence is None:
+                deploy_confidence = VERIFIED_CONFIDENCE
+            if "deploy_min_runs" in self._defaulted:
+                deploy_min_runs = VERIFIED_MIN_RUNS
+            if max_runs is None:
+                max_runs = VERIFIED_MAX_RUNS_FACTOR * int(deploy_min_runs)
         self.context = context
         self.context_spec = contexts
         self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
@@ -402,11 +458,16 @@ class _GPLearner(Learner):
             deploy_confidence=None if deploy_confidence is None else float(deploy_confidence),
             safety_confidence=float(safety_confidence),
             min_runs=int(deploy_min_runs),
+            max_runs=max_runs,
         )
         self.trust_radius = float(trust_radius)
-        # the issue-11 path (contextual expectation, safety, deployment rule) or the old one
+        # the issue-11 path (contextual expectation, safety, deployment rule) or the old one;
+        # deploy = "verified" alone keeps the default search (EI / EHVI) and only changes
+        # which theta is deployed
         self.safe_mode = (
-            context == "x0" or violation_budget is not None or deploy_confidence is not None
+            context == "x0"
+            or violation_budget is not None
+            or (deploy_confidence is not None and not verified)
         )
 
     @property
@@ -470,7 +531,8 @@ class _GPLearner(Learner):
         self._exact_theta0: bool | None = True  # see _theta
         self._verify_z: np.ndarray | None = None  # a candidate to run again (deploy_min_runs)
         # what each proposal was: "design", "search", "safe" (the trust-region fallback),
-        # "verify" (a candidate run again before it may be deployed), "gradient" (hybrid)
+        # "verify" (a candidate run again before it may be deployed), "baseline" (deploy =
+        # "verified": the deployed theta run from a start it lacks), "gradient" (hybrid)
         self.proposal_kinds_: list[str] = []
         # the trust region's length and counters (None: no trust region), and before the last fit
         self.trust_: TrustState | None = (
@@ -556,6 +618,13 @@ class _GPLearner(Learner):
             return
         last = theta_key(self.Z_[-1])
         success = theta_key(self._incumbent_z) == last and theta_key(previous) != last
+        if self.deploy == "verified" and not success:
+            # deploy = "verified": a verification episode (a theta run before) and a search
+            # point that earned one are evidence being gathered, not failures of the box
+            repeat = any(theta_key(z) == last for z in self.Z_[:-1])
+            earned = self._verify_z is not None and theta_key(self._verify_z) == last
+            if repeat or earned:
+                return
         self.trust_ = self.trust_region.update(self.trust_, success, self.space.dim)
 
     def _trust_box(self) -> Box | None:
@@ -572,6 +641,9 @@ class _GPLearner(Learner):
             self.surrogate.fit(self.Z_, self.Y_, groups=self.starts_)
             self._fitted = True
             Zf = self.Z_[self._finite()]
+            if self.deploy == "verified":
+                self._decide(Zf)
+                return
             self._incumbent_z = Zf[self.incumbent_rule.choose(self.surrogate, Zf)].copy()
             return
         X, Y = self._fit_data()
@@ -583,15 +655,20 @@ class _GPLearner(Learner):
         self._fitted = True
         if self.violation_budget == "auto":
             self.budget_ = self._auto_budget()
+        self._decide(self.Z_[ok])
+
+    def _decide(self, Z: np.ndarray) -> None:
+        """The deployment rule (:class:`~mpcmobo.learners.deploy.DeployRule`) on the observed
+        thetas ``Z``: the deployed theta, and a candidate to run again (verification)."""
         decision = self.deploy_rule.decide(
             self.surrogate,
-            self.Z_[ok],
+            Z,
             self._incumbent_z,
             self.contexts,
             self._safe_budget(),
             seed=1234 + self.Z_.shape[0],
-            runs=self._runs,
-            paired=self._paired_better,
+            runs=self._matched_runs if self.deploy == "verified" else self._runs,
+            paired=self._paired_verified if self.deploy == "verified" else self._paired_better,
         )
         self._incumbent_z = decision.deployed
         self._verify_z = decision.verify
@@ -620,6 +697,76 @@ class _GPLearner(Learner):
         mt, _ = self.surrogate.posterior_model_space(Xc)
         return bool(np.all(t_obs > mt[:, 0]))  # model space is maximised
 
+    def _rows_of(self, z: np.ndarray) -> np.ndarray:
+        """Rows of the finite observations run with the unit-cube theta ``z``."""
+        key = theta_key(z)
+        return np.array(
+            [i for i in np.flatnonzero(self._finite()) if theta_key(self.Z_[i]) == key], dtype=int
+        )
+
+    def _cycled(self) -> bool:
+        """Whether the episodes cycle through fixed starts (``start_id >= 0``)."""
+        return len(self.starts_) > 0 and bool(np.all(self.starts_ >= 0))
+
+    def _matched_runs(self, z: np.ndarray) -> int:
+        """``deploy = "verified"``'s evidence count: with cycled starts, the episodes of ``z``
+        from starts on which the deployed theta was run too (like for like); with random
+        starts (nothing to match), all its episodes."""
+        rows = self._rows_of(z)
+        if not self._cycled():
+            return len(rows)
+        own = set(self.starts_[self._rows_of(self._incumbent_z)].tolist())
+        return sum(1 for i in rows if int(self.starts_[i]) in own)
+
+    def _next_start(self) -> int | None:
+        """The start of the next episode under cycled starts (``episode mod n``: after the
+        first wrap ``n`` is known, before it the next index), None with random starts."""
+        if not self._cycled():
+            return None
+        last = int(self.starts_[-1])
+        wrapped = len(self.starts_) > 1 and bool(np.any(np.diff(self.starts_) < 0))
+        return (last + 1) % (int(self.starts_.max()) + 1) if wrapped else last + 1
+
+    def _verification(self) -> tuple[str, np.ndarray]:
+        """The episode that gathers evidence on the candidate ``_verify_z``: the candidate
+        itself, or (``deploy = "verified"``, cycled starts) the deployed theta when it has not
+        yet been run from the next start, so that the candidate's episodes there can be
+        compared like for like ("baseline")."""
+        assert self._verify_z is not None
+        nxt = self._next_start() if self.deploy == "verified" else None
+        if nxt is not None:
+            own = set(self.starts_[self._rows_of(self._incumbent_z)].tolist())
+            if nxt not in own:
+                return "baseline", self._incumbent_z.copy()
+        return "verify", self._verify_z
+
+    def _paired_verified(self, z: np.ndarray, current: np.ndarray) -> bool:
+        """``deploy = "verified"``'s like-for-like check: each episode of ``z`` from a cycled
+        start on which ``current`` was run too is compared with the mean of ``current``'s own
+        observed episodes from that start (no model: the per-start offsets are poorly
+        estimated from few episodes); the others with :meth:`_paired_better`'s prediction.
+        True when ``z`` did better in every one of its episodes."""
+        key, cur = theta_key(z), theta_key(current)
+        ok = self._finite()
+        T = self.surrogate.to_model_space(self._fit_data()[1])[:, 0]  # maximised
+        rows = [i for i in np.flatnonzero(ok) if theta_key(self.Z_[i]) == key]
+        if not rows:
+            return False
+        own = [i for i in np.flatnonzero(ok) if theta_key(self.Z_[i]) == cur]
+        rest = []
+        for i in rows:
+            same = [j for j in own if self.starts_[i] >= 0 and self.starts_[j] == self.starts_[i]]
+            if not same:
+                rest.append(i)
+            elif not T[i] > np.mean(T[same]):
+                return False
+        if not rest:
+            return True
+        t_obs = T[rest] - self.surrogate._group_matrix(self.starts_[rest])[:, 0]
+        Xc = np.hstack([np.repeat(current[None, :], len(rest), axis=0), self.C_[rest]])
+        mt, _ = self.surrogate.posterior_model_space(Xc)
+        return bool(np.all(t_obs > mt[:, 0]))
+
     def incumbent(self) -> np.ndarray:
         return self._theta(self._incumbent_z)
 
@@ -635,7 +782,7 @@ class _GPLearner(Learner):
             box = self._trust_box()
             return self._proposed("design", u if box is None else box[0] + (box[1] - box[0]) * u)
         if self._verify_z is not None:
-            return self._proposed("verify", self._verify_z)
+            return self._proposed(*self._verification())
         if self.safe_mode:
             return self._theta(self._acquire_safe(self._next_seed()))
         return self._proposed("search", self._acquire(self._next_seed()))
@@ -751,6 +898,7 @@ class _GPLearner(Learner):
                 "proposal_kinds": list(self.proposal_kinds_),
                 "exact_theta0": self._exact_theta0,
                 "trust_region": None if self.trust_ is None else self.trust_.to_dict(),
+                "deploy": self.deploy,
                 "trust_pre_fit": None
                 if self._pre_fit_trust is None
                 else self._pre_fit_trust.to_dict(),
@@ -759,6 +907,17 @@ class _GPLearner(Learner):
         return d
 
     def load_state_dict(self, state: dict) -> None:
+        if self._deploy_defaulted and state.get("deploy", "incumbent") != self.deploy:
+            # the option left at its default: the run continues with the rule it was made
+            # with (no "deploy" key: made before session 8, with the incumbent rule)
+            self.deploy = state.get("deploy", "incumbent")
+            self._configure_safe(
+                **self._safe_options,
+                safety_confidence=self._safety_confidence,
+                trust_radius=self._trust_radius,
+                contexts=self._contexts_spec,
+                kappa=self._kappa,
+            )
         if state.get("design") is None and self._defaulted:
             self._use_legacy_defaults()  # a checkpoint from before the safe defaults
         if state.get("trust_region") is None and self._trust_defaulted and self.trust_region:

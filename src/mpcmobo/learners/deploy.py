@@ -62,6 +62,15 @@ class DeployRule:
     n_samples: int = 128
     min_runs: int = 1
     shortlist: int = 8
+    max_runs: int | None = None
+
+    @property
+    def run_cap(self) -> int:
+        """Episodes a candidate may get before it must convince (``max_runs``; None:
+        ``min_runs``): a candidate with ``min_runs`` episodes that is more likely better than
+        the deployed theta than not, but not yet with ``deploy_confidence``, is run again up
+        to this many times."""
+        return self.min_runs if self.max_runs is None else max(self.min_runs, self.max_runs)
 
     def __post_init__(self) -> None:
         if self.deploy_confidence is not None and not 0.5 <= self.deploy_confidence < 1:
@@ -73,6 +82,8 @@ class DeployRule:
             raise ValueError(f"safety_confidence must be in [0.5, 1), got {self.safety_confidence}")
         if self.min_runs < 1:
             raise ValueError(f"deploy_min_runs must be at least 1, got {self.min_runs}")
+        if self.max_runs is not None and self.max_runs < 1:
+            raise ValueError(f"deploy_max_runs must be at least 1, got {self.max_runs}")
 
     def safe(self, samples: np.ndarray, budget: float | None) -> np.ndarray:
         """(n,) True where the expected violation's upper quantile is within the budget
@@ -175,6 +186,8 @@ class DeployRule:
         if n_runs < self.min_runs:  # promising but not yet replicated: run it again
             return Decision(current, best.copy() if p >= 0.5 else None)
         if p < self.deploy_confidence or not self.dominates(surrogate, best, current, contexts):
+            if p >= 0.5 and n_runs < self.run_cap:  # promising, not yet convincing: run again
+                return Decision(current, best.copy())
             return Decision(current)
         return Decision(best.copy())
 
