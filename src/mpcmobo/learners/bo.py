@@ -675,9 +675,7 @@ class _GPLearner(Learner):
 
     def _runs(self, z: np.ndarray) -> int:
         """Episodes run with the unit-cube theta ``z`` (finite outcomes only)."""
-        key = theta_key(z)
-        ok = self._finite()
-        return sum(1 for zi in self.Z_[ok] if theta_key(zi) == key)
+        return len(self._rows_of(z))
 
     def _paired_better(self, z: np.ndarray, current: np.ndarray) -> bool:
         """Like for like on ``z``'s own episodes: its observed f1 (model space, minus its
@@ -686,12 +684,15 @@ class _GPLearner(Learner):
         theta can be far better than theta0 from two starts and catastrophic from a third). The GP's opinion of ``z``
         can be fooled by a few points; its observed episodes, compared at their own starts,
         are the evidence."""
-        key = theta_key(z)
-        ok = self._finite()
-        rows = [i for i in np.flatnonzero(ok) if theta_key(self.Z_[i]) == key]
-        if not rows:
+        rows = self._rows_of(z)
+        if not len(rows):
             return False
         t_obs = self.surrogate.to_model_space(self._fit_data()[1][rows])[:, 0]
+        return self._beats_prediction(rows, t_obs, current)
+
+    def _beats_prediction(self, rows: np.ndarray, t_obs: np.ndarray, current: np.ndarray) -> bool:
+        """True when every episode ``rows`` (observed f1 in model space ``t_obs``, minus its
+        start's offset) did better than the posterior mean of ``current`` at its initial state."""
         t_obs = t_obs - self.surrogate._group_matrix(self.starts_[rows])[:, 0]
         Xc = np.hstack([np.repeat(current[None, :], len(rows), axis=0), self.C_[rows]])
         mt, _ = self.surrogate.posterior_model_space(Xc)
@@ -715,8 +716,12 @@ class _GPLearner(Learner):
         rows = self._rows_of(z)
         if not self._cycled():
             return len(rows)
-        own = set(self.starts_[self._rows_of(self._incumbent_z)].tolist())
+        own = self._deployed_starts()
         return sum(1 for i in rows if int(self.starts_[i]) in own)
+
+    def _deployed_starts(self) -> set[int]:
+        """The starts from which the deployed theta has been run."""
+        return set(self.starts_[self._rows_of(self._incumbent_z)].tolist())
 
     def _next_start(self) -> int | None:
         """The start of the next episode under cycled starts (``episode mod n``: after the
@@ -734,10 +739,8 @@ class _GPLearner(Learner):
         compared like for like ("baseline")."""
         assert self._verify_z is not None
         nxt = self._next_start() if self.deploy == "verified" else None
-        if nxt is not None:
-            own = set(self.starts_[self._rows_of(self._incumbent_z)].tolist())
-            if nxt not in own:
-                return "baseline", self._incumbent_z.copy()
+        if nxt is not None and nxt not in self._deployed_starts():
+            return "baseline", self._incumbent_z.copy()
         return "verify", self._verify_z
 
     def _paired_verified(self, z: np.ndarray, current: np.ndarray) -> bool:
@@ -746,13 +749,11 @@ class _GPLearner(Learner):
         observed episodes from that start (no model: the per-start offsets are poorly
         estimated from few episodes); the others with :meth:`_paired_better`'s prediction.
         True when ``z`` did better in every one of its episodes."""
-        key, cur = theta_key(z), theta_key(current)
-        ok = self._finite()
         T = self.surrogate.to_model_space(self._fit_data()[1])[:, 0]  # maximised
-        rows = [i for i in np.flatnonzero(ok) if theta_key(self.Z_[i]) == key]
-        if not rows:
+        rows = self._rows_of(z)
+        if not len(rows):
             return False
-        own = [i for i in np.flatnonzero(ok) if theta_key(self.Z_[i]) == cur]
+        own = self._rows_of(current)
         rest = []
         for i in rows:
             same = [j for j in own if self.starts_[i] >= 0 and self.starts_[j] == self.starts_[i]]
@@ -762,10 +763,7 @@ class _GPLearner(Learner):
                 return False
         if not rest:
             return True
-        t_obs = T[rest] - self.surrogate._group_matrix(self.starts_[rest])[:, 0]
-        Xc = np.hstack([np.repeat(current[None, :], len(rest), axis=0), self.C_[rest]])
-        mt, _ = self.surrogate.posterior_model_space(Xc)
-        return bool(np.all(t_obs > mt[:, 0]))
+        return self._beats_prediction(np.array(rest), T[rest], current)
 
     def incumbent(self) -> np.ndarray:
         return self._theta(self._incumbent_z)
