@@ -287,3 +287,29 @@ def test_reproduction_tables_match_the_summary(small_run):
     for fn, data in ((rep.claim3, tr), (rep.claim4, ep)):
         body = "\n".join(fn("x", data, summary))
         assert all(name in body for name in LEARNERS)
+
+
+def test_recheck_on_the_evaluation_starts_reproduces_J_eval(small_run):
+    """benchmarks/recheck.py re-evaluates the final and worst deployed thetas on fresh starts;
+    given the evaluation's own number of starts and seed, its J/J* of each theta is the run's
+    J_eval/J* of it, and theta0 there is J_eval(theta0)/J*."""
+    import importlib.util
+
+    path = Path(__file__).parents[1] / "benchmarks" / "recheck.py"
+    spec = importlib.util.spec_from_file_location("recheck", path)
+    rc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rc)
+    summary = json.loads((small_run / "summary.json").read_text())
+    rows = rc.recheck(small_run, starts=2, seed=2025, only_seeds=[0])
+    assert {(r["learner"], r["theta"]) for r in rows} == {
+        (n, w) for n in LEARNERS for w in ("final", "worst")
+    }
+    for r in rows:
+        assert r["seed"] == 0 and r["starts"] == 2
+        assert r["J_fresh_ratio"] == pytest.approx(r["J_eval_ratio"], rel=1e-9)
+        assert r["J0_fresh_ratio"] == pytest.approx(
+            summary["J_initial"] / summary["J_star"], rel=1e-9
+        )
+        assert r["regression"] == (r["J_fresh_ratio"] > r["J0_fresh_ratio"])
+    other = rc.recheck(small_run, starts=2, seed=7, only_seeds=[0])
+    assert any(abs(o["J0_fresh_ratio"] - r["J0_fresh_ratio"]) > 1e-6 for o, r in zip(other, rows))

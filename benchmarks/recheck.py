@@ -1,0 +1,118 @@
+"""Recheck a run's deployed thetas on many fresh initial states (issue 11, item 5).
+
+J_eval is the mean cost over ``evaluation.n_starts`` (10) fixed starts, and on the CSTR a few
+starts dominate that mean: a theta can win on most starts and still lose in J_eval because of
+one, or the other way round. This script re-evaluates, for every learner and seed of one or
+more run directories, theta0, the final deployed theta and the worst deployed theta (the one
+with the largest J_eval over the run) on ``--starts`` fresh initial states drawn from the
+system's initial-state distribution with their own seed (never the evaluation starts, never
+fed back to a learner), with the same MPC options and plant as the run. It prints, per theta,
+its mean cost over the fresh starts relative to J* on the same starts, and on how many starts
+it beats theta0; "regression" is a mean above theta0's.
+
+    .venv/bin/python benchmarks/recheck.py --out runs/a --starts 100 --json runs/a/recheck.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from mpcmobo.experiment.evaluation import make_evaluator
+from mpcmobo.experiment.settings import build_system, load_settings
+from mpcmobo.rl.objectives import mean_stage_cost
+
+RECHECK_SEED = 4242  # the fresh starts' seed: apart from the evaluation's (2025)
+
+
+def _thetas(df: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The final and the worst deployed theta of one job's rows (episode order)."""
+    rows = df.sort_values("episode")
+    J = rows["J_eval_incumbent"].to_numpy(float)
+    ok = np.isfinite(J)
+    final = np.asarray(rows["incumbent"].iloc[-1], float)
+    worst = np.asarray(rows["incumbent"].iloc[int(np.nanargmax(np.where(ok, J, -np.inf)))], float)
+    return {"final": final, "worst": worst}
+
+
+def recheck(out: Path, starts: int, seed: int, only_seeds: list[int] | None) -> list[dict]:
+    """The recheck rows of one run directory (one per learner, seed and theta)."""
+    settings = load_settings(out / "config.toml")
+    settings = settings.model_copy(
+        update={
+            "evaluation": settings.evaluation.model_copy(update={"n_starts": starts, "seed": seed})
+        }
+    )
+    system = build_system(settings)
+    ev = make_evaluator(settings, system)
+    summary = json.loads((out / "summary.json").read_text())
+    df = pd.read_parquet(out / "episodes.parquet")
+
+    def costs(theta: np.ndarray | None, model: str = "imperfect") -> np.ndarray:
+        return np.array([mean_stage_cost(r) for r in ev.episodes(theta, model)])
+
+    ref = costs(None, "perfect") if ev.has_J_star else None
+    c0 = costs(None)
+    J_star = float(ref.mean()) if ref is not None else float(c0.mean())
+    rows: list[dict] = []
+    cache: dict[bytes, np.ndarray] = {}
+    for (learner, s), job in df.groupby(["learner", "seed"], sort=True):
+        if only_seeds is not None and int(s) not in only_seeds:
+            continue
+        for which, theta in _thetas(job).items():
+            key = theta.tobytes()
+            if key not in cache:
+                cache[key] = costs(theta)
+            c = cache[key]
+            rows.append(
+                {
+                    "run": out.name,
+                    "learner": learner,
+                    "seed": int(s),
+                    "theta": which,
+                    "J_eval_ratio": float(
+                        job.sort_values("episode")["J_eval_incumbent"].iloc[-1]
+                        if which == "final"
+                        else job["J_eval_incumbent"].max()
+                    )
+                    / summary["J_star"],
+                    "J_fresh_ratio": float(c.mean()) / J_star,
+                    "J0_fresh_ratio": float(c0.mean()) / J_star,
+                    "wins": int(np.sum(c < c0)),
+                    "starts": int(len(c)),
+                    "regression": bool(c.mean() > c0.mean()),
+                }
+            )
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, nargs="+", required=True, help="run directories")
+    ap.add_argument("--starts", type=int, default=100, help="fresh initial states (default 100)")
+    ap.add_argument("--seed", type=int, default=RECHECK_SEED, help="their seed")
+    ap.add_argument("--only-seeds", type=int, nargs="+", default=None)
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    args = ap.parse_args()
+    rows = [r for out in args.out for r in recheck(out, args.starts, args.seed, args.only_seeds)]
+    print(
+        "| run | learner | seed | theta | J_eval/J* (10 evaluation starts) "
+        f"| J/J* on {args.starts} fresh starts | theta0 there | wins over theta0 | regression |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['run']} | {r['learner']} | {r['seed']} | {r['theta']} | {r['J_eval_ratio']:.2f} "
+            f"| {r['J_fresh_ratio']:.2f} | {r['J0_fresh_ratio']:.2f} | {r['wins']}/{r['starts']} "
+            f"| {'yes' if r['regression'] else 'no'} |"
+        )
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
