@@ -7,8 +7,9 @@ more run directories, theta0, the final deployed theta and the worst deployed th
 with the largest J_eval over the run) on ``--starts`` fresh initial states drawn from the
 system's initial-state distribution with their own seed (never the evaluation starts, never
 fed back to a learner), with the same MPC options and plant as the run. It prints, per theta,
-its mean cost over the fresh starts relative to J* on the same starts, and on how many starts
-it beats theta0; "regression" is a mean above theta0's.
+its mean cost over the fresh starts relative to J* on the same starts, the paired difference
+from theta0's mean with its standard error over the starts, and on how many starts it beats
+theta0; "regression" is a mean above theta0's.
 
     .venv/bin/python benchmarks/recheck.py --out runs/a --starts 100 --json runs/a/recheck.json
 """
@@ -83,6 +84,11 @@ def recheck(out: Path, starts: int, seed: int, only_seeds: list[int] | None) -> 
                     "J_fresh_ratio": float(c.mean()) / J_star,
                     "J0_fresh_ratio": float(c0.mean()) / J_star,
                     "wins": int(np.sum(c < c0)),
+                    # the paired difference of the means and its standard error over the starts
+                    "diff_ratio": float((c - c0).mean()) / J_star,
+                    "diff_se_ratio": float((c - c0).std(ddof=1) / np.sqrt(len(c))) / J_star
+                    if len(c) > 1
+                    else float("nan"),
                     "starts": int(len(c)),
                     "regression": bool(c.mean() > c0.mean()),
                 }
@@ -101,13 +107,15 @@ def main() -> None:
     rows = [r for out in args.out for r in recheck(out, args.starts, args.seed, args.only_seeds)]
     print(
         "| run | learner | seed | theta | J_eval/J* (10 evaluation starts) "
-        f"| J/J* on {args.starts} fresh starts | theta0 there | wins over theta0 | regression |"
+        f"| J/J* on {args.starts} fresh starts | theta0 there | difference (SE) "
+        "| wins over theta0 | regression |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['run']} | {r['learner']} | {r['seed']} | {r['theta']} | {r['J_eval_ratio']:.2f} "
-            f"| {r['J_fresh_ratio']:.2f} | {r['J0_fresh_ratio']:.2f} | {r['wins']}/{r['starts']} "
+            f"| {r['J_fresh_ratio']:.2f} | {r['J0_fresh_ratio']:.2f} "
+            f"| {r['diff_ratio']:+.2f} ({r['diff_se_ratio']:.2f}) | {r['wins']}/{r['starts']} "
             f"| {'yes' if r['regression'] else 'no'} |"
         )
     if args.json is not None:
