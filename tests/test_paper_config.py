@@ -35,3 +35,17 @@ def test_paper_config_learner_options():
     check_learners(validate_settings(data))
     assert data["learner_options"]["bo"]["context"] == "none"
     assert data["learner_options"]["mobo"]["context"] == "none"
+
+
+def test_every_benchmark_config_loads_and_its_learners_accept_their_options():
+    """Each file of benchmarks/configs (the options that docs/benchmarks.md measures) is valid
+    settings, and every learner it configures accepts its options: a misspelt option in one of
+    them is an error here, not a silently different benchmark."""
+    files = sorted(PAPER.parent.glob("*.toml"))
+    assert PAPER in files and len(files) > 5
+    for path in files:
+        data = tomllib.loads(path.read_text())
+        settings = validate_settings(data)
+        check_learners(
+            settings.model_copy(update={"learners": list(data.get("learner_options", {}))})
+        )
