@@ -80,6 +80,10 @@ from mpcmobo.bo.transforms import cost_transform
 
 __all__ = ["GPSurrogate", "fit_gp"]
 
+# points per block of a posterior evaluation (posterior_model_space): large enough for fast
+# matrix products, small enough that the (m, block, n) temporaries stay in cache
+ROW_BLOCK = 256
+
 
 def _as_2d(a: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
@@ -183,6 +187,7 @@ class GPSurrogate:
         self.group_offsets: dict[int, np.ndarray] = {}  # group -> (m,) offsets in model space
         self.model: SingleTaskGP | None = None
         self._fast: ExactIndependentGP | None = None
+        self._memo: dict[str, dict] = {}  # fit_memo: posterior pieces of this fit
         self.train_X: np.ndarray | None = None  # finite rows used in the last fit
         self.train_Y: np.ndarray | None = None
         self.last_fit_was_full = False
@@ -329,6 +334,7 @@ class GPSurrogate:
         self._n_fits += 1
         self.model = model
         self._fast = None
+        self._memo = {}
         return self
 
     def _subsample(self, n: int) -> np.ndarray | None:
@@ -376,24 +382,44 @@ class GPSurrogate:
     # ------------------------------------------------------------------ prediction
     def posterior_model_space(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Latent posterior mean and std (n, m) of the maximisation targets ``t = -g(y)``
-        (eq. mean_var, after undoing the standardisation)."""
+        (eq. mean_var, after undoing the standardisation).
+
+        Evaluated in blocks of :data:`ROW_BLOCK` points: the same numbers as one block (every
+        point's posterior is computed on its own row), with temporaries that stay in cache
+        (at 3,300 points and n = 590, 1.4x faster than one block)."""
         if self.model is None:
             raise RuntimeError("fit() first")
-        tX = torch.as_tensor(_as_2d(X), dtype=DTYPE).unsqueeze(-2)  # (n, 1, d)
-        with torch.no_grad():
-            post = self.fast_model.posterior(tX)  # eq. post / mean_var
-            mean = post.mean.squeeze(-2).numpy().copy()
-            var = post.variance.squeeze(-2).clamp_min(0.0).numpy().copy()
-        return mean, np.sqrt(var)
+        X = _as_2d(X)
+        means, stds = [], []
+        for i in range(0, max(1, len(X)), ROW_BLOCK):
+            tX = torch.as_tensor(X[i : i + ROW_BLOCK], dtype=DTYPE).unsqueeze(-2)  # (b, 1, d)
+            with torch.no_grad():
+                post = self.fast_model.posterior(tX)  # eq. post / mean_var
+                means.append(post.mean.squeeze(-2).numpy().copy())
+                var = post.variance.squeeze(-2).clamp_min(0.0).numpy().copy()
+            stds.append(np.sqrt(var))
+        if len(means) == 1:
+            return means[0], stds[0]
+        return np.concatenate(means), np.concatenate(stds)
 
     def posterior_mean_model_space(self, X: np.ndarray) -> np.ndarray:
         """The mean (n, m) of :meth:`posterior_model_space` alone (the same numbers, bit for
-        bit), without the cost of the standard deviations."""
+        bit), without the cost of the standard deviations; in blocks as there."""
         if self.model is None:
             raise RuntimeError("fit() first")
-        tX = torch.as_tensor(_as_2d(X), dtype=DTYPE).unsqueeze(-2)  # (n, 1, d)
-        with torch.no_grad():
-            return self.fast_model.posterior_mean(tX).squeeze(-2).numpy().copy()
+        X = _as_2d(X)
+        out = []
+        for i in range(0, max(1, len(X)), ROW_BLOCK):
+            tX = torch.as_tensor(X[i : i + ROW_BLOCK], dtype=DTYPE).unsqueeze(-2)  # (b, 1, d)
+            with torch.no_grad():
+                out.append(self.fast_model.posterior_mean(tX).squeeze(-2).numpy().copy())
+        return out[0] if len(out) == 1 else np.concatenate(out)
+
+    def fit_memo(self, name: str) -> dict:
+        """A dictionary ``name`` that lives as long as the current fit (emptied by every
+        :meth:`fit` and state load): for posterior pieces that several callers need from the
+        same model (:func:`mpcmobo.bo.context.expected_outcome_means`). Never saved."""
+        return self._memo.setdefault(name, {})
 
     def predict(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Posterior mean and std (n, m) of the costs in the original minimisation units.
