@@ -662,8 +662,10 @@ class _GPLearner(Learner):
         last = theta_key(self.Z_[-1])
         centre = theta_key(self._trust_centre())
         success = centre == last and theta_key(previous) != last
+        kinds = self.proposal_kinds_
+        if len(kinds) == n and kinds[-1] == "baseline":  # evidence on the deployed theta
+            return
         if not success and centre == last:
-            kinds = self.proposal_kinds_
             verified = kinds[-1] == "verify" if len(kinds) == n else False
             if verified or any(theta_key(z) == last for z in self.Z_[:-1]):
                 return
@@ -823,6 +825,13 @@ class _GPLearner(Learner):
         yet been run from the next start, so that the candidate's episodes there can be
         compared like for like ("baseline")."""
         assert self._verify_z is not None
+        if self.deploy_paired == "mean" and self.deploy != "verified":
+            # deploy_paired = "mean": the deployed theta's own episodes anchor the model's
+            # prediction of it; it is run again while it has fewer than the candidate (and
+            # than deploy_min_runs), alternating the evidence on both sides
+            own = self._runs(self._incumbent_z)
+            if own < min(self._runs(self._verify_z), self.deploy_rule.min_runs):
+                return "baseline", self._incumbent_z.copy()
         nxt = self._next_start() if self.deploy == "verified" else None
         if nxt is not None and nxt not in self._deployed_starts():
             return "baseline", self._incumbent_z.copy()

@@ -167,7 +167,8 @@ class DeployRule:
         candidate is deployed only if it also :meth:`dominates`; with ``"mean"`` it returns
         the confidence that ``z`` is better on average over its episodes' own starts
         (:func:`paired_confidence`), a candidate needs 0.5 to be considered and
-        ``deploy_confidence`` to be deployed, and the pointwise dominance is not required.
+        ``deploy_confidence`` to be deployed, the deployed theta itself ``min_runs``
+        episodes, and the pointwise dominance is not required.
         Candidates that fail the check are not considered (neither deployed nor verified).
         Both optional.
         """
@@ -214,7 +215,11 @@ class DeployRule:
         if n_runs < self.min_runs:  # promising but not yet replicated: run it again
             return Decision(current, promising, promising)
         if self.paired_mode == "mean" and paired is not None:
-            convinced = evidence[theta_key(best)] >= self.deploy_confidence
+            # both sides of the comparison need evidence: the deployed theta's own episodes
+            # anchor the model's prediction of it at the candidate's starts
+            convinced = evidence[theta_key(best)] >= self.deploy_confidence and (
+                runs is None or int(runs(current)) >= self.min_runs
+            )
         else:
             convinced = self.dominates(surrogate, best, current, contexts)
         if p < self.deploy_confidence or not convinced:
