@@ -84,6 +84,17 @@ rule (the GP's probability and per-start offsets alone) regressed on ``lq``: wit
 episodes per start the offsets are not identified (``docs/benchmarks.md``, "A deployment rule
 that needs evidence").
 
+``trust_center`` and ``deploy_paired`` (session 9, issue 11; opt-in, defaults ``"deployed"`` and
+``"every"``, the rules above): ``trust_center = "candidate"`` centres the trust region at the
+deployment rule's best safe candidate while it is more likely better than the deployed theta
+than not (a verification it survives is neutral for the box), so the search moves on before
+the deployed theta may; ``deploy_paired = "mean"`` judges a candidate's own episodes against
+the contextual model's prediction of the deployed theta at each episode's start by a one-sided
+t-test on their mean (:func:`~mpcmobo.learners.deploy.paired_confidence`) instead of "better in
+every episode" plus the pointwise dominance, and needs ``deploy_min_runs`` episodes of the
+deployed theta itself (run as "baseline" episodes). Measured in ``docs/benchmarks.md``,
+"Deploying sooner under the safe design" (``benchmarks/configs/safe_paired.toml``).
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
