@@ -91,6 +91,17 @@ rule (the GP's probability and per-start offsets alone) regressed on ``lq``: wit
 episodes per start the offsets are not identified (``docs/benchmarks.md``, "A deployment rule
 that needs evidence").
 
+``trust_center`` and ``deploy_paired`` (session 9, issue 11; opt-in, defaults ``"deployed"`` and
+``"every"``, the rules above): ``trust_center = "candidate"`` centres the trust region at the
+deployment rule's best safe candidate while it is more likely better than the deployed theta
+than not (a verification it survives is neutral for the box), so the search moves on before
+the deployed theta may; ``deploy_paired = "mean"`` judges a candidate's own episodes against
+the contextual model's prediction of the deployed theta at each episode's start by a one-sided
+t-test on their mean (:func:`~mpcmobo.learners.deploy.paired_confidence`) instead of "better in
+every episode" plus the pointwise dominance, and needs ``deploy_min_runs`` episodes of the
+deployed theta itself (run as "baseline" episodes). Measured in ``docs/benchmarks.md``,
+"Deploying sooner under the safe design" (``benchmarks/configs/safe_paired.toml``).
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
@@ -130,7 +141,13 @@ from mpcmobo.bo.context import (
 )
 from mpcmobo.bo.trust import TrustState, trust_region_from_option
 from mpcmobo.learners.base import EpisodeResult, Learner
-from mpcmobo.learners.deploy import DeployRule, default_budget, theta_key
+from mpcmobo.learners.deploy import (
+    PAIRED_MODES,
+    DeployRule,
+    default_budget,
+    paired_confidence,
+    theta_key,
+)
 from mpcmobo.systems.space import SearchSpace
 
 OBJECTIVES = ("f1", "f2", "f3", "f4")
@@ -177,6 +194,12 @@ TRUST_DEFAULT = _DefaultAny("auto")
 # deploy_confidence (DeployRule). A checkpoint whose learner state has no "deploy" key was made
 # with "incumbent" and resumes with it when the option is left at its default
 DEPLOY_MODES = ("incumbent", "verified")
+# session 9 (issue 11): where the trust region is centred. "deployed": the deployed theta (the
+# rule since session 7); "candidate": the deployment rule's best safe candidate while it is more
+# likely better than the deployed theta than not (the deployed theta otherwise), so that the
+# search moves on with the evidence before the deployed theta may (docs/benchmarks.md,
+# "Deploying sooner under the safe design")
+TRUST_CENTERS = ("deployed", "candidate")
 DEPLOY_MODE_DEFAULT = _DefaultStr("incumbent")
 VERIFIED_CONFIDENCE = 0.9  # deploy = "verified": deploy_confidence when left unset
 VERIFIED_MIN_RUNS = 2  # ... deploy_min_runs when left at its default
@@ -368,10 +391,24 @@ class _GPLearner(Learner):
         deploy: str = DEPLOY_MODE_DEFAULT,
         deploy_max_runs: int | None = None,
         local_fit: int | None = None,
+        trust_center: str = "deployed",
+        deploy_paired: str = "every",
         **removed: Any,
     ) -> None:
         self.search_radius = _check_radius(search_radius)
         self.local_fit = _check_local_fit(local_fit)
+        if trust_center not in TRUST_CENTERS:
+            raise ValueError(
+                f"trust_center must be one of {', '.join(repr(k) for k in TRUST_CENTERS)}, "
+                f"got {trust_center!r}"
+            )
+        self.trust_center = str(trust_center)
+        if deploy_paired not in PAIRED_MODES:
+            raise ValueError(
+                f"deploy_paired must be one of {', '.join(repr(k) for k in PAIRED_MODES)}, "
+                f"got {deploy_paired!r}"
+            )
+        self.deploy_paired = str(deploy_paired)
         if deploy not in DEPLOY_MODES:
             raise ValueError(
                 f"deploy must be one of {', '.join(repr(k) for k in DEPLOY_MODES)}, got {deploy!r}"
@@ -502,6 +539,7 @@ class _GPLearner(Learner):
             safety_confidence=float(safety_confidence),
             min_runs=int(deploy_min_runs),
             max_runs=max_runs,
+            paired_mode=self.deploy_paired if not verified else "every",
         )
         self.trust_radius = float(trust_radius)
         # the issue-11 path (contextual expectation, safety, deployment rule) or the old one;
@@ -573,6 +611,10 @@ class _GPLearner(Learner):
         self._pre_fit_incumbent = self._incumbent_z.copy()
         self._exact_theta0: bool | None = True  # see _theta
         self._verify_z: np.ndarray | None = None  # a candidate to run again (deploy_min_runs)
+        # the deployment rule's promising candidate (trust_center = "candidate"), and the
+        # centre of the trust region before the last fit (for the trust region's update)
+        self._candidate_z: np.ndarray | None = None
+        self._pre_fit_centre = self._incumbent_z.copy()
         # what each proposal was: "design", "search", "safe" (the trust-region fallback),
         # "verify" (a candidate run again before it may be deployed), "baseline" (deploy =
         # "verified": the deployed theta run from a start it lacks), "gradient" (hybrid)
@@ -646,8 +688,42 @@ class _GPLearner(Learner):
         self._pre_fit_state = self.surrogate.state_dict()
         self._pre_fit_incumbent = self._incumbent_z.copy()
         self._pre_fit_trust = self.trust_
+        self._pre_fit_centre = self._trust_centre().copy()
+        self._candidate_z = None
         self._fit_and_deploy()
-        self._update_trust(self._pre_fit_incumbent)
+        if self.trust_center == "candidate":
+            self._update_trust_candidate(self._pre_fit_centre)
+        else:
+            self._update_trust(self._pre_fit_incumbent)
+
+    def _trust_centre(self) -> np.ndarray:
+        """The centre of the trust region: the deployed theta, or with ``trust_center =
+        "candidate"`` the deployment rule's promising candidate when there is one."""
+        if self.trust_center == "candidate" and self._candidate_z is not None:
+            return self._candidate_z
+        return self._incumbent_z
+
+    def _update_trust_candidate(self, previous: np.ndarray) -> None:
+        """``trust_center = "candidate"``: the trust region's step (TuRBO's rule on the model's
+        evidence, not on one noisy episode). A success when the point just run became the
+        centre (the new promising candidate, or the deployed theta); a verification episode
+        of the centre after which it is still the centre is evidence gathered, neither
+        success nor failure; anything else (a search point that is not the new best
+        candidate, a verification that dropped its candidate) is a failure."""
+        n = self.Z_.shape[0]
+        if self.trust_region is None or self.trust_ is None or n <= self.n_init:
+            return
+        last = theta_key(self.Z_[-1])
+        centre = theta_key(self._trust_centre())
+        success = centre == last and theta_key(previous) != last
+        kinds = self.proposal_kinds_
+        if len(kinds) == n and kinds[-1] == "baseline":  # evidence on the deployed theta
+            return
+        if not success and centre == last:
+            verified = kinds[-1] == "verify" if len(kinds) == n else False
+            if verified or any(theta_key(z) == last for z in self.Z_[:-1]):
+                return
+        self.trust_ = self.trust_region.update(self.trust_, success, self.space.dim)
 
     def _update_trust(self, previous: np.ndarray) -> None:
         """One step of the trust region (:mod:`mpcmobo.bo.trust`) per observation after the
@@ -674,7 +750,7 @@ class _GPLearner(Learner):
         """The current trust region (lower, upper) around the deployed theta, or None."""
         if self.trust_region is None or self.trust_ is None:
             return None
-        return self.trust_region.box(self._incumbent_z, self.trust_.length)
+        return self.trust_region.box(self._trust_centre(), self.trust_.length)
 
     def _fit_and_deploy(self) -> None:
         if np.count_nonzero(self._finite()) < 2:
@@ -720,10 +796,15 @@ class _GPLearner(Learner):
             self._safe_budget(),
             seed=1234 + self.Z_.shape[0],
             runs=self._matched_runs if self.deploy == "verified" else self._runs,
-            paired=self._paired_verified if self.deploy == "verified" else self._paired_better,
+            paired=self._paired_verified
+            if self.deploy == "verified"
+            else self._paired_mean
+            if self.deploy_paired == "mean"
+            else self._paired_better,
         )
         self._incumbent_z = decision.deployed
         self._verify_z = decision.verify
+        self._candidate_z = decision.candidate
 
     def _runs(self, z: np.ndarray) -> int:
         """Episodes run with the unit-cube theta ``z`` (finite outcomes only)."""
@@ -742,13 +823,30 @@ class _GPLearner(Learner):
         t_obs = self.surrogate.to_model_space(self._fit_data()[1][rows])[:, 0]
         return self._beats_prediction(rows, t_obs, current)
 
-    def _beats_prediction(self, rows: np.ndarray, t_obs: np.ndarray, current: np.ndarray) -> bool:
-        """True when every episode ``rows`` (observed f1 in model space ``t_obs``, minus its
-        start's offset) did better than the posterior mean of ``current`` at its initial state."""
+    def _paired_mean(self, z: np.ndarray, current: np.ndarray) -> float:
+        """``deploy_paired = "mean"``: the context-matched comparison of ``z``'s own episodes
+        with the contextual model's prediction of ``current`` at each episode's initial state
+        (model space, start offset removed), as the confidence that ``z`` is better on
+        average (:func:`~mpcmobo.learners.deploy.paired_confidence`)."""
+        rows = self._rows_of(z)
+        if not len(rows):
+            return 0.0
+        t_obs = self.surrogate.to_model_space(self._fit_data()[1][rows])[:, 0]
+        return paired_confidence(self._advantages(rows, t_obs, current))
+
+    def _advantages(self, rows: np.ndarray, t_obs: np.ndarray, current: np.ndarray) -> np.ndarray:
+        """Per episode ``rows`` (observed f1 in model space ``t_obs``): how much better it did
+        than the posterior mean of ``current`` at its initial state (model space, maximised;
+        start offset removed)."""
         t_obs = t_obs - self.surrogate._group_matrix(self.starts_[rows])[:, 0]
         Xc = np.hstack([np.repeat(current[None, :], len(rows), axis=0), self.C_[rows]])
         mt, _ = self.surrogate.posterior_model_space(Xc)
-        return bool(np.all(t_obs > mt[:, 0]))  # model space is maximised
+        return t_obs - mt[:, 0]
+
+    def _beats_prediction(self, rows: np.ndarray, t_obs: np.ndarray, current: np.ndarray) -> bool:
+        """True when every episode ``rows`` (observed f1 in model space ``t_obs``, minus its
+        start's offset) did better than the posterior mean of ``current`` at its initial state."""
+        return bool(np.all(self._advantages(rows, t_obs, current) > 0))  # model space: maximised
 
     def _rows_of(self, z: np.ndarray) -> np.ndarray:
         """Rows of the finite observations run with the unit-cube theta ``z``."""
@@ -790,6 +888,13 @@ class _GPLearner(Learner):
         yet been run from the next start, so that the candidate's episodes there can be
         compared like for like ("baseline")."""
         assert self._verify_z is not None
+        if self.deploy_paired == "mean" and self.deploy != "verified":
+            # deploy_paired = "mean": the deployed theta's own episodes anchor the model's
+            # prediction of it; it is run again while it has fewer than the candidate (and
+            # than deploy_min_runs), alternating the evidence on both sides
+            own = self._runs(self._incumbent_z)
+            if own < min(self._runs(self._verify_z), self.deploy_rule.min_runs):
+                return "baseline", self._incumbent_z.copy()
         nxt = self._next_start() if self.deploy == "verified" else None
         if nxt is not None and nxt not in self._deployed_starts():
             return "baseline", self._incumbent_z.copy()
@@ -912,7 +1017,7 @@ class _GPLearner(Learner):
         """The best safe point (lowest expected f1) of 128 Sobol points of the trust region:
         the ``trust_region`` box when on, else the cube of radius ``trust_radius sqrt(n_safe)``
         around the deployed theta."""
-        center = self._incumbent_z
+        center = self._trust_centre()
         sob = qmc.Sobol(d=self.space.dim, scramble=True, seed=seed).random(128)
         box = self._trust_box()
         if box is not None:  # the trust region replaces the radius trust_radius sqrt(#safe)
@@ -955,6 +1060,7 @@ class _GPLearner(Learner):
                 "trust_pre_fit": None
                 if self._pre_fit_trust is None
                 else self._pre_fit_trust.to_dict(),
+                "centre_pre_fit": self._pre_fit_centre.copy(),
             }
         )
         return d
@@ -1002,6 +1108,10 @@ class _GPLearner(Learner):
             self._pre_fit_trust = self.trust_
             if state["surrogate_pre_fit"] is None and state.get("trust_region") is not None:
                 self.trust_ = TrustState.from_dict(state["trust_region"])
+        centre = state.get("centre_pre_fit")
+        if self.trust_center == "candidate" and centre is not None:
+            # the centre before the last fit (the candidate then, or the deployed theta)
+            self._candidate_z = np.array(centre, float)
         if state["surrogate_pre_fit"] is not None:
             # replay the last fit from the state it started from: same model, same counters
             self.surrogate.load_state_dict(state["surrogate_pre_fit"])

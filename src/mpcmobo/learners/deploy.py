@@ -29,15 +29,23 @@ from mpcmobo.bo.context import expected_outcome_means, expected_outcome_samples
 from mpcmobo.bo.surrogate import GPSurrogate
 
 BUDGET_FACTOR = 2.0  # default budget: this multiple of theta0's own violation (+ floor)
+# deploy_paired (session 9): how a candidate's own episodes must compare with the deployed
+# theta's prediction at their starts: "every" one better, plus pointwise dominance (the rule of
+# session 5), or "mean": better on average with deploy_confidence (paired_confidence)
+PAIRED_MODES = ("every", "mean")
 
 
 @dataclass(frozen=True)
 class Decision:
-    """The outcome of the deployment rule after a fit: the deployed theta (unit cube), and a
-    candidate to run again as a verification episode (None: nothing to verify)."""
+    """The outcome of the deployment rule after a fit: the deployed theta (unit cube), a
+    candidate to run again as a verification episode (None: nothing to verify), and the best
+    safe candidate if it is more likely better than the deployed theta than not (None: no
+    such candidate, or it was deployed; the centre of the trust region with
+    ``trust_center = "candidate"``)."""
 
     deployed: np.ndarray
     verify: np.ndarray | None = None
+    candidate: np.ndarray | None = None  # the best safe candidate when promising (P >= 0.5)
 
 
 def theta_key(z: np.ndarray) -> bytes:
@@ -63,6 +71,7 @@ class DeployRule:
     min_runs: int = 1
     shortlist: int = 8
     max_runs: int | None = None
+    paired_mode: str = "every"
 
     @property
     def run_cap(self) -> int:
@@ -84,6 +93,11 @@ class DeployRule:
             raise ValueError(f"deploy_min_runs must be at least 1, got {self.min_runs}")
         if self.max_runs is not None and self.max_runs < 1:
             raise ValueError(f"deploy_max_runs must be at least 1, got {self.max_runs}")
+        if self.paired_mode not in PAIRED_MODES:
+            raise ValueError(
+                f"deploy_paired must be one of {', '.join(repr(k) for k in PAIRED_MODES)}, "
+                f"got {self.paired_mode!r}"
+            )
 
     def safe(self, samples: np.ndarray, budget: float | None) -> np.ndarray:
         """(n,) True where the expected violation's upper quantile is within the budget
@@ -147,19 +161,33 @@ class DeployRule:
         """:meth:`choose` with the evidence rules: the deployed theta and a candidate to verify.
 
         ``runs(z) -> int``: how many episodes ``z`` has had (for ``min_runs``);
-        ``paired(z, current) -> bool``: the like-for-like check on ``z``'s own episodes (each
-        observed cost against ``current``'s prediction at the same start); candidates that
-        fail it are not considered (neither deployed nor verified). Both optional.
+        ``paired(z, current)``: the like-for-like check on ``z``'s own episodes (each
+        observed cost against ``current``'s prediction at the same start). With
+        ``paired_mode = "every"`` it returns a bool (``z`` did better in every episode) and a
+        candidate is deployed only if it also :meth:`dominates`; with ``"mean"`` it returns
+        the confidence that ``z`` is better on average over its episodes' own starts
+        (:func:`paired_confidence`), a candidate needs 0.5 to be considered and
+        ``deploy_confidence`` to be deployed, the deployed theta itself ``min_runs``
+        episodes, and the pointwise dominance is not required.
+        Candidates that fail the check are not considered (neither deployed nor verified).
+        Both optional.
         """
         Z = np.unique(np.atleast_2d(Z), axis=0)
         if len(Z) == 0:
             return Decision(current)
         if self.deploy_confidence is not None and len(Z) > self.shortlist:
             Z = self.shortlisted(surrogate, Z, current, contexts, budget)
+        evidence: dict[bytes, float] = {}
         if self.deploy_confidence is not None and paired is not None:
-            # a candidate one of whose own episodes did worse than the deployed theta would
-            # have done from the same start is out: one bad start is evidence enough
-            keep = [theta_key(z) == theta_key(current) or paired(z, current) for z in Z]
+            if self.paired_mode == "every":
+                # a candidate one of whose own episodes did worse than the deployed theta
+                # would have done from the same start is out: one bad start is evidence enough
+                keep = [theta_key(z) == theta_key(current) or paired(z, current) for z in Z]
+            else:  # "mean": the candidate's episodes, context-matched, better on average
+                for z in Z:
+                    if theta_key(z) != theta_key(current):
+                        evidence[theta_key(z)] = float(paired(z, current))
+                keep = [evidence.get(theta_key(z), 1.0) >= 0.5 for z in Z]
             Z = Z[np.asarray(keep, dtype=bool)]
             if len(Z) == 0:
                 return Decision(current)
@@ -183,12 +211,21 @@ class DeployRule:
         )[:, :, 0]
         p = float(np.mean(J[:, 0] < J[:, 1]))
         n_runs = self.min_runs if runs is None else int(runs(best))
+        promising = best.copy() if p >= 0.5 else None
         if n_runs < self.min_runs:  # promising but not yet replicated: run it again
-            return Decision(current, best.copy() if p >= 0.5 else None)
-        if p < self.deploy_confidence or not self.dominates(surrogate, best, current, contexts):
+            return Decision(current, promising, promising)
+        if self.paired_mode == "mean" and paired is not None:
+            # both sides of the comparison need evidence: the deployed theta's own episodes
+            # anchor the model's prediction of it at the candidate's starts
+            convinced = evidence[theta_key(best)] >= self.deploy_confidence and (
+                runs is None or int(runs(current)) >= self.min_runs
+            )
+        else:
+            convinced = self.dominates(surrogate, best, current, contexts)
+        if p < self.deploy_confidence or not convinced:
             if p >= 0.5 and n_runs < self.run_cap:  # promising, not yet convincing: run again
-                return Decision(current, best.copy())
-            return Decision(current)
+                return Decision(current, best.copy(), promising)
+            return Decision(current, None, promising)
         return Decision(best.copy())
 
     @staticmethod
@@ -205,6 +242,29 @@ class DeployRule:
         X = np.vstack([np.hstack([np.repeat(z[None, :], K, axis=0), C]) for z in (new, current)])
         mt, _ = surrogate.posterior_model_space(X)
         return bool(np.all(mt[:K, 0] >= mt[K:, 0]))  # model space is maximised
+
+
+def paired_confidence(d: np.ndarray) -> float:
+    """The confidence that a candidate is better than the deployed theta from its own
+    episodes' starts: ``d`` (n,) the per-episode advantages (the deployed theta's predicted
+    cost minus the candidate's observed cost, in the GP's log space, at the episode's own
+    initial state), the one-sided t-test of ``mean(d) > 0``: ``F_t(n-1)(mean / (sd /
+    sqrt(n)))``. Scale-free (log costs) and it grows with evidence, where "better in every
+    episode" falls with the number of episodes. One episode: 0.5 if it was better (enough to
+    be verified, never to be deployed), else 0."""
+    d = np.asarray(d, float)
+    d = d[np.isfinite(d)]
+    if len(d) == 0:
+        return 0.0
+    if len(d) == 1:
+        return 0.5 if d[0] > 0 else 0.0
+    from scipy.stats import t
+
+    sd = float(np.std(d, ddof=1))
+    mean = float(np.mean(d))
+    if sd == 0:
+        return 1.0 if mean > 0 else 0.0
+    return float(t.cdf(mean / (sd / np.sqrt(len(d))), df=len(d) - 1))
 
 
 def default_budget(theta0_violation: float, floor: float) -> float:
