@@ -30,14 +30,14 @@ from mpcmobo.rl.objectives import mean_stage_cost
 RECHECK_SEED = 4242  # the fresh starts' seed: apart from the evaluation's (2025)
 
 
-def _thetas(df: pd.DataFrame) -> dict[str, np.ndarray]:
-    """The final and the worst deployed theta of one job's rows (episode order)."""
+def _thetas(df: pd.DataFrame) -> dict[str, tuple[np.ndarray, float]]:
+    """The final and the worst deployed theta of one job's rows, each with its J_eval."""
     rows = df.sort_values("episode")
     J = rows["J_eval_incumbent"].to_numpy(float)
-    ok = np.isfinite(J)
-    final = np.asarray(rows["incumbent"].iloc[-1], float)
-    worst = np.asarray(rows["incumbent"].iloc[int(np.nanargmax(np.where(ok, J, -np.inf)))], float)
-    return {"final": final, "worst": worst}
+    picks = {"final": len(J) - 1, "worst": int(np.argmax(np.where(np.isfinite(J), J, -np.inf)))}
+    return {
+        k: (np.asarray(rows["incumbent"].iloc[i], float), float(J[i])) for k, i in picks.items()
+    }
 
 
 def recheck(out: Path, starts: int, seed: int, only_seeds: list[int] | None) -> list[dict]:
@@ -64,7 +64,7 @@ def recheck(out: Path, starts: int, seed: int, only_seeds: list[int] | None) -> 
     for (learner, s), job in df.groupby(["learner", "seed"], sort=True):
         if only_seeds is not None and int(s) not in only_seeds:
             continue
-        for which, theta in _thetas(job).items():
+        for which, (theta, J_eval) in _thetas(job).items():
             key = theta.tobytes()
             if key not in cache:
                 cache[key] = costs(theta)
@@ -75,12 +75,7 @@ def recheck(out: Path, starts: int, seed: int, only_seeds: list[int] | None) -> 
                     "learner": learner,
                     "seed": int(s),
                     "theta": which,
-                    "J_eval_ratio": float(
-                        job.sort_values("episode")["J_eval_incumbent"].iloc[-1]
-                        if which == "final"
-                        else job["J_eval_incumbent"].max()
-                    )
-                    / summary["J_star"],
+                    "J_eval_ratio": J_eval / summary["J_star"],
                     "J_fresh_ratio": float(c.mean()) / J_star,
                     "J0_fresh_ratio": float(c0.mean()) / J_star,
                     "wins": int(np.sum(c < c0)),

@@ -56,6 +56,7 @@ __all__ = [
     "expected_outcome_means",
     "expected_outcome_samples",
     "violation_constraint",
+    "with_contexts",
 ]
 
 # the context sample's own random stream (SeedSequence entropy), apart from the evaluation
@@ -270,7 +271,7 @@ def context_posterior(
     K = C.shape[0] if has_c else 1
     memo = getattr(surrogate, "fit_memo", None)
     if memo is None:  # a surrogate without a memo (a test double): evaluate
-        return surrogate.posterior_model_space(_with_contexts(Z, C) if has_c else Z)
+        return surrogate.posterior_model_space(with_contexts(Z, C) if has_c else Z)
     memo = memo("context_posterior")
     ckey = (C.shape, C.tobytes())
     keys = [(ckey, z.tobytes()) for z in Z]
@@ -280,7 +281,7 @@ def context_posterior(
             new[k] = i
     if new:
         Zn = Z[list(new.values())]
-        mt, st = surrogate.posterior_model_space(_with_contexts(Zn, C) if has_c else Zn)
+        mt, st = surrogate.posterior_model_space(with_contexts(Zn, C) if has_c else Zn)
         m = mt.shape[1]
         mt, st = mt.reshape(len(Zn), K, m), st.reshape(len(Zn), K, m)
         for j, k in enumerate(new):
@@ -291,7 +292,7 @@ def context_posterior(
     return mt, st
 
 
-def _with_contexts(Z: np.ndarray, C: np.ndarray) -> np.ndarray:
+def with_contexts(Z: np.ndarray, C: np.ndarray) -> np.ndarray:
     """The rows ``(z_i, c_k)`` (n K, d + d_c), row ``i K + k``."""
     K = C.shape[0]
     return np.hstack([np.repeat(Z, K, axis=0), np.tile(C, (len(Z), 1))])

@@ -62,7 +62,7 @@ candidates run on different starts are compared fairly.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import gpytorch
@@ -88,6 +88,14 @@ ROW_BLOCK = 256
 def _as_2d(a: np.ndarray) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     return a[:, None] if a.ndim == 1 else a
+
+
+def _row_blocks(X: np.ndarray) -> Iterator[torch.Tensor]:
+    """The rows of ``X`` as tensors (b, 1, d) of at most :data:`ROW_BLOCK` points each (one
+    empty block for no rows), for the posterior evaluations."""
+    X = _as_2d(X)
+    for i in range(0, max(1, len(X)), ROW_BLOCK):
+        yield torch.as_tensor(X[i : i + ROW_BLOCK], dtype=DTYPE).unsqueeze(-2)
 
 
 def _flags(name: str, flags: Sequence[bool] | None, m: int) -> list[bool]:
@@ -389,10 +397,8 @@ class GPSurrogate:
         (at 3,300 points and n = 590, 1.4x faster than one block)."""
         if self.model is None:
             raise RuntimeError("fit() first")
-        X = _as_2d(X)
         means, stds = [], []
-        for i in range(0, max(1, len(X)), ROW_BLOCK):
-            tX = torch.as_tensor(X[i : i + ROW_BLOCK], dtype=DTYPE).unsqueeze(-2)  # (b, 1, d)
+        for tX in _row_blocks(X):
             with torch.no_grad():
                 post = self.fast_model.posterior(tX)  # eq. post / mean_var
                 means.append(post.mean.squeeze(-2).numpy().copy())
@@ -407,10 +413,8 @@ class GPSurrogate:
         bit), without the cost of the standard deviations; in blocks as there."""
         if self.model is None:
             raise RuntimeError("fit() first")
-        X = _as_2d(X)
         out = []
-        for i in range(0, max(1, len(X)), ROW_BLOCK):
-            tX = torch.as_tensor(X[i : i + ROW_BLOCK], dtype=DTYPE).unsqueeze(-2)  # (b, 1, d)
+        for tX in _row_blocks(X):
             with torch.no_grad():
                 out.append(self.fast_model.posterior_mean(tX).squeeze(-2).numpy().copy())
         return out[0] if len(out) == 1 else np.concatenate(out)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,6 +11,16 @@ import numpy as np
 from mpcmobo.mpc.records import EpisodeRecord
 from mpcmobo.rl import CompatibleCritic, CriticResult, objectives
 from mpcmobo.systems.space import SearchSpace
+
+
+def check_choice(name: str, value: object, choices: Collection[str]) -> str:
+    """``value`` when it is one of ``choices``; else a ``ValueError`` naming the option
+    ``name``, its choices and the value given."""
+    if value not in choices:
+        raise ValueError(
+            f"{name} must be one of {', '.join(repr(k) for k in choices)}, got {value!r}"
+        )
+    return str(value)
 
 
 @dataclass

@@ -140,7 +140,7 @@ from mpcmobo.bo.context import (
     propose_context,
 )
 from mpcmobo.bo.trust import TrustState, trust_region_from_option
-from mpcmobo.learners.base import EpisodeResult, Learner
+from mpcmobo.learners.base import EpisodeResult, Learner, check_choice
 from mpcmobo.learners.deploy import (
     PAIRED_MODES,
     DeployRule,
@@ -397,22 +397,9 @@ class _GPLearner(Learner):
     ) -> None:
         self.search_radius = _check_radius(search_radius)
         self.local_fit = _check_local_fit(local_fit)
-        if trust_center not in TRUST_CENTERS:
-            raise ValueError(
-                f"trust_center must be one of {', '.join(repr(k) for k in TRUST_CENTERS)}, "
-                f"got {trust_center!r}"
-            )
-        self.trust_center = str(trust_center)
-        if deploy_paired not in PAIRED_MODES:
-            raise ValueError(
-                f"deploy_paired must be one of {', '.join(repr(k) for k in PAIRED_MODES)}, "
-                f"got {deploy_paired!r}"
-            )
-        self.deploy_paired = str(deploy_paired)
-        if deploy not in DEPLOY_MODES:
-            raise ValueError(
-                f"deploy must be one of {', '.join(repr(k) for k in DEPLOY_MODES)}, got {deploy!r}"
-            )
+        self.trust_center = check_choice("trust_center", trust_center, TRUST_CENTERS)
+        self.deploy_paired = check_choice("deploy_paired", deploy_paired, PAIRED_MODES)
+        check_choice("deploy", deploy, DEPLOY_MODES)
         if deploy_max_runs is not None and (
             isinstance(deploy_max_runs, bool)
             or not isinstance(deploy_max_runs, (int, np.integer))

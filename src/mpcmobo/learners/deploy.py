@@ -25,8 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from mpcmobo.bo.context import expected_outcome_means, expected_outcome_samples
+from mpcmobo.bo.context import expected_outcome_means, expected_outcome_samples, with_contexts
 from mpcmobo.bo.surrogate import GPSurrogate
+from mpcmobo.learners.base import check_choice
 
 BUDGET_FACTOR = 2.0  # default budget: this multiple of theta0's own violation (+ floor)
 # deploy_paired (session 9): how a candidate's own episodes must compare with the deployed
@@ -93,11 +94,7 @@ class DeployRule:
             raise ValueError(f"deploy_min_runs must be at least 1, got {self.min_runs}")
         if self.max_runs is not None and self.max_runs < 1:
             raise ValueError(f"deploy_max_runs must be at least 1, got {self.max_runs}")
-        if self.paired_mode not in PAIRED_MODES:
-            raise ValueError(
-                f"deploy_paired must be one of {', '.join(repr(k) for k in PAIRED_MODES)}, "
-                f"got {self.paired_mode!r}"
-            )
+        check_choice("deploy_paired", self.paired_mode, PAIRED_MODES)
 
     def safe(self, samples: np.ndarray, budget: float | None) -> np.ndarray:
         """(n,) True where the expected violation's upper quantile is within the budget
@@ -239,8 +236,7 @@ class DeployRule:
         if C.ndim != 2 or C.shape[1] == 0:
             return True
         K = len(C)
-        X = np.vstack([np.hstack([np.repeat(z[None, :], K, axis=0), C]) for z in (new, current)])
-        mt, _ = surrogate.posterior_model_space(X)
+        mt, _ = surrogate.posterior_model_space(with_contexts(np.stack([new, current]), C))
         return bool(np.all(mt[:K, 0] >= mt[K:, 0]))  # model space is maximised
 
 

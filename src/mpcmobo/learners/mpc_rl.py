@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from mpcmobo.bo.context import ContextSpec
-from mpcmobo.learners.base import EpisodeResult, Learner
+from mpcmobo.learners.base import EpisodeResult, Learner, check_choice
 from mpcmobo.learners.deploy import DeployRule
 from mpcmobo.rl.judge import PooledJudge
 from mpcmobo.rl.steps import STEP_RULES, StepRule
@@ -80,15 +80,9 @@ class MPCRL(Learner):
         contexts: ContextSpec | None = None,
     ) -> None:
         super().__init__(space, theta0, seed)
-        if optimizer not in STEP_RULES:
-            raise ValueError(
-                f"optimizer must be one of {', '.join(repr(k) for k in STEP_RULES)}, "
-                f"got {optimizer!r}"
-            )
-        if deploy is not None and deploy not in DEPLOY_MODES:
-            raise ValueError(
-                f"deploy must be one of {', '.join(repr(k) for k in DEPLOY_MODES)}, got {deploy!r}"
-            )
+        check_choice("optimizer", optimizer, STEP_RULES)
+        if deploy is not None:
+            check_choice("deploy", deploy, DEPLOY_MODES)
         if context not in ("none", "x0"):
             raise ValueError(f"context must be 'none' or 'x0', got {context!r}")
         if context == "x0" and contexts is None:
