@@ -102,6 +102,15 @@ every episode" plus the pointwise dominance, and needs ``deploy_min_runs`` episo
 deployed theta itself (run as "baseline" episodes). Measured in ``docs/benchmarks.md``,
 "Deploying sooner under the safe design" (``benchmarks/configs/safe_paired.toml``).
 
+``deploy_paired = "cost"`` (session 10, issue 11; opt-in, for cycled starts): the same t-test
+on the episode costs themselves, each of the candidate's episodes against the mean cost of the
+deployed theta's own episodes from the same start (no model), so that the decision weighs the
+starts as J does; with ``deploy = "verified"`` and ``deploy_min_runs`` = the number of cycled
+starts, a candidate is deployed once it is better on average over the whole cycle with
+``deploy_confidence``, where ``"every"`` needs it better from each start
+(``benchmarks/configs/deploy_cycle_cost.toml``; ``docs/benchmarks.md``, "Deploying on the
+mean cost over the cycle").
+
 Three more options made things worse on the CSTR and were removed in the issue-10 clean-up
 (their measurements stay in ``docs/benchmarks.md``): ``noise_floor`` (a lower bound on the GPs'
 noise variance), ``confirm_runs`` (a new best point re-run before it became the incumbent) and
@@ -526,7 +535,10 @@ class _GPLearner(Learner):
             safety_confidence=float(safety_confidence),
             min_runs=int(deploy_min_runs),
             max_runs=max_runs,
-            paired_mode=self.deploy_paired if not verified else "every",
+            # deploy = "verified" judges "every" episode, or their mean "cost" when asked
+            paired_mode=self.deploy_paired
+            if not verified or self.deploy_paired == "cost"
+            else "every",
         )
         self.trust_radius = float(trust_radius)
         # the issue-11 path (contextual expectation, safety, deployment rule) or the old one;
@@ -782,8 +794,10 @@ class _GPLearner(Learner):
             self.contexts,
             self._safe_budget(),
             seed=1234 + self.Z_.shape[0],
-            runs=self._matched_runs if self.deploy == "verified" else self._runs,
-            paired=self._paired_verified
+            runs=self._matched_runs if self._matched() else self._runs,
+            paired=self._paired_cost
+            if self.deploy_paired == "cost"
+            else self._paired_verified
             if self.deploy == "verified"
             else self._paired_mean
             if self.deploy_paired == "mean"
@@ -821,6 +835,27 @@ class _GPLearner(Learner):
         t_obs = self.surrogate.to_model_space(self._fit_data()[1][rows])[:, 0]
         return paired_confidence(self._advantages(rows, t_obs, current))
 
+    def _paired_cost(self, z: np.ndarray, current: np.ndarray) -> float:
+        """``deploy_paired = "cost"``: each episode of ``z`` from a cycled start on which
+        ``current`` was run too, against the mean cost of ``current``'s own episodes from that
+        start, in the episode cost f1 itself (J(theta) = E_x0[f1] is a mean of costs, and on
+        the CSTR a few starts carry it: a theta better from most starts in log cost can still
+        be worse on average); the confidence that ``z`` is better on average
+        (:func:`~mpcmobo.learners.deploy.paired_confidence` of the differences). Episodes from
+        starts ``current`` has not been run from are not evidence; with none matched (random
+        starts) the model-based check of ``deploy_paired = "mean"``."""
+        rows = self._rows_of(z)
+        own = self._rows_of(current)
+        d = []
+        for i in rows:
+            s = int(self.starts_[i])
+            same = [j for j in own if s >= 0 and int(self.starts_[j]) == s]
+            if same:
+                d.append(float(np.mean(self.Y_[same, 0])) - float(self.Y_[i, 0]))
+        if not d:
+            return self._paired_mean(z, current) if len(rows) else 0.0
+        return paired_confidence(np.asarray(d))
+
     def _advantages(self, rows: np.ndarray, t_obs: np.ndarray, current: np.ndarray) -> np.ndarray:
         """Per episode ``rows`` (observed f1 in model space ``t_obs``): how much better it did
         than the posterior mean of ``current`` at its initial state (model space, maximised;
@@ -841,6 +876,11 @@ class _GPLearner(Learner):
         return np.array(
             [i for i in np.flatnonzero(self._finite()) if theta_key(self.Z_[i]) == key], dtype=int
         )
+
+    def _matched(self) -> bool:
+        """Whether evidence is counted like for like, per cycled start (``deploy =
+        "verified"`` or ``deploy_paired = "cost"``)."""
+        return self.deploy == "verified" or self.deploy_paired == "cost"
 
     def _cycled(self) -> bool:
         """Whether the episodes cycle through fixed starts (``start_id >= 0``)."""
@@ -875,14 +915,14 @@ class _GPLearner(Learner):
         yet been run from the next start, so that the candidate's episodes there can be
         compared like for like ("baseline")."""
         assert self._verify_z is not None
-        if self.deploy_paired == "mean" and self.deploy != "verified":
+        if self.deploy_paired in ("mean", "cost") and self.deploy != "verified":
             # deploy_paired = "mean": the deployed theta's own episodes anchor the model's
             # prediction of it; it is run again while it has fewer than the candidate (and
             # than deploy_min_runs), alternating the evidence on both sides
             own = self._runs(self._incumbent_z)
             if own < min(self._runs(self._verify_z), self.deploy_rule.min_runs):
                 return "baseline", self._incumbent_z.copy()
-        nxt = self._next_start() if self.deploy == "verified" else None
+        nxt = self._next_start() if self._matched() else None
         if nxt is not None and nxt not in self._deployed_starts():
             return "baseline", self._incumbent_z.copy()
         return "verify", self._verify_z

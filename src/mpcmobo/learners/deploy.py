@@ -32,8 +32,10 @@ from mpcmobo.learners.base import check_choice
 BUDGET_FACTOR = 2.0  # default budget: this multiple of theta0's own violation (+ floor)
 # deploy_paired (session 9): how a candidate's own episodes must compare with the deployed
 # theta's prediction at their starts: "every" one better, plus pointwise dominance (the rule of
-# session 5), or "mean": better on average with deploy_confidence (paired_confidence)
-PAIRED_MODES = ("every", "mean")
+# session 5), or "mean": better on average with deploy_confidence (paired_confidence); session
+# 10, "cost": better on average in the episode cost itself (not its log), each episode against
+# the deployed theta's own episodes from the same cycled start (J is a mean of costs)
+PAIRED_MODES = ("every", "mean", "cost")
 
 
 @dataclass(frozen=True)
@@ -161,7 +163,8 @@ class DeployRule:
         ``paired(z, current)``: the like-for-like check on ``z``'s own episodes (each
         observed cost against ``current``'s prediction at the same start). With
         ``paired_mode = "every"`` it returns a bool (``z`` did better in every episode) and a
-        candidate is deployed only if it also :meth:`dominates`; with ``"mean"`` it returns
+        candidate is deployed only if it also :meth:`dominates`; with ``"mean"`` or ``"cost"``
+        (the learner's paired check decides the units) it returns
         the confidence that ``z`` is better on average over its episodes' own starts
         (:func:`paired_confidence`), a candidate needs 0.5 to be considered and
         ``deploy_confidence`` to be deployed, the deployed theta itself ``min_runs``
@@ -180,7 +183,7 @@ class DeployRule:
                 # a candidate one of whose own episodes did worse than the deployed theta
                 # would have done from the same start is out: one bad start is evidence enough
                 keep = [theta_key(z) == theta_key(current) or paired(z, current) for z in Z]
-            else:  # "mean": the candidate's episodes, context-matched, better on average
+            else:  # "mean" / "cost": the candidate's episodes, matched, better on average
                 for z in Z:
                     if theta_key(z) != theta_key(current):
                         evidence[theta_key(z)] = float(paired(z, current))
@@ -211,7 +214,7 @@ class DeployRule:
         promising = best.copy() if p >= 0.5 else None
         if n_runs < self.min_runs:  # promising but not yet replicated: run it again
             return Decision(current, promising, promising)
-        if self.paired_mode == "mean" and paired is not None:
+        if self.paired_mode != "every" and paired is not None:
             # both sides of the comparison need evidence: the deployed theta's own episodes
             # anchor the model's prediction of it at the candidate's starts
             convinced = evidence[theta_key(best)] >= self.deploy_confidence and (
@@ -244,7 +247,8 @@ def paired_confidence(d: np.ndarray) -> float:
     """The confidence that a candidate is better than the deployed theta from its own
     episodes' starts: ``d`` (n,) the per-episode advantages (the deployed theta's predicted
     cost minus the candidate's observed cost, in the GP's log space, at the episode's own
-    initial state), the one-sided t-test of ``mean(d) > 0``: ``F_t(n-1)(mean / (sd /
+    initial state; with ``deploy_paired = "cost"`` the deployed theta's observed mean cost
+    from the same start minus the candidate's cost), the one-sided t-test of ``mean(d) > 0``: ``F_t(n-1)(mean / (sd /
     sqrt(n)))``. Scale-free (log costs) and it grows with evidence, where "better in every
     episode" falls with the number of episodes. One episode: 0.5 if it was better (enough to
     be verified, never to be deployed), else 0."""
