@@ -202,14 +202,20 @@ TRUST_DEFAULT = _DefaultAny("auto")
 # a candidate is deployed only after deploy_min_runs episodes and with P(better) >=
 # deploy_confidence (DeployRule). A checkpoint whose learner state has no "deploy" key was made
 # with "incumbent" and resumes with it when the option is left at its default
-DEPLOY_MODES = ("incumbent", "verified")
+DEPLOY_MODES = ("incumbent", "verified", "auto")
 # session 9 (issue 11): where the trust region is centred. "deployed": the deployed theta (the
 # rule since session 7); "candidate": the deployment rule's best safe candidate while it is more
 # likely better than the deployed theta than not (the deployed theta otherwise), so that the
 # search moves on with the evidence before the deployed theta may (docs/benchmarks.md,
 # "Deploying sooner under the safe design")
 TRUST_CENTERS = ("deployed", "candidate")
-DEPLOY_MODE_DEFAULT = _DefaultStr("incumbent")
+# session 10: "auto", the default: with cycled starts "verified" over the whole cycle
+# (deploy_min_runs = the number of cycled starts, known after the first wrap) judged on the mean
+# episode cost (deploy_paired = "cost"); with random starts "incumbent". A checkpoint whose
+# learner state has no "deploy_option" key resumes with the rule in its "deploy" key
+DEPLOY_MODE_DEFAULT = _DefaultStr("auto")
+CYCLE_UNKNOWN = 10**6  # deploy = "auto" before the first wrap: no candidate has the evidence
+PAIRED_DEFAULT = _DefaultStr("every")  # "cost" under deploy = "auto" with cycled starts
 VERIFIED_CONFIDENCE = 0.9  # deploy = "verified": deploy_confidence when left unset
 VERIFIED_MIN_RUNS = 2  # ... deploy_min_runs when left at its default
 VERIFIED_MAX_RUNS_FACTOR = 2  # ... deploy_max_runs when unset: this multiple of the min runs
@@ -401,13 +407,14 @@ class _GPLearner(Learner):
         deploy_max_runs: int | None = None,
         local_fit: int | None = None,
         trust_center: str = "deployed",
-        deploy_paired: str = "every",
+        deploy_paired: str = PAIRED_DEFAULT,
         **removed: Any,
     ) -> None:
         self.search_radius = _check_radius(search_radius)
         self.local_fit = _check_local_fit(local_fit)
         self.trust_center = check_choice("trust_center", trust_center, TRUST_CENTERS)
-        self.deploy_paired = check_choice("deploy_paired", deploy_paired, PAIRED_MODES)
+        self.deploy_paired = check_choice("deploy_paired", _plain(deploy_paired), PAIRED_MODES)
+        self._paired_defaulted = _is_default(deploy_paired)
         check_choice("deploy", deploy, DEPLOY_MODES)
         if deploy_max_runs is not None and (
             isinstance(deploy_max_runs, bool)
@@ -418,7 +425,9 @@ class _GPLearner(Learner):
                 f"deploy_max_runs must be an integer >= 1 or unset, got {deploy_max_runs!r}"
             )
         self._deploy_defaulted = _is_default(deploy)
-        self.deploy = _plain(deploy)
+        # the option as given, and the rule in force ("auto" resolves at the first episode)
+        self.deploy_option = _plain(deploy)
+        self.deploy = "incumbent" if self.deploy_option == "auto" else self.deploy_option
         self._max_runs = None if deploy_max_runs is None else int(deploy_max_runs)
         self._trust_defaulted = _is_default(trust_region)
         self.trust_region = trust_region_from_option(_plain(trust_region))
@@ -681,9 +690,42 @@ class _GPLearner(Learner):
     def _safe_budget(self) -> float | None:
         return self.budget_ if self.violation_budget is not None else None
 
+    def _apply_auto(self) -> None:
+        """``deploy = "auto"``: once the first episode says how the starts come, cycled starts
+        switch the learner to ``deploy = "verified"`` with ``deploy_paired = "cost"`` (unless
+        set) and ``deploy_min_runs`` (unless set) the number of cycled starts, known after the
+        first wrap (before it no candidate can have been matched on that many starts); random
+        starts keep the incumbent rule."""
+        if self.deploy_option != "auto" or not len(self.starts_) or not self._cycled():
+            return
+        if self.deploy != "verified":
+            self.deploy = "verified"
+            if self._paired_defaulted:
+                self.deploy_paired = "cost"
+            self._configure_safe(
+                **self._safe_options,
+                safety_confidence=self._safety_confidence,
+                trust_radius=self._trust_radius,
+                contexts=self._contexts_spec,
+                kappa=self._kappa,
+            )
+        if "deploy_min_runs" not in self._defaulted:
+            return
+        n = self._cycle_length()
+        runs = CYCLE_UNKNOWN if n is None else n
+        if self.deploy_rule.min_runs != runs:
+            cap = self._max_runs if self._max_runs is not None else VERIFIED_MAX_RUNS_FACTOR * runs
+            self.deploy_rule = replace(self.deploy_rule, min_runs=runs, max_runs=cap)
+
+    def _cycle_length(self) -> int | None:
+        """The number of cycled starts once the cycle has wrapped (None before)."""
+        wrapped = len(self.starts_) > 1 and bool(np.any(np.diff(self.starts_) < 0))
+        return int(self.starts_.max()) + 1 if wrapped else None
+
     def _fit(self) -> None:
         """Fit the GP(s) on the finite observations, choose the deployed theta, move the trust
         region; the pre-fit state makes resume exact."""
+        self._apply_auto()
         self._pre_fit_state = self.surrogate.state_dict()
         self._pre_fit_incumbent = self._incumbent_z.copy()
         self._pre_fit_trust = self.trust_
@@ -906,8 +948,8 @@ class _GPLearner(Learner):
         if not self._cycled():
             return None
         last = int(self.starts_[-1])
-        wrapped = len(self.starts_) > 1 and bool(np.any(np.diff(self.starts_) < 0))
-        return (last + 1) % (int(self.starts_.max()) + 1) if wrapped else last + 1
+        n = self._cycle_length()
+        return (last + 1) % n if n is not None else last + 1
 
     def _verification(self) -> tuple[str, np.ndarray]:
         """The episode that gathers evidence on the candidate ``_verify_z``: the candidate
@@ -1084,6 +1126,8 @@ class _GPLearner(Learner):
                 "exact_theta0": self._exact_theta0,
                 "trust_region": None if self.trust_ is None else self.trust_.to_dict(),
                 "deploy": self.deploy,
+                "deploy_option": self.deploy_option,
+                "deploy_paired": self.deploy_paired,
                 "trust_pre_fit": None
                 if self._pre_fit_trust is None
                 else self._pre_fit_trust.to_dict(),
@@ -1093,10 +1137,15 @@ class _GPLearner(Learner):
         return d
 
     def load_state_dict(self, state: dict) -> None:
+        if self._deploy_defaulted and "deploy_option" not in state:
+            # the option left at its default and a checkpoint from before "auto" (session 10):
+            # the run continues with the rule it was made with (no "deploy" key: made before
+            # session 8, with the incumbent rule)
+            self.deploy_option = state.get("deploy", "incumbent")
         if self._deploy_defaulted and state.get("deploy", "incumbent") != self.deploy:
-            # the option left at its default: the run continues with the rule it was made
-            # with (no "deploy" key: made before session 8, with the incumbent rule)
             self.deploy = state.get("deploy", "incumbent")
+            if self._paired_defaulted:
+                self.deploy_paired = state.get("deploy_paired", "every")
             self._configure_safe(
                 **self._safe_options,
                 safety_confidence=self._safety_confidence,
@@ -1139,6 +1188,7 @@ class _GPLearner(Learner):
         if self.trust_center == "candidate" and centre is not None:
             # the centre before the last fit (the candidate then, or the deployed theta)
             self._candidate_z = np.array(centre, float)
+        self._apply_auto()  # the cycle's length from the restored starts
         if state["surrogate_pre_fit"] is not None:
             # replay the last fit from the state it started from: same model, same counters
             self.surrogate.load_state_dict(state["surrogate_pre_fit"])
