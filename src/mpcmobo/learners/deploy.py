@@ -75,6 +75,7 @@ class DeployRule:
     shortlist: int = 8
     max_runs: int | None = None
     paired_mode: str = "every"
+    model_confidence: float | None = None  # the GP's P(better) to deploy (None: deploy_confidence)
 
     @property
     def run_cap(self) -> int:
@@ -97,6 +98,10 @@ class DeployRule:
         if self.max_runs is not None and self.max_runs < 1:
             raise ValueError(f"deploy_max_runs must be at least 1, got {self.max_runs}")
         check_choice("deploy_paired", self.paired_mode, PAIRED_MODES)
+        if self.model_confidence is not None and not 0.5 <= self.model_confidence < 1:
+            raise ValueError(
+                f"deploy_model_confidence must be in [0.5, 1) or unset, got {self.model_confidence}"
+            )
 
     def safe(self, samples: np.ndarray, budget: float | None) -> np.ndarray:
         """(n,) True where the expected violation's upper quantile is within the budget
@@ -222,7 +227,8 @@ class DeployRule:
             )
         else:
             convinced = self.dominates(surrogate, best, current, contexts)
-        if p < self.deploy_confidence or not convinced:
+        need = self.deploy_confidence if self.model_confidence is None else self.model_confidence
+        if p < need or not convinced:
             if p >= 0.5 and n_runs < self.run_cap:  # promising, not yet convincing: run again
                 return Decision(current, best.copy(), promising)
             return Decision(current, None, promising)
