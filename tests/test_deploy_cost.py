@@ -86,3 +86,31 @@ def test_unknown_paired_mode_is_refused_by_name(lq):
     space, theta0 = lq
     with pytest.raises((ValueError, LearnerOptionError), match="deploy_paired"):
         make_learner("bo", space, theta0, seed=0, deploy_paired="costs", **FAST)
+
+
+def test_model_confidence_lets_the_paired_evidence_decide():
+    """The GP only somewhat sure that ``lo`` beats ``hi`` (a weak slope) and the paired cost
+    evidence strong (0.9999): with the GP held to deploy_confidence (0.999 here) ``hi``
+    stays; with ``model_confidence = 0.5`` the evidence decides and ``lo`` is deployed; with
+    weak evidence (0.6) it is not, whatever the model confidence."""
+    from mpcmobo.bo import GPSurrogate
+    from mpcmobo.learners.deploy import DeployRule
+
+    rng = np.random.default_rng(0)
+    X = rng.uniform(size=(12, 1))
+    y = 1.0 + 0.05 * X[:, 0] + 0.05 * rng.normal(size=12)
+    sur = GPSurrogate(1).fit(X, y[:, None])
+    lo, hi = np.array([0.05]), np.array([0.95])
+    Z, C = np.vstack([lo, hi]), np.zeros((1, 0))
+
+    def deployed(model_confidence, evidence):
+        rule = DeployRule(kappa=0.0, deploy_confidence=0.999, min_runs=2, paired_mode="cost",
+                          model_confidence=model_confidence)  # fmt: skip
+        d = rule.decide(sur, Z, hi, C, None, 0, runs=lambda z: 6, paired=lambda z, c: evidence)
+        return d.deployed
+
+    np.testing.assert_array_equal(deployed(None, 0.9999), hi)
+    np.testing.assert_array_equal(deployed(0.5, 0.9999), lo)
+    np.testing.assert_array_equal(deployed(0.5, 0.6), hi)
+    with pytest.raises(ValueError, match="deploy_model_confidence"):
+        DeployRule(deploy_confidence=0.9, model_confidence=0.3)
