@@ -39,6 +39,7 @@ def test_auto_resolves_by_the_start_mode(lq):
     for s in range(5):
         _observe(cyc, theta0, BASE[s], s)
     assert (cyc.deploy, cyc.deploy_paired) == ("verified", "cost")
+    assert cyc.deploy_rule.model_confidence == 0.5
     assert cyc.deploy_rule.min_runs == CYCLE_UNKNOWN  # the cycle has not wrapped yet
     _observe(cyc, theta0, BASE[0], 0)
     assert (cyc.deploy_rule.min_runs, cyc.deploy_rule.run_cap) == (5, 10)
@@ -56,6 +57,7 @@ def test_options_set_by_the_user_are_kept(lq):
     for s in (0, 1, 2, 0):
         _observe(lr, theta0, BASE[s], s)
     assert (lr.deploy, lr.deploy_paired, lr.deploy_rule.min_runs) == ("verified", "every", 3)
+    assert lr.deploy_rule.model_confidence is None  # 0.5 only with the paired cost test
     fixed = make_learner("bo", space, theta0, seed=0, deploy="incumbent", **FAST)
     for s in (0, 1, 2, 0):
         _observe(fixed, theta0, BASE[s], s)
@@ -73,7 +75,9 @@ def test_auto_decides_as_the_explicit_full_cycle_cost_rule(lq, factors):
     good[0] = z0[0] + 0.1
     cand = space.from_unit(good, base=theta0)
     got = []
-    for opts in ({}, {"deploy": "verified", "deploy_min_runs": 5, "deploy_paired": "cost"}):
+    explicit = {"deploy": "verified", "deploy_min_runs": 5, "deploy_paired": "cost",
+                "deploy_model_confidence": 0.5}  # fmt: skip
+    for opts in ({}, explicit):
         lr = make_learner("bo", space, theta0, seed=0, trust_region="off", **opts, **FAST)
         for s in range(5):
             _observe(lr, theta0, BASE[s], s)
@@ -98,6 +102,7 @@ def test_auto_resumes_exactly(lq):
     b = make_learner("hybrid", space, theta0, seed=99, **FAST)
     b.load_state_dict(state)
     assert (b.deploy, b.deploy_paired, b.deploy_rule.min_runs) == ("verified", "cost", 3)
+    assert b.deploy_rule.model_confidence == a.deploy_rule.model_confidence == 0.5
     np.testing.assert_array_equal(b.incumbent(), a.incumbent())
     np.testing.assert_array_equal(b.propose(), a.propose())
 

@@ -96,7 +96,9 @@ episode's ``start_id``) ``"verified"`` with ``deploy_paired = "cost"`` and ``dep
 the number of cycled starts (known after the cycle's first wrap): a candidate is deployed once
 it has been run from every start of the cycle and its episodes are cheaper than the deployed
 theta's own from the same starts on average, by a one-sided t-test with ``deploy_confidence``
-(0.9), and the GP agrees with that probability. With random starts, ``"incumbent"`` (nothing
+(0.9); the GP picks the candidate (the best risk-averse expected f1) and needs only find it
+more likely better than not (``deploy_model_confidence = 0.5``; unset it is
+``deploy_confidence``, which held back candidates whose paired evidence was conclusive). With random starts, ``"incumbent"`` (nothing
 can be matched; the verified rule was not better there). Options set explicitly are kept.
 Measured in ``docs/benchmarks.md``, "The deployed theta on evidence from the whole cycle"
 (mobo on 10 CSTR seeds: no regression but the seed-9 artefact of the evaluation starts, worst
@@ -228,6 +230,7 @@ TRUST_CENTERS = ("deployed", "candidate")
 DEPLOY_MODE_DEFAULT = _DefaultStr("auto")
 CYCLE_UNKNOWN = 10**6  # deploy = "auto" before the first wrap: no candidate has the evidence
 PAIRED_DEFAULT = _DefaultStr("every")  # "cost" under deploy = "auto" with cycled starts
+AUTO_MODEL_CONFIDENCE = 0.5  # ... and deploy_model_confidence when unset
 VERIFIED_CONFIDENCE = 0.9  # deploy = "verified": deploy_confidence when left unset
 VERIFIED_MIN_RUNS = 2  # ... deploy_min_runs when left at its default
 VERIFIED_MAX_RUNS_FACTOR = 2  # ... deploy_max_runs when unset: this multiple of the min runs
@@ -709,16 +712,21 @@ class _GPLearner(Learner):
 
     def _apply_auto(self) -> None:
         """``deploy = "auto"``: once the first episode says how the starts come, cycled starts
-        switch the learner to ``deploy = "verified"`` with ``deploy_paired = "cost"`` (unless
-        set) and ``deploy_min_runs`` (unless set) the number of cycled starts, known after the
-        first wrap (before it no candidate can have been matched on that many starts); random
-        starts keep the incumbent rule."""
+        switch the learner to ``deploy = "verified"`` with ``deploy_paired = "cost"``,
+        ``deploy_model_confidence = 0.5`` (with "cost") and ``deploy_min_runs`` the number of
+        cycled starts, known after the first wrap (before it no candidate can have been
+        matched on that many starts), each unless set; random starts keep the incumbent
+        rule."""
         if self.deploy_option != "auto" or not len(self.starts_) or not self._cycled():
             return
-        if self.deploy != "verified":
-            self.deploy = "verified"
-            if self._paired_defaulted:
-                self.deploy_paired = "cost"
+        changed = self.deploy != "verified"
+        self.deploy = "verified"
+        if self._paired_defaulted and self.deploy_paired != "cost":
+            self.deploy_paired, changed = "cost", True
+        if self._model_confidence is None and self.deploy_paired == "cost":
+            # the paired cost evidence decides; the GP picks the candidate (P >= 0.5)
+            self._model_confidence, changed = AUTO_MODEL_CONFIDENCE, True
+        if changed:
             self._configure_safe(
                 **self._safe_options,
                 safety_confidence=self._safety_confidence,
