@@ -221,3 +221,14 @@ def test_a_checkpoint_from_before_auto_keeps_its_rule(lq):
     new.load_state_dict(state)
     _observe(new, space.from_unit(space.to_unit(theta0) * 0.95, base=theta0), 0.5, 1)
     assert (new.deploy_option, new.deploy) == ("incumbent", "incumbent")
+
+
+def test_the_safe_design_keeps_its_own_rule_under_auto(lq):
+    """deploy = "auto" (the default) leaves the safe design's deployment rule alone: with
+    deploy_confidence set (the safe design) and cycled starts the learner stays on it."""
+    space, theta0 = lq
+    lr = make_learner("bo", space, theta0, seed=0, deploy_confidence=0.9, **FAST)
+    assert lr.safe_mode
+    for s in (0, 1, 2, 0):
+        _observe(lr, theta0, BASE[s], s)
+    assert (lr.deploy, lr.deploy_paired, lr.deploy_rule.min_runs) == ("incumbent", "every", 3)

@@ -99,7 +99,9 @@ theta's own from the same starts on average, by a one-sided t-test with ``deploy
 (0.9); the GP picks the candidate (the best risk-averse expected f1) and needs only find it
 more likely better than not (``deploy_model_confidence = 0.5``; unset it is
 ``deploy_confidence``, which held back candidates whose paired evidence was conclusive). With random starts, ``"incumbent"`` (nothing
-can be matched; the verified rule was not better there). Options set explicitly are kept.
+can be matched; the verified rule was not better there). Options set explicitly are kept, and
+the safe design (``context = "x0"``, a ``violation_budget`` or ``deploy_confidence``) keeps its
+own rule.
 Measured in ``docs/benchmarks.md``, "The deployed theta on evidence from the whole cycle"
 (mobo on 10 CSTR seeds: no regression but the seed-9 artefact of the evaluation starts, worst
 seed 2.90 x J* against 9.93 under ``"incumbent"``).
@@ -716,9 +718,12 @@ class _GPLearner(Learner):
         ``deploy_model_confidence = 0.5`` (with "cost") and ``deploy_min_runs`` the number of
         cycled starts, known after the first wrap (before it no candidate can have been
         matched on that many starts), each unless set; random starts keep the incumbent
-        rule."""
+        rule, and so does the safe design (``context``, ``violation_budget`` or
+        ``deploy_confidence`` set), whose own rule was measured without it."""
         if self.deploy_option != "auto" or not len(self.starts_) or not self._cycled():
             return
+        if self.safe_mode and self.deploy != "verified":
+            return  # the safe design (switched on by the user) keeps its own deployment rule
         changed = self.deploy != "verified"
         self.deploy = "verified"
         if self._paired_defaulted and self.deploy_paired != "cost":
