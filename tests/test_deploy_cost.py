@@ -232,3 +232,21 @@ def test_the_safe_design_keeps_its_own_rule_under_auto(lq):
     for s in (0, 1, 2, 0):
         _observe(lr, theta0, BASE[s], s)
     assert (lr.deploy, lr.deploy_paired, lr.deploy_rule.min_runs) == ("incumbent", "every", 3)
+
+
+def test_auto_with_a_single_cycled_start(lq):
+    """n_cycle_starts = 1: every episode starts from start 0; the cycle is known after the
+    second episode (length 1), and a candidate better than theta0 from that start is deployed
+    after one matched episode."""
+    space, theta0 = lq
+    z0 = space.to_unit(theta0)
+    good = z0.copy()
+    good[0] = z0[0] + 0.1
+    lr = make_learner("bo", space, theta0, seed=0, trust_region="off", **FAST)
+    _observe(lr, theta0, 1.0, 0)
+    assert lr.deploy_rule.min_runs == CYCLE_UNKNOWN
+    _observe(lr, theta0, 1.01, 0)
+    assert lr.deploy_rule.min_runs == 1 and lr._next_start() == 0
+    for f in (0.5, 0.52, 0.49):
+        _observe(lr, space.from_unit(good, base=theta0), f, 0)
+    np.testing.assert_allclose(lr._incumbent_z, good)

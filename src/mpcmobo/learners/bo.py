@@ -748,8 +748,10 @@ class _GPLearner(Learner):
             self.deploy_rule = replace(self.deploy_rule, min_runs=runs, max_runs=cap)
 
     def _cycle_length(self) -> int | None:
-        """The number of cycled starts once the cycle has wrapped (None before)."""
-        wrapped = len(self.starts_) > 1 and bool(np.any(np.diff(self.starts_) < 0))
+        """The number of cycled starts once the cycle has wrapped (None before): the start ids
+        run 0, 1, ..., n - 1, 0, ...; the first one not above its predecessor is the wrap (with
+        one start, its second episode)."""
+        wrapped = len(self.starts_) > 1 and bool(np.any(np.diff(self.starts_) <= 0))
         return int(self.starts_.max()) + 1 if wrapped else None
 
     def _fit(self) -> None:
