@@ -12,7 +12,8 @@ refused by "cost".
 ``deploy = "auto"``, the default of bo, mobo and hybrid since session 10 (issue 11, item 3):
 with cycled starts the rule above over the whole cycle (``deploy = "verified"``,
 ``deploy_paired = "cost"``, ``deploy_min_runs`` = the cycle's length, known after its first
-wrap, ``deploy_model_confidence`` 0.5); with random starts the incumbent rule. Checked: the
+wrap, ``deploy_model_confidence`` 0.5); with random starts (session 11) the unpaired cost
+rule of ``tests/test_deploy_random.py``. Checked: the
 resolution by start mode, options set by the user kept, the same decisions as the explicit
 options, exact resume, and checkpoints from before "auto" resuming with their rule.
 """
@@ -147,7 +148,9 @@ def test_auto_resolves_by_the_start_mode(lq):
     rnd = make_learner("mobo", space, theta0, seed=0, **FAST)
     for _ in range(4):
         _observe(rnd, theta0, 1.0, -1)
-    assert rnd.deploy == "incumbent" and not rnd.safe_mode
+    # random starts (session 11): the unpaired cost rule (tests/test_deploy_random.py)
+    assert (rnd.deploy, rnd.deploy_paired, rnd.deploy_rule.min_runs) == ("verified", "cost", 6)
+    assert not rnd.safe_mode
 
 
 def test_options_set_by_the_user_are_kept(lq):

@@ -172,6 +172,7 @@ from mpcmobo.learners.deploy import (
     default_budget,
     paired_confidence,
     theta_key,
+    unpaired_confidence,
 )
 from mpcmobo.systems.space import SearchSpace
 
@@ -231,6 +232,13 @@ TRUST_CENTERS = ("deployed", "candidate")
 # learner state has no "deploy_option" key resumes with the rule in its "deploy" key
 DEPLOY_MODE_DEFAULT = _DefaultStr("auto")
 CYCLE_UNKNOWN = 10**6  # deploy = "auto" before the first wrap: no candidate has the evidence
+# session 11: with random starts "auto" is "verified" too, judged on the episode costs unpaired
+# (deploy_paired = "cost": a Welch t-test of the candidate's own episodes against the deployed
+# theta's), each side with at least this many episodes (deploy_min_runs left at its default).
+# A learner state without the "random_rule" key was made before: with random starts it resumes
+# with the rules of then ("auto": the incumbent rule; "cost": the model's prediction)
+RANDOM_MIN_RUNS = 6
+RANDOM_RULE = "welch"
 PAIRED_DEFAULT = _DefaultStr("every")  # "cost" under deploy = "auto" with cycled starts
 AUTO_MODEL_CONFIDENCE = 0.5  # ... and deploy_model_confidence when unset
 VERIFIED_CONFIDENCE = 0.9  # deploy = "verified": deploy_confidence when left unset
@@ -443,6 +451,7 @@ class _GPLearner(Learner):
                 f"deploy_max_runs must be an integer >= 1 or unset, got {deploy_max_runs!r}"
             )
         self._deploy_defaulted = _is_default(deploy)
+        self._random_rule = RANDOM_RULE  # "legacy": a checkpoint from before session 11
         # the option as given, and the rule in force ("auto" resolves at the first episode)
         self.deploy_option = _plain(deploy)
         self.deploy = "incumbent" if self.deploy_option == "auto" else self.deploy_option
@@ -720,8 +729,10 @@ class _GPLearner(Learner):
         matched on that many starts), each unless set; random starts keep the incumbent
         rule, and so does the safe design (``context``, ``violation_budget`` or
         ``deploy_confidence`` set), whose own rule was measured without it."""
-        if self.deploy_option != "auto" or not len(self.starts_) or not self._cycled():
+        if self.deploy_option != "auto" or not len(self.starts_):
             return
+        if not self._cycled() and self._random_rule != RANDOM_RULE:
+            return  # random starts, a checkpoint from before session 11: the incumbent rule
         if self.safe_mode and self.deploy != "verified":
             return  # the safe design (switched on by the user) keeps its own deployment rule
         changed = self.deploy != "verified"
@@ -741,8 +752,11 @@ class _GPLearner(Learner):
             )
         if "deploy_min_runs" not in self._defaulted:
             return
-        n = self._cycle_length()
-        runs = CYCLE_UNKNOWN if n is None else n
+        if self._cycled():
+            n = self._cycle_length()
+            runs = CYCLE_UNKNOWN if n is None else n
+        else:
+            runs = RANDOM_MIN_RUNS
         if self.deploy_rule.min_runs != runs:
             cap = self._max_runs if self._max_runs is not None else VERIFIED_MAX_RUNS_FACTOR * runs
             self.deploy_rule = replace(self.deploy_rule, min_runs=runs, max_runs=cap)
@@ -927,8 +941,19 @@ class _GPLearner(Learner):
             if same:
                 d.append(float(np.mean(self.Y_[same, 0])) - float(self.Y_[i, 0]))
         if not d:
+            if self._unpaired_cost():  # random starts: the two thetas' own costs, unpaired
+                return unpaired_confidence(self.Y_[own, 0], self.Y_[rows, 0])
             return self._paired_mean(z, current) if len(rows) else 0.0
         return paired_confidence(np.asarray(d))
+
+    def _unpaired_cost(self) -> bool:
+        """``deploy_paired = "cost"`` with random starts (since session 11): a candidate's
+        episode costs against the deployed theta's own, unpaired
+        (:func:`~mpcmobo.learners.deploy.unpaired_confidence`), both sides run up to the
+        candidate's evidence ("baseline" episodes of the deployed theta)."""
+        return (
+            self.deploy_paired == "cost" and self._random_rule == RANDOM_RULE and not self._cycled()
+        )
 
     def _advantages(self, rows: np.ndarray, t_obs: np.ndarray, current: np.ndarray) -> np.ndarray:
         """Per episode ``rows`` (observed f1 in model space ``t_obs``): how much better it did
@@ -989,6 +1014,13 @@ class _GPLearner(Learner):
         yet been run from the next start, so that the candidate's episodes there can be
         compared like for like ("baseline")."""
         assert self._verify_z is not None
+        if self._unpaired_cost():
+            # random starts, unpaired costs: the deployed theta gets as many episodes as the
+            # candidate (up to deploy_max_runs), so that both means rest on evidence
+            own = self._runs(self._incumbent_z)
+            if own < min(self._runs(self._verify_z), self.deploy_rule.run_cap):
+                return "baseline", self._incumbent_z.copy()
+            return "verify", self._verify_z
         if self.deploy_paired in ("mean", "cost") and self.deploy != "verified":
             # deploy_paired = "mean": the deployed theta's own episodes anchor the model's
             # prediction of it; it is run again while it has fewer than the candidate (and
@@ -1160,6 +1192,7 @@ class _GPLearner(Learner):
                 "deploy": self.deploy,
                 "deploy_option": self.deploy_option,
                 "deploy_paired": self.deploy_paired,
+                "random_rule": self._random_rule,
                 "trust_pre_fit": None
                 if self._pre_fit_trust is None
                 else self._pre_fit_trust.to_dict(),
@@ -1169,6 +1202,7 @@ class _GPLearner(Learner):
         return d
 
     def load_state_dict(self, state: dict) -> None:
+        self._random_rule = state.get("random_rule", "legacy")
         if self._deploy_defaulted and "deploy_option" not in state:
             # the option left at its default and a checkpoint from before "auto" (session 10):
             # the run continues with the rule it was made with (no "deploy" key: made before

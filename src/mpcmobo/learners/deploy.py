@@ -34,7 +34,9 @@ BUDGET_FACTOR = 2.0  # default budget: this multiple of theta0's own violation (
 # theta's prediction at their starts: "every" one better, plus pointwise dominance (the rule of
 # session 5), or "mean": better on average with deploy_confidence (paired_confidence); session
 # 10, "cost": better on average in the episode cost itself (not its log), each episode against
-# the deployed theta's own episodes from the same cycled start (J is a mean of costs)
+# the deployed theta's own episodes from the same cycled start (J is a mean of costs); session
+# 11: with random starts, "cost" compares the two thetas' own episode costs unpaired
+# (unpaired_confidence, a Welch t-test), where it asked the model before
 PAIRED_MODES = ("every", "mean", "cost")
 
 
@@ -271,6 +273,32 @@ def paired_confidence(d: np.ndarray) -> float:
     if sd == 0:
         return 1.0 if mean > 0 else 0.0
     return float(t.cdf(mean / (sd / np.sqrt(len(d))), df=len(d) - 1))
+
+
+def unpaired_confidence(deployed: np.ndarray, candidate: np.ndarray) -> float:
+    """The confidence that a candidate is better than the deployed theta when their episodes
+    cannot be matched (random starts): ``deployed`` and ``candidate`` the episode costs of
+    each, the one-sided Welch t-test of ``mean(deployed) > mean(candidate)``,
+    ``F_t(nu)((mean(deployed) - mean(candidate)) / sqrt(s_d^2 / n_d + s_c^2 / n_c))`` with the
+    Welch-Satterthwaite ``nu``. In the cost itself, as J(theta) = E_x0[f1] is a mean of costs;
+    the spread of the starts is part of the standard error, so it asks for more episodes
+    than the paired test of cycled starts. Fewer than two episodes on either side: 0.5 if
+    the candidate's mean is lower (enough to be verified, never to be deployed), else 0."""
+    d = np.asarray(deployed, float)
+    c = np.asarray(candidate, float)
+    d, c = d[np.isfinite(d)], c[np.isfinite(c)]
+    if len(c) == 0 or len(d) == 0:
+        return 0.0
+    diff = float(np.mean(d) - np.mean(c))
+    if len(c) < 2 or len(d) < 2:
+        return 0.5 if diff > 0 else 0.0
+    from scipy.stats import t
+
+    vd, vc = float(np.var(d, ddof=1)) / len(d), float(np.var(c, ddof=1)) / len(c)
+    if vd + vc == 0:
+        return 1.0 if diff > 0 else 0.0
+    nu = (vd + vc) ** 2 / (vd**2 / (len(d) - 1) + vc**2 / (len(c) - 1))
+    return float(t.cdf(diff / np.sqrt(vd + vc), df=nu))
 
 
 def default_budget(theta0_violation: float, floor: float) -> float:
