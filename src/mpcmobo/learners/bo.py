@@ -98,10 +98,16 @@ it has been run from every start of the cycle and its episodes are cheaper than 
 theta's own from the same starts on average, by a one-sided t-test with ``deploy_confidence``
 (0.9); the GP picks the candidate (the best risk-averse expected f1) and needs only find it
 more likely better than not (``deploy_model_confidence = 0.5``; unset it is
-``deploy_confidence``, which held back candidates whose paired evidence was conclusive). With random starts, ``"incumbent"`` (nothing
-can be matched; the verified rule was not better there). Options set explicitly are kept, and
-the safe design (``context = "x0"``, a ``violation_budget`` or ``deploy_confidence``) keeps its
-own rule.
+``deploy_confidence``, which held back candidates whose paired evidence was conclusive). With
+random starts (since session 11) ``"verified"`` with ``deploy_paired = "cost"`` as well, but
+unpaired: nothing can be matched, so the candidate's own episode costs are compared with the
+deployed theta's own by a one-sided Welch t-test
+(:func:`~mpcmobo.learners.deploy.unpaired_confidence`), each side with at least
+``deploy_min_runs = 6`` episodes (up to 12); the deployed theta is run again ("baseline")
+while it has fewer episodes than the candidate. Before session 11 random starts kept
+``"incumbent"``, which regressed on 8 of 10 CSTR seeds; a checkpoint from then resumes with it.
+Options set explicitly are kept, and the safe design (``context = "x0"``, a
+``violation_budget`` or ``deploy_confidence``) keeps its own rule.
 Measured in ``docs/benchmarks.md``, "The deployed theta on evidence from the whole cycle"
 (mobo on 10 CSTR seeds: no regression but the seed-9 artefact of the evaluation starts, worst
 seed 2.90 x J* against 9.93 under ``"incumbent"``).
@@ -228,8 +234,9 @@ DEPLOY_MODES = ("incumbent", "verified", "auto")
 TRUST_CENTERS = ("deployed", "candidate")
 # session 10: "auto", the default: with cycled starts "verified" over the whole cycle
 # (deploy_min_runs = the number of cycled starts, known after the first wrap) judged on the mean
-# episode cost (deploy_paired = "cost"); with random starts "incumbent". A checkpoint whose
-# learner state has no "deploy_option" key resumes with the rule in its "deploy" key
+# episode cost (deploy_paired = "cost"); with random starts "incumbent" (until session 11,
+# below). A checkpoint whose learner state has no "deploy_option" key resumes with the rule in
+# its "deploy" key
 DEPLOY_MODE_DEFAULT = _DefaultStr("auto")
 CYCLE_UNKNOWN = 10**6  # deploy = "auto" before the first wrap: no candidate has the evidence
 # session 11: with random starts "auto" is "verified" too, judged on the episode costs unpaired
@@ -726,9 +733,11 @@ class _GPLearner(Learner):
         switch the learner to ``deploy = "verified"`` with ``deploy_paired = "cost"``,
         ``deploy_model_confidence = 0.5`` (with "cost") and ``deploy_min_runs`` the number of
         cycled starts, known after the first wrap (before it no candidate can have been
-        matched on that many starts), each unless set; random starts keep the incumbent
-        rule, and so does the safe design (``context``, ``violation_budget`` or
-        ``deploy_confidence`` set), whose own rule was measured without it."""
+        matched on that many starts), each unless set; random starts the same with
+        ``deploy_min_runs = RANDOM_MIN_RUNS`` and the costs compared unpaired (since session
+        11; a checkpoint from before keeps the incumbent rule). The safe design
+        (``context``, ``violation_budget`` or ``deploy_confidence`` set) keeps its own rule,
+        measured without it."""
         if self.deploy_option != "auto" or not len(self.starts_):
             return
         if not self._cycled() and self._random_rule != RANDOM_RULE:
