@@ -509,6 +509,7 @@ class _GPLearner(Learner):
         self._surrogate_args = (log_outcomes, refit_every, refit_fraction)
         self.surrogate = self._make_surrogate(*self._surrogate_args)
         self.design = self._initial_design()
+        self._design_version: int | None = DESIGN_VERSION  # None: the legacy defaults
         self._init_state()
 
     def _use_legacy_defaults(self) -> None:
@@ -517,6 +518,7 @@ class _GPLearner(Learner):
         for key in self._defaulted:
             self._safe_options[key] = LEGACY_DEFAULTS[key]
         self._defaulted = set()
+        self._design_version = None  # and its checkpoints say so, so that it resumes so again
         self._configure_safe(
             **self._safe_options,
             safety_confidence=self._safety_confidence,
@@ -1194,7 +1196,7 @@ class _GPLearner(Learner):
                 "contexts_x0": self.C_.copy(),
                 "violations": self.V_.copy(),
                 "violation_budget": self.budget_,
-                "design": DESIGN_VERSION,
+                "design": self._design_version,
                 "proposal_kinds": list(self.proposal_kinds_),
                 "exact_theta0": self._exact_theta0,
                 "trust_region": None if self.trust_ is None else self.trust_.to_dict(),
@@ -1212,11 +1214,12 @@ class _GPLearner(Learner):
 
     def load_state_dict(self, state: dict) -> None:
         self._random_rule = state.get("random_rule", "legacy")
-        if self._deploy_defaulted and "deploy_option" not in state:
-            # the option left at its default and a checkpoint from before "auto" (session 10):
-            # the run continues with the rule it was made with (no "deploy" key: made before
-            # session 8, with the incumbent rule)
-            self.deploy_option = state.get("deploy", "incumbent")
+        if self._deploy_defaulted:
+            # the option left at its default: the run continues with the option it was made
+            # with; a checkpoint from before "auto" (session 10) with its rule (no "deploy"
+            # key: made before session 8, with the incumbent rule), and so does one written
+            # after resuming such a checkpoint
+            self.deploy_option = state.get("deploy_option", state.get("deploy", "incumbent"))
         if self._deploy_defaulted and state.get("deploy", "incumbent") != self.deploy:
             self.deploy = state.get("deploy", "incumbent")
             if self._paired_defaulted:
