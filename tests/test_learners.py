@@ -149,10 +149,10 @@ def test_learner_lowers_f1_on_short_cstr_run(cstr, cstr_mpc, name):
     runs = [_short_cstr_run(cstr, cstr_mpc, name, seed) for seed in SHORT_RUN_SEEDS[name]]
     lowered = [_lowered(rows) for _, rows in runs]
     assert sum(lowered) > len(lowered) / 2, lowered
-    learner, rows = runs[0]
-    for _, rs in runs:
-        for r in rs:
+    for _, rows in runs:
+        for r in rows:
             assert cstr.search_space.contains(np.array(r["theta"]))
+    learner = runs[0][0]
     if name == "mobo":  # cycled starts reach the GP as groups: one f1 offset per start
         np.testing.assert_array_equal(learner.starts_, np.arange(16) % 2)
         offsets = learner.surrogate.group_offsets
