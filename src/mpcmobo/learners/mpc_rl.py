@@ -8,13 +8,14 @@ import numpy as np
 
 from mpcmobo.bo.context import ContextSpec
 from mpcmobo.learners.base import EpisodeResult, Learner, check_choice
-from mpcmobo.learners.deploy import DeployRule
+from mpcmobo.learners.deploy import DeployRule, paired_confidence, unpaired_confidence
 from mpcmobo.rl.judge import PooledJudge
 from mpcmobo.rl.steps import STEP_RULES, StepRule
 from mpcmobo.systems.space import SearchSpace
 
-DEPLOY_MODES = ("iterate", "pooled", "gp")
+DEPLOY_MODES = ("iterate", "pooled", "gp", "verified")
 POOLED_CONFIDENCE = 0.99  # default deploy_confidence of the pooled judge
+VERIFIED_CONFIDENCE = 0.9  # default deploy_confidence of the verified blocks (as bo and mobo)
 
 
 class MPCRL(Learner):
@@ -74,6 +75,7 @@ class MPCRL(Learner):
         deploy: str | None = None,
         deploy_confidence: float | None = None,
         deploy_bandwidth: float = 0.1,
+        deploy_min_runs: int = 6,
         context: str = "none",
         n_contexts: int = 16,
         incumbent_kappa: float = 0.0,
@@ -91,6 +93,9 @@ class MPCRL(Learner):
         self.lr, self.lr_decay = lr, float(lr_decay)
         self.beta1, self.beta2, self.eps, self.max_step = beta1, beta2, eps, max_step
         self.deploy_confidence, self.deploy_bandwidth = deploy_confidence, deploy_bandwidth
+        if int(deploy_min_runs) < 2:
+            raise ValueError(f"deploy_min_runs must be at least 2, got {deploy_min_runs}")
+        self.deploy_min_runs = int(deploy_min_runs)
         self.context_spec = contexts
         self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
         self.incumbent_kappa = float(incumbent_kappa)
@@ -113,6 +118,11 @@ class MPCRL(Learner):
             conf = POOLED_CONFIDENCE if self.deploy_confidence is None else self.deploy_confidence
             conf = float(conf)
             self.pooled = PooledJudge(confidence=conf, bandwidth=float(self.deploy_bandwidth))
+        elif deploy == "verified":
+            conf = VERIFIED_CONFIDENCE if self.deploy_confidence is None else self.deploy_confidence
+            if not 0.5 <= float(conf) < 1:
+                raise ValueError(f"deploy_confidence must be in [0.5, 1), got {conf}")
+            self.verified_confidence = float(conf)
         self._init_judge()
 
     def _make_rule(self, optimizer: str, lr: float) -> StepRule:
@@ -145,17 +155,75 @@ class MPCRL(Learner):
     def _theta(self) -> np.ndarray:
         return self.space.from_unit(self.z, base=self.theta0)
 
+    def _theta_of(self, z: np.ndarray) -> np.ndarray:
+        """The theta of the unit-cube point ``z``: exactly theta0 at theta0's own ``z`` (not its
+        round trip through z, which J_eval can tell apart on the CSTR)."""
+        if np.array_equal(z, self.space.to_unit(self.theta0)):
+            return self.theta0.copy()
+        return self.space.from_unit(z, base=self.theta0)
+
     def propose(self) -> np.ndarray:
-        """The current theta of the gradient steps."""
+        """The current theta of the gradient steps; with ``deploy = "verified"`` the candidate
+        of the open block (the iterate when the block opened)."""
+        if self.deploy == "verified":
+            return self._theta_of(self._open_block_z())
         return self._theta()
 
     def incumbent(self) -> np.ndarray:
         """The deployed theta: the iterate, or with a deployment judge the best verified one."""
         if self.deploy == "iterate":
             return self._theta()
-        if np.array_equal(self.deployed_z_, self.space.to_unit(self.theta0)):
-            return self.theta0.copy()  # exactly theta0, not its round trip through z
-        return self.space.from_unit(self.deployed_z_, base=self.theta0)
+        return self._theta_of(self.deployed_z_)
+
+    # ------------------------------------------------ verified blocks (deploy = "verified")
+    def _open_block_z(self) -> np.ndarray:
+        """The candidate of the block in progress; the iterate when none is (the next block)."""
+        n = len(self.block_Z_)
+        if n and np.count_nonzero(self.block_id_ == n - 1) < self.deploy_min_runs:
+            return self.block_Z_[-1]
+        return self.z.copy()
+
+    def _observe_block(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """Record the episode in its block; when the block is complete, judge its candidate
+        against the deployed theta (:meth:`_block_confidence`)."""
+        z = self.space.to_unit(self.space.clip(theta))
+        n = len(self.block_Z_)
+        if not n or np.count_nonzero(self.block_id_ == n - 1) >= self.deploy_min_runs:
+            self.block_Z_ = np.vstack([self.block_Z_.reshape(-1, len(z)), z])
+            n += 1
+        self.block_id_ = np.append(self.block_id_, n - 1)
+        self.block_F_ = np.append(self.block_F_, result.f1 if result.valid else np.inf)
+        self.block_S_ = np.append(self.block_S_, int(result.start_id))
+        if np.count_nonzero(self.block_id_ == n - 1) < self.deploy_min_runs or n == 1:
+            return
+        conf = self._block_confidence(n - 1)
+        self.block_conf_ = np.append(self.block_conf_, conf)
+        if conf >= self.verified_confidence:
+            self.deployed_block_ = n - 1
+            self.deployed_z_ = self.block_Z_[n - 1].copy()
+
+    def _block_confidence(self, b: int) -> float:
+        """The confidence that block ``b``'s candidate is better than the deployed theta in
+        expected episode cost, from the two blocks' own episodes (never J_eval): with cycled
+        starts each episode against the deployed block's episodes from the same start
+        (:func:`~mpcmobo.learners.deploy.paired_confidence` of the cost differences), with
+        random starts the two blocks' costs unpaired
+        (:func:`~mpcmobo.learners.deploy.unpaired_confidence`, Welch). A failed episode in the
+        candidate's block rules it out."""
+        cand = self.block_id_ == b
+        dep = self.block_id_ == self.deployed_block_
+        if not np.all(np.isfinite(self.block_F_[cand])):
+            return 0.0
+        S = self.block_S_
+        if np.all(S[cand] >= 0) and np.all(S[dep] >= 0):  # cycled starts: like for like
+            d = [
+                float(np.mean(self.block_F_[dep & (S == s)])) - float(f)
+                for f, s in zip(self.block_F_[cand], S[cand], strict=True)
+                if np.any(dep & (S == s))
+            ]
+            if d:
+                return paired_confidence(np.asarray(d))
+        return unpaired_confidence(self.block_F_[dep], self.block_F_[cand])
 
     # ------------------------------------------------------------ deployment (issue 11)
     def _init_judge(self) -> None:
@@ -167,6 +235,15 @@ class MPCRL(Learner):
         self.F_ = np.zeros(0)  # their f1
         self.X0_ = np.zeros((0, 0))  # their initial states (the pooled judge)
         self.deployed_z_ = self.space.to_unit(self.theta0)
+        # deploy = "verified": the candidate of each block (rows), and per episode its block,
+        # cost (inf: failed) and start id; the deployed block (0: theta0's) and each later
+        # block's confidence of being better
+        self.block_Z_ = np.zeros((0, self.space.dim))
+        self.block_id_ = np.zeros(0, dtype=int)
+        self.block_F_ = np.zeros(0)
+        self.block_S_ = np.zeros(0, dtype=int)
+        self.block_conf_ = np.zeros(0)
+        self.deployed_block_ = 0
         self._judge_pre_fit: dict | None = None
         self._deployed_pre_fit = self.deployed_z_.copy()
 
@@ -209,7 +286,9 @@ class MPCRL(Learner):
         DPG, eq. theta) in normalised coordinates; an episode without a valid gradient is
         skipped."""
         self.n_observed += 1
-        if self.deploy != "iterate":
+        if self.deploy == "verified":
+            self._observe_block(theta, result)
+        elif self.deploy != "iterate":
             self._observe_deploy(theta, result)
         g = np.asarray(result.grad, dtype=float)
         if not result.critic_ok or not np.all(np.isfinite(g)) or not result.valid:
@@ -236,6 +315,18 @@ class MPCRL(Learner):
                     "judge_X": self.X_.copy(),
                     "judge_F": self.F_.copy(),
                     "judge_X0": self.X0_.copy(),
+                    "deployed_z": self.deployed_z_.copy(),
+                }
+            )
+        elif self.deploy == "verified":
+            d.update(
+                {
+                    "block_Z": self.block_Z_.copy(),
+                    "block_id": self.block_id_.copy(),
+                    "block_F": self.block_F_.copy(),
+                    "block_S": self.block_S_.copy(),
+                    "block_conf": self.block_conf_.copy(),
+                    "deployed_block": self.deployed_block_,
                     "deployed_z": self.deployed_z_.copy(),
                 }
             )
@@ -268,6 +359,14 @@ class MPCRL(Learner):
                 self.F_ = np.array(state["judge_F"], float)
                 self.X0_ = np.array(state["judge_X0"], float)
                 self.deployed_z_ = np.array(state["deployed_z"], float)
+        elif self.deploy == "verified" and "block_Z" in state:
+            self.block_Z_ = np.array(state["block_Z"], float).reshape(-1, self.space.dim)
+            self.block_id_ = np.array(state["block_id"], int)
+            self.block_F_ = np.array(state["block_F"], float)
+            self.block_S_ = np.array(state["block_S"], int)
+            self.block_conf_ = np.array(state["block_conf"], float)
+            self.deployed_block_ = int(state["deployed_block"])
+            self.deployed_z_ = np.array(state["deployed_z"], float)
         elif self.deploy_rule is not None and "judge_X" in state:
             # else a checkpoint without deployment: start afresh
             self.X_ = np.array(state["judge_X"], float)
