@@ -76,6 +76,7 @@ class MPCRL(Learner):
         deploy_confidence: float | None = None,
         deploy_bandwidth: float = 0.1,
         deploy_min_runs: int = 6,
+        deploy_every: int = 6,
         context: str = "none",
         n_contexts: int = 16,
         incumbent_kappa: float = 0.0,
@@ -96,6 +97,9 @@ class MPCRL(Learner):
         if int(deploy_min_runs) < 2:
             raise ValueError(f"deploy_min_runs must be at least 2, got {deploy_min_runs}")
         self.deploy_min_runs = int(deploy_min_runs)
+        if int(deploy_every) < 0:
+            raise ValueError(f"deploy_every must be at least 0, got {deploy_every}")
+        self.deploy_every = int(deploy_every)
         self.context_spec = contexts
         self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
         self.incumbent_kappa = float(incumbent_kappa)
@@ -176,25 +180,45 @@ class MPCRL(Learner):
         return self._theta_of(self.deployed_z_)
 
     # ------------------------------------------------ verified blocks (deploy = "verified")
-    def _open_block_z(self) -> np.ndarray:
-        """The candidate of the block in progress; the iterate when none is (the next block)."""
+    def _block_open(self) -> bool:
+        """Whether the last block still needs episodes."""
         n = len(self.block_Z_)
-        if n and np.count_nonzero(self.block_id_ == n - 1) < self.deploy_min_runs:
-            return self.block_Z_[-1]
-        return self.z.copy()
+        return bool(n) and np.count_nonzero(self.block_id_ == n - 1) < self.deploy_min_runs
 
-    def _observe_block(self, theta: np.ndarray, result: EpisodeResult) -> None:
-        """Record the episode in its block; when the block is complete, judge its candidate
-        against the deployed theta (:meth:`_block_confidence`)."""
+    def _in_block(self) -> bool:
+        """Whether the next episode belongs to a verification block: the first block (theta0),
+        an open one, or a new one after ``deploy_every`` steps."""
+        return (
+            not len(self.block_Z_) or self._block_open() or self.since_block_ >= self.deploy_every
+        )
+
+    def _open_block_z(self) -> np.ndarray:
+        """The candidate of the block in progress; the iterate when none is (a new block opens
+        at the iterate)."""
+        return self.block_Z_[-1] if self._block_open() else self.z.copy()
+
+    def _observe_block(
+        self, theta: np.ndarray, result: EpisodeResult, g: np.ndarray | None
+    ) -> None:
+        """Record the episode in its block (``g``: its gradient, None if invalid). When the
+        block is complete, one step along its mean gradient, and its candidate judged against
+        the deployed theta (:meth:`_block_confidence`)."""
         z = self.space.to_unit(self.space.clip(theta))
+        if not self._block_open():  # a new block
+            self.block_Z_ = np.vstack([self.block_Z_, z])
+            self.block_G_, self.block_nG_ = np.zeros(self.space.n_theta), 0
         n = len(self.block_Z_)
-        if not n or np.count_nonzero(self.block_id_ == n - 1) >= self.deploy_min_runs:
-            self.block_Z_ = np.vstack([self.block_Z_.reshape(-1, len(z)), z])
-            n += 1
         self.block_id_ = np.append(self.block_id_, n - 1)
         self.block_F_ = np.append(self.block_F_, result.f1 if result.valid else np.inf)
         self.block_S_ = np.append(self.block_S_, int(result.start_id))
-        if np.count_nonzero(self.block_id_ == n - 1) < self.deploy_min_runs or n == 1:
+        if g is not None:
+            self.block_G_, self.block_nG_ = self.block_G_ + g, self.block_nG_ + 1
+        if self._block_open():
+            return
+        self.since_block_ = 0
+        if self.block_nG_:
+            self._step(theta, self.block_G_ / self.block_nG_)
+        if n == 1:  # theta0's own block: the baseline
             return
         conf = self._block_confidence(n - 1)
         self.block_conf_ = np.append(self.block_conf_, conf)
@@ -244,6 +268,8 @@ class MPCRL(Learner):
         self.block_S_ = np.zeros(0, dtype=int)
         self.block_conf_ = np.zeros(0)
         self.deployed_block_ = 0
+        self.block_G_, self.block_nG_ = np.zeros(self.space.n_theta), 0  # the open block's
+        self.since_block_ = 0  # steps since the last block ended
         self._judge_pre_fit: dict | None = None
         self._deployed_pre_fit = self.deployed_z_.copy()
 
@@ -284,15 +310,23 @@ class MPCRL(Learner):
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
         """One gradient step (``optimizer``: Adam or plain) along the episode's CDPG gradient (eq.
         DPG, eq. theta) in normalised coordinates; an episode without a valid gradient is
-        skipped."""
+        skipped. With ``deploy = "verified"``, an episode of a verification block adds its
+        gradient to the block's and the block's mean gradient makes one step when it ends."""
         self.n_observed += 1
+        g = np.asarray(result.grad, dtype=float)
+        ok = result.critic_ok and bool(np.all(np.isfinite(g))) and result.valid
+        if self.deploy == "verified" and self._in_block():
+            self._observe_block(theta, result, g if ok else None)
+            return
         if self.deploy == "verified":
-            self._observe_block(theta, result)
+            self.since_block_ += 1
         elif self.deploy != "iterate":
             self._observe_deploy(theta, result)
-        g = np.asarray(result.grad, dtype=float)
-        if not result.critic_ok or not np.all(np.isfinite(g)) or not result.valid:
-            return
+        if ok:
+            self._step(theta, g)
+
+    def _step(self, theta: np.ndarray, g: np.ndarray) -> None:
+        """One step of the rule from the iterate along the gradient ``g`` taken at ``theta``."""
         theta = self.space.clip(theta)
         free = self.space.free
         if self.rule.coordinates == "unit":
@@ -328,6 +362,9 @@ class MPCRL(Learner):
                     "block_conf": self.block_conf_.copy(),
                     "deployed_block": self.deployed_block_,
                     "deployed_z": self.deployed_z_.copy(),
+                    "block_G": self.block_G_.copy(),
+                    "block_nG": self.block_nG_,
+                    "since_block": self.since_block_,
                 }
             )
         elif self.deploy_rule is not None:
@@ -367,6 +404,9 @@ class MPCRL(Learner):
             self.block_conf_ = np.array(state["block_conf"], float)
             self.deployed_block_ = int(state["deployed_block"])
             self.deployed_z_ = np.array(state["deployed_z"], float)
+            self.block_G_ = np.array(state["block_G"], float)
+            self.block_nG_ = int(state["block_nG"])
+            self.since_block_ = int(state["since_block"])
         elif self.deploy_rule is not None and "judge_X" in state:
             # else a checkpoint without deployment: start afresh
             self.X_ = np.array(state["judge_X"], float)
