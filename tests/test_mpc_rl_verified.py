@@ -1,0 +1,175 @@
+"""MPC-RL's verified deployment (``deploy = "verified"``, issue 11 item 3): the iterate is frozen
+for a block of episodes every ``deploy_every`` steps, and the block's candidate is deployed only
+when its own episode costs beat the deployed theta's (paired by cycled start, else Welch)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from scipy.stats import ttest_ind, ttest_rel
+
+from mpcmobo.learners import EpisodeResult, make_learner
+from mpcmobo.rl.steps import STEP_RULES
+from mpcmobo.systems import get_system
+
+B, EVERY = 6, 4  # block length and steps between blocks in these tests
+
+
+@pytest.fixture(scope="module")
+def lq():
+    return get_system("lq")
+
+
+def _learner(lq, **kw):
+    options = {"deploy": "verified", "deploy_min_runs": B, "deploy_every": EVERY} | kw
+    return make_learner("mpc-rl", lq.search_space, lq.parameterization.theta0, **options)
+
+
+def _result(f1, start_id=-1, grad=None, ok=True):
+    n = 9  # lq's theta
+    return EpisodeResult(
+        objectives=np.array([f1, 0.0, 0.0, 0.0]),
+        grad=np.full(n, 0.5) if grad is None else np.asarray(grad, float),
+        critic_ok=ok,
+        start_id=start_id,
+    )
+
+
+def _cost_stream(episode, theta, theta0):
+    """A deterministic cost: lower the further theta moved from theta0 (down the gradient),
+    different per cycled start."""
+    s = episode % B
+    return 1.0 + 0.1 * s - 0.05 * float(np.abs(theta - theta0).sum()), s
+
+
+def test_schedule_freezes_the_iterate_for_each_block(lq):
+    lr = _learner(lq)
+    theta0 = lq.parameterization.theta0
+    proposals = []
+    for k in range(B + EVERY + B + 1):
+        th = lr.propose()
+        proposals.append(th)
+        f, s = _cost_stream(k, th, theta0)
+        lr.observe(th, _result(f, s))
+    for k in range(B):  # the first block is theta0 itself, exactly (not its round trip)
+        np.testing.assert_array_equal(proposals[k], theta0)
+    steps = proposals[B : B + EVERY + 1]  # then the iterate moves after every episode
+    assert all(not np.array_equal(a, b) for a, b in zip(steps[:-1], steps[1:], strict=True))
+    block = proposals[B + EVERY : 2 * B + EVERY]  # a frozen block at the iterate
+    assert all(np.array_equal(block[0], p) for p in block)
+    assert not np.array_equal(proposals[-1], block[0])  # one step at the block's end
+
+
+def test_block_makes_one_step_along_its_mean_gradient(lq):
+    lr = _learner(lq, optimizer="sgd", max_step=10.0, lr=0.01)
+    space, theta0 = lq.search_space, lq.parameterization.theta0
+    rng = np.random.default_rng(0)
+    grads = rng.normal(size=(B, 9))
+    for k in range(B):
+        lr.observe(lr.propose(), _result(1.0, k, grad=grads[k]))
+    rule = STEP_RULES["sgd"](lr=0.01, max_step=10.0)
+    gz = grads.mean(0)[space.free] * space.dtheta_dz(theta0)
+    expected = np.clip(space.to_unit(theta0) - rule.step(gz), 0, 1)
+    np.testing.assert_allclose(lr.z, expected, rtol=0, atol=1e-15)
+
+
+def _run_blocks(lr, theta0, costs_of_block, start_ids):
+    """Run blocks; ``costs_of_block(b)`` gives the B costs of block b, steps cost 1."""
+    b = 0
+    while b < len(costs_of_block):
+        th = lr.propose()
+        if lr._in_block():
+            for k in range(B):
+                lr.observe(lr.propose(), _result(costs_of_block[b][k], start_ids[k]))
+            b += 1
+        else:
+            lr.observe(th, _result(1.0, -1 if start_ids[0] < 0 else 0))
+    return lr
+
+
+@pytest.mark.parametrize("cycled", [True, False])
+def test_a_clearly_better_block_is_deployed_and_a_worse_one_is_not(lq, cycled):
+    theta0 = lq.parameterization.theta0
+    starts = list(range(B)) if cycled else [-1] * B
+    base = np.array([1.0, 2.0, 3.0, 1.5, 2.5, 0.5])
+    better = base * 0.4 + np.array([0.01, -0.01, 0.02, 0.0, -0.02, 0.01])
+    worse = base * 1.2
+    lr = _run_blocks(_learner(lq), theta0, [base, worse], starts)
+    np.testing.assert_array_equal(lr.incumbent(), theta0)
+    assert lr.block_conf_[0] < 0.5
+    lr = _run_blocks(_learner(lq), theta0, [base, better], starts)
+    assert lr.block_conf_[0] >= 0.9
+    np.testing.assert_array_equal(lr.incumbent(), lq.search_space.from_unit(lr.block_Z_[1], theta0))
+    assert not np.array_equal(lr.incumbent(), theta0)
+
+
+def test_confidence_is_scipys_paired_or_welch_test(lq):
+    theta0 = lq.parameterization.theta0
+    rng = np.random.default_rng(3)
+    base, cand = rng.uniform(1, 3, B), rng.uniform(0.8, 2.6, B)
+    lr = _run_blocks(_learner(lq), theta0, [base, cand], list(range(B)))
+    p = ttest_rel(base, cand, alternative="greater").pvalue
+    assert lr.block_conf_[0] == pytest.approx(1 - p, rel=1e-12)
+    lr = _run_blocks(_learner(lq), theta0, [base, cand], [-1] * B)
+    p = ttest_ind(base, cand, equal_var=False, alternative="greater").pvalue
+    assert lr.block_conf_[0] == pytest.approx(1 - p, rel=1e-12)
+
+
+def test_paired_by_start_not_by_position(lq):
+    """Blocks see the cycled starts in a different order: the pairs follow the start ids."""
+    theta0 = lq.parameterization.theta0
+    lr = _learner(lq)
+    base = np.array([1.0, 5.0, 2.0, 4.0, 3.0, 6.0])
+    for k in range(B):
+        lr.observe(lr.propose(), _result(base[k], k))
+    for _ in range(EVERY):
+        lr.observe(lr.propose(), _result(1.0, 0))
+    order = [3, 4, 5, 0, 1, 2]  # the cycle continued: the next block starts at start 3
+    for s in order:
+        lr.observe(lr.propose(), _result(base[s] - 0.1 * (1 + 0.01 * s), s))
+    assert lr.block_conf_[0] > 0.99  # better from every start by about 0.1
+    assert not np.array_equal(lr.incumbent(), theta0)
+
+
+def test_a_failed_episode_rules_the_candidate_out(lq):
+    theta0 = lq.parameterization.theta0
+    lr = _learner(lq)
+    base = np.full(B, 2.0) + np.arange(B)
+    _run_blocks(lr, theta0, [base], list(range(B)))
+    for _ in range(EVERY):
+        lr.observe(lr.propose(), _result(1.0, 0))
+    for k in range(B):
+        f = np.nan if k == 2 else 0.1
+        lr.observe(lr.propose(), _result(f, k, ok=k != 2))
+    assert lr.block_conf_[0] == 0.0
+    np.testing.assert_array_equal(lr.incumbent(), theta0)
+
+
+@pytest.mark.parametrize("at", [B + EVERY + 2, 2 * B + EVERY + 2], ids=["in-block", "in-steps"])
+def test_resume_is_exact(lq, at):
+    a = _learner(lq)
+    rng = np.random.default_rng(1)
+    n = B + EVERY + B + EVERY + B
+    costs = rng.uniform(0.5, 2.0, n)
+    grads = rng.normal(size=(n, 9))
+    b = None
+    for k in range(n):
+        if k == at:  # inside the second block, or in the steps after it
+            b = _learner(lq)
+            b.load_state_dict(copy.deepcopy(a.state_dict()))
+        for lr in (a,) if b is None else (a, b):
+            lr.observe(lr.propose(), _result(costs[k] * (1 + 0.1 * lr.n_observed), k % B, grads[k]))
+        if b is not None:
+            np.testing.assert_array_equal(a.propose(), b.propose())
+            np.testing.assert_array_equal(a.incumbent(), b.incumbent())
+    np.testing.assert_array_equal(a.block_conf_, b.block_conf_)
+
+
+@pytest.mark.parametrize(
+    "bad", [{"deploy_min_runs": 1}, {"deploy_every": -1}, {"deploy_confidence": 1.0}]
+)
+def test_bad_settings_name_the_option(lq, bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        _learner(lq, **bad)
