@@ -109,10 +109,11 @@ def test_confidence_is_scipys_paired_or_welch_test(lq):
     theta0 = lq.parameterization.theta0
     rng = np.random.default_rng(3)
     base, cand = rng.uniform(1, 3, B), rng.uniform(0.8, 2.6, B)
-    lr = _run_blocks(_learner(lq), theta0, [base, cand], list(range(B)))
+    one = {"deploy_max_runs": B}  # one block of evidence, no extension
+    lr = _run_blocks(_learner(lq, **one), theta0, [base, cand], list(range(B)))
     p = ttest_rel(base, cand, alternative="greater").pvalue
     assert lr.block_conf_[0] == pytest.approx(1 - p, rel=1e-12)
-    lr = _run_blocks(_learner(lq), theta0, [base, cand], [-1] * B)
+    lr = _run_blocks(_learner(lq, **one), theta0, [base, cand], [-1] * B)
     p = ttest_ind(base, cand, equal_var=False, alternative="greater").pvalue
     assert lr.block_conf_[0] == pytest.approx(1 - p, rel=1e-12)
 

@@ -101,10 +101,11 @@ class LearningRun:
         ``J_eval_incumbent`` and ``eval_time_s``, which the study's job adds) and the episode."""
         t0 = time.perf_counter()
         theta, proposal_error = self._propose()
+        explore = bool(self.learner.explores())
         t_prop = time.perf_counter() - t0
         x0 = self.next_start()
         t1 = time.perf_counter()
-        record, result, error = self._on_plant(theta, x0)
+        record, result, error = self._on_plant(theta, x0, explore)
         error = "; ".join(e for e in (proposal_error, error) if e)
         t_mpc = time.perf_counter() - t1
         if self.start_mode == "cycle":
@@ -154,11 +155,16 @@ class LearningRun:
             return theta, f"proposal failed, ran the incumbent: {type(err).__name__}: {err}"
 
     def _on_plant(
-        self, theta: np.ndarray, x0: np.ndarray
+        self, theta: np.ndarray, x0: np.ndarray, explore: bool = True
     ) -> tuple[EpisodeRecord | None, EpisodeResult, str]:
-        """The episode of ``theta`` from ``x0`` with exploration, and what the learner observes
-        of it; a diverged plant or a broken episode is recorded as NaN (and its error)."""
+        """The episode of ``theta`` from ``x0`` with exploration (``explore`` False: its noise
+        is zero, drawn all the same so that the random stream does not depend on it), and what
+        the learner observes of it; a diverged plant or a broken episode is recorded as NaN
+        (and its error)."""
         self.exploration.episode = self.episode
+        exploration = self.exploration
+        if not explore:
+            exploration = GaussianExploration(np.zeros(exploration.nu), episode=self.episode)
         try:
             record = rollout(
                 self.system,
@@ -167,7 +173,7 @@ class LearningRun:
                 x0,
                 self.steps,
                 rng=self.rng_noise,
-                exploration=self.exploration,
+                exploration=exploration,
                 plant=self.plant,
                 plant_seed=self.plant_seed(),
             )

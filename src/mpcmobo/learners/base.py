@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mpcmobo.mpc.records import EpisodeRecord
-from mpcmobo.rl import CompatibleCritic, CriticResult, objectives
+from mpcmobo.rl import CompatibleCritic, CriticResult, mean_stage_cost, objectives
 from mpcmobo.systems.space import SearchSpace
 
 
@@ -36,6 +36,7 @@ class EpisodeResult:
     start_id: int = -1  # index of the initial state in a fixed cycled set; -1: a random start
     x0: np.ndarray | None = None  # the episode's initial state (a context the learner observes)
     violation: float = float("nan")  # plant constraint violation summed over the episode
+    stage_cost: float = float("nan")  # the plain (undiscounted) mean stage cost, as J_eval's
 
     @property
     def f1(self) -> float:
@@ -72,6 +73,7 @@ def episode_result(
         failures=record.failures,
         x0=np.asarray(record.x[0], dtype=float).copy(),
         violation=float(np.sum(record.violation)),
+        stage_cost=mean_stage_cost(record),
     )
     return res, cr
 
@@ -79,7 +81,8 @@ def episode_result(
 class Learner(ABC):
     """A learner of the MPC parameters theta over a declared :class:`SearchSpace`.
 
-    The loop is ``theta = learner.propose(); ...run an episode...; learner.observe(theta, result)``.
+    The loop is ``theta = learner.propose(); ...run an episode (with exploration noise unless
+    learner.explores() is False)...; learner.observe(theta, result)``.
     ``incumbent()`` is the learner's current best guess, the theta that is evaluated and deployed.
     ``state_dict()`` holds the whole state (random generators included) as plain Python and NumPy
     objects, and ``load_state_dict`` restores it so that the next proposal is exactly the same.
@@ -105,6 +108,12 @@ class Learner(ABC):
     @abstractmethod
     def incumbent(self) -> np.ndarray:
         """The current best theta."""
+
+    def explores(self) -> bool:
+        """Whether the episode of the last proposal runs with the exploration noise (default
+        True). A learner may ask for a noise-free episode to measure a theta (MPC-RL's
+        verification blocks); such an episode has no critic, so no gradient."""
+        return True
 
     def state_dict(self) -> dict:
         """The learner's state (name, seed, random stream, observations); the constructor owns the

@@ -14,6 +14,7 @@ from mpcmobo.rl.steps import STEP_RULES, StepRule
 from mpcmobo.systems.space import SearchSpace
 
 DEPLOY_MODES = ("iterate", "pooled", "gp", "verified")
+DEPLOY_METRICS = ("stage_cost", "f1")  # what the verified blocks compare
 POOLED_CONFIDENCE = 0.99  # default deploy_confidence of the pooled judge
 VERIFIED_CONFIDENCE = 0.9  # default deploy_confidence of the verified blocks (as bo and mobo)
 
@@ -77,6 +78,9 @@ class MPCRL(Learner):
         deploy_bandwidth: float = 0.1,
         deploy_min_runs: int = 6,
         deploy_every: int = 6,
+        deploy_max_runs: int | None = None,
+        deploy_metric: str = "stage_cost",
+        deploy_explore: bool = False,
         context: str = "none",
         n_contexts: int = 16,
         incumbent_kappa: float = 0.0,
@@ -100,6 +104,15 @@ class MPCRL(Learner):
         if int(deploy_every) < 0:
             raise ValueError(f"deploy_every must be at least 0, got {deploy_every}")
         self.deploy_every = int(deploy_every)
+        cap = 2 * self.deploy_min_runs if deploy_max_runs is None else int(deploy_max_runs)
+        if cap < self.deploy_min_runs:
+            raise ValueError(
+                f"deploy_max_runs must be at least deploy_min_runs ({self.deploy_min_runs}), "
+                f"got {deploy_max_runs}"
+            )
+        self.deploy_max_runs = cap
+        self.deploy_metric = check_choice("deploy_metric", deploy_metric, DEPLOY_METRICS)
+        self.deploy_explore = bool(deploy_explore)
         self.context_spec = contexts
         self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
         self.incumbent_kappa = float(incumbent_kappa)
@@ -179,11 +192,19 @@ class MPCRL(Learner):
             return self._theta()
         return self._theta_of(self.deployed_z_)
 
+    def explores(self) -> bool:
+        """False for the episodes of a verification block (``deploy = "verified"``, unless
+        ``deploy_explore``): they measure the candidate without exploration noise."""
+        return not (self.deploy == "verified" and not self.deploy_explore and self._in_block())
+
     # ------------------------------------------------ verified blocks (deploy = "verified")
     def _block_open(self) -> bool:
-        """Whether the last block still needs episodes."""
+        """Whether the last block still needs episodes: fewer than its target,
+        ``deploy_min_runs`` or, extended (a promising candidate), a multiple of it."""
         n = len(self.block_Z_)
-        return bool(n) and np.count_nonzero(self.block_id_ == n - 1) < self.deploy_min_runs
+        if not n:
+            return False
+        return np.count_nonzero(self.block_id_ == n - 1) < self.block_target_
 
     def _in_block(self) -> bool:
         """Whether the next episode belongs to a verification block: the first block (theta0),
@@ -207,24 +228,43 @@ class MPCRL(Learner):
         if not self._block_open():  # a new block
             self.block_Z_ = np.vstack([self.block_Z_, z])
             self.block_G_, self.block_nG_ = np.zeros(self.space.n_theta), 0
+            self.block_target_ = self.deploy_min_runs
         n = len(self.block_Z_)
         self.block_id_ = np.append(self.block_id_, n - 1)
-        self.block_F_ = np.append(self.block_F_, result.f1 if result.valid else np.inf)
+        self.block_F_ = np.append(self.block_F_, self._block_cost(result))
         self.block_S_ = np.append(self.block_S_, int(result.start_id))
         if g is not None:
             self.block_G_, self.block_nG_ = self.block_G_ + g, self.block_nG_ + 1
         if self._block_open():
             return
+        conf = self._block_confidence(n - 1) if n > 1 else None  # block 0: theta0, the baseline
+        count = np.count_nonzero(self.block_id_ == n - 1)
+        cand = self.block_id_ == n - 1
+        fresh = self.deploy_explore or bool(np.any(self.block_S_[cand] < 0))
+        if conf is not None and 0.5 <= conf < self.verified_confidence and fresh:
+            # promising, not yet convincing: run it again from the next starts (up to the cap);
+            # not with cycled starts and no noise, where a re-run repeats the same costs
+            if count + self.deploy_min_runs <= self.deploy_max_runs:
+                self.block_target_ = count + self.deploy_min_runs
+                return
         self.since_block_ = 0
         if self.block_nG_:
             self._step(theta, self.block_G_ / self.block_nG_)
-        if n == 1:  # theta0's own block: the baseline
+        if conf is None:
             return
-        conf = self._block_confidence(n - 1)
         self.block_conf_ = np.append(self.block_conf_, conf)
         if conf >= self.verified_confidence:
             self.deployed_block_ = n - 1
             self.deployed_z_ = self.block_Z_[n - 1].copy()
+
+    def _block_cost(self, result: EpisodeResult) -> float:
+        """The episode's cost as the blocks compare it (``deploy_metric``): the plain mean stage
+        cost (what J_eval averages; f1 where the episode did not report it) or f1 (discounted);
+        inf for a failed episode. Not ``result.valid``: a noise-free episode has no critic."""
+        f = result.stage_cost if self.deploy_metric == "stage_cost" else result.f1
+        if self.deploy_metric == "stage_cost" and np.isnan(f):
+            f = result.f1
+        return float(f) if np.isfinite(f) else np.inf
 
     def _block_confidence(self, b: int) -> float:
         """The confidence that block ``b``'s candidate is better than the deployed theta in
@@ -240,9 +280,10 @@ class MPCRL(Learner):
             return 0.0
         S = self.block_S_
         if np.all(S[cand] >= 0) and np.all(S[dep] >= 0):  # cycled starts: like for like
-            d = [
-                float(np.mean(self.block_F_[dep & (S == s)])) - float(f)
-                for f, s in zip(self.block_F_[cand], S[cand], strict=True)
+            F = self.block_F_
+            d = [  # per start: the two thetas' mean costs from it
+                float(np.mean(F[dep & (S == s)])) - float(np.mean(F[cand & (S == s)]))
+                for s in np.unique(S[cand])
                 if np.any(dep & (S == s))
             ]
             if d:
@@ -270,6 +311,7 @@ class MPCRL(Learner):
         self.deployed_block_ = 0
         self.block_G_, self.block_nG_ = np.zeros(self.space.n_theta), 0  # the open block's
         self.since_block_ = 0  # steps since the last block ended
+        self.block_target_ = self.deploy_min_runs  # the open block's length (extended: more)
         self._judge_pre_fit: dict | None = None
         self._deployed_pre_fit = self.deployed_z_.copy()
 
@@ -365,6 +407,7 @@ class MPCRL(Learner):
                     "block_G": self.block_G_.copy(),
                     "block_nG": self.block_nG_,
                     "since_block": self.since_block_,
+                    "block_target": self.block_target_,
                 }
             )
         elif self.deploy_rule is not None:
@@ -407,6 +450,7 @@ class MPCRL(Learner):
             self.block_G_ = np.array(state["block_G"], float)
             self.block_nG_ = int(state["block_nG"])
             self.since_block_ = int(state["since_block"])
+            self.block_target_ = int(state["block_target"])
         elif self.deploy_rule is not None and "judge_X" in state:
             # else a checkpoint without deployment: start afresh
             self.X_ = np.array(state["judge_X"], float)
