@@ -174,3 +174,95 @@ def test_resume_is_exact(lq, at):
 def test_bad_settings_name_the_option(lq, bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         _learner(lq, **bad)
+
+
+def test_blocks_ask_for_noise_free_episodes(lq):
+    lr = _learner(lq)
+    asked = []
+    for k in range(B + EVERY + B):
+        th = lr.propose()
+        asked.append(lr.explores())
+        lr.observe(th, _result(1.0 + 0.1 * (k % B), k % B))
+    assert asked == [False] * B + [True] * EVERY + [False] * B
+    noisy = _learner(lq, deploy_explore=True)
+    assert noisy.explores()
+    assert make_learner("mpc-rl", lq.search_space, lq.parameterization.theta0).explores()
+
+
+def test_the_loop_runs_a_noise_free_episode_on_the_same_random_stream(lq):
+    """An episode the learner asks to measure has zero exploration noise (its inputs are the
+    MPC's, as in an evaluation), and the noise stream advances as if it had explored: the next
+    episode's noise is that of a run whose learner always explores. EpisodeResult.stage_cost is
+    the episode's plain mean stage cost."""
+    from mpcmobo.experiment.evaluation import Evaluator
+    from mpcmobo.experiment.loop import LearningRun
+    from mpcmobo.mpc import ParametricMPC
+    from mpcmobo.rl import mean_stage_cost
+
+    mpc = ParametricMPC(lq)
+    theta0 = lq.parameterization.theta0
+
+    class Quiet:  # explores from the second episode on; records what it observed
+        name = "quiet"
+
+        def __init__(self, quiet_first: bool):
+            self.space, self.n, self.quiet_first, self.results = lq.search_space, 0, quiet_first, []
+
+        def propose(self):
+            return theta0.copy()
+
+        def explores(self):
+            return not (self.quiet_first and self.n == 0)
+
+        def observe(self, theta, result):
+            self.n += 1
+            self.results.append(result)
+
+        def incumbent(self):
+            return theta0.copy()
+
+    runs = []
+    for quiet in (True, False):
+        learner = Quiet(quiet)
+        run = LearningRun(lq, learner, mpc, seed=3, exploration_std=[0.5], start_mode="cycle")
+        recs = [run.run_episode()[1] for _ in range(2)]
+        runs.append((learner, recs))
+    (ql, (q0, q1)), (nl, (n0, n1)) = runs
+    ev = Evaluator(lq, n_starts=1)
+    ev.starts = q0.x[:1].copy()
+    clean = ev.episodes(theta0)[0]
+    np.testing.assert_allclose(q0.u, clean.u, rtol=0, atol=1e-9)  # no noise
+    assert not np.allclose(n0.u, clean.u)  # the exploring run's first episode had noise
+    np.testing.assert_array_equal(q1.u, n1.u)  # the stream is the same afterwards
+    assert ql.results[0].stage_cost == mean_stage_cost(q0)
+    assert not ql.results[0].critic_ok and nl.results[0].critic_ok  # no noise, no critic
+
+
+def test_the_metric_is_the_stage_cost_unless_asked_for_f1(lq):
+    lr, lf = _learner(lq), _learner(lq, deploy_metric="f1")
+    r = EpisodeResult(np.array([2.0, 0, 0, 0]), np.zeros(9), True, stage_cost=3.0)
+    assert lr._block_cost(r) == 3.0 and lf._block_cost(r) == 2.0
+    r_old = EpisodeResult(np.array([2.0, 0, 0, 0]), np.zeros(9), True)  # no stage cost reported
+    assert lr._block_cost(r_old) == 2.0
+    with pytest.raises(ValueError, match="deploy_metric"):
+        _learner(lq, deploy_metric="J_eval")
+
+
+def test_a_promising_candidate_is_extended_only_where_reruns_bring_new_starts(lq):
+    theta0 = lq.parameterization.theta0
+    base = np.array([1.0, 2.0, 3.0, 1.5, 2.5, 0.5])
+    cand = base * np.array([0.8, 1.1, 0.9, 1.05, 0.85, 1.1])  # better on average, not clearly
+    for starts, extended in ((list(range(B)), False), ([-1] * B, True)):
+        lr = _run_blocks(_learner(lq), theta0, [base], starts)
+        for _ in range(EVERY):
+            lr.observe(lr.propose(), _result(1.0, starts[0]))
+        for k in range(B):
+            lr.observe(lr.propose(), _result(cand[k], starts[k]))
+        assert lr._block_open() == extended
+        if extended:  # six more episodes of the same candidate, then one decision
+            z = lr.block_Z_[-1].copy()
+            for k in range(B):
+                assert np.array_equal(lr._open_block_z(), z)
+                lr.observe(lr.propose(), _result(0.5 * cand[k], -1))
+            assert not lr._block_open() and len(lr.block_conf_) == 1
+            assert np.count_nonzero(lr.block_id_ == 1) == 2 * B
