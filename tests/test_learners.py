@@ -94,7 +94,7 @@ def test_bo_learners_never_fit_nan(cstr):
 
 def test_mpc_rl_ignores_failed_episodes(cstr):
     space, theta0 = cstr.search_space, cstr.parameterization.theta0
-    lr = make_learner("mpc-rl", space, theta0)
+    lr = make_learner("mpc-rl", space, theta0, deploy="iterate")  # no verification block
     th = lr.propose()
     lr.observe(th, _result([np.nan] * 4, grad=np.full(14, np.nan), ok=False))
     np.testing.assert_array_equal(lr.propose(), th)

@@ -181,7 +181,8 @@ def test_mpc_rl_steps_against_the_gradient(optimizer):
     space, theta0 = s.search_space, s.parameterization.theta0
     lr = 1e-3
     opts = {} if optimizer is None else {"optimizer": optimizer, "lr": lr}
-    learner = make_learner("mpc-rl", space, theta0, **opts)
+    # the iterate deployed: the default's verification blocks freeze the first episodes
+    learner = make_learner("mpc-rl", space, theta0, deploy="iterate", **opts)
     lr = lr if optimizer else 0.03  # Adam's default
     g = np.array([0.0, 0.3, -0.2, 0.1, -0.4, 0.05, 0.2, -0.1, 0.3])
     z0 = space.to_unit(learner.propose())
@@ -205,7 +206,7 @@ def test_mpc_rl_paper_rule_steps_in_theta():
     s = get_system("lq")
     space, theta0 = s.search_space, s.parameterization.theta0
     lr = 1e-3
-    learner = make_learner("mpc-rl", space, theta0, optimizer="gd", lr=lr)
+    learner = make_learner("mpc-rl", space, theta0, optimizer="gd", lr=lr, deploy="iterate")
     g = np.array([0.0, 0.3, -0.2, 0.1, -0.4, 0.05, 0.2, -0.1, 0.3])
     learner.observe(learner.propose(), _result(g))
     dtheta = learner.propose() - theta0

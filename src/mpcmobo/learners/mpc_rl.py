@@ -43,10 +43,28 @@ class MPCRL(Learner):
     Deployment (issue 11): the learner keeps stepping from its iterate, and ``deploy`` says
     which theta it deploys (``incumbent()``, what J_eval measures):
 
-    * ``"pooled"`` (default): its best verified iterate, judged by its own episodes pooled over
-      nearby iterates (``deploy_bandwidth``, a length in the unit cube) and adjusted for their
-      initial states; the deployed theta changes only when another iterate is better with
-      probability ``deploy_confidence`` (default 0.99) (:class:`~mpcmobo.rl.judge.PooledJudge`);
+    * ``"verified"`` (default since session 12): verification blocks. The first
+      ``deploy_min_runs`` (6) episodes run theta0 itself; then, every ``deploy_every`` (12) gradient steps, the iterate
+      is frozen for a block of ``deploy_min_runs`` episodes run **without exploration noise**
+      (``explores()`` is False; ``deploy_explore = True`` keeps the noise) so that they
+      measure the candidate, and the iterate makes no step during them (no noise, no critic;
+      with ``deploy_explore`` one step along the block's mean gradient at its end). When a
+      block ends, its candidate replaces the deployed theta only if its episode costs are
+      lower than the deployed theta's own block with confidence ``deploy_confidence`` (0.9):
+      with cycled starts per start (the paired t-test of the per-start mean differences),
+      with random starts unpaired (Welch) (:func:`~mpcmobo.learners.deploy.paired_confidence`,
+      :func:`~mpcmobo.learners.deploy.unpaired_confidence`). The cost is ``deploy_metric``:
+      the plain mean stage cost (``"stage_cost"``, the quantity J_eval averages, from the
+      learner's own episodes) or f1 (discounted). A promising candidate (confidence at least
+      0.5) is run for another block, up to ``deploy_max_runs`` (12) episodes, where that brings
+      new starts (random starts, or noisy measurements). A candidate confidently worse than the
+      deployed theta (confidence at most ``1 - deploy_confidence``) sends the iterate back to
+      the deployed theta with a fresh step rule (``deploy_reset``, default True);
+    * ``"pooled"`` (the default of sessions 5-11): its best iterate judged by its own episodes
+      pooled over nearby iterates (``deploy_bandwidth``, a length in the unit cube) and
+      adjusted for their initial states; the deployed theta changes only when another iterate
+      is better with probability ``deploy_confidence`` (default 0.99)
+      (:class:`~mpcmobo.rl.judge.PooledJudge`);
     * ``"gp"``: the first issue-11 judge, a GP on log f1 of its own episodes over ``(z, c)``
       with ``context = "x0"`` (c the scaled initial state), expected f1 over a fixed sample of
       initial states (:class:`~mpcmobo.learners.deploy.DeployRule`, ``deploy_confidence``
@@ -55,7 +73,7 @@ class MPCRL(Learner):
 
     Runs checkpointed before the ``deploy`` option existed resume with the rule they were run
     with (the iterate deployed, or ``"gp"`` with ``deploy_confidence``) when ``deploy`` is left
-    at its default.
+    at its default; runs checkpointed with the pooled judge (sessions 5-11) resume with it.
     """
 
     name = "mpc-rl"
@@ -77,10 +95,11 @@ class MPCRL(Learner):
         deploy_confidence: float | None = None,
         deploy_bandwidth: float = 0.1,
         deploy_min_runs: int = 6,
-        deploy_every: int = 6,
+        deploy_every: int = 12,
         deploy_max_runs: int | None = None,
         deploy_metric: str = "stage_cost",
         deploy_explore: bool = False,
+        deploy_reset: bool = True,
         context: str = "none",
         n_contexts: int = 16,
         incumbent_kappa: float = 0.0,
@@ -113,12 +132,13 @@ class MPCRL(Learner):
         self.deploy_max_runs = cap
         self.deploy_metric = check_choice("deploy_metric", deploy_metric, DEPLOY_METRICS)
         self.deploy_explore = bool(deploy_explore)
+        self.deploy_reset = bool(deploy_reset)
         self.context_spec = contexts
         self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
         self.incumbent_kappa = float(incumbent_kappa)
         self._configure(
             optimizer,
-            deploy or ("gp" if deploy_confidence is not None else "pooled"),
+            deploy or ("gp" if deploy_confidence is not None else "verified"),
         )
         self.z = space.to_unit(self.theta0)
 
@@ -256,6 +276,11 @@ class MPCRL(Learner):
         if conf >= self.verified_confidence:
             self.deployed_block_ = n - 1
             self.deployed_z_ = self.block_Z_[n - 1].copy()
+        elif self.deploy_reset and conf <= 1.0 - self.verified_confidence:
+            # confidently worse than the deployed theta: the iterate restarts from it, with a
+            # fresh step rule (its moments point where the iterate went wrong)
+            self.z = self.deployed_z_.copy()
+            self.rule = self._make_rule(self.optimizer, self.lr)
 
     def _block_cost(self, result: EpisodeResult) -> float:
         """The episode's cost as the blocks compare it (``deploy_metric``): the plain mean stage
