@@ -237,7 +237,7 @@ def test_mpc_rl_learning_rate_decay(cstr):
     g = np.zeros(14)
     g[2] = 1e-6  # a small gradient on one weight: no clipping, no bound reached
     lr = make_learner("mpc-rl", space, cstr.parameterization.theta0, optimizer="sgd",
-                      lr=0.01, lr_decay=1.0)  # fmt: skip
+                      lr=0.01, lr_decay=1.0, deploy="iterate")  # fmt: skip
     zs = [space.to_unit(lr.propose())]
     for _ in range(3):
         lr.observe(lr.propose(), _result([1, 1, 1, 1], grad=g))

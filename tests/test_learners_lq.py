@@ -236,14 +236,14 @@ def test_hybrid_gradient_step_goes_downhill_from_the_incumbent():
 
 
 def test_mpc_rl_keeps_stepping_but_deploys_its_best_verified_iterate():
-    """Default MPC-RL (the pooled judge): with a constant gradient its iterate walks on; the
+    """MPC-RL with the pooled judge: with a constant gradient its iterate walks on; the
     episodes' costs (from random starts, whose effect is larger than theta's) fall over the
     first 30 steps and rise again after. The deployed theta is theta0 itself until the evidence
     says otherwise, then one of the iterates run in the good stretch, and it stays there while
     the iterate walks into the bad one."""
     s = get_system("lq")
     space, theta0 = s.search_space, s.parameterization.theta0
-    learner = make_learner("mpc-rl", space, theta0, seed=0, lr=0.008)  # stays inside the box
+    learner = make_learner("mpc-rl", space, theta0, seed=0, lr=0.008, deploy="pooled")
     rng = np.random.default_rng(0)
     g = np.array([0.0, 0.3, -0.2, 0.1, -0.4, 0.05, 0.2, -0.1, 0.3])
     run, deployed = [], []

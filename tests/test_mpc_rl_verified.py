@@ -186,7 +186,10 @@ def test_blocks_ask_for_noise_free_episodes(lq):
     assert asked == [False] * B + [True] * EVERY + [False] * B
     noisy = _learner(lq, deploy_explore=True)
     assert noisy.explores()
-    assert make_learner("mpc-rl", lq.search_space, lq.parameterization.theta0).explores()
+    default = make_learner("mpc-rl", lq.search_space, lq.parameterization.theta0)
+    assert not default.explores()  # the default's first block measures theta0
+    pooled = make_learner("mpc-rl", lq.search_space, lq.parameterization.theta0, deploy="pooled")
+    assert pooled.explores()
 
 
 def test_the_loop_runs_a_noise_free_episode_on_the_same_random_stream(lq):
@@ -266,3 +269,20 @@ def test_a_promising_candidate_is_extended_only_where_reruns_bring_new_starts(lq
                 lr.observe(lr.propose(), _result(0.5 * cand[k], -1))
             assert not lr._block_open() and len(lr.block_conf_) == 1
             assert np.count_nonzero(lr.block_id_ == 1) == 2 * B
+
+
+@pytest.mark.parametrize("reset", [True, False])
+def test_a_confidently_worse_candidate_sends_the_iterate_back(lq, reset):
+    theta0 = lq.parameterization.theta0
+    lr = _learner(lq, deploy_reset=reset)
+    base = np.array([1.0, 2.0, 3.0, 1.5, 2.5, 0.5])
+    _run_blocks(lr, theta0, [base], list(range(B)))
+    for _ in range(EVERY):
+        lr.observe(lr.propose(), _result(1.0, 0))
+    for k in range(B):
+        lr.observe(lr.propose(), _result(base[k] * 1.5, k))  # worse from every start
+    assert lr.block_conf_[0] < 0.1
+    back = np.array_equal(lr.z, lr.deployed_z_)
+    assert back == reset
+    if reset:  # a fresh step rule: its moments forgotten
+        assert lr.rule.t == 0

@@ -632,8 +632,11 @@ def test_f3_same_states_reaches_the_run_and_resumes_exactly():
     from mpcmobo.experiment.job import _learning_run as make_learning_run
 
     system = get_system("lq")
-    settings = load_settings(
-        system={"name": "lq"}, critic={"f3": "same_states"}, steps=15
+    settings = load_settings(  # every episode explores (no verification block)
+        system={"name": "lq"},
+        critic={"f3": "same_states"},
+        steps=15,
+        learner_options={"mpc-rl": {"deploy": "pooled"}},
     ).resolved()
 
     def run(n, state=None):

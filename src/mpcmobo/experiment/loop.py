@@ -101,7 +101,8 @@ class LearningRun:
         ``J_eval_incumbent`` and ``eval_time_s``, which the study's job adds) and the episode."""
         t0 = time.perf_counter()
         theta, proposal_error = self._propose()
-        explore = bool(self.learner.explores())
+        explores = getattr(self.learner, "explores", None)  # duck-typed learners: always
+        explore = True if explores is None else bool(explores())
         t_prop = time.perf_counter() - t0
         x0 = self.next_start()
         t1 = time.perf_counter()
