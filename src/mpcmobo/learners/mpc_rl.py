@@ -277,10 +277,9 @@ class MPCRL(Learner):
             self.deployed_block_ = n - 1
             self.deployed_z_ = self.block_Z_[n - 1].copy()
         elif self.deploy_reset and conf <= 1.0 - self.verified_confidence:
-            # confidently worse than the deployed theta: the iterate restarts from it, with a
-            # fresh step rule (its moments point where the iterate went wrong)
+            # confidently worse than the deployed theta: the iterate goes back to it (the step
+            # rule keeps its state: a fresh Adam's first steps are its largest)
             self.z = self.deployed_z_.copy()
-            self.rule = self._make_rule(self.optimizer, self.lr)
 
     def _block_cost(self, result: EpisodeResult) -> float:
         """The episode's cost as the blocks compare it (``deploy_metric``): the plain mean stage
