@@ -59,7 +59,7 @@ class MPCRL(Learner):
       0.5) is run for another block, up to ``deploy_max_runs`` (12) episodes, where that brings
       new starts (random starts, or noisy measurements). A candidate confidently worse than the
       deployed theta (confidence at most ``1 - deploy_confidence``) sends the iterate back to
-      the deployed theta with a fresh step rule (``deploy_reset``, default True);
+      the deployed theta, the step rule keeping its state (``deploy_reset``, default True);
     * ``"pooled"`` (the default of sessions 5-11): its best iterate judged by its own episodes
       pooled over nearby iterates (``deploy_bandwidth``, a length in the unit cube) and
       adjusted for their initial states; the deployed theta changes only when another iterate
