@@ -77,6 +77,13 @@ class MPCRL(Learner):
     """
 
     name = "mpc-rl"
+    # deploy = "verified" (set in _init_judge; see there)
+    block_Z_: np.ndarray
+    block_id_: np.ndarray
+    block_F_: np.ndarray
+    block_S_: np.ndarray
+    block_conf_: np.ndarray
+    block_G_: np.ndarray
 
     def __init__(
         self,
@@ -224,7 +231,7 @@ class MPCRL(Learner):
         n = len(self.block_Z_)
         if not n:
             return False
-        return np.count_nonzero(self.block_id_ == n - 1) < self.block_target_
+        return bool(np.count_nonzero(self.block_id_ == n - 1) < self.block_target_)
 
     def _in_block(self) -> bool:
         """Whether the next episode belongs to a verification block: the first block (theta0),
@@ -258,7 +265,7 @@ class MPCRL(Learner):
         if self._block_open():
             return
         conf = self._block_confidence(n - 1) if n > 1 else None  # block 0: theta0, the baseline
-        count = np.count_nonzero(self.block_id_ == n - 1)
+        count = int(np.count_nonzero(self.block_id_ == n - 1))
         cand = self.block_id_ == n - 1
         fresh = self.deploy_explore or bool(np.any(self.block_S_[cand] < 0))
         if conf is not None and 0.5 <= conf < self.verified_confidence and fresh:
