@@ -286,3 +286,22 @@ def test_a_confidently_worse_candidate_sends_the_iterate_back(lq, reset):
     back = np.array_equal(lr.z, lr.deployed_z_)
     assert back == reset
     assert lr.rule.t == t + 1  # the block's own step; the rule keeps its state on a reset
+
+
+def test_a_checkpoint_of_the_pooled_judge_resumes_with_it(lq):
+    """Runs checkpointed with the default of sessions 5-11 (the pooled judge) keep it when
+    resumed by today's default learner."""
+    theta0 = lq.parameterization.theta0
+    old = make_learner("mpc-rl", lq.search_space, theta0, deploy="pooled")
+    rng = np.random.default_rng(4)
+    for k in range(5):
+        old.observe(old.propose(), _result(rng.uniform(1, 2), k, grad=rng.normal(size=9)))
+    new = make_learner("mpc-rl", lq.search_space, theta0)  # deploy left at its default
+    new.load_state_dict(copy.deepcopy(old.state_dict()))
+    assert new.deploy == "pooled" and new.explores()
+    for k in range(5, 9):
+        g = rng.normal(size=9)
+        for lr in (old, new):
+            lr.observe(lr.propose(), _result(1.0 + 0.1 * k, k % B, grad=g))
+        np.testing.assert_array_equal(old.propose(), new.propose())
+        np.testing.assert_array_equal(old.incumbent(), new.incumbent())
