@@ -44,13 +44,13 @@ class MPCRL(Learner):
     which theta it deploys (``incumbent()``, what J_eval measures):
 
     * ``"verified"`` (default since session 12): verification blocks. The first
-      ``deploy_min_runs`` (6) episodes run theta0 itself; then, every ``deploy_every`` (12) gradient steps, the iterate
-      is frozen for a block of ``deploy_min_runs`` episodes run **without exploration noise**
-      (``explores()`` is False; ``deploy_explore = True`` keeps the noise) so that they
-      measure the candidate, and the iterate makes no step during them (no noise, no critic;
-      with ``deploy_explore`` one step along the block's mean gradient at its end). When a
-      block ends, its candidate replaces the deployed theta only if its episode costs are
-      lower than the deployed theta's own block with confidence ``deploy_confidence`` (0.9):
+      ``deploy_min_runs`` (6) episodes run theta0 itself; then, every ``deploy_every`` (12)
+      gradient steps, the iterate is frozen for a block of ``deploy_min_runs`` episodes run
+      **without exploration noise** (``explores()`` is False; ``deploy_explore = True`` keeps
+      the noise) so that they measure the candidate, and the iterate makes no step during
+      them (no noise, no critic; with ``deploy_explore`` one step along the block's mean
+      gradient at its end). When a block ends, its candidate replaces the deployed theta
+      only if its episode costs are lower than the deployed theta's own block with confidence ``deploy_confidence`` (0.9):
       with cycled starts per start (the paired t-test of the per-start mean differences),
       with random starts unpaired (Welch) (:func:`~mpcmobo.learners.deploy.paired_confidence`,
       :func:`~mpcmobo.learners.deploy.unpaired_confidence`). The cost is ``deploy_metric``:
@@ -265,8 +265,8 @@ class MPCRL(Learner):
         if self._block_open():
             return
         conf = self._block_confidence(n - 1) if n > 1 else None  # block 0: theta0, the baseline
-        count = int(np.count_nonzero(self.block_id_ == n - 1))
         cand = self.block_id_ == n - 1
+        count = int(np.count_nonzero(cand))
         fresh = self.deploy_explore or bool(np.any(self.block_S_[cand] < 0))
         if conf is not None and 0.5 <= conf < self.verified_confidence and fresh:
             # promising, not yet convincing: run it again from the next starts (up to the cap);
@@ -300,8 +300,8 @@ class MPCRL(Learner):
     def _block_confidence(self, b: int) -> float:
         """The confidence that block ``b``'s candidate is better than the deployed theta in
         expected episode cost, from the two blocks' own episodes (never J_eval): with cycled
-        starts each episode against the deployed block's episodes from the same start
-        (:func:`~mpcmobo.learners.deploy.paired_confidence` of the cost differences), with
+        starts, per start the deployed block's mean cost from it minus the candidate's
+        (:func:`~mpcmobo.learners.deploy.paired_confidence` of those differences), with
         random starts the two blocks' costs unpaired
         (:func:`~mpcmobo.learners.deploy.unpaired_confidence`, Welch). A failed episode in the
         candidate's block rules it out."""
