@@ -9,7 +9,7 @@ import gymnasium
 import numpy as np
 
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
-from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC, model_rollout, rollout
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
 from mpcmobo.rl.objectives import F3_MODES, mean_stage_cost
 from mpcmobo.systems.base import System
@@ -84,6 +84,7 @@ class LearningRun:
         self.episode = 0
         self.previous_Vc: float | None = None
         self.previous_nu: np.ndarray | None = None  # the last fitted critic's nu (f3 "same_states")
+        self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)
 
     def plant_seed(self) -> int:
         """The plant's seed of this episode (its own noise, if any): a function of (seed,
@@ -108,10 +109,13 @@ class LearningRun:
         t1 = time.perf_counter()
         record, result, error = self._on_plant(theta, x0, explore)
         error = "; ".join(e for e in (proposal_error, error) if e)
-        t_mpc = time.perf_counter() - t1
         if self.start_mode == "cycle":
             result.start_id = self.episode % len(self.cycle_starts)
         result.x0 = x0.copy()  # the context of the episode (issue 11)
+        uses = getattr(self.learner, "uses_start_cost", None)  # duck-typed learners: no
+        if uses is not None and uses():
+            result.start_cost = self.start_cost(x0)
+        t_mpc = time.perf_counter() - t1
         t2 = time.perf_counter()
         self.learner.observe(theta, result)
         incumbent = np.asarray(self.learner.incumbent(), dtype=float)
@@ -139,9 +143,24 @@ class LearningRun:
             "learner_time_s": t_learn,
             "incumbent": incumbent.tolist(),
             "error": error,
+            "start_cost": float(result.start_cost),
         }
         self.episode += 1
         return row, record
+
+    def start_cost(self, x0: np.ndarray) -> float:
+        """theta0's (the learner's) mean stage cost from ``x0`` on the MPC's own model
+        (:func:`~mpcmobo.mpc.model_rollout`, noise-free, the episode's length), computed once
+        per distinct start; NaN if that closed loop fails. A function of ``x0`` alone, so
+        the random streams and a resumed run are unaffected."""
+        key = np.asarray(x0, float).tobytes()
+        if key not in self._start_costs:
+            try:
+                rec = model_rollout(self.system, self.mpc, self.learner.theta0, x0, self.steps)
+                self._start_costs[key] = mean_stage_cost(rec)
+            except (FloatingPointError, ValueError, RuntimeError):
+                self._start_costs[key] = float("nan")
+        return self._start_costs[key]
 
     def _propose(self) -> tuple[np.ndarray, str]:
         """The learner's proposal; if the learner fails (an exception, or a theta that is not

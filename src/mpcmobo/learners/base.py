@@ -37,6 +37,9 @@ class EpisodeResult:
     x0: np.ndarray | None = None  # the episode's initial state (a context the learner observes)
     violation: float = float("nan")  # plant constraint violation summed over the episode
     stage_cost: float = float("nan")  # the plain (undiscounted) mean stage cost, as J_eval's
+    # theta0's mean stage cost from x0 on the MPC's own model (NaN unless the learner asks for
+    # it, Learner.uses_start_cost): how hard the start is, a covariate of the episode's cost
+    start_cost: float = float("nan")
 
     @property
     def f1(self) -> float:
@@ -114,6 +117,14 @@ class Learner(ABC):
         True). A learner may ask for a noise-free episode to measure a theta (MPC-RL's
         verification blocks); such an episode has no critic, so no gradient."""
         return True
+
+    def uses_start_cost(self) -> bool:
+        """Whether the learner reads ``EpisodeResult.start_cost`` (default False): theta0's
+        closed loop from the episode's initial state on the MPC's own model
+        (:func:`~mpcmobo.mpc.model_rollout`), which the loop then computes for every episode
+        (once per distinct start). It costs no plant episode, and it predicts how costly the
+        start is whatever theta runs (the deployment tests' covariate under random starts)."""
+        return False
 
     def state_dict(self) -> dict:
         """The learner's state (name, seed, random stream, observations); the constructor owns the

@@ -112,6 +112,18 @@ Measured in ``docs/benchmarks.md``, "The deployed theta on evidence from the who
 (mobo on 10 CSTR seeds: no regression but the seed-9 artefact of the evaluation starts, worst
 seed 2.90 x J* against 9.93 under ``"incumbent"``).
 
+``deploy_adjust = "start_cost"`` (the default since session 13; ``"none"`` the rule of session
+11 above): under random starts every episode carries a covariate, ``EpisodeResult.start_cost``,
+theta0's mean stage cost from the episode's start in a closed loop on the MPC's own model
+(:func:`~mpcmobo.mpc.model_rollout`, no plant episode; the loop computes it because
+:meth:`uses_start_cost` says so). Two things use it: the unpaired test compares the two thetas'
+episode costs by the analysis of covariance on it
+(:func:`~mpcmobo.learners.deploy.adjusted_confidence`) instead of Welch, and the GP, EI and EHVI
+model f1 divided by it (:meth:`_model_Y`), the cost relative to how costly the start is. Cycled
+starts are unchanged (their per-start offsets and paired tests already match the starts), and so
+is the safe design (it models the start as a context). A checkpoint from before resumes with
+``"none"``. Measured in ``docs/benchmarks.md``, "Random starts adjusted for their cost".
+
 ``trust_center`` and ``deploy_paired`` (session 9, issue 11; opt-in, defaults ``"deployed"`` and
 ``"every"``, the rules above): ``trust_center = "candidate"`` centres the trust region at the
 deployment rule's best safe candidate while it is more likely better than the deployed theta
@@ -173,8 +185,10 @@ from mpcmobo.bo.context import (
 from mpcmobo.bo.trust import TrustState, trust_region_from_option
 from mpcmobo.learners.base import EpisodeResult, Learner, check_choice
 from mpcmobo.learners.deploy import (
+    ADJUST_MODES,
     PAIRED_MODES,
     DeployRule,
+    adjusted_confidence,
     default_budget,
     paired_confidence,
     theta_key,
@@ -441,8 +455,10 @@ class _GPLearner(Learner):
         local_fit: int | None = None,
         trust_center: str = "deployed",
         deploy_paired: str = PAIRED_DEFAULT,
+        deploy_adjust: str = "start_cost",
         **removed: Any,
     ) -> None:
+        self.deploy_adjust = check_choice("deploy_adjust", deploy_adjust, ADJUST_MODES)
         self.search_radius = _check_radius(search_radius)
         self.local_fit = _check_local_fit(local_fit)
         self.trust_center = check_choice("trust_center", trust_center, TRUST_CENTERS)
@@ -648,6 +664,7 @@ class _GPLearner(Learner):
         self.starts_ = np.zeros(0, dtype=int)  # start index of each observation (-1: random)
         self.C_ = np.zeros((0, self._dc))  # contexts (scaled x0) of each observation
         self.V_ = np.zeros(0)  # plant violation of each observation
+        self.S0_ = np.zeros(0)  # start cost (EpisodeResult.start_cost) of each observation
         self.budget_: float | None = (
             float(self.violation_budget)
             if isinstance(self.violation_budget, (int, float))
@@ -696,8 +713,37 @@ class _GPLearner(Learner):
         self.starts_ = np.append(self.starts_, int(result.start_id))
         self.C_ = np.vstack([self.C_, self._context_of(result)])
         self.V_ = np.append(self.V_, float(result.violation))
+        self.S0_ = np.append(self.S0_, float(result.start_cost))
         self.n_observed += 1
         self._fit()
+
+    def _adjusted(self) -> bool:
+        """Whether the GP models f1 relative to the start (``deploy_adjust = "start_cost"``
+        under random starts): see :meth:`_model_Y`."""
+        return (
+            self.deploy_adjust == "start_cost"
+            and not self.safe_mode  # the safe design models the start itself (context = "x0")
+            and len(self.starts_) > 0
+            and not self._cycled()
+        )
+
+    def _model_Y(self) -> np.ndarray:
+        """The objectives as the GP, EI and EHVI see them: ``Y_``, but under random starts with
+        ``deploy_adjust = "start_cost"`` f1 divided by the episode's start cost (theta0's cost
+        from that start on the MPC's own model), the cost relative to how costly the start
+        is, so that the GP does not read start luck as a theta effect (on `lq` the ratio is
+        nearly independent of the start). Rows without a usable start cost take the median
+        of the others. With cycled starts the per-start offsets do this (``start_effects``)."""
+        if not self._adjusted():
+            return self.Y_
+        s = self.S0_
+        ok = np.isfinite(s) & (s > 0)
+        if not np.any(ok):
+            return self.Y_
+        s = np.where(ok, s, np.median(s[ok]))
+        Y = self.Y_.copy()
+        Y[:, 0] = Y[:, 0] / s
+        return Y
 
     def _context_of(self, result: EpisodeResult) -> np.ndarray:
         if self._dc == 0:
@@ -855,7 +901,7 @@ class _GPLearner(Learner):
             self._fitted = False
             return
         if not self.safe_mode:
-            self.surrogate.fit(self.Z_, self.Y_, groups=self.starts_)
+            self.surrogate.fit(self.Z_, self._model_Y(), groups=self.starts_)
             self._fitted = True
             Zf = self.Z_[self._finite()]
             if self.deploy == "verified":
@@ -953,6 +999,10 @@ class _GPLearner(Learner):
                 d.append(float(np.mean(self.Y_[same, 0])) - float(self.Y_[i, 0]))
         if not d:
             if self._unpaired_cost():  # random starts: the two thetas' own costs, unpaired
+                if self.deploy_adjust == "start_cost":  # ... adjusted for their starts
+                    return adjusted_confidence(
+                        self.Y_[own, 0], self.Y_[rows, 0], self.S0_[own], self.S0_[rows]
+                    )
                 return unpaired_confidence(self.Y_[own, 0], self.Y_[rows, 0])
             return self._paired_mean(z, current) if len(rows) else 0.0
         return paired_confidence(np.asarray(d))
@@ -1068,6 +1118,11 @@ class _GPLearner(Learner):
 
     def incumbent(self) -> np.ndarray:
         return self._theta(self._incumbent_z)
+
+    def uses_start_cost(self) -> bool:
+        """``deploy_adjust = "start_cost"`` (the default): the unpaired test of random starts
+        adjusts the episode costs for their starts' covariate."""
+        return self.deploy_adjust == "start_cost"
 
     def _next_seed(self) -> int:
         return int(self.rng.integers(2**31 - 1))
@@ -1195,6 +1250,8 @@ class _GPLearner(Learner):
                 "incumbent_pre_fit": self._pre_fit_incumbent.copy(),
                 "contexts_x0": self.C_.copy(),
                 "violations": self.V_.copy(),
+                "start_costs": self.S0_.copy(),
+                "deploy_adjust": self.deploy_adjust,
                 "violation_budget": self.budget_,
                 "design": self._design_version,
                 "proposal_kinds": list(self.proposal_kinds_),
@@ -1249,6 +1306,9 @@ class _GPLearner(Learner):
         self.C_ = np.array(state.get("contexts_x0", np.full((len(self.Z_), self._dc), 0.5)), float)
         self.C_ = self.C_.reshape(len(self.Z_), self._dc)
         self.V_ = np.array(state.get("violations", np.full(len(self.Z_), np.nan)), float)
+        # a checkpoint from before session 13 has no start costs: it resumes unadjusted
+        self.S0_ = np.array(state.get("start_costs", np.full(len(self.Z_), np.nan)), float)
+        self.deploy_adjust = state.get("deploy_adjust", "none")
         b = state.get("violation_budget", self.budget_)
         self.budget_ = None if b is None else float(b)
         self._incumbent_z = np.array(state["incumbent_z"], float)
@@ -1282,7 +1342,12 @@ class BOLearner(_GPLearner):
 
     def _acquire(self, seed: int) -> np.ndarray:
         return propose_ei(
-            self.surrogate, self.Z_, self.Y_, seed=seed, search=self.search, box=self._trust_box()
+            self.surrogate,
+            self.Z_,
+            self._model_Y(),
+            seed=seed,
+            search=self.search,
+            box=self._trust_box(),
         )
 
 
@@ -1347,7 +1412,7 @@ class MOBOLearner(_GPLearner):
         if self.ref_point_ is None and self.Z_.shape[0] >= self.n_init:
             ok = self._finite()
             if np.any(ok):
-                self.ref_point_ = reference_point(self.Y_[ok], margin=self.ref_margin)
+                self.ref_point_ = reference_point(self._model_Y()[ok], margin=self.ref_margin)
         super()._fit()
 
     def propose(self) -> np.ndarray:
@@ -1396,12 +1461,12 @@ class MOBOLearner(_GPLearner):
     def _acquire(self, seed: int) -> np.ndarray:
         ref = self.ref_point_
         if ref is None:
-            ref = reference_point(self.Y_[self._finite()], margin=self.ref_margin)
+            ref = reference_point(self._model_Y()[self._finite()], margin=self.ref_margin)
         options, search = self.search_effort(self.Z_.shape[0])
         return propose_ehvi(
             self.surrogate,
             self.Z_,
-            self.Y_,
+            self._model_Y(),
             ref,
             seed=seed,
             options=options,

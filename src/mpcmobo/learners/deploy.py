@@ -38,6 +38,10 @@ BUDGET_FACTOR = 2.0  # default budget: this multiple of theta0's own violation (
 # 11: with random starts, "cost" compares the two thetas' own episode costs unpaired
 # (unpaired_confidence, a Welch t-test), where it asked the model before
 PAIRED_MODES = ("every", "mean", "cost")
+# deploy_adjust (session 13): the unpaired test of random starts on the costs as they are
+# ("none", unpaired_confidence) or adjusted for each episode's start covariate ("start_cost",
+# adjusted_confidence: theta0's cost from that start on the MPC's own model)
+ADJUST_MODES = ("start_cost", "none")
 
 
 @dataclass(frozen=True)
@@ -297,6 +301,61 @@ def unpaired_confidence(deployed: np.ndarray, candidate: np.ndarray) -> float:
     from scipy.stats import ttest_ind
 
     return 1.0 - float(ttest_ind(d, c, equal_var=False, alternative="greater").pvalue)
+
+
+def adjusted_confidence(
+    deployed: np.ndarray,
+    candidate: np.ndarray,
+    s_deployed: np.ndarray,
+    s_candidate: np.ndarray,
+) -> float:
+    r""":func:`unpaired_confidence` adjusted for how costly each episode's start was: the
+    analysis of covariance of the episode costs ``y`` on the start covariate ``s`` (theta0's
+    cost from the episode's start on the MPC's own model, ``EpisodeResult.start_cost``) with a
+    common slope,
+
+    .. math:: y_i = a + \delta\,[i \text{ is the candidate's}] + b\,s_i + e_i,
+
+    and the one-sided t-test of ``delta < 0`` (the candidate cheaper at the same start) with
+    ``n - 3`` degrees of freedom. With least squares
+    ``delta = (ybar_c - ybar_d) - b (sbar_c - sbar_d)``, ``b`` the pooled within-group slope,
+    and ``se^2 = MSE (1 / n_c + 1 / n_d + (sbar_c - sbar_d)^2 / S_ss)``. Under random starts
+    the covariate is independent of which theta runs, so ``delta`` estimates the difference
+    of the expected costs J; it removes the part of the spread the starts explain (on `lq`
+    nearly all of it). Falls back to :func:`unpaired_confidence` when a covariate is missing
+    (not finite), a side has fewer than two episodes, there are fewer than four, or the
+    covariate has no spread within the groups."""
+    y_d, y_c = np.asarray(deployed, float), np.asarray(candidate, float)
+    s_d, s_c = np.asarray(s_deployed, float), np.asarray(s_candidate, float)
+    keep_d, keep_c = np.isfinite(y_d), np.isfinite(y_c)
+    y_d, s_d, y_c, s_c = y_d[keep_d], s_d[keep_d], y_c[keep_c], s_c[keep_c]
+    if (
+        len(y_d) < 2
+        or len(y_c) < 2
+        or len(y_d) + len(y_c) < 4
+        or not (np.all(np.isfinite(s_d)) and np.all(np.isfinite(s_c)))
+    ):
+        return unpaired_confidence(y_d, y_c)
+    S_ss = float(np.sum((s_d - s_d.mean()) ** 2) + np.sum((s_c - s_c.mean()) ** 2))
+    if S_ss <= 0:
+        return unpaired_confidence(y_d, y_c)
+    S_sy = float(
+        np.sum((s_d - s_d.mean()) * (y_d - y_d.mean()))
+        + np.sum((s_c - s_c.mean()) * (y_c - y_c.mean()))
+    )
+    b = S_sy / S_ss  # the pooled within-group slope
+    delta = (y_c.mean() - y_d.mean()) - b * (s_c.mean() - s_d.mean())
+    r = np.concatenate(
+        [y_d - y_d.mean() - b * (s_d - s_d.mean()), y_c - y_c.mean() - b * (s_c - s_c.mean())]
+    )
+    dof = len(r) - 3
+    mse = float(r @ r) / dof
+    se2 = mse * (1 / len(y_c) + 1 / len(y_d) + (s_c.mean() - s_d.mean()) ** 2 / S_ss)
+    if se2 <= 0:  # an exact fit: the sign decides
+        return 1.0 if delta < 0 else 0.0
+    from scipy.stats import t
+
+    return float(t.cdf(-delta / np.sqrt(se2), df=dof))
 
 
 def default_budget(theta0_violation: float, floor: float) -> float:

@@ -8,7 +8,13 @@ import numpy as np
 
 from mpcmobo.bo.context import ContextSpec
 from mpcmobo.learners.base import EpisodeResult, Learner, check_choice
-from mpcmobo.learners.deploy import DeployRule, paired_confidence, unpaired_confidence
+from mpcmobo.learners.deploy import (
+    ADJUST_MODES,
+    DeployRule,
+    adjusted_confidence,
+    paired_confidence,
+    unpaired_confidence,
+)
 from mpcmobo.rl.judge import PooledJudge
 from mpcmobo.rl.steps import STEP_RULES, StepRule
 from mpcmobo.systems.space import SearchSpace
@@ -52,7 +58,11 @@ class MPCRL(Learner):
       gradient at its end). When a block ends, its candidate replaces the deployed theta
       only if its episode costs are lower than the deployed theta's own block with confidence ``deploy_confidence`` (0.9):
       with cycled starts per start (the paired t-test of the per-start mean differences),
-      with random starts unpaired (Welch) (:func:`~mpcmobo.learners.deploy.paired_confidence`,
+      with random starts unpaired, adjusted for how costly each episode's start is
+      (``deploy_adjust = "start_cost"``, the default since session 13: the analysis of
+      covariance on theta0's cost from the start on the MPC's own model,
+      :func:`~mpcmobo.learners.deploy.adjusted_confidence`; ``"none"``: Welch)
+      (:func:`~mpcmobo.learners.deploy.paired_confidence`,
       :func:`~mpcmobo.learners.deploy.unpaired_confidence`). The cost is ``deploy_metric``:
       the plain mean stage cost (``"stage_cost"``, the quantity J_eval averages, from the
       learner's own episodes) or f1 (discounted). A promising candidate (confidence at least
@@ -82,6 +92,7 @@ class MPCRL(Learner):
     block_id_: np.ndarray
     block_F_: np.ndarray
     block_S_: np.ndarray
+    block_C_: np.ndarray
     block_conf_: np.ndarray
     block_G_: np.ndarray
 
@@ -107,6 +118,7 @@ class MPCRL(Learner):
         deploy_metric: str = "stage_cost",
         deploy_explore: bool = False,
         deploy_reset: bool = True,
+        deploy_adjust: str = "start_cost",
         context: str = "none",
         n_contexts: int = 16,
         incumbent_kappa: float = 0.0,
@@ -140,6 +152,7 @@ class MPCRL(Learner):
         self.deploy_metric = check_choice("deploy_metric", deploy_metric, DEPLOY_METRICS)
         self.deploy_explore = bool(deploy_explore)
         self.deploy_reset = bool(deploy_reset)
+        self.deploy_adjust = check_choice("deploy_adjust", deploy_adjust, ADJUST_MODES)
         self.context_spec = contexts
         self.contexts = contexts.sample(int(n_contexts)) if context == "x0" else np.zeros((1, 0))  # type: ignore[union-attr]  # checked above
         self.incumbent_kappa = float(incumbent_kappa)
@@ -219,6 +232,11 @@ class MPCRL(Learner):
             return self._theta()
         return self._theta_of(self.deployed_z_)
 
+    def uses_start_cost(self) -> bool:
+        """``deploy = "verified"`` with ``deploy_adjust = "start_cost"`` (the default): under
+        random starts the blocks' costs are compared adjusted for their starts."""
+        return self.deploy == "verified" and self.deploy_adjust == "start_cost"
+
     def explores(self) -> bool:
         """False for the episodes of a verification block (``deploy = "verified"``, unless
         ``deploy_explore``): they measure the candidate without exploration noise."""
@@ -260,6 +278,7 @@ class MPCRL(Learner):
         self.block_id_ = np.append(self.block_id_, n - 1)
         self.block_F_ = np.append(self.block_F_, self._block_cost(result))
         self.block_S_ = np.append(self.block_S_, int(result.start_id))
+        self.block_C_ = np.append(self.block_C_, float(result.start_cost))
         if g is not None:
             self.block_G_, self.block_nG_ = self.block_G_ + g, self.block_nG_ + 1
         if self._block_open():
@@ -319,6 +338,9 @@ class MPCRL(Learner):
             ]
             if d:
                 return paired_confidence(np.asarray(d))
+        if self.deploy_adjust == "start_cost":  # random starts, adjusted for the starts
+            C = self.block_C_
+            return adjusted_confidence(self.block_F_[dep], self.block_F_[cand], C[dep], C[cand])
         return unpaired_confidence(self.block_F_[dep], self.block_F_[cand])
 
     # ------------------------------------------------------------ deployment (issue 11)
@@ -338,6 +360,7 @@ class MPCRL(Learner):
         self.block_id_ = np.zeros(0, dtype=int)
         self.block_F_ = np.zeros(0)
         self.block_S_ = np.zeros(0, dtype=int)
+        self.block_C_ = np.zeros(0)  # the start cost of each block episode (deploy_adjust)
         self.block_conf_ = np.zeros(0)
         self.deployed_block_ = 0
         self.block_G_, self.block_nG_ = np.zeros(self.space.n_theta), 0  # the open block's
@@ -432,6 +455,8 @@ class MPCRL(Learner):
                     "block_id": self.block_id_.copy(),
                     "block_F": self.block_F_.copy(),
                     "block_S": self.block_S_.copy(),
+                    "block_C": self.block_C_.copy(),
+                    "deploy_adjust": self.deploy_adjust,
                     "block_conf": self.block_conf_.copy(),
                     "deployed_block": self.deployed_block_,
                     "deployed_z": self.deployed_z_.copy(),
@@ -475,6 +500,9 @@ class MPCRL(Learner):
             self.block_id_ = np.array(state["block_id"], int)
             self.block_F_ = np.array(state["block_F"], float)
             self.block_S_ = np.array(state["block_S"], int)
+            # a checkpoint from before session 13 has no start costs: it resumes unadjusted
+            self.block_C_ = np.array(state.get("block_C", np.full(len(self.block_S_), np.nan)))
+            self.deploy_adjust = state.get("deploy_adjust", "none")
             self.block_conf_ = np.array(state["block_conf"], float)
             self.deployed_block_ = int(state["deployed_block"])
             self.deployed_z_ = np.array(state["deployed_z"], float)

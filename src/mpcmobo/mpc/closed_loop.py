@@ -9,6 +9,7 @@ the system's own equations with ``true_params`` are the plant.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Protocol
 
 import gymnasium
@@ -75,6 +76,21 @@ def rollout(
     if rec.steps > steps:
         _shorten(rec, steps)
     return rec
+
+
+def model_rollout(
+    system: System,
+    mpc: ParametricMPC,
+    theta: np.ndarray | None,
+    x0: np.ndarray,
+    steps: int | None = None,
+) -> EpisodeRecord:
+    """The closed loop of ``theta`` from ``x0`` on the MPC's own prediction model (its nominal
+    ``model_params``) instead of the plant: noise-free, without sensitivities. What the model
+    predicts of an episode from ``x0``, at no cost to the plant; with theta0 it is the
+    learners' start covariate (``EpisodeResult.start_cost``, issue 11, item 1)."""
+    model = replace(system, true_params=np.asarray(mpc.model_params, dtype=float))
+    return rollout(model, mpc, theta, x0, steps, sensitivities=False, plant=SystemPlant(model))
 
 
 def _measured(system: System, obs: Any, where: str) -> np.ndarray:
