@@ -1120,8 +1120,9 @@ class _GPLearner(Learner):
         return self._theta(self._incumbent_z)
 
     def uses_start_cost(self) -> bool:
-        """``deploy_adjust = "start_cost"`` (the default): the unpaired test of random starts
-        adjusts the episode costs for their starts' covariate."""
+        """``deploy_adjust = "start_cost"`` (the default): under random starts the unpaired
+        test adjusts the episode costs for their starts' covariate, and the GP models f1
+        relative to it (:meth:`_model_Y`)."""
         return self.deploy_adjust == "start_cost"
 
     def _next_seed(self) -> int:
