@@ -320,3 +320,47 @@ def test_the_gp_models_f1_relative_to_the_start_under_random_starts_only(lq):
     for f, s in zip(2.0 * S0, S0, strict=True):
         _observe(none, theta0, f, s)
     np.testing.assert_array_equal(none._model_Y(), none.Y_)
+
+
+def test_a_failing_covariate_never_ends_a_run(lq, monkeypatch):
+    """The start cost of a learner without theta0 is that of the MPC's theta0; a closed loop
+    on the model that fails gives NaN (the tests then fall back to Welch), and the episode is
+    recorded as usual."""
+    import mpcmobo.experiment.loop as loop
+    from mpcmobo.mpc import ParametricMPC
+
+    mpc = ParametricMPC(lq)
+
+    class Bare:  # no theta0 attribute
+        name = "bare"
+
+        def __init__(self):
+            self.space, self.results = lq.search_space, []
+
+        def propose(self):
+            return lq.parameterization.theta0.copy()
+
+        def uses_start_cost(self):
+            return True
+
+        def observe(self, theta, result):
+            self.results.append(result)
+
+        def incumbent(self):
+            return lq.parameterization.theta0.copy()
+
+    bare = Bare()
+    run = loop.LearningRun(lq, bare, mpc, seed=2, steps=5, start_mode="cycle", n_cycle_starts=1)
+    run.run_episode()
+    assert np.isfinite(bare.results[0].start_cost)
+
+    def broken(*args, **kwargs):
+        raise TypeError("no model")
+
+    monkeypatch.setattr(loop, "model_rollout", broken)
+    other = Bare()
+    run = loop.LearningRun(lq, other, mpc, seed=2, steps=5, start_mode="cycle", n_cycle_starts=1)
+    row, _ = run.run_episode()
+    assert np.isnan(other.results[0].start_cost) and np.isnan(row["start_cost"])
+    assert row["error"] == "" and np.isfinite(row["f1"])
+    assert other.results[0].f1 == bare.results[0].f1  # the same episode as with a covariate
