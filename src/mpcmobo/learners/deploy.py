@@ -28,6 +28,7 @@ import numpy as np
 from mpcmobo.bo.context import expected_outcome_means, expected_outcome_samples, with_contexts
 from mpcmobo.bo.surrogate import GPSurrogate
 from mpcmobo.learners.base import check_choice
+from mpcmobo.rl.judge import check_confidence
 
 BUDGET_FACTOR = 2.0  # default budget: this multiple of theta0's own violation (+ floor)
 # deploy_paired (session 9): how a candidate's own episodes must compare with the deployed
@@ -92,22 +93,18 @@ class DeployRule:
         return self.min_runs if self.max_runs is None else max(self.min_runs, self.max_runs)
 
     def __post_init__(self) -> None:
-        if self.deploy_confidence is not None and not 0.5 <= self.deploy_confidence < 1:
-            raise ValueError(
-                f"deploy_confidence must be in [0.5, 1), or 0 or unset (the old rule), got "
-                f"{self.deploy_confidence}"
+        if self.deploy_confidence is not None:
+            check_confidence(
+                "deploy_confidence", self.deploy_confidence, ", or 0 or unset (the old rule)"
             )
-        if not 0.5 <= self.safety_confidence < 1:
-            raise ValueError(f"safety_confidence must be in [0.5, 1), got {self.safety_confidence}")
+        check_confidence("safety_confidence", self.safety_confidence)
         if self.min_runs < 1:
             raise ValueError(f"deploy_min_runs must be at least 1, got {self.min_runs}")
         if self.max_runs is not None and self.max_runs < 1:
             raise ValueError(f"deploy_max_runs must be at least 1, got {self.max_runs}")
         check_choice("deploy_paired", self.paired_mode, PAIRED_MODES)
-        if self.model_confidence is not None and not 0.5 <= self.model_confidence < 1:
-            raise ValueError(
-                f"deploy_model_confidence must be in [0.5, 1) or unset, got {self.model_confidence}"
-            )
+        if self.model_confidence is not None:
+            check_confidence("deploy_model_confidence", self.model_confidence, " or unset")
 
     def safe(self, samples: np.ndarray, budget: float | None) -> np.ndarray:
         """(n,) True where the expected violation's upper quantile is within the budget

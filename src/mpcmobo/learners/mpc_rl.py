@@ -15,7 +15,7 @@ from mpcmobo.learners.deploy import (
     paired_confidence,
     unpaired_confidence,
 )
-from mpcmobo.rl.judge import PooledJudge
+from mpcmobo.rl.judge import PooledJudge, check_confidence
 from mpcmobo.rl.steps import STEP_RULES, StepRule
 from mpcmobo.systems.space import SearchSpace
 
@@ -177,9 +177,7 @@ class MPCRL(Learner):
             self.pooled = PooledJudge(confidence=conf, bandwidth=float(self.deploy_bandwidth))
         elif deploy == "verified":
             conf = VERIFIED_CONFIDENCE if self.deploy_confidence is None else self.deploy_confidence
-            if not 0.5 <= float(conf) < 1:
-                raise ValueError(f"deploy_confidence must be in [0.5, 1), got {conf}")
-            self.verified_confidence = float(conf)
+            self.verified_confidence = check_confidence("deploy_confidence", conf)
         self._init_judge()
 
     def _make_rule(self, optimizer: str, lr: float) -> StepRule:

@@ -38,6 +38,15 @@ import numpy as np
 from scipy.stats import norm
 
 
+def check_confidence(name: str, value: float, unset: str = "") -> float:
+    """``value`` as a float if it is a confidence in [0.5, 1) (a probability that a candidate is
+    better, or safe), else a ``ValueError`` naming the option ``name``; ``unset`` says what
+    else the option accepts (the learners check None and 0 themselves)."""
+    if not 0.5 <= float(value) < 1:
+        raise ValueError(f"{name} must be in [0.5, 1){unset}, got {value}")
+    return float(value)
+
+
 def quadratic_features(C: np.ndarray) -> np.ndarray:
     """(n, q): the columns of C and their pairwise products (squares included)."""
     C = np.atleast_2d(C)
@@ -57,8 +66,7 @@ class PooledJudge:
     ridge: float = 1.0
 
     def __post_init__(self) -> None:
-        if not 0.5 <= self.confidence < 1:
-            raise ValueError(f"deploy_confidence must be in [0.5, 1), got {self.confidence}")
+        check_confidence("deploy_confidence", self.confidence)
         if not self.bandwidth > 0:
             raise ValueError(f"deploy_bandwidth must be positive, got {self.bandwidth}")
         if not self.min_evidence >= 1:
