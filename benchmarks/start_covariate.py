@@ -30,7 +30,7 @@ import pandas as pd
 from mpcmobo.experiment.evaluation import make_evaluator
 from mpcmobo.experiment.settings import build_system, load_settings
 from mpcmobo.learners.deploy import adjusted_confidence, ancova_confidence, unpaired_confidence
-from mpcmobo.mpc import model_rollout
+from mpcmobo.mpc import model_plant, model_rollout
 from mpcmobo.rl.objectives import mean_stage_cost
 
 FRESH_SEED = 4242  # as benchmarks/recheck.py: apart from the evaluation's starts
@@ -77,8 +77,12 @@ def main() -> None:
     C = {k: np.array([mean_stage_cost(r) for r in ev.episodes(th)]) for k, th in thetas.items()}
     C = {k: c for k, c in C.items() if np.all(np.isfinite(c))}
     value = np.array([mpc.solve(x, theta0, sensitivities=False).value for x in ev.starts])
+    on_model = model_plant(system, mpc)
     model = np.array(
-        [mean_stage_cost(model_rollout(system, mpc, theta0, x, ev.steps)) for x in ev.starts]
+        [
+            mean_stage_cost(model_rollout(system, mpc, theta0, x, ev.steps, plant=on_model))
+            for x in ev.starts
+        ]
     )
     print(f"{system.name}: {len(C)} thetas, {args.starts} fresh starts\n")
     print("| covariate | R^2 median | R^2 smallest |\n|---|---|---|")

@@ -9,7 +9,7 @@ import gymnasium
 import numpy as np
 
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
-from mpcmobo.mpc import EpisodeRecord, ParametricMPC, model_rollout, rollout
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC, model_plant, model_rollout, rollout
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
 from mpcmobo.rl.objectives import F3_MODES, mean_stage_cost
 from mpcmobo.systems.base import System
@@ -85,6 +85,7 @@ class LearningRun:
         self.previous_Vc: float | None = None
         self.previous_nu: np.ndarray | None = None  # the last fitted critic's nu (f3 "same_states")
         self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)
+        self._model_plant: gymnasium.Env | None = None  # the MPC's model as a plant (built once)
 
     def plant_seed(self) -> int:
         """The plant's seed of this episode (its own noise, if any): a function of (seed,
@@ -157,7 +158,11 @@ class LearningRun:
         if key not in self._start_costs:
             theta0 = getattr(self.learner, "theta0", None)  # None: the MPC's own theta0
             try:
-                rec = model_rollout(self.system, self.mpc, theta0, x0, self.steps)
+                if self._model_plant is None:
+                    self._model_plant = model_plant(self.system, self.mpc)
+                rec = model_rollout(
+                    self.system, self.mpc, theta0, x0, self.steps, plant=self._model_plant
+                )
                 self._start_costs[key] = mean_stage_cost(rec)
             except Exception:  # noqa: BLE001 - a covariate never ends a run (the tests fall back)
                 self._start_costs[key] = float("nan")

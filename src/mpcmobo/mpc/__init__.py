@@ -1,7 +1,14 @@
 """The parametric MPC of eq. (V0), its sensitivities and closed-loop episodes."""
 
-from mpcmobo.mpc.closed_loop import model_rollout, rollout
+from mpcmobo.mpc.closed_loop import model_plant, model_rollout, rollout
 from mpcmobo.mpc.parametric import MPCSolution, ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
 
-__all__ = ["EpisodeRecord", "MPCSolution", "ParametricMPC", "model_rollout", "rollout"]
+__all__ = [
+    "EpisodeRecord",
+    "MPCSolution",
+    "ParametricMPC",
+    "model_plant",
+    "model_rollout",
+    "rollout",
+]

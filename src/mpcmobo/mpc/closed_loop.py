@@ -78,19 +78,29 @@ def rollout(
     return rec
 
 
+def model_plant(system: System, mpc: ParametricMPC) -> SystemPlant:
+    """The MPC's own prediction model (its nominal ``model_params``) as a plant: the system's
+    equations with those parameters. Building it builds the system's CasADi step function
+    again, so a caller that runs many model episodes builds it once (:func:`model_rollout`'s
+    ``plant``)."""
+    return SystemPlant(replace(system, true_params=np.asarray(mpc.model_params, dtype=float)))
+
+
 def model_rollout(
     system: System,
     mpc: ParametricMPC,
     theta: np.ndarray | None,
     x0: np.ndarray,
     steps: int | None = None,
+    plant: gymnasium.Env | None = None,
 ) -> EpisodeRecord:
-    """The closed loop of ``theta`` from ``x0`` on the MPC's own prediction model (its nominal
-    ``model_params``) instead of the plant: noise-free, without sensitivities. What the model
-    predicts of an episode from ``x0``, at no cost to the plant; with theta0 it is the
-    learners' start covariate (``EpisodeResult.start_cost``, issue 11, item 1)."""
-    model = replace(system, true_params=np.asarray(mpc.model_params, dtype=float))
-    return rollout(model, mpc, theta, x0, steps, sensitivities=False, plant=SystemPlant(model))
+    """The closed loop of ``theta`` from ``x0`` on the MPC's own prediction model instead of the
+    plant (``plant``: :func:`model_plant`, built here if not given): noise-free, without
+    sensitivities. What the model predicts of an episode from ``x0``, at no cost to the plant;
+    with theta0 it is the learners' start covariate (``EpisodeResult.start_cost``, issue 11,
+    item 1)."""
+    plant = model_plant(system, mpc) if plant is None else plant
+    return rollout(system, mpc, theta, x0, steps, sensitivities=False, plant=plant)
 
 
 def _measured(system: System, obs: Any, where: str) -> np.ndarray:
