@@ -56,10 +56,10 @@ class MPCRL(Learner):
       the noise) so that they measure the candidate, and the iterate makes no step during
       them (no noise, no critic; with ``deploy_explore`` one step along the block's mean
       gradient at its end). When a block ends, its candidate replaces the deployed theta
-      only if its episode costs are lower than the deployed theta's own block with confidence ``deploy_confidence`` (0.9):
-      with cycled starts per start (the paired t-test of the per-start mean differences),
-      with random starts unpaired, adjusted for how costly each episode's start is
-      (``deploy_adjust = "start_cost"``, the default since session 13: the analysis of
+      only if its episode costs are lower than the deployed theta's own block with
+      confidence ``deploy_confidence`` (0.9): with cycled starts per start (the paired t-test
+      of the per-start mean differences), with random starts unpaired, adjusted for how
+      costly each episode's start is (``deploy_adjust = "start_cost"``, the default since session 13: the analysis of
       covariance on theta0's cost from the start on the MPC's own model,
       :func:`~mpcmobo.learners.deploy.adjusted_confidence`; ``"none"``: Welch)
       (:func:`~mpcmobo.learners.deploy.paired_confidence`,
