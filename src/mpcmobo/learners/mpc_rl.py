@@ -59,9 +59,9 @@ class MPCRL(Learner):
       only if its episode costs are lower than the deployed theta's own block with
       confidence ``deploy_confidence`` (0.9): with cycled starts per start (the paired t-test
       of the per-start mean differences), with random starts unpaired, adjusted for how
-      costly each episode's start is (``deploy_adjust = "start_cost"``, the default since session 13: the analysis of
-      covariance on theta0's cost from the start on the MPC's own model,
-      :func:`~mpcmobo.learners.deploy.adjusted_confidence`; ``"none"``: Welch)
+      costly each episode's start is (``deploy_adjust = "start_cost"``, the default since
+      session 13: the analysis of covariance on theta0's cost from the start on the MPC's own
+      model, :func:`~mpcmobo.learners.deploy.adjusted_confidence`; ``"none"``: Welch)
       (:func:`~mpcmobo.learners.deploy.paired_confidence`,
       :func:`~mpcmobo.learners.deploy.unpaired_confidence`). The cost is ``deploy_metric``:
       the plain mean stage cost (``"stage_cost"``, the quantity J_eval averages, from the
