@@ -124,6 +124,16 @@ starts are unchanged (their per-start offsets and paired tests already match the
 is the safe design (it models the start as a context). A checkpoint from before resumes with
 ``"none"``. Measured in ``docs/benchmarks.md``, "Random starts adjusted for their cost".
 
+``deploy_screen`` (session 14, opt-in; default ``"test"``): with ``"relative"``, under random
+starts and ``deploy_adjust = "start_cost"``, a candidate with fewer than ``deploy_min_runs``
+episodes (or facing a deployed theta with fewer) is only screened on its cost relative to its
+starts (:func:`~mpcmobo.learners.deploy.relative_screen`: run again or dropped), and the test
+decides from ``deploy_min_runs`` a side. With ``"test"`` the start-adjusted test screens it
+from its first episodes, and on two or three of them drops good candidates for good (an
+intercept fitted to non-overlapping starts). The screen lets more candidates reach the test,
+and on the CSTR more decisions meant one false deployment in 30 jobs: measured in
+``docs/benchmarks.md``, "Screening candidates relative to their starts".
+
 ``trust_center`` and ``deploy_paired`` (session 9, issue 11; opt-in, defaults ``"deployed"`` and
 ``"every"``, the rules above): ``trust_center = "candidate"`` centres the trust region at the
 deployment rule's best safe candidate while it is more likely better than the deployed theta
@@ -187,10 +197,12 @@ from mpcmobo.learners.base import EpisodeResult, Learner, check_choice
 from mpcmobo.learners.deploy import (
     ADJUST_MODES,
     PAIRED_MODES,
+    SCREEN_MODES,
     DeployRule,
     adjusted_confidence,
     default_budget,
     paired_confidence,
+    relative_screen,
     theta_key,
     unpaired_confidence,
 )
@@ -456,9 +468,11 @@ class _GPLearner(Learner):
         trust_center: str = "deployed",
         deploy_paired: str = PAIRED_DEFAULT,
         deploy_adjust: str = "start_cost",
+        deploy_screen: str = "test",
         **removed: Any,
     ) -> None:
         self.deploy_adjust = check_choice("deploy_adjust", deploy_adjust, ADJUST_MODES)
+        self.deploy_screen = check_choice("deploy_screen", deploy_screen, SCREEN_MODES)
         self.search_radius = _check_radius(search_radius)
         self.local_fit = _check_local_fit(local_fit)
         self.trust_center = check_choice("trust_center", trust_center, TRUST_CENTERS)
@@ -1000,6 +1014,12 @@ class _GPLearner(Learner):
         if not d:
             if self._unpaired_cost():  # random starts: the two thetas' own costs, unpaired
                 if self.deploy_adjust == "start_cost":  # ... adjusted for their starts
+                    few = min(len(own), len(rows)) < self.deploy_rule.min_runs
+                    if self.deploy_screen == "relative" and few:
+                        # too few episodes for the test: screened, never deployed
+                        return relative_screen(
+                            self.Y_[own, 0], self.Y_[rows, 0], self.S0_[own], self.S0_[rows]
+                        )
                     return adjusted_confidence(
                         self.Y_[own, 0], self.Y_[rows, 0], self.S0_[own], self.S0_[rows]
                     )
@@ -1253,6 +1273,7 @@ class _GPLearner(Learner):
                 "violations": self.V_.copy(),
                 "start_costs": self.S0_.copy(),
                 "deploy_adjust": self.deploy_adjust,
+                "deploy_screen": self.deploy_screen,
                 "violation_budget": self.budget_,
                 "design": self._design_version,
                 "proposal_kinds": list(self.proposal_kinds_),
@@ -1310,6 +1331,7 @@ class _GPLearner(Learner):
         # a checkpoint from before session 13 has no start costs: it resumes unadjusted
         self.S0_ = np.array(state.get("start_costs", np.full(len(self.Z_), np.nan)), float)
         self.deploy_adjust = state.get("deploy_adjust", "none")
+        self.deploy_screen = state.get("deploy_screen", "test")  # absent before session 14
         b = state.get("violation_budget", self.budget_)
         self.budget_ = None if b is None else float(b)
         self._incumbent_z = np.array(state["incumbent_z"], float)

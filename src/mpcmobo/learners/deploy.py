@@ -43,6 +43,9 @@ PAIRED_MODES = ("every", "mean", "cost")
 # ("none", unpaired_confidence) or adjusted for each episode's start covariate ("start_cost",
 # adjusted_confidence: theta0's cost from that start on the MPC's own model)
 ADJUST_MODES = ("start_cost", "none")
+# deploy_screen (session 14): below deploy_min_runs a side, a candidate is screened by the test
+# itself ("test") or on its cost relative to its starts ("relative", relative_screen)
+SCREEN_MODES = ("test", "relative")
 
 
 @dataclass(frozen=True)
@@ -349,6 +352,40 @@ def adjusted_confidence(
         y_c, s_c = np.delete(y_c, i - len(y_d)), np.delete(s_c, i - len(y_d))
     without = ancova_confidence(y_d, y_c, s_d, s_c)
     return min(full, unpaired_confidence(y_d, y_c) if without is None else without)
+
+
+def relative_screen(
+    deployed: np.ndarray,
+    candidate: np.ndarray,
+    s_deployed: np.ndarray,
+    s_candidate: np.ndarray,
+) -> float:
+    r"""The screen of a candidate whose evidence is still short of the test's (random starts,
+    fewer than ``deploy_min_runs`` episodes on a side): 0.5 when its cost relative to its
+    starts, the ratio of means :math:`R = \sum_i y_i / \sum_i s_i`, is below the deployed
+    theta's, else 0 -- enough to be run again, never to be deployed.
+
+    :func:`adjusted_confidence` is the test for the decision; on two or three episodes its
+    fitted intercept extrapolates between starts that do not overlap (session 14, `lq`: a
+    candidate 6% cheaper relative to its three small starts scored 0.48 against theta0's two
+    larger ones and was never run again), and the raw costs of :func:`unpaired_confidence`
+    judge the starts' luck (a candidate run once from a costly start looked dearer than
+    theta0, whatever its theta). The ratio of means is the cost model of a start that costs in
+    proportion to its covariate, which the covariate is built to be (theta0's cost from that
+    start); unlike the mean of the ratios it is not carried by a start near the equilibrium
+    (a tiny ``s``). Without a positive covariate on every episode, the raw means."""
+    y_d, y_c = np.asarray(deployed, float), np.asarray(candidate, float)
+    s_d, s_c = np.asarray(s_deployed, float), np.asarray(s_candidate, float)
+    keep_d, keep_c = np.isfinite(y_d), np.isfinite(y_c)
+    y_d, s_d, y_c, s_c = y_d[keep_d], s_d[keep_d], y_c[keep_c], s_c[keep_c]
+    if len(y_d) == 0 or len(y_c) == 0:
+        return 0.0
+    s_ok = np.all(np.isfinite(s_d)) and np.all(np.isfinite(s_c))
+    if s_ok and np.all(s_d > 0) and np.all(s_c > 0):
+        cand, dep = y_c.sum() / s_c.sum(), y_d.sum() / s_d.sum()
+    else:
+        cand, dep = y_c.mean(), y_d.mean()
+    return 0.5 if cand < dep else 0.0
 
 
 def ancova_confidence(
