@@ -22,7 +22,7 @@ from mpcmobo.systems import get_system
 FAST = {"n_init": 3, "num_restarts": 2, "raw_samples": 32, "maxiter": 20, "trust_region": "off"}
 
 # session 14, `lq` bo seed 1 (random starts): theta0's two episodes from larger starts, and a
-# candidate's three from small ones, each 5-8% cheaper relative to its start (on 100 fresh
+# candidate's three from small ones, each 3-8% cheaper relative to its start (on 100 fresh
 # starts this candidate is 5% cheaper than theta0 in f1)
 Y0, S0 = np.array([0.552, 0.466]), np.array([0.765, 0.649])
 S1 = np.array([0.096, 0.126, 0.100])

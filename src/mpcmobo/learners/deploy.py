@@ -367,8 +367,8 @@ def relative_screen(
 
     :func:`adjusted_confidence` is the test for the decision; on two or three episodes its
     fitted intercept extrapolates between starts that do not overlap (session 14, `lq`: a
-    candidate 6% cheaper relative to its three small starts scored 0.48 against theta0's two
-    larger ones and was never run again), and the raw costs of :func:`unpaired_confidence`
+    candidate 3-7% cheaper relative to its two small starts scored 0.45 against theta0's two
+    larger ones, at one degree of freedom, and was never run again), and the raw costs of :func:`unpaired_confidence`
     judge the starts' luck (a candidate run once from a costly start looked dearer than
     theta0, whatever its theta). The ratio of means is the cost model of a start that costs in
     proportion to its covariate, which the covariate is built to be (theta0's cost from that
