@@ -1015,14 +1015,10 @@ class _GPLearner(Learner):
             if self._unpaired_cost():  # random starts: the two thetas' own costs, unpaired
                 if self.deploy_adjust == "start_cost":  # ... adjusted for their starts
                     few = min(len(own), len(rows)) < self.deploy_rule.min_runs
-                    if self.deploy_screen == "relative" and few:
-                        # too few episodes for the test: screened, never deployed
-                        return relative_screen(
-                            self.Y_[own, 0], self.Y_[rows, 0], self.S0_[own], self.S0_[rows]
-                        )
-                    return adjusted_confidence(
-                        self.Y_[own, 0], self.Y_[rows, 0], self.S0_[own], self.S0_[rows]
-                    )
+                    # too few episodes for the test: screened (never deployed), if asked
+                    screen = self.deploy_screen == "relative" and few
+                    judge = relative_screen if screen else adjusted_confidence
+                    return judge(self.Y_[own, 0], self.Y_[rows, 0], self.S0_[own], self.S0_[rows])
                 return unpaired_confidence(self.Y_[own, 0], self.Y_[rows, 0])
             return self._paired_mean(z, current) if len(rows) else 0.0
         return paired_confidence(np.asarray(d))

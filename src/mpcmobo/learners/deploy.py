@@ -303,6 +303,17 @@ def unpaired_confidence(deployed: np.ndarray, candidate: np.ndarray) -> float:
     return 1.0 - float(ttest_ind(d, c, equal_var=False, alternative="greater").pvalue)
 
 
+def _finite_episodes(
+    deployed: np.ndarray, candidate: np.ndarray, s_deployed: np.ndarray, s_candidate: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The episodes of each side with a finite cost, each with its covariate (a failed
+    episode is dropped with its start cost): ``y_d, y_c, s_d, s_c``."""
+    y_d, y_c = np.asarray(deployed, float), np.asarray(candidate, float)
+    s_d, s_c = np.asarray(s_deployed, float), np.asarray(s_candidate, float)
+    keep_d, keep_c = np.isfinite(y_d), np.isfinite(y_c)
+    return y_d[keep_d], y_c[keep_c], s_d[keep_d], s_c[keep_c]
+
+
 def adjusted_confidence(
     deployed: np.ndarray,
     candidate: np.ndarray,
@@ -331,10 +342,7 @@ def adjusted_confidence(
     episode). Falls back to :func:`unpaired_confidence` when a covariate is missing (not
     finite), a side has fewer than two episodes, or the covariate has no spread within the
     groups."""
-    y_d, y_c = np.asarray(deployed, float), np.asarray(candidate, float)
-    s_d, s_c = np.asarray(s_deployed, float), np.asarray(s_candidate, float)
-    keep_d, keep_c = np.isfinite(y_d), np.isfinite(y_c)
-    y_d, s_d, y_c, s_c = y_d[keep_d], s_d[keep_d], y_c[keep_c], s_c[keep_c]
+    y_d, y_c, s_d, s_c = _finite_episodes(deployed, candidate, s_deployed, s_candidate)
     full = ancova_confidence(y_d, y_c, s_d, s_c)
     if full is None:
         return unpaired_confidence(y_d, y_c)
@@ -368,16 +376,14 @@ def relative_screen(
     :func:`adjusted_confidence` is the test for the decision; on two or three episodes its
     fitted intercept extrapolates between starts that do not overlap (session 14, `lq`: a
     candidate 3-7% cheaper relative to its two small starts scored 0.45 against theta0's two
-    larger ones, at one degree of freedom, and was never run again), and the raw costs of :func:`unpaired_confidence`
-    judge the starts' luck (a candidate run once from a costly start looked dearer than
-    theta0, whatever its theta). The ratio of means is the cost model of a start that costs in
-    proportion to its covariate, which the covariate is built to be (theta0's cost from that
-    start); unlike the mean of the ratios it is not carried by a start near the equilibrium
-    (a tiny ``s``). Without a positive covariate on every episode, the raw means."""
-    y_d, y_c = np.asarray(deployed, float), np.asarray(candidate, float)
-    s_d, s_c = np.asarray(s_deployed, float), np.asarray(s_candidate, float)
-    keep_d, keep_c = np.isfinite(y_d), np.isfinite(y_c)
-    y_d, s_d, y_c, s_c = y_d[keep_d], s_d[keep_d], y_c[keep_c], s_c[keep_c]
+    larger ones, at one degree of freedom, and was never run again), and the raw costs of
+    :func:`unpaired_confidence` judge the starts' luck (a candidate run once from a costly
+    start looked dearer than theta0, whatever its theta). The ratio of means is the cost
+    model of a start that costs in proportion to its covariate, which the covariate is built
+    to be (theta0's cost from that start); unlike the mean of the ratios it is not carried by
+    a start near the equilibrium (a tiny ``s``). Without a positive covariate on every
+    episode, the raw means."""
+    y_d, y_c, s_d, s_c = _finite_episodes(deployed, candidate, s_deployed, s_candidate)
     if len(y_d) == 0 or len(y_c) == 0:
         return 0.0
     s_ok = np.all(np.isfinite(s_d)) and np.all(np.isfinite(s_c))
