@@ -82,8 +82,8 @@ def collect(args: argparse.Namespace) -> None:
     out: dict = {"start_cost": s, "thetas": {}}
     for ti, name in enumerate(names):
         th = thetas[name]
-        rec: dict = {"theta": th.tolist(), "free_f1": [], "free_sc": [], "noisy_f1": []}
-        rec["noisy_sc"] = []
+        rec: dict = {"theta": th.tolist()}
+        rec.update({k: [] for k in ("free_f1", "free_sc", "noisy_f1", "noisy_sc")})
         for i, x0 in enumerate(ev.starts):
             r = rollout(
                 system, mpc, th, x0, ev.steps, sensitivities=False, plant_seed=ev.plant_seed(i)
@@ -166,7 +166,10 @@ def main() -> None:
     a.add_argument("--json", type=Path, required=True)
     a.add_argument("--better", type=float, default=0.8, help="J ratio that counts as better")
     args = ap.parse_args()
-    collect(args) if args.step == "collect" else analyse(args)
+    if args.step == "collect":
+        collect(args)
+    else:
+        analyse(args)
 
 
 if __name__ == "__main__":
