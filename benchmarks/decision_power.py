@@ -64,10 +64,8 @@ def thetas_of(runs: list[Path], theta0: np.ndarray) -> dict[str, np.ndarray]:
 
 def collect(args: argparse.Namespace) -> None:
     settings = load_settings(args.runs[0] / "config.toml")
-    ev_settings = settings.evaluation.model_copy(update={"n_starts": 100, "seed": FRESH_SEED})
-    settings = settings.model_copy(update={"evaluation": ev_settings})
     system = build_system(settings)
-    ev = make_evaluator(settings, system)
+    ev = make_evaluator(settings, system, n_starts=100, seed=FRESH_SEED)
     mpc = ev.mpc()
     theta0 = mpc.check_theta(None)
     thetas = thetas_of(args.runs, theta0)

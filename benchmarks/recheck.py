@@ -43,13 +43,8 @@ def _thetas(df: pd.DataFrame) -> dict[str, tuple[np.ndarray, float]]:
 def recheck(out: Path, starts: int, seed: int, only_seeds: list[int] | None) -> list[dict]:
     """The recheck rows of one run directory (one per learner, seed and theta)."""
     settings = load_settings(out / "config.toml")
-    settings = settings.model_copy(
-        update={
-            "evaluation": settings.evaluation.model_copy(update={"n_starts": starts, "seed": seed})
-        }
-    )
     system = build_system(settings)
-    ev = make_evaluator(settings, system)
+    ev = make_evaluator(settings, system, n_starts=starts, seed=seed)
     summary = json.loads((out / "summary.json").read_text())
     df = pd.read_parquet(out / "episodes.parquet")
 

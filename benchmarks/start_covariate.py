@@ -65,12 +65,8 @@ def main() -> None:
     args = ap.parse_args()
 
     settings = load_settings(args.out[0] / "config.toml")
-    ev_settings = settings.evaluation.model_copy(
-        update={"n_starts": args.starts, "seed": FRESH_SEED}
-    )
-    settings = settings.model_copy(update={"evaluation": ev_settings})
     system = build_system(settings)
-    ev = make_evaluator(settings, system)
+    ev = make_evaluator(settings, system, n_starts=args.starts, seed=FRESH_SEED)
     mpc = ev.mpc()
     theta0 = mpc.check_theta(None)
     thetas = thetas_of(args.out, theta0)

@@ -115,14 +115,21 @@ def no_J_star_reason(system: System) -> str:
 
 
 def make_evaluator(
-    settings: Settings, system: System, plant: gymnasium.Env | None = None
+    settings: Settings,
+    system: System,
+    plant: gymnasium.Env | None = None,
+    *,
+    n_starts: int | None = None,
+    seed: int | None = None,
 ) -> Evaluator:
-    """The evaluator of a study's settings (``[evaluation]``, the MPC options, the plant)."""
+    """The evaluator of a study's settings (``[evaluation]``, the MPC options, the plant);
+    ``n_starts`` and ``seed``, if given, in place of the settings' (e.g. fresh starts to
+    recheck thetas on, apart from the evaluation's)."""
     ev = settings.evaluation
     return Evaluator(
         system,
-        n_starts=ev.n_starts,
-        seed=ev.seed,
+        n_starts=ev.n_starts if n_starts is None else n_starts,
+        seed=ev.seed if seed is None else seed,
         steps=ev.steps if ev.steps is not None else settings.steps,
         mpc_options=settings.mpc.options(),
         plant=build_plant(settings, system) if plant is None and settings.system.plant else plant,
