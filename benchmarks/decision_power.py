@@ -21,6 +21,12 @@ to ``--json`` after every theta.
 * over all ordered pairs, 6 episodes a side (100 draws): the same rates for exploring and for
   noise-free episodes (does measuring a theta without exploration noise help the test?).
 
+Session 15 (``docs/benchmarks.md``, "Longer runs, and a start model for the hot spots"):
+``--covariate`` swaps the test's covariate for ``oracle`` (theta0's noise-free plant cost from
+each start, a perfect start model) or ``learned`` (:func:`start_effect`, fitted on the
+decision's episodes and ``--extra`` others), and the table adds the power at a false rate of 1%
+and 3%; ``--hot-spots`` shows where theta0's plant cost exceeds three times its start cost.
+
     .venv/bin/python benchmarks/decision_power.py collect --json cstr.json runs/bo-rand-a \
         runs/mobo-rand-a
     .venv/bin/python benchmarks/decision_power.py analyse --json cstr.json --better 0.8
