@@ -41,12 +41,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mpcmobo.experiment.evaluation import make_evaluator
-from mpcmobo.experiment.settings import build_system, load_settings
+from mpcmobo.experiment.evaluation import Evaluator, make_evaluator
+from mpcmobo.experiment.settings import Settings, build_system, load_settings
 from mpcmobo.learners.deploy import adjusted_confidence
 from mpcmobo.mpc import model_plant, model_rollout, rollout
 from mpcmobo.rl.exploration import GaussianExploration
 from mpcmobo.rl.objectives import f1_closed_loop_cost, mean_stage_cost
+from mpcmobo.systems.base import System
 
 FRESH_SEED = 4242  # as benchmarks/recheck.py: apart from the evaluation's starts
 COVARIATES = ("start_cost", "oracle", "learned")
@@ -70,10 +71,15 @@ def thetas_of(runs: list[Path], theta0: np.ndarray) -> dict[str, np.ndarray]:
     return thetas
 
 
-def collect(args: argparse.Namespace) -> None:
-    settings = load_settings(args.runs[0] / "config.toml")
+def fresh_evaluator(config: Path) -> tuple[Settings, System, Evaluator]:
+    """A run's settings and system, and an evaluator on 100 fresh starts (``FRESH_SEED``)."""
+    settings = load_settings(config)
     system = build_system(settings)
-    ev = make_evaluator(settings, system, n_starts=100, seed=FRESH_SEED)
+    return settings, system, make_evaluator(settings, system, n_starts=100, seed=FRESH_SEED)
+
+
+def collect(args: argparse.Namespace) -> None:
+    settings, system, ev = fresh_evaluator(args.runs[0] / "config.toml")
     mpc = ev.mpc()
     theta0 = mpc.check_theta(None)
     thetas = thetas_of(args.runs, theta0)
@@ -138,12 +144,14 @@ def start_effect(x: np.ndarray, y: np.ndarray, group: np.ndarray, n_test: int) -
             Ki = np.linalg.inv(K)
             err = float(np.mean((Ki @ (y - y.mean()) / np.diag(Ki)) ** 2))
             if best is None or err < best[0]:
-                best = (err, Kg, K)
-    _, Kg, K = best
+                best = (err, Kg, Ki)
+    _, Kg, Ki = best
     g = np.empty(n_test)
     for i in range(n_test):
         m = np.arange(len(y)) != i
-        g[i] = Kg[i, m] @ np.linalg.solve(K[np.ix_(m, m)], y[m] - y[m].mean())
+        # K without episode i, inverted from Ki (the block inverse), not solved again
+        Ki_m = Ki[np.ix_(m, m)] - np.outer(Ki[m, i], Ki[i, m]) / Ki[i, i]
+        g[i] = Kg[i, m] @ Ki_m @ (y[m] - y[m].mean())
     return np.exp(g)
 
 
@@ -208,9 +216,7 @@ def starts_of(d: dict, config: Path | None) -> tuple[np.ndarray, list[str]]:
         return np.asarray(d["starts"], float), list(d["state_names"])
     if config is None:
         raise SystemExit("this JSON has no starts: give --starts-config (a run's config.toml)")
-    settings = load_settings(config)
-    system = build_system(settings)
-    ev = make_evaluator(settings, system, n_starts=100, seed=FRESH_SEED)
+    _, system, ev = fresh_evaluator(config)
     return np.asarray(ev.starts, float), list(system.state_names)
 
 
