@@ -102,6 +102,71 @@ def test_gp_learners_verify_a_screened_candidate(learner):
     assert default._verify_z is None or not np.allclose(default._verify_z, cand)
 
 
+@pytest.mark.parametrize("learner", ["bo", "mobo"])
+def test_first_screens_only_single_episodes(learner):
+    """``deploy_screen = "first"`` (session 16): session 15's `lq` trace, theta0's only
+    episode from a cheap start and a candidate's first from a costly one, cheaper relative to
+    it. The default's test falls back to the raw costs there (0: the candidate is dropped and
+    never run again); "first" screens it on the relative cost (0.5: run again). From two
+    episodes a side it is the test, like the default."""
+    lq = get_system("lq")
+    space, theta0 = lq.search_space, lq.parameterization.theta0
+    z0 = space.to_unit(theta0)
+    cand = z0.copy()
+    cand[1] += 0.05
+    theta_c = space.from_unit(cand, base=theta0)
+    first = make_learner(learner, space, theta0, seed=0, deploy_screen="first", **FAST)
+    default = make_learner(learner, space, theta0, seed=0, **FAST)
+    for lr in (first, default):
+        _observe(lr, theta0, 0.72 * 0.1, 0.1)
+        _observe(lr, theta_c, 0.70 * 0.8, 0.8)
+    assert default._paired_cost(cand, z0) == 0.0
+    assert first._paired_cost(cand, z0) == 0.5
+    np.testing.assert_allclose(first._verify_z, cand)
+    assert first._verification()[0] == "verify"  # then theta0, alternating (baseline)
+    for lr in (first, default):
+        _observe(lr, theta0, 0.72 * 0.5, 0.5)
+        _observe(lr, theta_c, 0.71 * 0.2, 0.2)
+    test = adjusted_confidence([0.072, 0.36], [0.56, 0.142], [0.1, 0.5], [0.8, 0.2])
+    assert first._paired_cost(cand, z0) == pytest.approx(test)
+    assert default._paired_cost(cand, z0) == pytest.approx(test)
+    assert first.state_dict()["deploy_screen"] == "first"
+
+
+def _run_with_theta0_best(lr, space, theta0, episodes):
+    """Random starts on a cost proportional to the start, lowest at theta0."""
+    z0 = space.to_unit(theta0)
+    rng = np.random.default_rng(0)
+    for _ in range(episodes):
+        theta = lr.propose()
+        s = float(rng.uniform(0.1, 1.0))
+        _observe(lr, theta, 0.72 * s * (1.0 + np.sum((space.to_unit(theta) - z0) ** 2)), s)
+    return lr
+
+
+def test_early_baseline_runs_the_deployed_theta_between_searches():
+    """``deploy_baseline = "early"`` (session 16): after the initial design the deployed theta
+    is run again, alternating with the search, until it has ``deploy_min_runs`` (6 under random
+    starts) episodes, then the search goes on alone; the default runs it only to match a
+    verified candidate (none here: theta0 is the cheapest)."""
+    lq = get_system("lq")
+    space, theta0 = lq.search_space, lq.parameterization.theta0
+    early = make_learner("bo", space, theta0, seed=0, deploy_baseline="early", **FAST)
+    _run_with_theta0_best(early, space, theta0, 16)
+    kinds = early.proposal_kinds_
+    assert kinds[:3] == ["design"] * 3
+    assert kinds[3:13] == ["baseline", "search"] * 5  # theta0: 1 design + 5 baseline episodes
+    assert kinds[13:] == ["search"] * 3
+    assert early._runs(space.to_unit(theta0)) == 6
+    assert early.state_dict()["deploy_baseline"] == "early"
+
+    default = make_learner("bo", space, theta0, seed=0, **FAST)
+    _run_with_theta0_best(default, space, theta0, 16)
+    assert "baseline" not in default.proposal_kinds_
+    with pytest.raises(ValueError, match="deploy_baseline.*'verify', 'early'"):
+        make_learner("bo", space, theta0, deploy_baseline="always")
+
+
 def test_bad_deploy_screen_names_the_option():
     lq = get_system("lq")
     with pytest.raises(ValueError, match="deploy_screen.*'test', 'relative'"):

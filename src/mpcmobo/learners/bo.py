@@ -132,7 +132,20 @@ decides from ``deploy_min_runs`` a side. With ``"test"`` the start-adjusted test
 from its first episodes, and on two or three of them drops good candidates for good (an
 intercept fitted to non-overlapping starts). The screen lets more candidates reach the test,
 and on the CSTR more decisions meant one false deployment in 30 jobs: measured in
-``docs/benchmarks.md``, "Screening candidates relative to their starts".
+``docs/benchmarks.md``, "Screening candidates relative to their starts". ``deploy_screen =
+"first"`` (session 16) screens relatively only while a side has a single episode, where the
+test has no degrees of freedom and falls back to the raw costs (the start's luck), and leaves
+the rest to the test.
+
+``deploy_baseline`` (session 16, opt-in; default ``"verify"``): under random starts the
+deployed theta is run again ("baseline") only to match a verified candidate's evidence. With
+``"early"`` it is also run, alternating with the search, until it has ``deploy_min_runs``
+episodes, so that candidates are screened against evidence on it rather than against its one
+episode from the design: on `lq` theta0's only episode came from a lucky start (cost 0.65 of
+its start cost, against about 0.72 from most starts), no candidate looked better, and none
+was ever run twice (session 15). Measured with ``deploy_screen = "first"``
+(``benchmarks/configs/deploy_baseline_early.toml``) in ``docs/benchmarks.md``, "The deployed
+theta's evidence first".
 
 ``trust_center`` and ``deploy_paired`` (session 9, issue 11; opt-in, defaults ``"deployed"`` and
 ``"every"``, the rules above): ``trust_center = "candidate"`` centres the trust region at the
@@ -196,6 +209,7 @@ from mpcmobo.bo.trust import TrustState, trust_region_from_option
 from mpcmobo.learners.base import EpisodeResult, Learner, check_choice
 from mpcmobo.learners.deploy import (
     ADJUST_MODES,
+    BASELINE_MODES,
     PAIRED_MODES,
     SCREEN_MODES,
     DeployRule,
@@ -469,10 +483,12 @@ class _GPLearner(Learner):
         deploy_paired: str = PAIRED_DEFAULT,
         deploy_adjust: str = "start_cost",
         deploy_screen: str = "test",
+        deploy_baseline: str = "verify",
         **removed: Any,
     ) -> None:
         self.deploy_adjust = check_choice("deploy_adjust", deploy_adjust, ADJUST_MODES)
         self.deploy_screen = check_choice("deploy_screen", deploy_screen, SCREEN_MODES)
+        self.deploy_baseline = check_choice("deploy_baseline", deploy_baseline, BASELINE_MODES)
         self.search_radius = _check_radius(search_radius)
         self.local_fit = _check_local_fit(local_fit)
         self.trust_center = check_choice("trust_center", trust_center, TRUST_CENTERS)
@@ -1014,9 +1030,11 @@ class _GPLearner(Learner):
         if not d:
             if self._unpaired_cost():  # random starts: the two thetas' own costs, unpaired
                 if self.deploy_adjust == "start_cost":  # ... adjusted for their starts
-                    few = min(len(own), len(rows)) < self.deploy_rule.min_runs
+                    least = min(len(own), len(rows))
                     # too few episodes for the test: screened (never deployed), if asked
-                    screen = self.deploy_screen == "relative" and few
+                    screen = (
+                        self.deploy_screen == "relative" and least < self.deploy_rule.min_runs
+                    ) or (self.deploy_screen == "first" and least < 2)
                     judge = relative_screen if screen else adjusted_confidence
                     return judge(self.Y_[own, 0], self.Y_[rows, 0], self.S0_[own], self.S0_[rows])
                 return unpaired_confidence(self.Y_[own, 0], self.Y_[rows, 0])
@@ -1154,9 +1172,24 @@ class _GPLearner(Learner):
             return self._proposed("design", u if box is None else box[0] + (box[1] - box[0]) * u)
         if self._verify_z is not None:
             return self._proposed(*self._verification())
+        if self._early_baseline():
+            return self._proposed("baseline", self._incumbent_z.copy())
         if self.safe_mode:
             return self._theta(self._acquire_safe(self._next_seed()))
         return self._proposed("search", self._acquire(self._next_seed()))
+
+    def _early_baseline(self) -> bool:
+        """``deploy_baseline = "early"`` (session 16): under random starts with the unpaired
+        test, the deployed theta is run again, alternating with the search, until it has
+        ``deploy_min_runs`` episodes, so that a candidate's first episodes are screened
+        against evidence rather than against the deployed theta's single, luck-of-the-start
+        episode."""
+        if self.deploy_baseline != "early" or not self._unpaired_cost():
+            return False
+        kinds = self.proposal_kinds_
+        if kinds and kinds[-1] == "baseline":  # alternate with the search
+            return False
+        return self._runs(self._incumbent_z) < self.deploy_rule.min_runs
 
     def _proposed(self, kind: str, z: np.ndarray) -> np.ndarray:
         """Record what the proposal is (``proposal_kinds_``) and return its theta."""
@@ -1270,6 +1303,7 @@ class _GPLearner(Learner):
                 "start_costs": self.S0_.copy(),
                 "deploy_adjust": self.deploy_adjust,
                 "deploy_screen": self.deploy_screen,
+                "deploy_baseline": self.deploy_baseline,
                 "violation_budget": self.budget_,
                 "design": self._design_version,
                 "proposal_kinds": list(self.proposal_kinds_),
@@ -1328,6 +1362,7 @@ class _GPLearner(Learner):
         self.S0_ = np.array(state.get("start_costs", np.full(len(self.Z_), np.nan)), float)
         self.deploy_adjust = state.get("deploy_adjust", "none")
         self.deploy_screen = state.get("deploy_screen", "test")  # absent before session 14
+        self.deploy_baseline = state.get("deploy_baseline", "verify")  # absent before session 16
         b = state.get("violation_budget", self.budget_)
         self.budget_ = None if b is None else float(b)
         self._incumbent_z = np.array(state["incumbent_z"], float)

@@ -44,8 +44,13 @@ PAIRED_MODES = ("every", "mean", "cost")
 # adjusted_confidence: theta0's cost from that start on the MPC's own model)
 ADJUST_MODES = ("start_cost", "none")
 # deploy_screen (session 14): below deploy_min_runs a side, a candidate is screened by the test
-# itself ("test") or on its cost relative to its starts ("relative", relative_screen)
-SCREEN_MODES = ("test", "relative")
+# itself ("test") or on its cost relative to its starts ("relative", relative_screen); session
+# 16, "first": relatively only while a side has a single episode (where the test has no
+# degrees of freedom and compares raw costs), by the test from two a side
+SCREEN_MODES = ("test", "relative", "first")
+# deploy_baseline (session 16): the deployed theta is run again to match a verified candidate
+# ("verify"), or also after every search episode until it has deploy_min_runs ("early")
+BASELINE_MODES = ("verify", "early")
 
 
 @dataclass(frozen=True)
