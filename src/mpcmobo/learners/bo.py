@@ -1030,16 +1030,18 @@ class _GPLearner(Learner):
         if not d:
             if self._unpaired_cost():  # random starts: the two thetas' own costs, unpaired
                 if self.deploy_adjust == "start_cost":  # ... adjusted for their starts
-                    least = min(len(own), len(rows))
-                    # too few episodes for the test: screened (never deployed), if asked
-                    screen = (
-                        self.deploy_screen == "relative" and least < self.deploy_rule.min_runs
-                    ) or (self.deploy_screen == "first" and least < 2)
+                    # too few episodes a side for the test: screened (never deployed), if asked
+                    screen = min(len(own), len(rows)) < self._screened_below()
                     judge = relative_screen if screen else adjusted_confidence
                     return judge(self.Y_[own, 0], self.Y_[rows, 0], self.S0_[own], self.S0_[rows])
                 return unpaired_confidence(self.Y_[own, 0], self.Y_[rows, 0])
             return self._paired_mean(z, current) if len(rows) else 0.0
         return paired_confidence(np.asarray(d))
+
+    def _screened_below(self) -> int:
+        """``deploy_screen``'s reach: a candidate is screened relatively while a side has
+        fewer episodes than this ("test": never; "first": one; "relative": ``deploy_min_runs``)."""
+        return {"test": 0, "first": 2, "relative": self.deploy_rule.min_runs}[self.deploy_screen]
 
     def _unpaired_cost(self) -> bool:
         """``deploy_paired = "cost"`` with random starts (since session 11): a candidate's

@@ -49,7 +49,7 @@ ADJUST_MODES = ("start_cost", "none")
 # degrees of freedom and compares raw costs), by the test from two a side
 SCREEN_MODES = ("test", "relative", "first")
 # deploy_baseline (session 16): the deployed theta is run again to match a verified candidate
-# ("verify"), or also after every search episode until it has deploy_min_runs ("early")
+# ("verify"), or also alternating with the search until it has deploy_min_runs ("early")
 BASELINE_MODES = ("verify", "early")
 
 
