@@ -253,3 +253,44 @@ def test_auto_with_a_single_cycled_start(lq):
     for f in (0.5, 0.52, 0.49):
         _observe(lr, space.from_unit(good, base=theta0), f, 0)
     np.testing.assert_allclose(lr._incumbent_z, good)
+
+
+@pytest.mark.parametrize("learner", ["bo", "mobo"])
+def test_coverage_starts_needs_every_start_of_the_cycle(lq, learner):
+    """``deploy_coverage = "starts"`` (session 17, opt-in): theta0 from the five cycled
+    starts, then a candidate far cheaper from starts 0-2, twice each (six matched episodes,
+    ``deploy_min_runs`` = 5 after the wrap), never from starts 3 and 4. The default counts
+    episodes and deploys it on that evidence (CSTR seed 9 under cycled starts: a theta worse
+    than theta0 on 100 fresh starts, deployed without an episode from the start that carries
+    most of theta0's cost); "starts" counts three starts, keeps theta0 and verifies the
+    candidate, and deploys it once it has been run from the two starts it lacked."""
+    space, theta0 = lq
+    z0 = space.to_unit(theta0)
+    good = z0.copy()
+    good[0] = z0[0] + 0.1
+    cand = space.from_unit(good, base=theta0)
+    got = {}
+    for coverage in ("episodes", "starts"):
+        lr = make_learner(learner, space, theta0, seed=0, trust_region="off",
+                          deploy_coverage=coverage, **FAST)  # fmt: skip
+        for s in range(5):
+            _observe(lr, theta0, BASE[s], s)
+        for s in (0, 1, 2, 0, 1, 2):
+            _observe(lr, cand, 0.3 * BASE[s], s)
+        assert lr.deploy_rule.min_runs == 5
+        got[coverage] = lr
+    np.testing.assert_allclose(got["episodes"]._incumbent_z, good)
+    starts = got["starts"]
+    assert starts._matched_runs(good) == 3  # distinct starts, short of the cycle
+    np.testing.assert_array_equal(starts._incumbent_z, z0)
+    np.testing.assert_allclose(starts._verify_z, good)  # run again
+    assert starts.state_dict()["deploy_coverage"] == "starts"
+    for s in (3, 4):
+        _observe(starts, cand, 0.3 * BASE[s], s)
+    assert starts._matched_runs(good) == 8  # every start: the episodes count (deploy_max_runs)
+    np.testing.assert_allclose(starts._incumbent_z, good)
+    old = make_learner(learner, space, theta0, seed=0, deploy_coverage="starts", **FAST)
+    old.load_state_dict({k: v for k, v in starts.state_dict().items() if k != "deploy_coverage"})
+    assert old.deploy_coverage == "episodes"  # a checkpoint from before keeps its rule
+    with pytest.raises(ValueError, match="deploy_coverage.*'episodes', 'starts'"):
+        make_learner(learner, space, theta0, deploy_coverage="all")

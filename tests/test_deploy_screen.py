@@ -5,9 +5,10 @@ until each has ``deploy_min_runs`` episodes; the start-adjusted test
 (:func:`~mpcmobo.learners.deploy.adjusted_confidence`) then decides. With ``deploy_screen =
 "relative"`` (opt-in) the candidate is only screened before that point
 (:func:`~mpcmobo.learners.deploy.relative_screen`): kept while its cost relative to its starts is
-below the deployed theta's. The test itself (the default, ``"test"``) on two or three episodes
-drops good candidates for good: its intercept extrapolates between starts that do not overlap,
-and a dropped candidate is never run again.
+below the deployed theta's. The test itself (``"test"``) on two or three episodes drops good
+candidates for good: its intercept extrapolates between starts that do not overlap, and a
+dropped candidate is never run again. The default since session 17, ``"first"``, screens
+relatively only at one episode a side, where the test has no degrees of freedom.
 """
 
 from __future__ import annotations
@@ -63,8 +64,8 @@ def _observe(lr, theta, f1, s):
 def test_gp_learners_verify_a_screened_candidate(learner):
     """A bo / mobo learner with ``deploy_screen = "relative"`` and those episodes keeps
     verifying the candidate (the next verification; the deployed theta is kept); the default
-    and a checkpoint from before session 14 judge it by the test on few episodes, and drop
-    it."""
+    ("first", with two episodes a side here) and a checkpoint from before session 14 judge it
+    by the test on few episodes, and drop it."""
     lq = get_system("lq")
     space, theta0 = lq.search_space, lq.parameterization.theta0
     z0 = space.to_unit(theta0)
@@ -104,19 +105,19 @@ def test_gp_learners_verify_a_screened_candidate(learner):
 
 @pytest.mark.parametrize("learner", ["bo", "mobo"])
 def test_first_screens_only_single_episodes(learner):
-    """``deploy_screen = "first"`` (session 16): session 15's `lq` trace, theta0's only
-    episode from a cheap start and a candidate's first from a costly one, cheaper relative to
-    it. The default's test falls back to the raw costs there (0: the candidate is dropped and
-    never run again); "first" screens it on the relative cost (0.5: run again). From two
-    episodes a side it is the test, like the default."""
+    """``deploy_screen = "first"`` (session 16, the default since session 17): session 15's
+    `lq` trace, theta0's only episode from a cheap start and a candidate's first from a costly
+    one, cheaper relative to it. ``"test"`` (the default before) falls back to the raw costs
+    there (0: the candidate is dropped and never run again); "first" screens it on the
+    relative cost (0.5: run again). From two episodes a side it is the test, like "test"."""
     lq = get_system("lq")
     space, theta0 = lq.search_space, lq.parameterization.theta0
     z0 = space.to_unit(theta0)
     cand = z0.copy()
     cand[1] += 0.05
     theta_c = space.from_unit(cand, base=theta0)
-    first = make_learner(learner, space, theta0, seed=0, deploy_screen="first", **FAST)
-    default = make_learner(learner, space, theta0, seed=0, **FAST)
+    first = make_learner(learner, space, theta0, seed=0, **FAST)  # the default
+    default = make_learner(learner, space, theta0, seed=0, deploy_screen="test", **FAST)
     for lr in (first, default):
         _observe(lr, theta0, 0.72 * 0.1, 0.1)
         _observe(lr, theta_c, 0.70 * 0.8, 0.8)
@@ -145,13 +146,14 @@ def _run_with_theta0_best(lr, space, theta0, episodes):
 
 
 def test_early_baseline_runs_the_deployed_theta_between_searches():
-    """``deploy_baseline = "early"`` (session 16): after the initial design the deployed theta
-    is run again, alternating with the search, until it has ``deploy_min_runs`` (6 under random
-    starts) episodes, then the search goes on alone; the default runs it only to match a
-    verified candidate (none here: theta0 is the cheapest)."""
+    """``deploy_baseline = "early"`` (session 16, the default since session 17): after the
+    initial design the deployed theta is run again, alternating with the search, until it has
+    ``deploy_min_runs`` (6 under random starts) episodes, then the search goes on alone;
+    ``"verify"`` (the default before) runs it only to match a verified candidate (none here:
+    theta0 is the cheapest)."""
     lq = get_system("lq")
     space, theta0 = lq.search_space, lq.parameterization.theta0
-    early = make_learner("bo", space, theta0, seed=0, deploy_baseline="early", **FAST)
+    early = make_learner("bo", space, theta0, seed=0, **FAST)  # the default
     _run_with_theta0_best(early, space, theta0, 16)
     kinds = early.proposal_kinds_
     assert kinds[:3] == ["design"] * 3
@@ -160,9 +162,9 @@ def test_early_baseline_runs_the_deployed_theta_between_searches():
     assert early._runs(space.to_unit(theta0)) == 6
     assert early.state_dict()["deploy_baseline"] == "early"
 
-    default = make_learner("bo", space, theta0, seed=0, **FAST)
-    _run_with_theta0_best(default, space, theta0, 16)
-    assert "baseline" not in default.proposal_kinds_
+    verify = make_learner("bo", space, theta0, seed=0, deploy_baseline="verify", **FAST)
+    _run_with_theta0_best(verify, space, theta0, 16)
+    assert "baseline" not in verify.proposal_kinds_
     with pytest.raises(ValueError, match="deploy_baseline.*'verify', 'early'"):
         make_learner("bo", space, theta0, deploy_baseline="always")
 

@@ -235,6 +235,77 @@ def test_hybrid_gradient_step_goes_downhill_from_the_incumbent():
     assert inside.sum() >= space.dim - 2
 
 
+def _hybrid_with_incumbent_runs(grads, **options):
+    """A hybrid learner after its design (theta0 best, one Sobol point worse) with theta0 run
+    once per gradient of ``grads``; the next proposal is due to be a gradient step."""
+    s = get_system("lq")
+    space, theta0 = s.search_space, s.parameterization.theta0
+    hybrid = make_learner("hybrid", space, theta0, seed=0, n_init=2, **options)
+    for k, g in enumerate(grads[:2]):  # the design: theta0 and a Sobol point
+        hybrid.observe(hybrid.propose(), _result(g, f=(1.0 + k, 2.0 - k, 0.0, 0.0)))
+    for g in grads[2:]:  # theta0 again (as baseline episodes would)
+        hybrid.observe(theta0, _result(g, f=(1.0, 2.0, 0.0, 0.0)))
+    hybrid.n_proposals_ = 2  # the next proposal is the third: a gradient step
+    return hybrid, space
+
+
+def test_hybrid_gradient_step_averages_the_incumbents_episodes_and_is_not_repeated():
+    """Session 17 (opt-in): the step is taken from the mean gradient of the incumbent's episodes (here
+    theta0's two, with gradients g1 and g2; the Sobol point's gradient is not theta0's), and
+    once that step has been run and the incumbent has not changed, the next due gradient step
+    (the same theta) is not taken again: the GP proposes instead (``hybrid_gradient =
+    "mean"``). The default, ``"first"``, steps from the first episode's gradient, and repeats
+    it."""
+    g1 = np.array([0.0, -0.3, 0.2, 0.1, -0.4, 0.05, 0.2, -0.1, 0.3])
+    g2 = np.array([0.0, 0.5, 0.4, -0.3, 0.0, 0.25, -0.2, 0.3, 0.1])
+    other = np.array([0.0, 9.0, -9.0, 9.0, 9.0, -9.0, 9.0, 9.0, -9.0])
+    hybrid, space = _hybrid_with_incumbent_runs([g1, other, g2], hybrid_gradient="mean")
+    z_inc = space.to_unit(hybrid.incumbent())
+    theta = hybrid.propose()
+    assert hybrid.proposal_kinds_[-1] == "gradient"
+    gz = (g1 + g2)[space.free] / 2 * space.dtheta_dz(hybrid.incumbent())
+    step = space.to_unit(theta) - z_inc
+    inside = (step != 0) & (space.to_unit(theta) > 1e-12) & (space.to_unit(theta) < 1 - 1e-12)
+    assert inside.sum() >= space.dim - 2
+    np.testing.assert_allclose(
+        step[inside], (-hybrid.hybrid_step * gz / np.abs(gz).max())[inside], rtol=1e-9
+    )
+    hybrid.observe(theta, _result(g1, f=(50.0, 50.0, 0.0, 0.0)))  # a bad step
+    hybrid.n_proposals_ = 5  # the next proposal is due to be a gradient step again
+    again = hybrid.propose()
+    assert hybrid.proposal_kinds_[-1] != "gradient"
+    assert not np.allclose(again, theta)
+
+    first, _ = _hybrid_with_incumbent_runs([g1, other, g2])  # the default
+    assert first.hybrid_gradient == "first"
+    theta_first = first.propose()
+    gz1 = g1[space.free] * space.dtheta_dz(first.incumbent())
+    assert (space.to_unit(theta_first) - z_inc) @ gz1 < 0
+    assert not np.allclose(theta_first, theta)
+    first.observe(theta_first, _result(g1, f=(50.0, 50.0, 0.0, 0.0)))
+    first.n_proposals_ = 5
+    np.testing.assert_array_equal(first.propose(), theta_first)  # the same step again
+    assert first.proposal_kinds_[-1] == "gradient"
+
+
+def test_hybrid_gradient_option_is_checked_and_resumed():
+    """A bad ``hybrid_gradient`` names the option; a checkpoint from before session 17 (no
+    ``hybrid_gradient`` key) resumes with the rule it was started with, "first"."""
+    s = get_system("lq")
+    space, theta0 = s.search_space, s.parameterization.theta0
+    with pytest.raises(ValueError, match="hybrid_gradient.*'mean', 'first'"):
+        make_learner("hybrid", space, theta0, hybrid_gradient="last")
+    hybrid = make_learner("hybrid", space, theta0, seed=0, hybrid_gradient="mean")
+    state = hybrid.state_dict()
+    assert state["hybrid_gradient"] == "mean"
+    again = make_learner("hybrid", space, theta0, seed=0)
+    again.load_state_dict(state)  # the checkpoint's rule wins
+    assert again.hybrid_gradient == "mean"
+    old = make_learner("hybrid", space, theta0, seed=0, hybrid_gradient="mean")
+    old.load_state_dict({k: v for k, v in state.items() if k != "hybrid_gradient"})
+    assert old.hybrid_gradient == "first"
+
+
 def test_mpc_rl_keeps_stepping_but_deploys_its_best_verified_iterate():
     """MPC-RL with the pooled judge: with a constant gradient its iterate walks on; the
     episodes' costs (from random starts, whose effect is larger than theta's) fall over the

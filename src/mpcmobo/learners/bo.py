@@ -124,8 +124,8 @@ starts are unchanged (their per-start offsets and paired tests already match the
 is the safe design (it models the start as a context). A checkpoint from before resumes with
 ``"none"``. Measured in ``docs/benchmarks.md``, "Random starts adjusted for their cost".
 
-``deploy_screen`` (session 14, opt-in; default ``"test"``): with ``"relative"``, under random
-starts and ``deploy_adjust = "start_cost"``, a candidate with fewer than ``deploy_min_runs``
+``deploy_screen`` (session 14; default ``"first"`` since session 17): with ``"relative"``,
+under random starts and ``deploy_adjust = "start_cost"``, a candidate with fewer than ``deploy_min_runs``
 episodes (or facing a deployed theta with fewer) is only screened on its cost relative to its
 starts (:func:`~mpcmobo.learners.deploy.relative_screen`: run again or dropped), and the test
 decides from ``deploy_min_runs`` a side. With ``"test"`` the start-adjusted test screens it
@@ -133,19 +133,23 @@ from its first episodes, and on two or three of them drops good candidates for g
 intercept fitted to non-overlapping starts). The screen lets more candidates reach the test,
 and on the CSTR more decisions meant one false deployment in 30 jobs: measured in
 ``docs/benchmarks.md``, "Screening candidates relative to their starts". ``deploy_screen =
-"first"`` (session 16) screens relatively only while a side has a single episode, where the
-test has no degrees of freedom and falls back to the raw costs (the start's luck), and leaves
-the rest to the test.
+"first"`` (session 16, the default since session 17) screens relatively only while a side has
+a single episode, where the test has no degrees of freedom and falls back to the raw costs
+(the start's luck), and leaves the rest to the test. A checkpoint resumes with the rule it was
+started with (``"test"`` before session 17).
 
-``deploy_baseline`` (session 16, opt-in; default ``"verify"``): under random starts the
-deployed theta is run again ("baseline") only to match a verified candidate's evidence. With
+``deploy_baseline`` (session 16; default ``"early"`` since session 17, ``"verify"`` before, and
+a checkpoint resumes with the rule it was started with): under random starts with
+``"verify"`` the deployed theta is run again ("baseline") only to match a verified candidate's evidence. With
 ``"early"`` it is also run, alternating with the search, until it has ``deploy_min_runs``
 episodes, so that candidates are screened against evidence on it rather than against its one
 episode from the design: on `lq` theta0's only episode came from a lucky start (cost 0.65 of
 its start cost, against about 0.72 from most starts), no candidate looked better, and none
 was ever run twice (session 15). Measured with ``deploy_screen = "first"``
 (``benchmarks/configs/deploy_baseline_early.toml``) in ``docs/benchmarks.md``, "The deployed
-theta's evidence first".
+theta's evidence first"; the pair is the default since session 17 (zero regressions on 10 CSTR
+seeds of bo, mobo and hybrid and on `lq`, higher medians). Cycled starts never use either
+option, so their records are unchanged.
 
 ``trust_center`` and ``deploy_paired`` (session 9, issue 11; opt-in, defaults ``"deployed"`` and
 ``"every"``, the rules above): ``trust_center = "candidate"`` centres the trust region at the
@@ -210,6 +214,7 @@ from mpcmobo.learners.base import EpisodeResult, Learner, check_choice
 from mpcmobo.learners.deploy import (
     ADJUST_MODES,
     BASELINE_MODES,
+    COVERAGE_MODES,
     PAIRED_MODES,
     SCREEN_MODES,
     DeployRule,
@@ -223,6 +228,10 @@ from mpcmobo.learners.deploy import (
 from mpcmobo.systems.space import SearchSpace
 
 OBJECTIVES = ("f1", "f2", "f3", "f4")
+# hybrid_gradient (session 17, opt-in): the CDPG step of hybrid from the mean gradient of the
+# incumbent's episodes, never to a theta already run ("mean"), or from the gradient of its
+# nearest episode ("first", the default: while the incumbent stays, the same step again)
+HYBRID_GRADIENTS = ("mean", "first")
 
 
 class _DefaultStr(str):
@@ -482,13 +491,15 @@ class _GPLearner(Learner):
         trust_center: str = "deployed",
         deploy_paired: str = PAIRED_DEFAULT,
         deploy_adjust: str = "start_cost",
-        deploy_screen: str = "test",
-        deploy_baseline: str = "verify",
+        deploy_screen: str = "first",
+        deploy_baseline: str = "early",
+        deploy_coverage: str = "episodes",
         **removed: Any,
     ) -> None:
         self.deploy_adjust = check_choice("deploy_adjust", deploy_adjust, ADJUST_MODES)
         self.deploy_screen = check_choice("deploy_screen", deploy_screen, SCREEN_MODES)
         self.deploy_baseline = check_choice("deploy_baseline", deploy_baseline, BASELINE_MODES)
+        self.deploy_coverage = check_choice("deploy_coverage", deploy_coverage, COVERAGE_MODES)
         self.search_radius = _check_radius(search_radius)
         self.local_fit = _check_local_fit(local_fit)
         self.trust_center = check_choice("trust_center", trust_center, TRUST_CENTERS)
@@ -1084,13 +1095,19 @@ class _GPLearner(Learner):
 
     def _matched_runs(self, z: np.ndarray) -> int:
         """``deploy = "verified"``'s evidence count: with cycled starts, the episodes of ``z``
-        from starts on which the deployed theta was run too (like for like); with random
-        starts (nothing to match), all its episodes."""
+        from starts on which the deployed theta was run too (like for like; with
+        ``deploy_coverage = "starts"`` the number of distinct starts among them while it is below
+        ``deploy_min_runs``, the cycle's length, so that a candidate must have been run from
+        every start); with random starts (nothing to match), all its episodes."""
         rows = self._rows_of(z)
         if not self._cycled():
             return len(rows)
         own = self._deployed_starts()
-        return sum(1 for i in rows if int(self.starts_[i]) in own)
+        matched = [int(self.starts_[i]) for i in rows if int(self.starts_[i]) in own]
+        covered = len(set(matched))
+        if self.deploy_coverage == "starts" and covered < self.deploy_rule.min_runs:
+            return covered  # not yet run from every start: short of deploy_min_runs
+        return len(matched)  # episodes (the cap deploy_max_runs counts these)
 
     def _deployed_starts(self) -> set[int]:
         """The starts from which the deployed theta has been run."""
@@ -1306,6 +1323,7 @@ class _GPLearner(Learner):
                 "deploy_adjust": self.deploy_adjust,
                 "deploy_screen": self.deploy_screen,
                 "deploy_baseline": self.deploy_baseline,
+                "deploy_coverage": self.deploy_coverage,
                 "violation_budget": self.budget_,
                 "design": self._design_version,
                 "proposal_kinds": list(self.proposal_kinds_),
@@ -1365,6 +1383,7 @@ class _GPLearner(Learner):
         self.deploy_adjust = state.get("deploy_adjust", "none")
         self.deploy_screen = state.get("deploy_screen", "test")  # absent before session 14
         self.deploy_baseline = state.get("deploy_baseline", "verify")  # absent before session 16
+        self.deploy_coverage = state.get("deploy_coverage", "episodes")  # absent before session 17
         b = state.get("violation_budget", self.budget_)
         self.budget_ = None if b is None else float(b)
         self._incumbent_z = np.array(state["incumbent_z"], float)
@@ -1413,8 +1432,10 @@ class MOBOLearner(_GPLearner):
     The reference point is fixed once, from the initial design (its nadir plus ``ref_margin``
     times its range per objective, :func:`mpcmobo.bo.reference_point`), and never moves.
     ``hybrid_every = k > 0`` makes every k-th proposal a CDPG gradient step from the incumbent
-    (the gradient observed in the incumbent's episode), uniting BO's global search with the
-    gradient's local refinement (remark of section 4).
+    (by default the gradient observed in the incumbent's nearest episode, re-run while the
+    incumbent stays; ``hybrid_gradient = "mean"``, session 17: the mean of the gradients of
+    the incumbent's episodes, never to a theta already run), uniting BO's global search with
+    the gradient's local refinement (remark of section 4).
 
     The EHVI search (``mc_samples`` quasi-MC samples, ``num_restarts`` L-BFGS-B restarts from
     the best of ``raw_samples`` random points) is halved once ``reduce_effort_after``
@@ -1441,6 +1462,7 @@ class MOBOLearner(_GPLearner):
         direct_samples: bool = False,
         hybrid_every: int = 0,
         hybrid_step: float = 0.05,
+        hybrid_gradient: str = "first",
         log_outcomes: tuple[bool, ...] | None = (True, True, False, False),
         **options: Any,
     ) -> None:
@@ -1458,6 +1480,7 @@ class MOBOLearner(_GPLearner):
             direct_samples=bool(direct_samples),
         )
         self.hybrid_every, self.hybrid_step = int(hybrid_every), float(hybrid_step)
+        self.hybrid_gradient = check_choice("hybrid_gradient", hybrid_gradient, HYBRID_GRADIENTS)
 
     def _init_state(self) -> None:
         super()._init_state()
@@ -1492,18 +1515,36 @@ class MOBOLearner(_GPLearner):
         )
 
     def _gradient_step(self) -> np.ndarray | None:
-        """A normalised CDPG step (eq. theta) from the incumbent, in unit coordinates."""
+        """A normalised CDPG step (eq. theta) from the incumbent, in unit coordinates.
+
+        ``hybrid_gradient = "mean"``: the mean of the CDPG gradients observed in the
+        incumbent's episodes (its estimate over starts), and a step to a theta already run is
+        not taken again (None: the GP proposes instead; it is taken anew once the incumbent's
+        evidence moves the mean). ``"first"`` (the default): the gradient of the incumbent's
+        nearest episode, so while the incumbent stays, every ``hybrid_every``-th proposal
+        re-runs the same step however bad its episodes were.
+        """
         dist = np.linalg.norm(self.Z_ - self._incumbent_z, axis=1)
-        g = self.grads_[int(np.argmin(dist))]
-        if not np.any(g):
+        if self.hybrid_gradient == "first":  # the rule before session 17
+            own = np.arange(len(dist)) == int(np.argmin(dist))
+        else:
+            key = theta_key(self._incumbent_z)
+            own = np.array([theta_key(z) == key for z in self.Z_], dtype=bool)
+        G = self.grads_[own] if np.any(own) else self.grads_[[int(np.argmin(dist))]]
+        G = G[np.any(G != 0, axis=1)]  # episodes with a gradient (non-finite ones are 0)
+        if not len(G):
             return None
         theta = self._theta(self._incumbent_z)
-        gz = g[self.space.free] * self.space.dtheta_dz(theta)
+        gz = G.mean(axis=0)[self.space.free] * self.space.dtheta_dz(theta)
         norm = np.max(np.abs(gz))
         if not np.isfinite(norm) or norm == 0:
             return None
         lo, hi = self._trust_box() or (0.0, 1.0)  # a step stays in the trust region
-        return self._theta(np.clip(self._incumbent_z - self.hybrid_step * gz / norm, lo, hi))
+        z = np.clip(self._incumbent_z - self.hybrid_step * gz / norm, lo, hi)
+        if self.hybrid_gradient == "mean" and any(theta_key(zi) == theta_key(z) for zi in self.Z_):
+            return None  # already run
+            return None
+        return self._theta(z)
 
     def search_effort(self, n: int) -> tuple[EHVIOptions, AcqfSearch]:
         """The EHVI options and search of this learner's proposal after ``n`` observations
@@ -1535,12 +1576,14 @@ class MOBOLearner(_GPLearner):
         d = super().state_dict()
         d["ref_point"] = None if self.ref_point_ is None else self.ref_point_.copy()
         d["n_proposals"] = self.n_proposals_
+        d["hybrid_gradient"] = self.hybrid_gradient
         return d
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from a :meth:`state_dict`."""
         self.ref_point_ = None if state["ref_point"] is None else np.array(state["ref_point"])
         self.n_proposals_ = int(state["n_proposals"])
+        self.hybrid_gradient = state.get("hybrid_gradient", "first")  # absent before session 17
         super().load_state_dict(state)
 
 

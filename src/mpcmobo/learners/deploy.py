@@ -51,6 +51,11 @@ SCREEN_MODES = ("test", "relative", "first")
 # deploy_baseline (session 16): the deployed theta is run again to match a verified candidate
 # ("verify"), or also alternating with the search until it has deploy_min_runs ("early")
 BASELINE_MODES = ("verify", "early")
+# deploy_coverage (session 17): under cycled starts a candidate's evidence counted in matched
+# episodes ("episodes": seven episodes from four of six starts were enough, and a start that
+# carries most of the cost could be missing) or in distinct matched starts ("starts": with
+# deploy_min_runs the cycle's length, a candidate is deployed only once run from every start)
+COVERAGE_MODES = ("episodes", "starts")
 
 
 @dataclass(frozen=True)
