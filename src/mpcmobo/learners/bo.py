@@ -125,10 +125,10 @@ is the safe design (it models the start as a context). A checkpoint from before 
 ``"none"``. Measured in ``docs/benchmarks.md``, "Random starts adjusted for their cost".
 
 ``deploy_screen`` (session 14; default ``"first"`` since session 17): with ``"relative"``,
-under random starts and ``deploy_adjust = "start_cost"``, a candidate with fewer than ``deploy_min_runs``
-episodes (or facing a deployed theta with fewer) is only screened on its cost relative to its
-starts (:func:`~mpcmobo.learners.deploy.relative_screen`: run again or dropped), and the test
-decides from ``deploy_min_runs`` a side. With ``"test"`` the start-adjusted test screens it
+under random starts and ``deploy_adjust = "start_cost"``, a candidate with fewer than
+``deploy_min_runs`` episodes (or facing a deployed theta with fewer) is only screened on its
+cost relative to its starts (:func:`~mpcmobo.learners.deploy.relative_screen`: run again or
+dropped), and the test decides from ``deploy_min_runs`` a side. With ``"test"`` the start-adjusted test screens it
 from its first episodes, and on two or three of them drops good candidates for good (an
 intercept fitted to non-overlapping starts). The screen lets more candidates reach the test,
 and on the CSTR more decisions meant one false deployment in 30 jobs: measured in
@@ -140,8 +140,8 @@ started with (``"test"`` before session 17).
 
 ``deploy_baseline`` (session 16; default ``"early"`` since session 17, ``"verify"`` before, and
 a checkpoint resumes with the rule it was started with): under random starts with
-``"verify"`` the deployed theta is run again ("baseline") only to match a verified candidate's evidence. With
-``"early"`` it is also run, alternating with the search, until it has ``deploy_min_runs``
+``"verify"`` the deployed theta is run again ("baseline") only to match a verified
+candidate's evidence. With ``"early"`` it is also run, alternating with the search, until it has ``deploy_min_runs``
 episodes, so that candidates are screened against evidence on it rather than against its one
 episode from the design: on `lq` theta0's only episode came from a lucky start (cost 0.65 of
 its start cost, against about 0.72 from most starts), no candidate looked better, and none
@@ -1524,13 +1524,12 @@ class MOBOLearner(_GPLearner):
         nearest episode, so while the incumbent stays, every ``hybrid_every``-th proposal
         re-runs the same step however bad its episodes were.
         """
-        dist = np.linalg.norm(self.Z_ - self._incumbent_z, axis=1)
-        if self.hybrid_gradient == "first":  # the rule before session 17
-            own = np.arange(len(dist)) == int(np.argmin(dist))
-        else:
-            key = theta_key(self._incumbent_z)
-            own = np.array([theta_key(z) == key for z in self.Z_], dtype=bool)
-        G = self.grads_[own] if np.any(own) else self.grads_[[int(np.argmin(dist))]]
+        rows = [int(np.argmin(np.linalg.norm(self.Z_ - self._incumbent_z, axis=1)))]
+        keys = [theta_key(z) for z in self.Z_]  # the thetas run, as identities
+        if self.hybrid_gradient == "mean":  # all the incumbent's episodes (else its nearest)
+            own = theta_key(self._incumbent_z)
+            rows = [i for i, k in enumerate(keys) if k == own] or rows
+        G = self.grads_[rows]
         G = G[np.any(G != 0, axis=1)]  # episodes with a gradient (non-finite ones are 0)
         if not len(G):
             return None
@@ -1541,9 +1540,8 @@ class MOBOLearner(_GPLearner):
             return None
         lo, hi = self._trust_box() or (0.0, 1.0)  # a step stays in the trust region
         z = np.clip(self._incumbent_z - self.hybrid_step * gz / norm, lo, hi)
-        if self.hybrid_gradient == "mean" and any(theta_key(zi) == theta_key(z) for zi in self.Z_):
+        if self.hybrid_gradient == "mean" and theta_key(z) in keys:
             return None  # already run
-            return None
         return self._theta(z)
 
     def search_effort(self, n: int) -> tuple[EHVIOptions, AcqfSearch]:
