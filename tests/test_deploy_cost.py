@@ -38,13 +38,20 @@ def lq():
     return s.search_space, s.parameterization.theta0
 
 
-def _run(lq, paired, factors):
-    """theta0 from the five starts, then a candidate 0.1 away from each start with cost
-    ``factors[s] x`` theta0's; the learner (deploy = "verified", deploy_min_runs = 5)."""
+def _candidate(lq):
+    """theta0 in the unit cube and a candidate 0.1 away from it in the first coordinate."""
     space, theta0 = lq
     z0 = space.to_unit(theta0)
     good = z0.copy()
     good[0] = z0[0] + 0.1
+    return z0, good
+
+
+def _run(lq, paired, factors):
+    """theta0 from the five starts, then a candidate 0.1 away from each start with cost
+    ``factors[s] x`` theta0's; the learner (deploy = "verified", deploy_min_runs = 5)."""
+    space, theta0 = lq
+    z0, good = _candidate(lq)
     lr = make_learner("bo", space, theta0, seed=0, deploy="verified", deploy_min_runs=5,
                       trust_region="off", deploy_paired=paired, **FAST)  # fmt: skip
     n = space.n_theta
@@ -173,9 +180,7 @@ def test_auto_decides_as_the_explicit_full_cycle_cost_rule(lq, factors):
     exactly what deploy = "verified", deploy_min_runs = 5, deploy_paired = "cost" deploys
     (the candidate when it is cheaper on average, theta0 when it is dearer on average)."""
     space, theta0 = lq
-    z0 = space.to_unit(theta0)
-    good = z0.copy()
-    good[0] = z0[0] + 0.1
+    z0, good = _candidate(lq)
     cand = space.from_unit(good, base=theta0)
     got = []
     explicit = {"deploy": "verified", "deploy_min_runs": 5, "deploy_paired": "cost",
@@ -242,9 +247,7 @@ def test_auto_with_a_single_cycled_start(lq):
     second episode (length 1), and a candidate better than theta0 from that start is deployed
     after one matched episode."""
     space, theta0 = lq
-    z0 = space.to_unit(theta0)
-    good = z0.copy()
-    good[0] = z0[0] + 0.1
+    z0, good = _candidate(lq)
     lr = make_learner("bo", space, theta0, seed=0, trust_region="off", **FAST)
     _observe(lr, theta0, 1.0, 0)
     assert lr.deploy_rule.min_runs == CYCLE_UNKNOWN
@@ -265,9 +268,7 @@ def test_coverage_starts_needs_every_start_of_the_cycle(lq, learner):
     most of theta0's cost); "starts" counts three starts, keeps theta0 and verifies the
     candidate, and deploys it once it has been run from the two starts it lacked."""
     space, theta0 = lq
-    z0 = space.to_unit(theta0)
-    good = z0.copy()
-    good[0] = z0[0] + 0.1
+    z0, good = _candidate(lq)
     cand = space.from_unit(good, base=theta0)
     got = {}
     for coverage in ("episodes", "starts"):
