@@ -260,10 +260,10 @@ def test_auto_with_a_single_cycled_start(lq):
 
 @pytest.mark.parametrize("learner", ["bo", "mobo"])
 def test_coverage_starts_needs_every_start_of_the_cycle(lq, learner):
-    """``deploy_coverage = "starts"`` (session 17, opt-in): theta0 from the five cycled
-    starts, then a candidate far cheaper from starts 0-2, twice each (six matched episodes,
-    ``deploy_min_runs`` = 5 after the wrap), never from starts 3 and 4. The default counts
-    episodes and deploys it on that evidence (CSTR seed 9 under cycled starts: a theta worse
+    """``deploy_coverage = "starts"`` (session 17, the default since session 18): theta0 from
+    the five cycled starts, then a candidate far cheaper from starts 0-2, twice each (six
+    matched episodes, ``deploy_min_runs`` = 5 after the wrap), never from starts 3 and 4.
+    ``"episodes"`` (the default before) counts episodes and deploys it on that evidence (CSTR seed 9 under cycled starts: a theta worse
     than theta0 on 100 fresh starts, deployed without an episode from the start that carries
     most of theta0's cost); "starts" counts three starts, keeps theta0 and verifies the
     candidate, and deploys it once it has been run from the two starts it lacked."""
@@ -271,17 +271,17 @@ def test_coverage_starts_needs_every_start_of_the_cycle(lq, learner):
     z0, good = _candidate(lq)
     cand = space.from_unit(good, base=theta0)
     got = {}
-    for coverage in ("episodes", "starts"):
-        lr = make_learner(learner, space, theta0, seed=0, trust_region="off",
-                          deploy_coverage=coverage, **FAST)  # fmt: skip
+    for coverage in ("episodes", None):  # None: the default
+        options = {} if coverage is None else {"deploy_coverage": coverage}
+        lr = make_learner(learner, space, theta0, seed=0, trust_region="off", **options, **FAST)
         for s in range(5):
             _observe(lr, theta0, BASE[s], s)
         for s in (0, 1, 2, 0, 1, 2):
             _observe(lr, cand, 0.3 * BASE[s], s)
         assert lr.deploy_rule.min_runs == 5
-        got[coverage] = lr
+        got[coverage or lr.deploy_coverage] = lr
     np.testing.assert_allclose(got["episodes"]._incumbent_z, good)
-    starts = got["starts"]
+    starts = got["starts"]  # KeyError if the default were not "starts"
     assert starts._matched_runs(good) == 3  # distinct starts, short of the cycle
     np.testing.assert_array_equal(starts._incumbent_z, z0)
     np.testing.assert_allclose(starts._verify_z, good)  # run again

@@ -54,7 +54,8 @@ BASELINE_MODES = ("verify", "early")
 # deploy_coverage (session 17): under cycled starts a candidate's evidence counted in matched
 # episodes ("episodes": seven episodes from four of six starts were enough, and a start that
 # carries most of the cost could be missing) or in distinct matched starts ("starts": with
-# deploy_min_runs the cycle's length, a candidate is deployed only once run from every start)
+# deploy_min_runs the cycle's length, a candidate is deployed only once run from every start); the
+# default since session 18
 COVERAGE_MODES = ("episodes", "starts")
 
 
