@@ -22,43 +22,45 @@ import numpy as np
 import pandas as pd
 
 from mpcmobo.experiment.evaluation import make_evaluator
-from mpcmobo.experiment.settings import build_system, load_settings
+from mpcmobo.experiment.settings import Settings, build_system, load_settings
 
 
 def _key(theta) -> tuple:
     return tuple(np.round(np.asarray(theta, float), 9))
 
 
-def candidates(out: Path, learner: str, seed: int, episodes: int) -> list[dict]:
-    """One row per distinct theta of the job's first ``episodes`` episodes."""
-    settings = load_settings(out / "config.toml")
-    ev = make_evaluator(settings, build_system(settings))
-    J_star = json.loads((out / "summary.json").read_text())["J_star"]
+def _job(out: Path, learner: str, seed: int) -> pd.DataFrame:
+    """One job's episode rows, in episode order."""
     df = pd.read_parquet(out / "episodes.parquet")
-    job = df[(df.learner == learner) & (df.seed == seed) & (df.episode < episodes)]
+    job = df[(df.learner == learner) & (df.seed == seed)].sort_values("episode")
     if job.empty:
         raise SystemExit(f"no episodes of learner {learner!r}, seed {seed} in {out}")
-    seen: dict[tuple, dict] = {}
-    for e, theta in zip(job.sort_values("episode").episode, job.sort_values("episode").theta):
+    return job
+
+
+def candidates(out: Path, settings: Settings, job: pd.DataFrame, episodes: int) -> list[dict]:
+    """One row per distinct theta of the job's first ``episodes`` episodes."""
+    ev = make_evaluator(settings, build_system(settings))
+    J_star = json.loads((out / "summary.json").read_text())["J_star"]
+    seen: dict[tuple, dict] = {}  # in order of first run
+    for e, theta in zip(job.episode, job.theta):
+        if e >= episodes:
+            break
         row = seen.setdefault(_key(theta), {"first": int(e), "runs": 0, "theta": theta})
         row["runs"] += 1
     return [
         {"first": r["first"], "runs": r["runs"], "J_eval_rel": ev.J_eval(r["theta"]) / J_star}
-        for r in sorted(seen.values(), key=lambda r: r["first"])
+        for r in seen.values()
     ]
 
 
-def by_start(out: Path, learner: str, seed: int, episode: int) -> dict[int, list[float]]:
+def by_start(job: pd.DataFrame, episode: int, n_starts: int) -> dict[int, list[float]]:
     """The f1 of every episode of the theta run at ``episode``, by cycled start."""
-    settings = load_settings(out / "config.toml")
-    n = settings.n_cycle_starts
-    df = pd.read_parquet(out / "episodes.parquet")
-    job = df[(df.learner == learner) & (df.seed == seed)].sort_values("episode")
     key = _key(job[job.episode == episode].theta.iloc[0])
     starts: dict[int, list[float]] = {}
     for e, theta, f1 in zip(job.episode, job.theta, job.f1):
         if _key(theta) == key:
-            starts.setdefault(int(e) % n, []).append(float(f1))
+            starts.setdefault(int(e) % n_starts, []).append(float(f1))
     return dict(sorted(starts.items()))
 
 
@@ -72,7 +74,9 @@ def main() -> None:
     p.add_argument("--compare", type=int, nargs=2, metavar=("A", "B"))
     p.add_argument("--json", type=Path, help="also write the rows here")
     a = p.parse_args()
-    rows = candidates(a.out, a.learner, a.seed, a.episodes)
+    settings = load_settings(a.out / "config.toml")
+    job = _job(a.out, a.learner, a.seed)
+    rows = candidates(a.out, settings, job, a.episodes)
     print(f"{len(rows)} distinct thetas in the first {a.episodes} episodes")
     print("| first episode | episodes | J_eval/J* |\n|---|---|---|")
     for r in rows:
@@ -83,7 +87,7 @@ def main() -> None:
         print(f"first theta within {t:g} x J*: {first}")
     if a.compare:
         for e in a.compare:
-            costs = by_start(a.out, a.learner, a.seed, e)
+            costs = by_start(job, e, settings.n_cycle_starts)
             cycle = sum(float(np.mean(v)) for v in costs.values())
             shown = ", ".join(f"{s}: {np.mean(v):.0f} ({len(v)})" for s, v in costs.items())
             print(f"theta of episode {e}, mean f1 by start (episodes): {shown}; sum {cycle:.0f}")

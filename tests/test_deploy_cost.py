@@ -263,10 +263,11 @@ def test_coverage_starts_needs_every_start_of_the_cycle(lq, learner):
     """``deploy_coverage = "starts"`` (session 17, the default since session 18): theta0 from
     the five cycled starts, then a candidate far cheaper from starts 0-2, twice each (six
     matched episodes, ``deploy_min_runs`` = 5 after the wrap), never from starts 3 and 4.
-    ``"episodes"`` (the default before) counts episodes and deploys it on that evidence (CSTR seed 9 under cycled starts: a theta worse
-    than theta0 on 100 fresh starts, deployed without an episode from the start that carries
-    most of theta0's cost); "starts" counts three starts, keeps theta0 and verifies the
-    candidate, and deploys it once it has been run from the two starts it lacked."""
+    ``"episodes"`` (the default before) counts episodes and deploys it on that evidence (CSTR
+    seed 9 under cycled starts: a theta worse than theta0 on 100 fresh starts, deployed
+    without an episode from the start that carries most of theta0's cost); "starts" counts
+    three starts, keeps theta0 and verifies the candidate, and deploys it once it has been run
+    from the two starts it lacked."""
     space, theta0 = lq
     z0, good = _candidate(lq)
     cand = space.from_unit(good, base=theta0)

@@ -117,20 +117,20 @@ def test_first_screens_only_single_episodes(learner):
     cand[1] += 0.05
     theta_c = space.from_unit(cand, base=theta0)
     first = make_learner(learner, space, theta0, seed=0, **FAST)  # the default
-    default = make_learner(learner, space, theta0, seed=0, deploy_screen="test", **FAST)
-    for lr in (first, default):
+    before = make_learner(learner, space, theta0, seed=0, deploy_screen="test", **FAST)
+    for lr in (first, before):
         _observe(lr, theta0, 0.72 * 0.1, 0.1)
         _observe(lr, theta_c, 0.70 * 0.8, 0.8)
-    assert default._paired_cost(cand, z0) == 0.0
+    assert before._paired_cost(cand, z0) == 0.0
     assert first._paired_cost(cand, z0) == 0.5
     np.testing.assert_allclose(first._verify_z, cand)
     assert first._verification()[0] == "verify"  # then theta0, alternating (baseline)
-    for lr in (first, default):
+    for lr in (first, before):
         _observe(lr, theta0, 0.72 * 0.5, 0.5)
         _observe(lr, theta_c, 0.71 * 0.2, 0.2)
     test = adjusted_confidence([0.072, 0.36], [0.56, 0.142], [0.1, 0.5], [0.8, 0.2])
     assert first._paired_cost(cand, z0) == pytest.approx(test)
-    assert default._paired_cost(cand, z0) == pytest.approx(test)
+    assert before._paired_cost(cand, z0) == pytest.approx(test)
     assert first.state_dict()["deploy_screen"] == "first"
 
 

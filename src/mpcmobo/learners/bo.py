@@ -1535,8 +1535,9 @@ class MOBOLearner(_GPLearner):
         re-runs the same step however bad its episodes were.
         """
         rows = [int(np.argmin(np.linalg.norm(self.Z_ - self._incumbent_z, axis=1)))]
-        keys = [theta_key(z) for z in self.Z_]  # the thetas run, as identities
+        keys: list[bytes] = []  # "mean": the thetas run, as identities
         if self.hybrid_gradient == "mean":  # all the incumbent's episodes (else its nearest)
+            keys = [theta_key(z) for z in self.Z_]
             own = theta_key(self._incumbent_z)
             rows = [i for i, k in enumerate(keys) if k == own] or rows
         G = self.grads_[rows]
@@ -1550,8 +1551,8 @@ class MOBOLearner(_GPLearner):
             return None
         lo, hi = self._trust_box() or (0.0, 1.0)  # a step stays in the trust region
         z = np.clip(self._incumbent_z - self.hybrid_step * gz / norm, lo, hi)
-        if self.hybrid_gradient == "mean" and theta_key(z) in keys:
-            return None  # already run
+        if theta_key(z) in keys:  # "mean": a step already run is not taken again
+            return None
         return self._theta(z)
 
     def search_effort(self, n: int) -> tuple[EHVIOptions, AcqfSearch]:
