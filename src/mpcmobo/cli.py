@@ -31,7 +31,7 @@ from rich.table import Table
 
 from mpcmobo import __version__
 from mpcmobo.experiment.interrupts import Interrupted
-from mpcmobo.experiment.rundir import RunDirectory, StudyError, read_run_file
+from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError, read_run_file
 from mpcmobo.experiment.settings import PAPER_LEARNERS, Settings, SettingsError, load_settings
 from mpcmobo.learners.registry import LEARNER_SPECS, describe_options
 
@@ -285,7 +285,7 @@ def run(
         else:
             with _progress() as progress:
                 summary = run_study(settings, out, resume=resume, progress=_Bars(progress))  # type: ignore[arg-type]  # --resume checked --out
-    except SettingsError as err:
+    except (SettingsError, OlderRunError) as err:
         _fail(str(err), 2)
     except StudyError as err:
         _fail(str(err), 1)

@@ -21,7 +21,6 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from mpcmobo.bo.context import ContextSpec
 from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.logs import run_log
@@ -29,7 +28,7 @@ from mpcmobo.experiment.loop import LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
 from mpcmobo.experiment.settings import Settings, build_plant, build_system, validate_settings
-from mpcmobo.learners import Learner, make_learner
+from mpcmobo.learners import Learner, Starts, make_learner
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import register_system
@@ -128,6 +127,8 @@ class Job:
         ckpt = self.run_dir.checkpoint(self.learner, self.seed)
         if ckpt is None:
             return
+        if ckpt.schema != storage.CHECKPOINT_SCHEMA:
+            self.run_dir.check_schema()  # raises OlderRunError, naming the version
         path = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
         fix = f"delete {path.parent} to run this job again from its first episode"
         try:
@@ -242,11 +243,11 @@ class Job:
 def make_study_learner(
     settings: Settings, system: System, name: str, theta0: np.ndarray, seed: int
 ) -> Learner:
-    """The learner ``name`` with the study's options for it, and the system's initial-state
-    distribution as its contexts (issue 11; used only by learners with ``context = "x0"``)."""
+    """The learner ``name`` with the study's options for it, built for the study's start
+    design (cycled or random starts)."""
     options = settings.learner_options.get(name, {})
-    contexts = ContextSpec.from_system(system)
-    return make_learner(name, system.search_space, theta0, seed=seed, contexts=contexts, **options)
+    starts = Starts(settings.start_mode, settings.n_cycle_starts)
+    return make_learner(name, system.search_space, theta0, seed=seed, starts=starts, **options)
 
 
 def _learning_run(

@@ -1,8 +1,7 @@
 """What a study keeps, as types: episode rows, stored trajectories, job checkpoints, reference.
 
 On disk these are plain pickled dicts and Parquet columns (layout in :mod:`storage`); each type
-converts with ``to_dict`` / ``from_dict``, so that files written before these types existed
-still load and files written now hold the same keys and values.
+converts with ``to_dict`` / ``from_dict``.
 """
 
 from __future__ import annotations
@@ -98,7 +97,9 @@ class Checkpoint:
     """What a job saves after every episode: everything needed to continue it exactly.
 
     ``state`` is the :class:`LearningRun` state (learner and random generators), ``eval_state``
-    the :class:`EvaluationSchedule` state, ``episodes`` the budget the job was run with.
+    the :class:`EvaluationSchedule` state, ``episodes`` the budget the job was run with,
+    ``schema`` the format it was written in (:data:`~mpcmobo.experiment.storage.CHECKPOINT_SCHEMA`:
+    only a checkpoint of the current schema can be resumed; the rows of an older one are read).
     """
 
     learner: str
@@ -110,6 +111,7 @@ class Checkpoint:
     wall_time_s: float
     episodes: int
     done: bool
+    schema: int = 2
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Checkpoint:
@@ -124,6 +126,7 @@ class Checkpoint:
             wall_time_s=float(d["wall_time_s"]),
             episodes=int(d["episodes"]),
             done=bool(d["done"]),
+            schema=int(d.get("schema", 1)),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -136,7 +139,7 @@ class Checkpoint:
             "wall_time_s": self.wall_time_s,
             "episodes": self.episodes,
             "done": self.done,
-        }  # storage.save_checkpoint adds the version, learner and seed
+        }  # storage.save_checkpoint adds the schema, learner and seed
 
     @property
     def incumbent(self) -> np.ndarray | None:

@@ -29,7 +29,7 @@ from pydantic import (
     model_validator,
 )
 
-from mpcmobo.learners.registry import LEARNER_SPECS
+from mpcmobo.learners.registry import LEARNER_SPECS, LearnerOptionError, validate_options
 from mpcmobo.systems import (
     System,
     SystemDefinitionError,
@@ -259,11 +259,17 @@ class Settings(_Section):
     @field_validator("learner_options")
     @classmethod
     def _options_tables(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-        for name in v:
+        for name, table in v.items():
             if name not in LEARNER_SPECS:
                 raise ValueError(
                     f"options for unknown learner '{name}'; allowed: {list(LEARNER_SPECS)}"
                 )
+            if not isinstance(table, dict):
+                raise ValueError(f"'{name}' must be a table of options")
+            try:
+                validate_options(name, table, prefix=f"learner_options.{name}.")
+            except LearnerOptionError as err:
+                raise ValueError(str(err)) from None
         return v
 
     @field_validator("seeds")
@@ -320,11 +326,21 @@ class Settings(_Section):
             ]
         if self.evaluation.steps is None:
             d["evaluation"]["steps"] = d["steps"]
+        d["learner_options"] = {  # every learner option in force, defaults filled in
+            name: _options_dump(name, self.learner_options.get(name, {}))
+            for name in dict.fromkeys([*self.learners, *self.learner_options])
+        }
         return validate_settings(d)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict without ``None`` values (TOML has no null)."""
         return _drop_none(self.model_dump())
+
+
+def _options_dump(name: str, table: dict[str, Any]) -> dict[str, Any]:
+    """The learner's options in force as a plain table (every default filled in)."""
+    options = validate_options(name, table)
+    return {} if options is None else options.model_dump()
 
 
 def _drop_none(d: Any) -> Any:
@@ -388,8 +404,8 @@ def _format_error(err: Mapping[str, Any]) -> str:
     shown = repr(value)
     if len(shown) > 60:
         shown = shown[:57] + "..."
-    if not loc:  # a check across sections: its message names the keys itself
-        return msg
+    if not loc or loc == ("learner_options",):  # the message names the keys itself
+        return msg.replace("\n", "\n  ")
     if typ in ("missing",):
         return f"{key}: {msg}"
     return f"{key}: {msg} (got {shown})"

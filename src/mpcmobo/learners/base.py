@@ -1,10 +1,17 @@
-"""One interface for every learner: propose the next theta, observe the finished episode."""
+"""One interface for every learner: propose the next theta, observe the finished episode.
+
+A learner is built with its options (one typed object, :mod:`mpcmobo.learners.options`) and
+the study's start design (:class:`Starts`: cycled or random initial states), and never
+changes its configuration afterwards; what it learns lives in attributes with a trailing
+underscore and is what :meth:`Learner.state_dict` saves.
+"""
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Collection
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -21,6 +28,22 @@ def check_choice(name: str, value: object, choices: Collection[str]) -> str:
             f"{name} must be one of {', '.join(repr(k) for k in choices)}, got {value!r}"
         )
     return str(value)
+
+
+@dataclass(frozen=True)
+class Starts:
+    """How a study's episodes start: ``"cycle"`` through ``n_starts`` fixed seeded initial
+    states (episode ``k`` from start ``k mod n_starts``, so candidates are compared from common
+    starts) or ``"random"``, a fresh draw per episode (the paper's setting)."""
+
+    mode: Literal["cycle", "random"] = "random"
+    n_starts: int = 1
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("cycle", "random"):
+            raise ValueError(f"start mode must be 'cycle' or 'random', got {self.mode!r}")
+        if int(self.n_starts) < 1:
+            raise ValueError(f"n_starts must be at least 1, got {self.n_starts}")
 
 
 @dataclass
@@ -86,19 +109,30 @@ class Learner(ABC):
 
     The loop is ``theta = learner.propose(); ...run an episode (with exploration noise unless
     learner.explores() is False)...; learner.observe(theta, result)``.
-    ``incumbent()`` is the learner's current best guess, the theta that is evaluated and deployed.
+    ``incumbent()`` is the deployed theta: what the plant runs outside learning and what J_eval
+    measures.
     ``state_dict()`` holds the whole state (random generators included) as plain Python and NumPy
     objects, and ``load_state_dict`` restores it so that the next proposal is exactly the same.
     """
 
     name: str = "learner"
 
-    def __init__(self, space: SearchSpace, theta0: np.ndarray, seed: int = 0) -> None:
+    def __init__(
+        self, space: SearchSpace, theta0: np.ndarray, seed: int = 0, *, starts: Starts | None = None
+    ) -> None:
         self.space = space
         self.theta0 = space.clip(np.asarray(theta0, dtype=float))
         self.seed = int(seed)
+        self.starts = Starts() if starts is None else starts
         self.rng = np.random.default_rng(self.seed)
         self.n_observed = 0
+
+    def theta_of(self, z: np.ndarray) -> np.ndarray:
+        """The theta of the unit-cube point ``z``: exactly theta0 at theta0's own point (its
+        round trip through ``z`` moves it by about 1e-12, which J_eval on the CSTR can tell)."""
+        if np.array_equal(z, self.space.to_unit(self.theta0)):
+            return self.theta0.copy()
+        return self.space.from_unit(z, base=self.theta0)
 
     @abstractmethod
     def propose(self) -> np.ndarray:
@@ -110,7 +144,7 @@ class Learner(ABC):
 
     @abstractmethod
     def incumbent(self) -> np.ndarray:
-        """The current best theta."""
+        """The deployed theta."""
 
     def explores(self) -> bool:
         """Whether the episode of the last proposal runs with the exploration noise (default
