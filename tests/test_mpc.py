@@ -186,7 +186,7 @@ def _active_theta(mpc):
 
 @pytest.mark.parametrize("active", [False, True])
 def test_newton_path_gives_the_ipopt_solution(cstr, active):
-    ipopt = ParametricMPC(cstr, newton_steps=0, barrier_steps=0)
+    ipopt = ParametricMPC(cstr, newton_steps=0)
     newton = ParametricMPC(cstr, newton_steps=6)
     x = np.array([100.0, 0.15, 430.0])
     theta = _active_theta(newton) if active else newton.theta0
@@ -219,7 +219,7 @@ def test_newton_steps_must_be_a_count(cstr):
 
 
 def test_numpy_call_gives_the_function_outputs_bit_for_bit():
-    # the buffer-based call of the Newton, barrier and sensitivity functions: the numbers of
+    # the buffer-based call of the Newton and sensitivity functions: the numbers of
     # the CasADi call itself, in its shapes (a matrix, a scalar, a structurally sparse output)
     import casadi as ca
 
@@ -237,3 +237,20 @@ def test_numpy_call_gives_the_function_outputs_bit_for_bit():
         assert isinstance(got[1], float) and got[1] == float(want[1])
         for g, w in zip(got[:1] + got[2:], want[:1] + want[2:]):
             assert g.shape == w.shape and np.array_equal(g, np.asarray(w))
+
+
+def test_saved_runs_with_the_retired_barrier_keys(tmp_path):
+    # the config.toml of older runs holds barrier_steps, barrier_mu0 and barrier_push: read and
+    # dropped at barrier_steps = 0 (the MPC that runs now), an error for a run that used the path
+    from mpcmobo.experiment.rundir import RunDirectory
+    from mpcmobo.experiment.settings import Settings, SettingsError, settings_to_toml
+
+    text = settings_to_toml(Settings()).replace(
+        "[mpc]\n", "[mpc]\nbarrier_steps = 0\nbarrier_mu0 = 0.001\nbarrier_push = true\n"
+    )
+    (tmp_path / "config.toml").write_text(text)
+    assert "barrier_mu0" in text
+    assert RunDirectory(tmp_path).saved_settings().mpc == Settings().mpc
+    (tmp_path / "config.toml").write_text(text.replace("barrier_steps = 0", "barrier_steps = 30"))
+    with pytest.raises(SettingsError, match="barrier_steps = 30: the MPC has no barrier path"):
+        RunDirectory(tmp_path).saved_settings()

@@ -96,11 +96,8 @@ class RunDirectory:
         try:
             saved = read_toml(self.config)
             if "newton_steps" not in saved.get("mpc", {}):
-                # saved before the setting existed: that run's MPC was IPOPT only (issue 13)
+                # saved before the setting existed: that run's MPC was IPOPT only
                 overrides = {"mpc__newton_steps": 0, **overrides}
-            if "barrier_steps" not in saved.get("mpc", {}):
-                # saved before the barrier path existed (issue 13, session 6): without it
-                overrides = {"mpc__barrier_steps": 0, **overrides}
             return load_settings(self.config, **overrides)
         except SettingsError as err:
             if str(err).startswith(str(self.config)):  # the file itself, not an override

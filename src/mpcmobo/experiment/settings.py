@@ -144,29 +144,29 @@ class MPCSettings(_Section):
         description="warm solves first try this many Newton steps on the barrier KKT system "
         "(IPOPT if they do not converge); 0: always IPOPT",
     )
-    barrier_steps: int = Field(
-        0,
-        ge=0,
-        le=1000,
-        description="when the Newton steps do not converge, warm solves try a short "
-        "interior-point path of at most this many Newton steps (IPOPT if it does not converge); "
-        "0: off (the default; 30 measured faster, but from a few states whose new plant state "
-        "violates a row of the shifted plan it reaches another local minimum than IPOPT)",
-    )
-    barrier_mu0: float = Field(
-        1e-3, gt=0, lt=1, description="first barrier parameter of that path (scaled units)"
-    )
-    barrier_push: bool = Field(
-        True,
-        description="let the barrier path start from warm starts that violate a row (pushed "
-        "inside); false: only from strictly interior warm starts, IPOPT elsewhere (IPOPT's "
-        "solution on every state of the step-time benchmark)",
-    )
     codegen: bool = Field(
         False,
         description="generated C code of the MPC, compiled once per machine and problem and "
         "cached ($MPCMOBO_CACHE_DIR, else $XDG_CACHE_HOME/mpcmobo or ~/.cache/mpcmobo)",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _retired_barrier_keys(cls, data: Any) -> Any:
+        """The keys of the retired opt-in barrier path (``barrier_steps``, ``barrier_mu0``,
+        ``barrier_push``), which the ``config.toml`` of older runs holds: read and dropped when
+        the path was off (``barrier_steps = 0``, the MPC that runs now), an error otherwise (that
+        run's MPC cannot be rebuilt)."""
+        retired = ("barrier_steps", "barrier_mu0", "barrier_push")
+        if not isinstance(data, Mapping) or not any(k in data for k in retired):
+            return data
+        steps = data.get("barrier_steps", 0)
+        if steps != 0:
+            raise ValueError(
+                f"barrier_steps = {steps}: the MPC has no barrier path (only barrier_steps = 0 "
+                "is read, and dropped)"
+            )
+        return {k: v for k, v in data.items() if k not in retired}
 
     def options(self) -> dict[str, Any]:
         """The options given to ``ParametricMPC`` (the unset ones left to the system)."""

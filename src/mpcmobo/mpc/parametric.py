@@ -39,11 +39,7 @@ and the finite differences of the solver's own outputs agree with them.
 The same residual gives a fast path for warm solves (``newton_steps``): from the shifted
 previous solution, Newton steps ``dR/dy dy = -R`` with a fraction-to-boundary rule reach the
 root of ``R`` in 3-4 steps when the active set does not change; accepted at ``|R| <= tol`` at a
-strictly interior point, it is the point IPOPT stops at. When they do not converge (the new
-state violates a state bound of the shifted plan), a small primal-dual interior-point method
-(``barrier_steps``) follows the barrier path ``R_mu(y, p) = 0`` (``tau`` replaced by ``mu``)
-from ``mu_0`` down to ``tau`` after pushing the violated rows inside through their slacks; its
-result passes the same test and a second-order check. IPOPT solves when neither converges.
+strictly interior point, it is the point IPOPT stops at. IPOPT solves when they do not converge.
 """
 
 from __future__ import annotations
@@ -63,12 +59,6 @@ from mpcmobo.systems.base import System
 from mpcmobo.systems.parameterization import Parameterization, weight_matrix
 
 _SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
-_MAX_BACKTRACKS = 10  # halvings of a barrier-path step before it gives up (IPOPT solves)
-# a barrier path whose steps are cut below 0.1 by the fraction-to-boundary rule this many times
-# in a row gives up (on the benchmark's states, converging paths had at most 9 such steps in a
-# row, the ones that ran out of steps 15 or more)
-_STALL_STEPS = 12
-_JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
 # options of CasADi's nlpsol itself (not IPOPT's): passed without the "ipopt." prefix
 _CASADI_NLPSOL_KEYS = (
     "print_time",
@@ -179,9 +169,6 @@ class ParametricMPC:
         Initialise each solve from the shifted previous solution.
     solver_options:
         Extra IPOPT options (``{"max_iter": 200}``, ...), for the cold and the warm solver.
-    jit:
-        Compile generated C code of the NLP and KKT functions (needs a C compiler; building
-        takes 10-20 s, a step is then about 1.5x faster, see ``docs/benchmarks.md``, step time).
     warm_options:
         IPOPT options of the warm-started solver only (after the built-in warm-start settings).
     linsol:
@@ -193,7 +180,7 @@ class ParametricMPC:
         step, compiled once per machine and problem and cached on disk (``mpcmobo.mpc.codegen``):
         the first build compiles (tens of seconds), later builds of the same problem load the
         library. Same numbers as without it, faster steps (``docs/benchmarks.md``, step time).
-        Needs a C compiler (``$CC`` or ``cc``); an alternative to ``jit``.
+        Needs a C compiler (``$CC`` or ``cc``).
     cache_dir:
         Directory of the compiled libraries (default: ``mpcmobo.mpc.codegen.cache_directory()``).
     newton_steps:
@@ -202,31 +189,6 @@ class ParametricMPC:
         ``H < 0`` and ``mu > 0``). Accepted only when ``|R|_inf <= tol`` at a strictly interior
         point: then it is the barrier solution IPOPT stops at, to its tolerance; otherwise IPOPT
         solves as without it. 0: no Newton steps at the fixed tau.
-    barrier_steps:
-        With a warm start, when the Newton steps at the fixed tau do not converge (typically:
-        the new state violates a state bound of the shifted plan, and the active set changes),
-        first try a short primal-dual interior-point path of at most this many Newton steps
-        (``_barrier_solve``): the violated rows' slacks are enlarged so that the start is
-        strictly interior, then the barrier parameter decreases from ``barrier_mu0`` to tau.
-        Accepted under the same test as the Newton steps (``|R|_inf <= tol`` at tau, strictly
-        interior) and only at a local minimum of the barrier problem (its Hessian positive
-        definite on the null space of the equality constraints); otherwise IPOPT solves.
-        0 (the default): off. Not the default (yet): it changes the last digits of the
-        sensitivities, and a short seeded mpc-rl run on the CSTR (``tests/test_learners.py``)
-        amplifies such differences into another outcome (as it does between IPOPT only and the
-        Newton steps); and where two local minima compete it can reach another one than IPOPT
-        (one state of the step-time benchmark's 240, with the default MPC's closed loop); see
-        ``docs/benchmarks.md``, step time.
-    barrier_mu0:
-        The first barrier parameter of that path (scaled units), in (0, 1); IPOPT's warm
-        solver starts at 1e-3 too (``mu_init``).
-    barrier_push:
-        True (the default): where the new state violates rows of the shifted plan, the barrier
-        path starts after pushing them inside through their slacks. False: the barrier path
-        only runs from a strictly interior warm start (the Newton steps at tau did not converge
-        there, typically too slowly), and IPOPT solves where rows are violated. With False the
-        path reached IPOPT's local solution on every state of the step-time benchmark, with
-        True not on one state where two local minima compete (``docs/benchmarks.md``).
     """
 
     def __init__(
@@ -242,15 +204,11 @@ class ParametricMPC:
         warm_start: bool = True,
         solver_options: dict | None = None,
         cost_scale: float | None = None,
-        jit: bool = False,
         warm_options: dict | None = None,
         linsol: str = "qr",
         codegen: bool = False,
         cache_dir: str | os.PathLike | None = None,
         newton_steps: int = 6,
-        barrier_steps: int = 0,
-        barrier_mu0: float = 1e-3,
-        barrier_push: bool = True,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
@@ -262,13 +220,6 @@ class ParametricMPC:
         if int(newton_steps) != newton_steps or newton_steps < 0:
             raise ValueError(f"newton_steps must be an integer >= 0, got {newton_steps}")
         self._newton = int(newton_steps)
-        if int(barrier_steps) != barrier_steps or barrier_steps < 0:
-            raise ValueError(f"barrier_steps must be an integer >= 0, got {barrier_steps}")
-        if not 0 < barrier_mu0 < 1:
-            raise ValueError(f"barrier_mu0 must be in (0, 1), got {barrier_mu0}")
-        self._barrier_steps = int(barrier_steps)
-        self._barrier_mu0 = max(float(barrier_mu0), float(tau))
-        self._barrier_push = bool(barrier_push)
         self._tol = float(tol)
         self.tau = float(tau)
         self.warm_start = bool(warm_start)
@@ -293,13 +244,10 @@ class ParametricMPC:
             )
         self.cost_scale = float(cost_scale)
         self._linsol = linsol
-        self._jit = bool(jit)
         self._codegen = bool(codegen)
-        if self._jit and self._codegen:
-            raise ValueError("jit and codegen are alternatives: choose one of them")
         self._build()
         cold, warm = _ipopt_options(
-            tol, self.tau, max_iter, jit=self._jit, options=solver_options, warm=warm_options
+            tol, self.tau, max_iter, options=solver_options, warm=warm_options
         )
         nlp: dict | str = self._nlp
         #: how the MPC's functions were built: {"codegen", and with it "path", "cached", "seconds"}
@@ -309,19 +257,10 @@ class ParametricMPC:
             nlp = str(lib)
             self._sens = ca.external("sens", str(lib))
             self._newton_fn = ca.external("newton", str(lib))
-            if self._barrier_steps:
-                self._barrier_fn = ca.external("barrier", str(lib))
-                self._barrier_point = ca.external("barrier_point", str(lib))
-                self._h_fn = ca.external("barrier_h", str(lib))
-                self._soc_fn = ca.external("barrier_soc", str(lib))
-        # the functions of the Newton steps, the barrier path and the sensitivities, called
-        # on numpy buffers (the same numbers, without a DM per argument)
+        # the functions of the Newton steps and the sensitivities, called on numpy buffers (the
+        # same numbers, without a DM per argument)
         self._newton_call = _NumpyCall(self._newton_fn)
-        self._barrier_call = _NumpyCall(self._barrier_fn)
-        self._point_call = _NumpyCall(self._barrier_point)
-        self._h_call = _NumpyCall(self._h_fn)
         self._sens_call = _NumpyCall(self._sens)
-        self._soc_call = _NumpyCall(self._soc_fn)
         self._solver = ca.nlpsol("mpc", "ipopt", nlp, cold)
         self._solver_warm: ca.Function | None = (
             ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
@@ -469,31 +408,10 @@ class ParametricMPC:
         # barrier solution the solver returns.
         dfdth = ca.gradient(f, th)
         dfdw = ca.gradient(f, wv)
-        kkt_opts: dict[str, Any] = {}
-        if self._jit:  # the exact Hessian inside dR/dy dominates this evaluation
-            kkt_opts = {"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS}
-        self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw], kkt_opts)
+        self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw])
         self._ny = y.numel()
         self._sens = self._sensitivity_function(self._linsol)
-        self._newton_fn = self._newton_function(wv, y, p, R, Jy, H, f, kkt_opts)
-        mu_bar = ca.SX.sym("mu_bar")
-        R_bar = ca.vertcat(grad_lagr, geq, mu * H + mu_bar)  # R at the barrier mu_bar
-        self._barrier_fn, self._barrier_point = self._barrier_functions(
-            wv, y, p, mu_bar, R_bar, Jy, H, f, kkt_opts
-        )
-        self._h_fn = ca.Function("barrier_h", [wv, p], [H, ca.gradient(f, wv)], kkt_opts)
-        # second-order check of a barrier-path solution: the barrier Hessian
-        # K = W + dH^T diag(mu / -H) dH reduced to the null space of the equality Jacobian A
-        dHdw = ca.jacobian(H, wv)
-        K = ca.hessian(lagr, wv)[0] + ca.mtimes(dHdw.T, ca.mtimes(ca.diag(mu / -H), dHdw))
-        # in the blocks of (the predicted states, the rest), dense: the reduction to the null
-        # space is done in numpy (_is_local_minimum; as one CasADi function it took longer)
-        ix = self._ix_flat.tolist()
-        ir = np.setdiff1d(np.arange(self.nw), self._ix_flat).tolist()
-        A = ca.jacobian(geq, wv)
-        blocks = [K[ix, ix], K[ix, ir], K[ir, ir], A[:, ix], A[:, ir]]
-        self._soc_fn = ca.Function("barrier_soc", [wv, lam, mu, p], [ca.densify(b) for b in blocks])
-        self._row_slack, self._row_coef = self._slack_rows(gin, wv)
+        self._newton_fn = self._newton_function(wv, y, p, R, Jy, H, f)
 
     def _newton_function(
         self,
@@ -504,7 +422,6 @@ class ParametricMPC:
         Jy: ca.SX,
         H: ca.SX,
         f: ca.SX,
-        opts: dict,
     ) -> ca.Function:
         """(y, p) -> (y+ = y + a dy, |R(y)|_inf, |R(y+)|_inf, f(y+), max H(y+), min mu+): one
         Newton step on the barrier KKT system, ``dR/dy dy = -R``, with the fraction-to-boundary
@@ -512,9 +429,9 @@ class ParametricMPC:
         distance to 0; and the residual at the new point, so that no step is taken in vain."""
         nw, neq = self.nw, self.neq
         dw = ca.SX.sym("dw", self.nw)
-        res = ca.Function("newton_res", [y, p], [R, Jy, H], opts)
-        point = ca.Function("newton_point", [y, p], [ca.norm_inf(R), f, ca.mmax(H)], opts)
-        dH = ca.Function("newton_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)], opts)
+        res = ca.Function("newton_res", [y, p], [R, Jy, H])
+        point = ca.Function("newton_point", [y, p], [ca.norm_inf(R), f, ca.mmax(H)])
+        dH = ca.Function("newton_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)])
         Y = ca.MX.sym("y", self._ny)
         P = ca.MX.sym("p", p.numel())
         Rv, J, Hv = res(Y, P)
@@ -524,60 +441,6 @@ class ParametricMPC:
         res1, f1, h1 = point(Y1, P)
         out = [Y1, ca.norm_inf(Rv), res1, f1, h1, ca.mmin(Y1[nw + neq :]), ca.mmax(Hv)]
         return ca.Function("newton", [Y, P], out)
-
-    def _barrier_functions(
-        self,
-        wv: ca.SX,
-        y: ca.SX,
-        p: ca.SX,
-        mu_bar: ca.SX,
-        R: ca.SX,
-        Jy: ca.SX,
-        H: ca.SX,
-        f: ca.SX,
-        opts: dict,
-    ) -> tuple[ca.Function, ca.Function]:
-        """The Newton step of the barrier path and the merit of a point, at barrier ``mu_bar``.
-
-        ``barrier``: (y, p, mu_bar) -> (dy, a_max, |R(y)|_inf, |R(y)|_2, y1 = y + a_max dy,
-        |R(y1)|_inf, |R(y1)|_2, max H(y1), min mu1, f(y1)), with ``dR/dy dy = -R`` and the
-        fraction-to-boundary rule ``a_max <= 1`` (``mu`` and, to first order, ``H`` keep 0.5 %
-        of their distance to 0). ``barrier_point``: (y, p, mu_bar) -> (|R|_inf, |R|_2, max H,
-        min mu, f) at a trial point of the line search."""
-        nw, neq = self.nw, self.neq
-        dw = ca.SX.sym("dw", self.nw)
-        res = ca.Function("barrier_res", [y, p, mu_bar], [R, Jy, H], opts)
-        mu = y[nw + neq :]
-        point = ca.Function(
-            "barrier_point",
-            [y, p, mu_bar],
-            [ca.norm_inf(R), ca.norm_2(R), ca.mmax(H), ca.mmin(mu), f],
-            opts,
-        )
-        dH = ca.Function("barrier_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)], opts)
-        Y = ca.MX.sym("y", self._ny)
-        P = ca.MX.sym("p", p.numel())
-        M = ca.MX.sym("mu_bar")
-        Rv, J, Hv = res(Y, P, M)
-        dy = ca.solve(J, -Rv, self._linsol)
-        a = _fraction_to_boundary(Y[nw + neq :], dy[nw + neq :], Hv, dH(Y[:nw], P, dy[:nw]))
-        Y1 = Y + a * dy
-        r1, r1_2, h1, m1, f1 = point(Y1, P, M)
-        out = [dy, a, ca.norm_inf(Rv), ca.norm_2(Rv), Y1, r1, r1_2, h1, m1, f1]
-        return ca.Function("barrier", [Y, P, M], out), point
-
-    def _slack_rows(self, gin: ca.SX, wv: ca.SX) -> tuple[np.ndarray, np.ndarray]:
-        """For every row of ``gin``: the position in ``w`` of its slack and the slack's
-        (negative, constant) coefficient in the row (the rows are ``... - eta <= 0``)."""
-        jac = ca.Function("jac_gin", [wv], [ca.jacobian(gin, wv)])
-        J = np.asarray(jac(np.zeros(self.nw)))
-        slack = np.full(self.nin, -1)
-        coef = np.zeros(self.nin)
-        for r in range(self.nin):
-            cols = [c for c in self._ie_flat if J[r, c] < 0]
-            if len(cols) == 1:
-                slack[r], coef[r] = cols[0], J[r, cols[0]]
-        return slack, coef
 
     def _sensitivity_function(self, linsol: str) -> ca.Function:
         """(w, lam, mu, p) -> (dpi/dtheta, dV/dtheta), one call, one sparse factorisation.
@@ -613,8 +476,6 @@ class ParametricMPC:
         probe = ca.nlpsol("probe", "ipopt", self._nlp, {"calc_lam_p": True})
         names = ("nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l", "nlp_grad")
         functions = [nlp, *(probe.get_function(n) for n in names), self._sens, self._newton_fn]
-        if self._barrier_steps:  # only then: the library of an MPC without them is unchanged
-            functions += [self._barrier_fn, self._barrier_point, self._h_fn, self._soc_fn]
         return compiled_library(functions, directory=cache_dir, info=self.build_info)
 
     # ------------------------------------------------------------------ validation
@@ -661,10 +522,8 @@ class ParametricMPC:
         t0 = time.perf_counter()
         p = np.concatenate([x, theta])
         warm = self.warm_start and self._prev is not None
-        if warm and (self._newton or self._barrier_steps):
-            found = self._newton_solve(p) if self._newton else None
-            if found is None and self._barrier_steps:
-                found = self._barrier_solve(p)
+        if warm and self._newton:
+            found = self._newton_solve(p)
             if found is not None:
                 sol = self._solution(x, p, *found, sensitivities=sensitivities)
                 sol.solve_time = time.perf_counter() - t0
@@ -771,104 +630,6 @@ class ParametricMPC:
             if k == self._newton or (k >= 2 and res > 0.1 * res0):
                 return None
         return self._newton_result(y, f, "Newton_Succeeded", k)
-
-    def _barrier_solve(
-        self, p: np.ndarray
-    ) -> tuple[dict, np.ndarray, str, int, tuple[np.ndarray, np.ndarray]] | None:
-        """A short primal-dual interior-point path from the shifted previous solution.
-
-        The warm start is made strictly interior: the slack of every row with ``H >= 0`` is
-        enlarged until ``mu_r H_r = -mu_0``, with the row's multiplier ``mu_r`` raised to the
-        slack's cost (the slack's stationarity) and the slack's bound multiplier set from
-        complementarity, ``z eta = mu_0``. Then Newton steps on ``R_mu(y, p) = 0`` follow a
-        decreasing barrier ``mu_0 -> tau`` (IPOPT's rule: ``mu <- max(tau, min(0.2 mu, mu^1.5))`` once
-        ``|R_mu|_inf <= 10 mu``), with the fraction-to-boundary rule and a backtracking line
-        search on ``|R_mu|_2``. Returns what ``_newton_solve`` returns when ``|R_tau|_inf <= tol``
-        at a strictly interior point within ``barrier_steps`` Newton steps, else None."""
-        prev = self._prev
-        if prev is None:
-            return None
-        mu_bar = self._barrier_mu0
-        w = prev["w_shift"].copy()
-        lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
-        Hg, dfdw = (np.asarray(v).reshape(-1) for v in self._h_call(w, p))
-        Hg = Hg[: self.nin]
-        rows = np.flatnonzero(Hg >= 0)  # not interior: the new state violates them
-        if rows.size and not self._barrier_push:
-            return None  # only from interior starts (barrier_push=False): IPOPT solves
-        if np.any(self._row_slack[rows] < 0):
-            return None  # a row without a slack to push it inside
-        if rows.size:
-            # the row's multiplier takes the slack's cost (the slack's stationarity) and the
-            # row moves inside to barrier complementarity, mu_r H_r = -mu_bar
-            slack, coef = self._row_slack[rows], -self._row_coef[rows]
-            mu[rows] = np.maximum(mu[rows], np.maximum(dfdw[slack] / coef, mu_bar))
-            need = (Hg[rows] + mu_bar / mu[rows]) / coef
-            inc: dict[int, float] = {}
-            for c, d in zip(slack.tolist(), need.tolist()):
-                inc[c] = max(inc.get(c, 0.0), d)
-            idx = np.fromiter(inc, int)
-            w[idx] += np.fromiter(inc.values(), float)
-            pos = np.searchsorted(self._lb_idx, idx)  # the slacks' bounds eta >= 0
-            mu[self.nin + pos] = mu_bar / (w[idx] - self._lbw[idx])
-        y = np.concatenate([w, lam, mu])
-        steps = short = 0
-        while steps < self._barrier_steps:
-            steps += 1
-            dy, a, _, r2, y1, r1, r1_2, h1, m1, f1 = self._barrier_call(y, p, mu_bar)
-            a, r2 = float(a), float(r2)
-            # jamming: the fraction-to-boundary rule keeps cutting the steps short
-            short = short + 1 if a < 0.1 else 0
-            if short >= _STALL_STEPS:
-                return None
-            r1, r1_2, h1, m1 = float(r1), float(r1_2), float(h1), float(m1)
-            t = a
-            for _ in range(_MAX_BACKTRACKS):
-                if h1 < 0 and m1 > 0 and np.isfinite(r1_2) and r1_2 <= (1 - 1e-4 * t) * r2:
-                    break
-                t *= 0.5
-                y1 = y + t * np.asarray(dy).reshape(-1)
-                r1, r1_2, h1, m1, f1 = (float(v) for v in self._point_call(y1, p, mu_bar))
-            else:
-                return None  # the residual does not fall along the Newton direction
-            y = np.asarray(y1).reshape(-1)
-            if mu_bar <= self.tau:
-                if r1 <= self._tol:
-                    if not self._is_local_minimum(y, p):
-                        return None  # a saddle point of the barrier problem: IPOPT solves
-                    return self._newton_result(y, float(f1), "Barrier_Succeeded", steps)
-            elif r1 <= 10 * mu_bar:
-                mu_bar = max(self.tau, min(0.2 * mu_bar, mu_bar**1.5))
-        return None
-
-    def _is_local_minimum(self, y: np.ndarray, p: np.ndarray) -> bool:
-        """Whether the barrier Hessian is positive definite on the null space of the equality
-        Jacobian at y (second-order sufficient condition of the barrier problem): a root of R
-        that the residual line search reached may be a saddle point, which IPOPT (inertia
-        correction) would not return."""
-        M = self._reduced_hessian(y, p)
-        if M is None:
-            return False
-        try:
-            np.linalg.cholesky(M)
-        except np.linalg.LinAlgError:
-            return False
-        return True
-
-    def _reduced_hessian(self, y: np.ndarray, p: np.ndarray) -> np.ndarray | None:
-        """``Z^T K Z`` at y: the barrier Hessian ``K = W + dH^T diag(mu / -H) dH`` on the null
-        space of the equality Jacobian ``A``, with ``Z = [-A_x^-1 A_r; I]`` in (the predicted
-        states, the rest) (the states are the dependent variables: their block ``A_x`` is square
-        and invertible, multiple shooting). None when it is not finite."""
-        nw, neq = self.nw, self.neq
-        Kxx, Kxr, Krr, Ax, Ar = self._soc_call(y[:nw], y[nw : nw + neq], y[nw + neq :], p)
-        try:
-            S = -np.linalg.solve(Ax, Ar)
-        except np.linalg.LinAlgError:
-            return None
-        KxrS = Kxr.T @ S
-        M = Krr + KxrS + KxrS.T + S.T @ (Kxx @ S)
-        return M if np.all(np.isfinite(M)) else None
 
     def _newton_result(
         self, y: np.ndarray, f: float, status: str, steps: int
@@ -1020,7 +781,6 @@ def _ipopt_options(
     tau: float,
     max_iter: int,
     *,
-    jit: bool = False,
     options: dict | None = None,
     warm: dict | None = None,
 ) -> tuple[dict, dict]:
@@ -1050,8 +810,6 @@ def _ipopt_options(
         "ipopt.honor_original_bounds": "no",
         "ipopt.nlp_scaling_method": "none",
     }
-    if jit:  # generated C code of the NLP functions, compiled once (needs a C compiler)
-        cold.update({"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS})
     cold.update(_casadi_keys(options))
     warm_opts = {
         **cold,
