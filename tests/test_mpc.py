@@ -223,13 +223,13 @@ def test_numpy_call_gives_the_function_outputs_bit_for_bit():
     # the CasADi call itself, in its shapes (a matrix, a scalar, a structurally sparse output)
     import casadi as ca
 
-    from mpcmobo.mpc.parametric import _NumpyCall
+    from mpcmobo.mpc.kkt import NumpyCall
 
     a, b = ca.MX.sym("a", 3), ca.MX.sym("b", 2)
     fn = ca.Function(
         "f", [a, b], [ca.sin(a) * b[0], ca.dot(a, a) + b[1], ca.mtimes(a, b.T), ca.tril(a @ a.T)]
     )
-    call = _NumpyCall(fn)
+    call = NumpyCall(fn)
     rng = np.random.default_rng(0)
     for _ in range(3):  # the buffers are reused
         x, y = rng.normal(size=3), rng.normal(size=2)

@@ -15,8 +15,9 @@ from typing import Any, Protocol
 import gymnasium
 import numpy as np
 
-from mpcmobo.mpc.parametric import MPCSolution, ParametricMPC
+from mpcmobo.mpc.parametric import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
+from mpcmobo.mpc.solve import MPCSolution
 from mpcmobo.systems.base import System
 from mpcmobo.systems.plant import SystemPlant
 
