@@ -1,17 +1,18 @@
-"""The parametric MPC: eq. (V0) for a system, built once, solved many times.
+"""The parametric MPC of a system, built once and solved many times, and the parts it composes.
 
-:class:`ParametricMPC` composes the pipeline of one MPC:
+:class:`ParametricMPC` checks the options and the inputs and builds the pipeline of one MPC:
 
-- :mod:`mpcmobo.mpc.transcription`: the NLP of eq. (V0) in scaled variables and the layout of
-  its decision vector;
-- :mod:`mpcmobo.mpc.kkt`: its barrier-relaxed KKT residual, the sensitivities (eq. nabla_pi)
-  and the Newton step of warm solves;
+- :mod:`mpcmobo.mpc.transcription`: the optimal control problem as an NLP in scaled variables,
+  and the layout of its decision vector;
+- :mod:`mpcmobo.mpc.kkt`: the NLP's barrier-relaxed KKT residual, the sensitivities of the
+  policy and the value, and the Newton step of warm solves;
 - :mod:`mpcmobo.mpc.codegen` (option ``codegen``): those functions as compiled C, cached;
 - :mod:`mpcmobo.mpc.solve`: the solve paths (Newton steps, IPOPT warm and cold, the fallback
   input) and their result, :class:`~mpcmobo.mpc.solve.MPCSolution`.
 
-It checks the options and the inputs, and keeps the names of its parts that tests and
-benchmarks read or patch (``_prev``, ``_run_solver``, ``_kkt``, ``nw``, ...) on the MPC itself.
+The attributes of the parts that tests and benchmarks read or patch (``_prev``,
+``_run_solver``, ``_kkt``, ``nw``, ...) are names on the MPC that read and assign the part
+that owns them.
 """
 
 from __future__ import annotations

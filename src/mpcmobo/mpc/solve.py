@@ -87,7 +87,7 @@ def ipopt_options(
         # lam_p (the multipliers of the parameters) costs one more gradient evaluation per
         # solve and is not used: the sensitivities come from the KKT system
         "calc_lam_p": False,
-        # IPOPT may probe wild iterates (Inf/NaN in the model, see NOTES): it backtracks by
+        # IPOPT may probe wild iterates (Inf/NaN in the model): it backtracks by
         # itself, and a failed solve is reported in MPCSolution, so CasADi's per-evaluation
         # warnings on stderr are only noise that would bury the progress bars
         "show_eval_warnings": False,
