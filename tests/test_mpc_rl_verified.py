@@ -1,4 +1,4 @@
-"""MPC-RL's verified deployment (``deploy = "verified"``, issue 11 item 3): the iterate is frozen
+"""MPC-RL's verified deployment (``deploy = "verified"``): the iterate is frozen
 for a block of episodes every ``deploy_every`` steps, and the block's candidate is deployed only
 when its own episode costs beat the deployed theta's (paired by cycled start, else Welch)."""
 
@@ -289,8 +289,8 @@ def test_a_confidently_worse_candidate_sends_the_iterate_back(lq, reset):
 
 
 def test_a_checkpoint_of_the_pooled_judge_resumes_with_it(lq):
-    """Runs checkpointed with the default of sessions 5-11 (the pooled judge) keep it when
-    resumed by today's default learner."""
+    """A run checkpointed with the pooled judge (``deploy = "pooled"``) keeps it when resumed
+    by a learner built with the default ``deploy``."""
     theta0 = lq.parameterization.theta0
     old = make_learner("mpc-rl", lq.search_space, theta0, deploy="pooled")
     rng = np.random.default_rng(4)

@@ -114,7 +114,7 @@ def _variants(model: type[BaseModel], prefix: str) -> list[str]:
             continue
         for sub in subs:
             rule = sub.model_fields["rule"].default
-            out += ["", f"`{prefix}{name} = \"{rule}\"`: {' '.join((sub.__doc__ or '').split())}"]
+            out += ["", f'`{prefix}{name} = "{rule}"`: {" ".join((sub.__doc__ or "").split())}']
             rows = [r for r in _rows(sub, f"{prefix}{name}.") if not r[0].endswith(".rule")]
             if rows:
                 out += ["", *_table(rows)]
@@ -142,7 +142,7 @@ def configuration_reference() -> str:
         "## Learner options",
         "",
         "A table `[learner_options.NAME]` per learner. A policy table (`deploy`, `optimizer`)",
-        'is written as its variant\'s name when its other fields keep their defaults:',
+        "is written as its variant's name when its other fields keep their defaults:",
         '`deploy = "incumbent"`, or in full: `deploy = {rule = "evidence", confidence = 0.95}`.',
     ]
     for name, spec in LEARNER_SPECS.items():

@@ -113,6 +113,8 @@ class RunDirectory:
             if for_records:
                 saved = read_toml(self.config)
                 saved.pop("learner_options", None)
+                mpc = saved.setdefault("mpc", {})
+                mpc.setdefault("newton_steps", 0)  # a run saved before the setting: IPOPT only
                 for section, keys in READ_ONLY_DROPS.items():
                     for key in keys:
                         saved.get(section, {}).pop(key, None)

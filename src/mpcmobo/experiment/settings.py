@@ -144,24 +144,6 @@ class MPCSettings(_Section):
         description="warm solves first try this many Newton steps on the barrier KKT system "
         "(IPOPT if they do not converge); 0: always IPOPT",
     )
-    barrier_steps: int = Field(
-        0,
-        ge=0,
-        le=1000,
-        description="when the Newton steps do not converge, warm solves try a short "
-        "interior-point path of at most this many Newton steps (IPOPT if it does not converge); "
-        "0: off (the default; 30 measured faster, but from a few states whose new plant state "
-        "violates a row of the shifted plan it reaches another local minimum than IPOPT)",
-    )
-    barrier_mu0: float = Field(
-        1e-3, gt=0, lt=1, description="first barrier parameter of that path (scaled units)"
-    )
-    barrier_push: bool = Field(
-        True,
-        description="let the barrier path start from warm starts that violate a row (pushed "
-        "inside); false: only from strictly interior warm starts, IPOPT elsewhere (IPOPT's "
-        "solution on every state of the step-time benchmark)",
-    )
     codegen: bool = Field(
         False,
         description="generated C code of the MPC, compiled once per machine and problem and "

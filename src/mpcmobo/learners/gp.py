@@ -71,7 +71,9 @@ class GPLearner(Learner):
         self.evidence_ = Evidence(space.dim, space.n_theta, len(self.outputs))
         self.deployed_z_ = space.to_unit(self.theta0)
         self.verify_z_: np.ndarray | None = None  # a candidate the policy wants run again
-        self.trust_: TrustState | None = None if self.trust_region is None else self.trust_region.start()
+        self.trust_: TrustState | None = (
+            None if self.trust_region is None else self.trust_region.start()
+        )
         self.fitted_ = False
         self.pending_: tuple[str, bytes] | None = None  # the last proposal's kind and theta
         self.pre_fit_: dict | None = None  # the state the last fit started from (resume)

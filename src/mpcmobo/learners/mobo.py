@@ -69,7 +69,9 @@ class MOBOLearner(GPLearner):
         if self.ref_point_ is None and len(ev) >= self.options.n_init:
             ok = ev.finite()
             if np.any(ok):
-                self.ref_point_ = reference_point(self._model_Y()[ok], margin=self.options.ref_margin)
+                self.ref_point_ = reference_point(
+                    self._model_Y()[ok], margin=self.options.ref_margin
+                )
 
     def _acquire(self, seed: int) -> np.ndarray:
         ref = self.ref_point_

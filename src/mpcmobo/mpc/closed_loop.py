@@ -1,4 +1,4 @@
-"""Closed-loop episodes: the MPC (eq. Policy) driving the plant, with exploration.
+"""Closed-loop episodes: the MPC's policy driving the plant, with exploration.
 
 The plant is a ``gymnasium.Env`` (:mod:`mpcmobo.systems.plant`): the loop calls
 ``reset(seed=..., options={"x0": x0})`` and ``step(u)``, reads the measured state from the
@@ -15,8 +15,9 @@ from typing import Any, Protocol
 import gymnasium
 import numpy as np
 
-from mpcmobo.mpc.parametric import MPCSolution, ParametricMPC
+from mpcmobo.mpc.parametric import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
+from mpcmobo.mpc.solve import MPCSolution
 from mpcmobo.systems.base import System
 from mpcmobo.systems.plant import SystemPlant
 
@@ -97,8 +98,7 @@ def model_rollout(
     """The closed loop of ``theta`` from ``x0`` on the MPC's own prediction model instead of the
     plant (``plant``: :func:`model_plant`, built here if not given): noise-free, without
     sensitivities. What the model predicts of an episode from ``x0``, at no cost to the plant;
-    with theta0 it is the learners' start covariate (``EpisodeResult.start_cost``, issue 11,
-    item 1)."""
+    with theta0 it is the learners' start covariate (``EpisodeResult.start_cost``)."""
     plant = model_plant(system, mpc) if plant is None else plant
     return rollout(system, mpc, theta, x0, steps, sensitivities=False, plant=plant)
 
@@ -145,7 +145,7 @@ def _blank_record(steps: int, nx: int, nu: int, theta: np.ndarray, gamma: float)
 
 def _record_solve(rec: EpisodeRecord, k: int, sol: MPCSolution, sensitivities: bool) -> None:
     """The solve at x_k: success, time, status, V_theta(x_k) and its gradients, pi_theta(x_k)."""
-    rec.success[k], rec.solve_time[k] = sol.success, sol.solve_time  # type: ignore[index]  # None only in old records
+    rec.success[k], rec.solve_time[k] = sol.success, sol.solve_time  # type: ignore[index]  # set by _blank_record
     rec.status.append(sol.status)
     if sol.success:
         rec.V[k] = sol.value

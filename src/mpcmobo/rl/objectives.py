@@ -77,7 +77,7 @@ def f3_critic_drift(Vc: float, previous_Vc: float | None) -> float:
 def f3_critic_drift_same_states(
     record: EpisodeRecord, nu: np.ndarray, previous_nu: np.ndarray | None
 ) -> float:
-    r"""f3 like for like (issue 11, item 4): this episode's critic against the previous one on
+    r"""f3 like for like: this episode's critic against the previous one on
     the same states, under the same MPC.
 
     .. math:: f_3 = \max\Big(0, \sum_{k=0}^{T} \big(V^{\nu_\ell}(x_k) - V^{\nu_{\ell-1}}(x_k)\big)
