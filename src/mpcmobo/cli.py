@@ -33,7 +33,7 @@ from mpcmobo import __version__
 from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError, read_run_file
 from mpcmobo.experiment.settings import PAPER_LEARNERS, Settings, SettingsError, load_settings
-from mpcmobo.learners.registry import LEARNER_SPECS, describe_options
+from mpcmobo.learners.registry import LEARNER_SPECS
 
 app = typer.Typer(
     name="mpcmobo",
@@ -190,8 +190,13 @@ def _default(key: str) -> Any:
 
 
 def _options_epilog() -> str:
-    lines = ["Learner options (a table learner_options.NAME in the --config file), defaults:"]
-    lines += [f"{name}: {describe_options(name)}" for name in LEARNER_SPECS]
+    from mpcmobo.experiment.options_doc import learner_option_lines
+
+    lines = [
+        "Learner options, a table \\[learner_options.NAME] in the --config file (every option "
+        "and its meaning: docs/configuration.md). The defaults in force:"
+    ]
+    lines += [f"{name}: {'; '.join(learner_option_lines(name))}" for name in LEARNER_SPECS]
     return "\n\n".join(lines)
 
 
@@ -489,18 +494,18 @@ def systems() -> None:
     from mpcmobo.systems import SystemDefinitionError, SystemSpecError, get_system
     from mpcmobo.systems.registry import describe_systems
 
-    table = Table(title="systems")
-    for col in ("name", "source", "states", "inputs", "theta", "steps", "model", "description"):
-        table.add_column(col)
+    table = Table(title="systems", expand=False)
+    for col in ("name", "source", "states", "inputs", "theta", "steps", "J*"):
+        table.add_column(col, overflow="fold")
+    notes: list[str] = []
     for name, source in describe_systems():
         try:
             s = get_system(name)
         except (SystemSpecError, SystemDefinitionError) as err:
-            table.add_row(
-                name, source, "", "", "", "", "", f"[red]cannot be built: {escape(str(err))}[/]"
-            )
+            table.add_row(name, source, "", "", "", "", "")
+            notes.append(f"[bold]{escape(name)}[/]: [red]cannot be built: {escape(str(err))}[/]")
             continue
-        kind = "discrete" if s.discrete_time else "continuous"
+        kind = "discrete-time" if s.discrete_time else "continuous-time"
         if s.nh:
             kind += f", {s.nh} path constraint{'s' if s.nh > 1 else ''}"
         table.add_row(
@@ -510,11 +515,14 @@ def systems() -> None:
             ", ".join(s.input_names),
             str(s.search_space.n_theta),
             str(s.episode_steps),
-            kind + ("" if s.has_reference_model else ", no J*"),
-            s.description,
+            "yes" if s.has_reference_model else "no",
         )
+        notes.append(f"[bold]{escape(name)}[/] ({kind}): {escape(s.description)}")
     console.print(table)
-    console.print(ADD_SYSTEM_HELP, markup=False, highlight=False, soft_wrap=True)
+    for note in notes:
+        console.print(note, highlight=False)
+    console.print()
+    console.print(ADD_SYSTEM_HELP, markup=False, highlight=False)
 
 
 if __name__ == "__main__":  # pragma: no cover

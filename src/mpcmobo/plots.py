@@ -5,7 +5,7 @@ the system's names, references and limits). Outputs: ``DIR/figures/fig{1..4}_*.{
 With several seeds, per-episode curves are the median over seeds with the interquartile band,
 and the legend says how many seeds; a run with one seed draws single lines.
 
-Fig. 1 compares like with like (issue 15): the training curve J~ (f1, eq. cl_perf: discounted,
+Fig. 1 compares like with like: the training curve J~ (f1, eq. cl_perf: discounted,
 with exploration, on the training starts) is drawn against J~* (the same f1 of the perfect-model
 MPC on the same training starts with the same noise, ``summary.json`` ``J_tilde_star``), and
 J_eval of the deployed theta (undiscounted, no exploration, on the fixed evaluation starts)

@@ -112,7 +112,7 @@ class LearningRun:
         error = "; ".join(e for e in (proposal_error, error) if e)
         if self.start_mode == "cycle":
             result.start_id = self.episode % len(self.cycle_starts)
-        result.x0 = x0.copy()  # the context of the episode (issue 11)
+        result.x0 = x0.copy()
         uses = getattr(self.learner, "uses_start_cost", None)  # duck-typed learners: no
         if uses is not None and uses():
             result.start_cost = self.start_cost(x0)
@@ -235,7 +235,7 @@ class LearningRun:
         """Continue from a :meth:`state_dict`."""
         self.episode = int(state["episode"])
         self.previous_Vc = state["previous_Vc"]
-        self.previous_nu = state.get("previous_nu")  # absent in checkpoints before issue 11
+        self.previous_nu = state["previous_nu"]
         self.rng_start.bit_generator.state = state["rng_start"]
         self.rng_noise.bit_generator.state = state["rng_noise"]
         self.learner.load_state_dict(state["learner"])

@@ -98,7 +98,7 @@ def compute_reference(settings: Settings) -> Reference:
         trajectories += [
             Trajectory(phase, -1, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
         ]
-    # J~*, like for like (issue 15): needs the perfect model
+    # J~*, like for like: needs the perfect model
     training = training_references(settings, system) if evaluator.has_J_star else []
     return Reference(
         J_star=values.get("perfect"),
@@ -153,7 +153,7 @@ def _seed_summary(
     violation = s["violation"].to_numpy(float)
     return {
         "J_final": float(J[-1]) if len(J) else None,
-        # issue 11, item 3: the worst J_eval of the deployed theta over the run, and how many
+        # the worst J_eval of the deployed theta over the run, and how many
         # evaluations found it worse than theta0 (J_eval > J_initial)
         "J_worst": float(J.max()) if len(J) else None,
         "regressions": int(np.count_nonzero(J > float(reference.J_initial))),
