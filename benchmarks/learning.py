@@ -8,7 +8,7 @@ episode, and the largest episode per seed), and wall time per episode split into
 learner. ``--system`` and ``--config`` (a settings file, e.g. learner options) are passed to
 the study.
 
-Peer rows (issue 11, item 6): ``--learners optuna-tpe optuna-gp`` runs Optuna's TPE and GP
+Peer rows: ``--learners optuna-tpe optuna-gp`` runs Optuna's TPE and GP
 samplers through the same study (``benchmarks/optuna_learners.py``; needs the ``bench`` extra,
 ``pip install -e ".[bench]"``). They are registered in this process only, so a run with them
 uses one worker.

@@ -1,4 +1,4 @@
-"""Recheck a run's deployed thetas on many fresh initial states (issue 11, item 5).
+"""Recheck a run's deployed thetas on many fresh initial states.
 
 J_eval is the mean cost over ``evaluation.n_starts`` (10) fixed starts, and on the CSTR a few
 starts dominate that mean: a theta can win on most starts and still lose in J_eval because of

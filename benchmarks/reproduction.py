@@ -1,4 +1,4 @@
-"""The numbers of docs/reproduction.md, claim by claim, from run directories (issue 15).
+"""The numbers of docs/reproduction.md, claim by claim, from run directories.
 
     PYTHONPATH=src .venv/bin/python benchmarks/reproduction.py runs/paper runs/default \
         --labels paper default

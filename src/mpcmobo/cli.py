@@ -14,7 +14,7 @@ import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
@@ -209,55 +209,91 @@ RUN_HELP = (
 )
 
 
-@app.command(context_settings={"allow_extra_args": True}, help=RUN_HELP, epilog=_options_epilog())
-def run(
-    ctx: typer.Context,
-    config: Path | None = typer.Option(
-        None, "--config", "-c", help="settings file (TOML)", show_default="none, the defaults below"
+# the options of `mpcmobo run`
+_Config = Annotated[
+    Path | None,
+    typer.Option(
+        "--config", "-c", help="settings file (TOML)", show_default="none, the defaults below"
     ),
-    system: str | None = typer.Option(
-        None,
+]
+_System = Annotated[
+    str | None,
+    typer.Option(
         "--system",
         help="system: a name (`mpcmobo systems`), 'module:function' or 'file.py:function'",
         show_default=_default("system").name,
     ),
-    learner: str | None = typer.Option(
-        None,
+]
+_Learner = Annotated[
+    str | None,
+    typer.Option(
         "--learner",
         "-l",
         help=f"{' | '.join([*LEARNER_SPECS, 'all'])} (or a comma list)",
         show_default=",".join(PAPER_LEARNERS),
     ),
-    episodes: int | None = typer.Option(
-        None, "--episodes", "-n", help="episodes per job", show_default=str(_default("episodes"))
+]
+_Episodes = Annotated[
+    int | None,
+    typer.Option(
+        "--episodes", "-n", help="episodes per job", show_default=str(_default("episodes"))
     ),
-    steps: int | None = typer.Option(
-        None, "--steps", help="time steps per episode", show_default="the system's episode length"
+]
+_Steps = Annotated[
+    int | None,
+    typer.Option(
+        "--steps", help="time steps per episode", show_default="the system's episode length"
     ),
-    seeds: list[str] | None = typer.Option(
-        None,
+]
+_Seeds = Annotated[
+    list[str] | None,
+    typer.Option(
         "--seeds",
         "-s",
         help="seeds: --seeds 0 1 2, --seeds 0,1,2 or repeated --seeds",
         show_default=" ".join(map(str, _default("seeds"))),
     ),
-    out: Path | None = typer.Option(
-        None,
+]
+_Out = Annotated[
+    Path | None,
+    typer.Option(
         "--out",
         "-o",
         help="output directory, new or empty (its parent must exist)",
         show_default="runs/<timestamp>",
     ),
-    resume: bool = typer.Option(
-        False,
+]
+_Resume = Annotated[
+    bool,
+    typer.Option(
         "--resume",
         help="continue the run recorded in --out (with --episodes N: extend its budget to N)",
     ),
-    workers: int | None = typer.Option(
-        None, "--workers", "-w", help="parallel processes", show_default=str(_default("workers"))
+]
+_Workers = Annotated[
+    int | None,
+    typer.Option(
+        "--workers", "-w", help="parallel processes", show_default=str(_default("workers"))
     ),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
-    no_plot: bool = typer.Option(False, "--no-plot", help="do not draw figures 1-4 at the end"),
+]
+_Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="no progress output")]
+_NoPlot = Annotated[bool, typer.Option("--no-plot", help="do not draw figures 1-4 at the end")]
+
+
+@app.command(context_settings={"allow_extra_args": True}, help=RUN_HELP, epilog=_options_epilog())
+def run(
+    ctx: typer.Context,
+    config: _Config = None,
+    system: _System = None,
+    learner: _Learner = None,
+    episodes: _Episodes = None,
+    steps: _Steps = None,
+    seeds: _Seeds = None,
+    out: _Out = None,
+    resume: _Resume = False,
+    workers: _Workers = None,
+    quiet: _Quiet = False,
+    no_plot: _NoPlot = False,
 ) -> None:
     """Run a study (learners x seeds): records, summary and, once complete, figures 1-4."""
     from mpcmobo.experiment.study import run_study

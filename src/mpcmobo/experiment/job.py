@@ -272,7 +272,6 @@ def _learning_run(
         critic_min_valid_steps=settings.critic.min_valid_steps,
         critic_weighting=settings.critic.weighting,
         beta=settings.beta,
-        f3=settings.critic.f3,
         plant=plant,
     )
 

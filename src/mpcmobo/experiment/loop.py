@@ -11,7 +11,7 @@ import numpy as np
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, model_plant, model_rollout, rollout
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
-from mpcmobo.rl.objectives import F3_MODES, mean_stage_cost
+from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
 
 START_MODES = ("random", "cycle")
@@ -48,7 +48,6 @@ class LearningRun:
         critic_min_valid_steps: int = 2,
         critic_weighting: str = "uniform",
         beta: float = 1.0,
-        f3: str = "paper",
         plant: gymnasium.Env | None = None,
     ) -> None:
         if start_mode not in START_MODES:
@@ -68,9 +67,6 @@ class LearningRun:
             weighting=critic_weighting,
         )
         self.beta = float(beta)
-        if f3 not in F3_MODES:
-            raise ValueError(f"f3 must be one of {F3_MODES}, got '{f3}'")
-        self.f3 = f3
         self.start_mode = start_mode
         # separate streams: initial states, exploration noise
         ss = np.random.SeedSequence([self.seed, 7])
@@ -83,7 +79,6 @@ class LearningRun:
         )
         self.episode = 0
         self.previous_Vc: float | None = None
-        self.previous_nu: np.ndarray | None = None  # the last fitted critic's nu (f3 "same_states")
         self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)
         self._model_plant: gymnasium.Env | None = None  # the MPC's model as a plant (built once)
 
@@ -203,16 +198,7 @@ class LearningRun:
                 plant=self.plant,
                 plant_seed=self.plant_seed(),
             )
-            result, cr = episode_result(
-                record,
-                self.critic,
-                self.previous_Vc,
-                self.beta,
-                f3=self.f3,
-                previous_nu=self.previous_nu,
-            )
-            if cr.ok and np.all(np.isfinite(cr.nu)):
-                self.previous_nu = np.asarray(cr.nu, float).copy()
+            result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
         except (FloatingPointError, ValueError, RuntimeError) as err:
             result = EpisodeResult(
                 objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
@@ -225,7 +211,6 @@ class LearningRun:
         return {
             "episode": self.episode,
             "previous_Vc": self.previous_Vc,
-            "previous_nu": self.previous_nu,
             "rng_start": self.rng_start.bit_generator.state,
             "rng_noise": self.rng_noise.bit_generator.state,
             "learner": self.learner.state_dict(),
@@ -235,7 +220,6 @@ class LearningRun:
         """Continue from a :meth:`state_dict`."""
         self.episode = int(state["episode"])
         self.previous_Vc = state["previous_Vc"]
-        self.previous_nu = state["previous_nu"]
         self.rng_start.bit_generator.state = state["rng_start"]
         self.rng_noise.bit_generator.state = state["rng_noise"]
         self.learner.load_state_dict(state["learner"])

@@ -184,11 +184,6 @@ class CriticSettings(_Section):
     weighting: Literal["uniform", "discounted"] = Field(
         "uniform", description="mean of the per-step DPG terms: uniform (paper) or discounted"
     )
-    f3: Literal["paper", "same_states"] = Field(
-        "paper",
-        description="f3 of eq. f3 on the two episodes' own trajectories (paper) or both critics "
-        "on this episode's states (same_states, like for like)",
-    )
 
 
 class EvaluationSettings(_Section):

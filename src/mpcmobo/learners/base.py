@@ -80,16 +80,10 @@ def episode_result(
     critic: CompatibleCritic,
     previous_Vc: float | None,
     beta: float = 1.0,
-    *,
-    f3: str = "paper",
-    previous_nu: np.ndarray | None = None,
 ) -> tuple[EpisodeResult, CriticResult]:
-    """Fit the compatible critic to a record and compute the four objectives of section 4
-    (``f3``, ``previous_nu``: see :func:`mpcmobo.rl.objectives`)."""
+    """Fit the compatible critic to a record and compute the four objectives of section 4."""
     cr = critic.fit(record)
-    f = np.asarray(
-        objectives(record, cr, previous_Vc, beta, f3=f3, previous_nu=previous_nu), dtype=float
-    )
+    f = np.asarray(objectives(record, cr, previous_Vc, beta), dtype=float)
     res = EpisodeResult(
         objectives=f,
         grad=np.where(np.isfinite(cr.grad), cr.grad, 0.0) if cr.ok else np.zeros_like(cr.grad),
