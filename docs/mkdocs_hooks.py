@@ -1,6 +1,7 @@
 """MkDocs hooks of the documentation site (``mkdocs.yml``: ``hooks``).
 
-- The home page is the README and the contributing page CONTRIBUTING.md, read at build time
+- The home page is the README, the contributing and changelog pages CONTRIBUTING.md and
+  CHANGELOG.md, read at build time
   (their links into ``docs/`` rewritten), so the site and the repository never drift apart.
 - The API reference has one page per public module of ``src/mpcmobo``, generated here from the
   package tree (``griffe``, the loader mkdocstrings uses), so a new module gets its page and its
@@ -22,7 +23,11 @@ from mkdocs.structure.files import File, Files
 ROOT = Path(__file__).resolve().parent.parent
 SRC = ROOT / "src"
 PACKAGE = "mpcmobo"
-ROOT_PAGES = {"index.md": "README.md", "contributing.md": "CONTRIBUTING.md"}
+ROOT_PAGES = {
+    "index.md": "README.md",
+    "contributing.md": "CONTRIBUTING.md",
+    "changelog.md": "CHANGELOG.md",
+}
 
 
 def _public_modules() -> list[griffe.Module]:

@@ -51,7 +51,11 @@ class SettingsError(ValueError):
 
 class _Section(BaseModel):
     model_config = ConfigDict(
-        extra="forbid", strict=True, allow_inf_nan=False, validate_assignment=True
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        validate_assignment=True,
+        use_attribute_docstrings=True,
     )
 
 
@@ -60,28 +64,29 @@ class SystemSettings(_Section):
     (overrides of ``System.mpc_spec``)."""
 
     # factory before name: the name is checked only without a factory (``_known_system``)
-    factory: str | None = Field(
-        None, description="the system's factory, 'module:function' or 'path/file.py:function'"
-    )
-    name: str = Field(
-        "cstr", description="registered system or plug-in (`mpcmobo systems`); with factory: "
-        "the name of the system it builds"
-    )  # fmt: skip
-    plant: str | None = Field(
-        None,
-        description="the plant: a gymnasium id or a factory of a gymnasium.Env "
-        "('module:function', 'path/file.py:function'); default: the system's own equations",
-    )
-    learn_model: list[str] = Field(
-        default_factory=list, description="model parameters made learnable"
-    )
+    factory: str | None = None
+    """The system's factory, ``"module:function"`` or ``"path/file.py:function"`` (a function
+    that returns a ``mpcmobo.systems.System``); unset: the system ``name``."""
+    name: str = "cstr"
+    """A registered system or plug-in (``mpcmobo systems``); with ``factory``: the name of the
+    system it builds."""
+    plant: str | None = None
+    """The plant: a gymnasium id or the factory of a ``gymnasium.Env``; unset: the system's own
+    equations with its true parameters."""
+    learn_model: list[str] = Field(default_factory=list)
+    """Model parameters made learnable (part of theta, searched around their nominal value)."""
     learn_backoff: bool = False
+    """Constraint back-offs of the state bounds made learnable (part of theta)."""
     learn_theta_c: bool = False
-    full_weights: bool = Field(
-        False, description="full positive-definite MPC weights (Cholesky factors in theta)"
-    )
+    """Search the cost's constant ``theta_c`` too (it changes V but never the policy)."""
+    full_weights: bool = False
+    """Full positive-definite MPC weights (Cholesky factors in theta) instead of diagonal."""
     weight_log_range: float | None = Field(None, gt=0, le=20)
+    """The cost weights are searched within theta0's times ``e^(+-weight_log_range)``; unset: the
+    system's (4 on the CSTR)."""
     model_log_range: float | None = Field(None, gt=0, le=10)
+    """Learnable model parameters are searched within their nominal value times
+    ``e^(+-model_log_range)``; unset: the system's."""
 
     @field_validator("factory", "plant")
     @classmethod
@@ -132,23 +137,26 @@ class MPCSettings(_Section):
     """Horizon, discount and solver options of the parametric MPC."""
 
     horizon: int | None = Field(None, ge=1, le=500)
+    """Prediction horizon N; unset: the system's (10 on the CSTR)."""
     gamma: float | None = Field(None, gt=0, le=1)
+    """Discount of the MPC cost and of f1; unset: the system's (0.99 on the CSTR)."""
     tau: float = Field(1e-6, gt=0, lt=1)
+    """Barrier parameter at which the MPC is solved and differentiated (scaled units): the
+    sensitivities are those of the barrier problem, smooth across active-set changes."""
     tol: float = Field(1e-8, gt=0, lt=1)
+    """IPOPT's tolerance (and the Newton steps')."""
     max_iter: int = Field(150, ge=1, le=100_000)
+    """IPOPT's iteration limit per solve; a solve that reaches it uses the fallback input."""
     warm_start: bool = True
-    newton_steps: int = Field(
-        6,
-        ge=0,
-        le=100,
-        description="warm solves first try this many Newton steps on the barrier KKT system "
-        "(IPOPT if they do not converge); 0: always IPOPT",
-    )
-    codegen: bool = Field(
-        False,
-        description="generated C code of the MPC, compiled once per machine and problem and "
-        "cached ($MPCMOBO_CACHE_DIR, else $XDG_CACHE_HOME/mpcmobo or ~/.cache/mpcmobo)",
-    )
+    """Start each solve from the previous solution shifted by one step."""
+    newton_steps: int = Field(6, ge=0, le=100)
+    """Warm solves first try this many Newton steps on the barrier KKT system and accept them
+    only at IPOPT's solution (to its tolerance); else IPOPT solves. 0: IPOPT always (a step about
+    twice as slow)."""
+    codegen: bool = False
+    """Generated C code of the MPC's functions, compiled once per machine and problem and cached
+    (``$MPCMOBO_CACHE_DIR``, else ``~/.cache/mpcmobo``): the same numbers, faster steps; needs a
+    C compiler; the first build takes tens of seconds."""
 
     def options(self) -> dict[str, Any]:
         """The options given to ``ParametricMPC`` (the unset ones left to the system)."""
@@ -157,12 +165,12 @@ class MPCSettings(_Section):
 
 
 class ExplorationSettings(_Section):
-    """Gaussian input noise of the learning episodes (per input; decay per episode)."""
+    """Gaussian input noise of the learning episodes."""
 
-    std: list[float] | None = Field(
-        None, description="standard deviation per input; default 2% of each input's range"
-    )
+    std: list[float] | None = None
+    """Standard deviation of the noise added to each input; unset: 2% of each input's range."""
     decay: float = Field(1.0, gt=0, le=1)
+    """The standard deviation is multiplied by this factor after every episode (1: constant)."""
 
     @field_validator("std")
     @classmethod
@@ -173,55 +181,82 @@ class ExplorationSettings(_Section):
 
 
 class CriticSettings(_Section):
-    """The compatible critic (``mpcmobo.rl.CompatibleCritic``): LSTDV / LSTDQ and the DPG."""
+    """The compatible critic (LSTDV and LSTDQ) and the policy gradient."""
 
     ridge: float = Field(1e-6, ge=0)
+    """Relative ridge of the least-squares solves (numerical safety only)."""
     method: Literal["lstd", "paper"] = "lstd"
-    q_target: Literal["V_theta", "V_nu"] | None = Field(
-        None, description="value of x_{k+1} in the LSTDQ target; default: follows the method"
-    )
-    min_valid_steps: int = Field(2, ge=1, description="fewer usable transitions: the fit fails")
-    weighting: Literal["uniform", "discounted"] = Field(
-        "uniform", description="mean of the per-step DPG terms: uniform (paper) or discounted"
-    )
+    """``"lstd"``: LSTDV with the TD target of V^nu; ``"paper"``: the value critic as printed
+    in eq. lstdv_update (nu regresses the TD error of V_theta on grad V_theta)."""
+    q_target: Literal["V_theta", "V_nu"] | None = None
+    """Value of x_{k+1} in the LSTDQ target; unset: ``V_nu`` with ``"lstd"``, ``V_theta`` with
+    ``"paper"``."""
+    min_valid_steps: int = Field(2, ge=1)
+    """With fewer usable transitions the episode's critic fit fails (no gradient)."""
+    weighting: Literal["uniform", "discounted"] = "uniform"
+    """The mean of the per-step DPG terms: uniform (the paper's eq. DPG) or discounted by
+    gamma^k."""
 
 
 class EvaluationSettings(_Section):
-    """The evaluation protocol: J_eval on ``n_starts`` seeded initial states."""
+    """The evaluation protocol: J_eval, the mean stage cost of the deployed theta from
+    ``n_starts`` fixed initial states without exploration."""
 
     n_starts: int = Field(10, ge=1, le=10_000)
+    """Initial states of the evaluation (drawn with ``seed``; never shown to a learner)."""
     seed: int = Field(2025, ge=0)
-    steps: int | None = Field(None, ge=1, le=1_000_000, description="default: settings.steps")
+    """Seed of the evaluation starts."""
+    steps: int | None = Field(None, ge=1, le=1_000_000)
+    """Steps per evaluation episode; unset: ``steps``."""
     eval_every: int = Field(10, ge=1)
+    """The deployed theta is evaluated when it changes, at most every this many episodes, and
+    at the first and last episode."""
 
 
 class RecordsSettings(_Section):
     """What is stored besides the per-episode rows."""
 
-    trajectory_every: int = Field(
-        20, ge=1, description="store the learning episode's states/inputs every N episodes"
-    )
+    trajectory_every: int = Field(20, ge=1)
+    """Store every this many episodes the learning episode's states and inputs."""
 
 
 class Settings(_Section):
-    """Everything a study needs. See ``docs`` and ``mpcmobo run --help``."""
+    """Everything a study needs; a settings file holds any subset of it."""
 
     system: SystemSettings = Field(default_factory=SystemSettings)
+    """The system, its plant and the MPC's parameterization."""
     mpc: MPCSettings = Field(default_factory=MPCSettings)
+    """The parametric MPC."""
     exploration: ExplorationSettings = Field(default_factory=ExplorationSettings)
+    """The exploration noise of learning episodes."""
     episodes: int = Field(600, ge=1, le=1_000_000)
+    """Episodes per job (learner and seed)."""
     steps: int | None = Field(None, ge=1, le=1_000_000)
+    """Time steps per episode; unset: the system's (60 on the CSTR)."""
     start_mode: Literal["random", "cycle"] = "cycle"
+    """``"cycle"``: episode k starts from the (k mod ``n_cycle_starts``)-th of a fixed seeded set
+    of initial states, so that thetas are compared from common starts; ``"random"``: a fresh
+    initial state per episode (the paper's)."""
     n_cycle_starts: int = Field(6, ge=1, le=100_000)
+    """Starts of the cycle (``start_mode = "cycle"``)."""
     critic: CriticSettings = Field(default_factory=CriticSettings)
+    """The compatible critic."""
     beta: float = 1.0
+    """The weight beta of f4 (the Lyapunov decrease)."""
     learners: list[str] = Field(default_factory=lambda: list(PAPER_LEARNERS), min_length=1)
+    """The learners of the study (``mpc-rl``, ``bo``, ``mobo``, ``hybrid``)."""
     learner_options: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    """A table of options per learner (below)."""
     evaluation: EvaluationSettings = Field(default_factory=EvaluationSettings)
+    """The evaluation protocol."""
     records: RecordsSettings = Field(default_factory=RecordsSettings)
+    """What is stored besides the per-episode rows."""
     seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
+    """The seeds: one job per learner and seed."""
     workers: int = Field(2, ge=1, le=1024)
+    """Jobs run in parallel (processes, or Ray tasks)."""
     backend: Literal["process", "ray"] = "process"
+    """Where jobs run: local processes, or a Ray cluster (``pip install -e ".[ray]"``)."""
 
     @field_validator("learners")
     @classmethod
