@@ -27,8 +27,16 @@ from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.loop import LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
-from mpcmobo.experiment.settings import Settings, build_plant, build_system, validate_settings
+from mpcmobo.experiment.settings import (
+    Settings,
+    build_plant,
+    build_system,
+    identified_parameters,
+    validate_settings,
+)
+from mpcmobo.identify import ModelFit
 from mpcmobo.learners import Learner, Starts, make_learner
+from mpcmobo.learners.identified import IdentifyFirst
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import register_system
@@ -101,7 +109,7 @@ class Job:
     ) -> None:
         self.settings, self.run_dir = settings, run_dir
         self.learner, self.seed = learner, seed
-        system = build_system(settings)
+        system = build_system(settings, learner)  # theta with the identified parameters, if any
         plant = build_plant(settings, system) if settings.system.plant else None
         self.run = _learning_run(settings, system, learner, seed, plant)
         self.evaluator = make_evaluator(settings, system, plant)
@@ -244,10 +252,23 @@ def make_study_learner(
     settings: Settings, system: System, name: str, theta0: np.ndarray, seed: int
 ) -> Learner:
     """The learner ``name`` with the study's options for it, built for the study's start
-    design (cycled or random starts)."""
+    design (cycled or random starts); with identification (``system`` built for the job by
+    :func:`~mpcmobo.experiment.settings.build_system`, theta holding the identified
+    parameters), the identify learner, or the learner tuning after the model switch."""
     options = settings.learner_options.get(name, {})
     starts = Starts(settings.start_mode, settings.n_cycle_starts)
-    return make_learner(name, system.search_space, theta0, seed=seed, starts=starts, **options)
+    names = identified_parameters(settings, system.param_names, name)
+    if not names:
+        return make_learner(name, system.search_space, theta0, seed=seed, starts=starts, **options)
+    fit = ModelFit(system, names)
+    if name == "identify":
+        return make_learner(name, system.search_space, theta0, seed=seed, starts=starts,
+                            model_fit=fit, **options)  # fmt: skip
+
+    def tuner(theta: np.ndarray) -> Learner:
+        return make_learner(name, system.search_space, theta, seed=seed, starts=starts, **options)
+
+    return IdentifyFirst(tuner, system.search_space, theta0, seed, starts=starts, model_fit=fit)
 
 
 def _learning_run(

@@ -17,6 +17,11 @@ from mpcmobo.systems.base import System
 START_MODES = ("random", "cycle")
 
 
+def _as_list(values: np.ndarray | None) -> list[float]:
+    """A learner's identified parameters as a record's list (empty: none)."""
+    return [] if values is None else [float(v) for v in np.asarray(values).reshape(-1)]
+
+
 class LearningRun:
     """Episodes of one learner on one seed; resumable through ``state_dict``.
 
@@ -140,6 +145,7 @@ class LearningRun:
             "incumbent": incumbent.tolist(),
             "error": error,
             "start_cost": float(result.start_cost),
+            "identified": _as_list(getattr(self.learner, "identified", lambda: None)()),
         }
         self.episode += 1
         return row, record

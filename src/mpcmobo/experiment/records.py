@@ -20,7 +20,8 @@ class EpisodeRow:
     The objectives f1..f4 are those of the paper (eq. cl_perf, f2, f3, f4); ``J_tilde`` is f1;
     ``mean_stage_cost`` is the undiscounted mean of L over the episode; ``J_eval_incumbent`` is
     NaN where the job's evaluation schedule did not evaluate the incumbent; ``start_cost`` is
-    theta0's cost from the episode's start on the MPC's own model (NaN unless the learner used it).
+    theta0's cost from the episode's start on the MPC's own model (NaN unless the learner used
+    it); ``identified`` the model parameters identified so far (empty without identification).
     """
 
     learner: str
@@ -47,6 +48,8 @@ class EpisodeRow:
     # theta0's mean stage cost from x0 on the MPC's own model (EpisodeResult.start_cost), the
     # deployment tests' covariate; NaN where the learner did not use it (and in older files)
     start_cost: float = math.nan
+    # the model parameters the learner has identified after the episode (empty: none)
+    identified: list[float] = field(default_factory=list)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EpisodeRow:

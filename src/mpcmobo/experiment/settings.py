@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -86,7 +86,14 @@ class SystemSettings(_Section):
     system's (4 on the CSTR)."""
     model_log_range: float | None = Field(None, gt=0, le=10)
     """Learnable model parameters are searched within their nominal value times
-    ``e^(+-model_log_range)``; unset: the system's."""
+    ``e^(+-model_log_range)``; unset: the system's. The same bounds hold for identification."""
+    identify: bool | list[str] = False
+    """Identify the model first: after every episode the model parameters (``true``: all the
+    system declares; a list: those) are fitted to the plant's transitions, and each learner
+    tunes from the identified model once its evidence supports it (a few episodes of the
+    study; the fit itself takes a fraction of a second). ``false``: the learners tune the
+    nominal model. The ``identify`` learner identifies these, or all parameters when this is
+    ``false``."""
 
     @field_validator("factory", "plant")
     @classmethod
@@ -363,16 +370,45 @@ def _drop_none(d: Any) -> Any:
     return d
 
 
-def build_system(settings: Settings) -> System:
-    """The system of the settings, with its MPC-spec overrides applied; a system that cannot
-    be found, imported or built is a :class:`SettingsError` (one line, naming the key)."""
+def build_system(settings: Settings, learner: str | None = None) -> System:
+    """The system of the settings, with its MPC-spec overrides applied; for ``learner``'s job
+    with the parameters it identifies in theta (:func:`identified_parameters`). A system that
+    cannot be found, imported or built is a :class:`SettingsError` (one line, naming the key)."""
     key = "system.factory" if settings.system.factory is not None else "system.name"
     try:
-        return get_system(settings.system.spec, **settings.system.spec_overrides())
+        system = get_system(settings.system.spec, **settings.system.spec_overrides())
+        names = identified_parameters(settings, system.param_names, learner)
+        if not names:
+            return system
+        return get_system(
+            settings.system.spec, **settings.system.spec_overrides(), identify=tuple(names)
+        )
     except (SystemSpecError, SystemDefinitionError) as err:
         raise SettingsError(f"{key}: {err}") from None
     except ValueError as err:  # an MPC setting the system refuses
         raise SettingsError(f"system: {err}") from None
+
+
+def identified_parameters(
+    settings: Settings, param_names: Sequence[str], learner: str | None
+) -> tuple[str, ...]:
+    """The model parameters ``learner``'s job identifies: ``[system] identify`` (``true``: all
+    of ``param_names``), and all of them for the ``identify`` learner; none without a
+    learner (the study's reference)."""
+    ident = settings.system.identify
+    if learner is None:
+        return ()
+    if isinstance(ident, list) and ident:
+        unknown = [n for n in ident if n not in param_names]
+        if unknown:
+            raise ValueError(
+                f"identify: unknown model parameter(s) {unknown}; the system has "
+                f"{list(param_names)}"
+            )
+        return tuple(ident)
+    if ident is True or learner == "identify":
+        return tuple(param_names)
+    return ()
 
 
 def build_plant(settings: Settings, system: System) -> Any:

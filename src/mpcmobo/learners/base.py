@@ -57,12 +57,14 @@ class EpisodeResult:
     mean_abs_advantage: float = float("nan")
     failures: int = 0  # failed MPC solves in the episode
     start_id: int = -1  # index of the initial state in a fixed cycled set; -1: a random start
-    x0: np.ndarray | None = None  # the episode's initial state (a context the learner observes)
+    x0: np.ndarray | None = None  # the episode's initial state
     violation: float = float("nan")  # plant constraint violation summed over the episode
     stage_cost: float = float("nan")  # the plain (undiscounted) mean stage cost, as J_eval's
     # theta0's mean stage cost from x0 on the MPC's own model (NaN unless the learner asks for
     # it, Learner.uses_start_cost): how hard the start is, a covariate of the episode's cost
     start_cost: float = float("nan")
+    states: np.ndarray | None = None  # (T+1, nx) the plant's states (None: the episode failed)
+    inputs: np.ndarray | None = None  # (T, nu) the inputs applied
 
     @property
     def f1(self) -> float:
@@ -94,6 +96,8 @@ def episode_result(
         x0=np.asarray(record.x[0], dtype=float).copy(),
         violation=float(np.sum(record.violation)),
         stage_cost=mean_stage_cost(record),
+        states=np.asarray(record.x, dtype=float),
+        inputs=np.asarray(record.u, dtype=float),
     )
     return res, cr
 
@@ -145,6 +149,11 @@ class Learner(ABC):
         True). A learner may ask for a noise-free episode to measure a theta (MPC-RL's
         verification blocks); such an episode has no critic, so no gradient."""
         return True
+
+    def identified(self) -> np.ndarray | None:
+        """The model parameters the learner has identified from the plant (None: it does not
+        identify, or has no fit yet)."""
+        return None
 
     def uses_start_cost(self) -> bool:
         """Whether the learner reads ``EpisodeResult.start_cost`` (default False): theta0's

@@ -133,9 +133,15 @@ class _EvidencePolicy:
         raise NotImplementedError
 
     def confidence_of(
-        self, ev: Evidence, surrogate: GPSurrogate, z: np.ndarray, deployed: np.ndarray
+        self, ev: Evidence, surrogate: GPSurrogate | None, z: np.ndarray, deployed: np.ndarray
     ) -> float:
         """The confidence that ``z`` is cheaper than ``deployed``."""
+        raise NotImplementedError
+
+    def next_check(
+        self, ev: Evidence, deployed: np.ndarray, verify: np.ndarray | None
+    ) -> tuple[str, np.ndarray] | None:
+        """The episode the policy wants next (see :class:`DeployPolicy`)."""
         raise NotImplementedError
 
     def decide(
@@ -190,12 +196,12 @@ class CycledEvidence(_EvidencePolicy):
         return covered if covered < self.min_runs else len(matched)
 
     def confidence_of(
-        self, ev: Evidence, surrogate: GPSurrogate, z: np.ndarray, deployed: np.ndarray
+        self, ev: Evidence, surrogate: GPSurrogate | None, z: np.ndarray, deployed: np.ndarray
     ) -> float:
         """Each episode of ``z`` against the mean cost of ``deployed``'s own episodes from the
         same start, paired (:func:`~mpcmobo.learners.confidence.paired_confidence`); without a
         matched start, its episodes against the GP's prediction of ``deployed`` (model space,
-        start offset removed)."""
+        start offset removed), or 0 without a GP."""
         rows = ev.rows_of(z)
         own = ev.rows_of(deployed)
         d = []
@@ -205,7 +211,7 @@ class CycledEvidence(_EvidencePolicy):
                 d.append(float(np.mean(ev.Y[same, 0])) - float(ev.Y[i, 0]))
         if d:
             return paired_confidence(np.asarray(d))
-        if not len(rows):
+        if not len(rows) or surrogate is None:
             return 0.0
         t_obs = surrogate.to_model_space(ev.Y[rows])[:, 0]
         t_obs = t_obs - surrogate.start_offsets(ev.starts[rows])[:, 0]
@@ -235,7 +241,7 @@ class RandomEvidence(_EvidencePolicy):
         return ev.runs(z)
 
     def confidence_of(
-        self, ev: Evidence, surrogate: GPSurrogate, z: np.ndarray, deployed: np.ndarray
+        self, ev: Evidence, surrogate: GPSurrogate | None, z: np.ndarray, deployed: np.ndarray
     ) -> float:
         """The two thetas' episode costs adjusted for their start costs
         (:func:`~mpcmobo.learners.confidence.adjusted_confidence`); while a side has a single
@@ -292,12 +298,17 @@ class Incumbent:
         return None
 
 
+def evidence_policy(deploy: EvidenceDeploy, starts: Starts, kappa: float) -> _EvidencePolicy:
+    """The evidence policy of the study's start design."""
+    if starts.mode == "cycle":
+        return CycledEvidence(starts.n_starts, deploy.confidence, kappa)
+    return RandomEvidence(deploy.confidence, deploy.min_runs, kappa)
+
+
 def make_policy(
     deploy: EvidenceDeploy | IncumbentDeploy, starts: Starts, kappa: float
 ) -> DeployPolicy:
     """The policy of the option ``deploy`` for the study's start design."""
     if isinstance(deploy, IncumbentDeploy):
         return Incumbent(kappa)
-    if starts.mode == "cycle":
-        return CycledEvidence(starts.n_starts, deploy.confidence, kappa)
-    return RandomEvidence(deploy.confidence, deploy.min_runs, kappa)
+    return evidence_policy(deploy, starts, kappa)

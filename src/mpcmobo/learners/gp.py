@@ -77,6 +77,7 @@ class GPLearner(Learner):
         self.fitted_ = False
         self.pending_: tuple[str, bytes] | None = None  # the last proposal's kind and theta
         self.pre_fit_: dict | None = None  # the state the last fit started from (resume)
+        self.n_seeded_ = 0  # episodes given before the design (:meth:`seed_with`)
 
     # ------------------------------------------------------------------ the design
     def _initial_design(self) -> np.ndarray:
@@ -101,9 +102,19 @@ class GPLearner(Learner):
         """Whether the policy reads the episodes' start costs (the evidence policies)."""
         return self.policy.uses_start_cost
 
+    def seed_with(self, episodes: list[tuple[np.ndarray, EpisodeResult]]) -> None:
+        """Start from episodes of theta0 run before the learner (the identification's): they
+        are evidence, and the initial design goes on from its second point."""
+        if len(self.evidence_):
+            raise ValueError("seed_with needs a learner that has observed nothing yet")
+        for theta, result in episodes:
+            self._append(theta, result, "seed")
+        self.n_seeded_ = len(episodes) - 1 if episodes else 0  # theta0 is the design's first
+        self._fit()
+
     def propose(self) -> np.ndarray:
         """The design's next point, the policy's check, or the acquisition's point."""
-        n = len(self.evidence_)
+        n = len(self.evidence_) - self.n_seeded_
         if n < self.options.n_init:
             return self._proposed("design", self.design[n])
         if not self.fitted_:  # every observation so far failed: keep exploring
@@ -127,10 +138,14 @@ class GPLearner(Learner):
         if self.pending_ is not None and self.pending_[1] == theta_key(z):
             kind = self.pending_[0]
         self.pending_ = None
+        self._append(theta, result, kind)
+        self._fit()
+
+    def _append(self, theta: np.ndarray, result: EpisodeResult, kind: str) -> None:
+        z = self.space.to_unit(self.space.clip(theta))
         y = np.asarray(result.objectives, dtype=float)[list(self.outputs)]
         self.evidence_.append(z, y, result.grad, result.start_id, result.start_cost, kind)
         self.n_observed += 1
-        self._fit()
 
     def _model_Y(self) -> np.ndarray:
         """The objectives as the GP sees them: under the random-start evidence policy f1
@@ -179,7 +194,9 @@ class GPLearner(Learner):
         policy a verification episode (a theta run before) or a search point that earned one
         is neither."""
         ev = self.evidence_
-        if self.trust_region is None or self.trust_ is None or len(ev) <= self.options.n_init:
+        if self.trust_region is None or self.trust_ is None:
+            return
+        if len(ev) - self.n_seeded_ <= self.options.n_init:
             return
         last = theta_key(ev.Z[-1])
         success = theta_key(self.deployed_z_) == last and theta_key(previous) != last
@@ -206,12 +223,14 @@ class GPLearner(Learner):
         d["pre_fit"] = self.pre_fit_
         d["deployed"] = self.deployed_z_.copy()
         d["trust"] = None if self.trust_ is None else self.trust_.to_dict()
+        d["n_seeded"] = self.n_seeded_
         return d
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from a :meth:`state_dict`: the last fit is replayed from its start."""
         super().load_state_dict(state)
         self.evidence_.load_state_dict(state["evidence"])
+        self.n_seeded_ = int(state["n_seeded"])
         self.pending_ = None
         self.deployed_z_ = np.array(state["deployed"], float)
         self.trust_ = None if state["trust"] is None else TrustState.from_dict(state["trust"])

@@ -66,7 +66,7 @@ class MOBOLearner(GPLearner):
     def _before_fit(self) -> None:
         """The reference point, once the initial design is in."""
         ev = self.evidence_
-        if self.ref_point_ is None and len(ev) >= self.options.n_init:
+        if self.ref_point_ is None and len(ev) - self.n_seeded_ >= self.options.n_init:
             ok = ev.finite()
             if np.any(ok):
                 self.ref_point_ = reference_point(
@@ -129,7 +129,7 @@ class HybridLearner(MOBOLearner):
         no candidate waits for verification, a CDPG step."""
         self.n_proposals_ += 1
         due = (
-            len(self.evidence_) >= self.options.n_init
+            len(self.evidence_) - self.n_seeded_ >= self.options.n_init
             and self.fitted_
             and self.n_proposals_ % self.options.gradient_every == 0
         )

@@ -21,6 +21,7 @@ __all__ = [
     "BOOptions",
     "EvidenceDeploy",
     "HybridOptions",
+    "IdentifyOptions",
     "IncumbentDeploy",
     "IterateDeploy",
     "MOBOOptions",
@@ -273,10 +274,28 @@ class MPCRLOptions(_Options):
         return data
 
 
+class IdentifyOptions(_Options):
+    """``identify``: the MPC with the model identified from the plant's transitions and
+    theta0's cost, deployed on the evidence of its own episodes (the certainty-equivalent
+    baseline)."""
+
+    deploy: EvidenceDeploy = EvidenceDeploy()
+    """How an identified model is judged against the deployed one before it is deployed (the
+    evidence rule of the GP learners)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthands(cls, data: Any) -> Any:
+        if isinstance(data, dict) and isinstance(data.get("deploy"), str):
+            data = {**data, "deploy": _rule_table(data["deploy"], "evidence")}
+        return data
+
+
 OPTIONS: dict[str, type[_Options]] = {
     "mpc-rl": MPCRLOptions,
     "bo": BOOptions,
     "mobo": MOBOOptions,
     "hybrid": HybridOptions,
+    "identify": IdentifyOptions,
 }
 """The options class of each built-in learner."""

@@ -12,9 +12,16 @@ from pydantic import BaseModel, ValidationError
 
 from mpcmobo.learners.base import Learner, Starts
 from mpcmobo.learners.gp import BOLearner
+from mpcmobo.learners.identified import IdentifyLearner
 from mpcmobo.learners.mobo import HybridLearner, MOBOLearner
 from mpcmobo.learners.mpc_rl import MPCRL
-from mpcmobo.learners.options import BOOptions, HybridOptions, MOBOOptions, MPCRLOptions
+from mpcmobo.learners.options import (
+    BOOptions,
+    HybridOptions,
+    IdentifyOptions,
+    MOBOOptions,
+    MPCRLOptions,
+)
 from mpcmobo.systems.space import SearchSpace
 
 __all__ = [
@@ -54,6 +61,7 @@ LEARNER_SPECS: dict[str, LearnerSpec] = {
         LearnerSpec("bo", BOLearner, "BO", "grey", 3, True, BOOptions),
         LearnerSpec("mobo", MOBOLearner, "MPC-RL-MOBO", "tab:red", 4, True, MOBOOptions),
         LearnerSpec("hybrid", HybridLearner, "hybrid", "tab:purple", 4, False, HybridOptions),
+        LearnerSpec("identify", IdentifyLearner, "identify", "tab:blue", 1, False, IdentifyOptions),
     )
 }
 """The learners by name, one entry each: what the settings, the CLI and the figures read."""
@@ -145,14 +153,18 @@ def make_learner(
     seed: int = 0,
     *,
     starts: Starts | None = None,
+    model_fit: Any = None,
     **options: Any,
 ) -> Learner:
-    """Build the learner ``name`` ("mpc-rl", "bo", "mobo", "hybrid") with its options (the
-    keys of its settings table) for the study's start design ``starts`` (default: random).
-    A bad option is a :class:`LearnerOptionError` (a ``ValueError``)."""
+    """Build the learner ``name`` ("mpc-rl", "bo", "mobo", "hybrid", "identify") with its
+    options (the keys of its settings table) for the study's start design ``starts`` (default:
+    random); ``model_fit``: the identification of the ``identify`` learner
+    (:class:`~mpcmobo.identify.ModelFit`). A bad option is a :class:`LearnerOptionError` (a
+    ``ValueError``)."""
     spec = _spec(name)
     opts = validate_options(name, options)
+    extra = {} if model_fit is None else {"model_fit": model_fit}
     if spec.options is None:
-        return spec.cls(space, theta0, seed, starts=starts)
+        return spec.cls(space, theta0, seed, starts=starts, **extra)
     cls: Any = spec.cls  # a learner with options takes them after the seed
-    return cls(space, theta0, seed, opts, starts=starts)
+    return cls(space, theta0, seed, opts, starts=starts, **extra)
