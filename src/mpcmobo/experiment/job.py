@@ -32,6 +32,7 @@ from mpcmobo.experiment.settings import (
     build_plant,
     build_system,
     identified_parameters,
+    needs_plant,
     validate_settings,
 )
 from mpcmobo.identify import ModelFit
@@ -110,7 +111,7 @@ class Job:
         self.settings, self.run_dir = settings, run_dir
         self.learner, self.seed = learner, seed
         system = build_system(settings, learner)  # theta with the identified parameters, if any
-        plant = build_plant(settings, system) if settings.system.plant else None
+        plant = build_plant(settings, system) if needs_plant(settings) else None
         self.run = _learning_run(settings, system, learner, seed, plant)
         self.evaluator = make_evaluator(settings, system, plant)
         # an interrupt during an MPC solve stops the job when the solve returns, never fails it
@@ -257,7 +258,7 @@ def make_study_learner(
     parameters), the identify learner, or the learner tuning after the model switch."""
     options = settings.learner_options.get(name, {})
     starts = Starts(settings.start_mode, settings.n_cycle_starts)
-    names = identified_parameters(settings, system.param_names, name)
+    names = identified_parameters(settings, system, name)
     if not names:
         return make_learner(name, system.search_space, theta0, seed=seed, starts=starts, **options)
     fit = ModelFit(system, names)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -87,6 +87,12 @@ class SystemSettings(_Section):
     model_log_range: float | None = Field(None, gt=0, le=10)
     """Learnable model parameters are searched within their nominal value times
     ``e^(+-model_log_range)``; unset: the system's. The same bounds hold for identification."""
+    process_noise: list[float] | None = None
+    """Standard deviation of Gaussian noise added to each state by every step of the system's
+    own plant (seeded per episode from the study's seed); unset: none."""
+    measurement_noise: list[float] | None = None
+    """Standard deviation of Gaussian noise on each state the system's own plant reports to
+    the MPC, the learners and the identification; unset: none."""
     identify: bool | list[str] = False
     """Identify the model first: after every episode the model parameters (``true``: all the
     system declares; a list: those) are fitted to the plant's transitions, and each learner
@@ -117,6 +123,19 @@ class SystemSettings(_Section):
                 "system.factory ('module:function' or 'path/file.py:function')"
             )
         return v
+
+    @field_validator("process_noise", "measurement_noise")
+    @classmethod
+    def _noise_levels(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and (len(v) == 0 or any(s < 0 for s in v)):
+            raise ValueError("must be a list of numbers >= 0 (one per state)")
+        return v
+
+    @property
+    def noisy(self) -> bool:
+        """Whether the system's own plant adds noise."""
+        levels = [*(self.process_noise or []), *(self.measurement_noise or [])]
+        return any(s > 0 for s in levels)
 
     @property
     def spec(self) -> str:
@@ -377,7 +396,7 @@ def build_system(settings: Settings, learner: str | None = None) -> System:
     key = "system.factory" if settings.system.factory is not None else "system.name"
     try:
         system = get_system(settings.system.spec, **settings.system.spec_overrides())
-        names = identified_parameters(settings, system.param_names, learner)
+        names = identified_parameters(settings, system, learner)
         if not names:
             return system
         return get_system(
@@ -390,32 +409,44 @@ def build_system(settings: Settings, learner: str | None = None) -> System:
 
 
 def identified_parameters(
-    settings: Settings, param_names: Sequence[str], learner: str | None
+    settings: Settings, system: System, learner: str | None
 ) -> tuple[str, ...]:
-    """The model parameters ``learner``'s job identifies: ``[system] identify`` (``true``: all
-    of ``param_names``), and all of them for the ``identify`` learner; none without a
-    learner (the study's reference)."""
+    """The model parameters ``learner``'s job identifies: ``[system] identify`` (``true``: the
+    system's identifiable ones, ``param_names``), and those for the ``identify`` learner; none
+    without a learner (the study's reference)."""
     ident = settings.system.identify
     if learner is None:
         return ()
     if isinstance(ident, list) and ident:
-        unknown = [n for n in ident if n not in param_names]
+        unknown = [n for n in ident if n not in system.param_names]
         if unknown:
             raise ValueError(
                 f"identify: unknown model parameter(s) {unknown}; the system has "
-                f"{list(param_names)}"
+                f"{list(system.param_names)}"
             )
         return tuple(ident)
     if ident is True or learner == "identify":
-        return tuple(param_names)
+        return tuple(system.identifiable or ())
     return ()
 
 
+def needs_plant(settings: Settings) -> bool:
+    """Whether a study builds its plant (:func:`build_plant`): a plant of the settings, or the
+    system's own with noise; else the closed loop runs the system's equations itself."""
+    return settings.system.plant is not None or settings.system.noisy
+
+
 def build_plant(settings: Settings, system: System) -> Any:
-    """The plant of the settings (``system.plant``, default the system's equations), checked
-    against the system's sizes; a problem is a :class:`SettingsError`."""
+    """The plant of the settings (``system.plant``, default the system's equations with the
+    settings' noise), checked against the system's sizes; a problem is a
+    :class:`SettingsError`."""
     try:
-        return make_plant(settings.system.plant, system)
+        return make_plant(
+            settings.system.plant,
+            system,
+            process_noise=settings.system.process_noise,
+            measurement_noise=settings.system.measurement_noise,
+        )
     except (SystemSpecError, SystemDefinitionError) as err:
         key = "system.plant" if settings.system.plant is not None else "system"
         raise SettingsError(f"{key}: {err}") from None

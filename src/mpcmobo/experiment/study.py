@@ -195,7 +195,7 @@ def _learner_summary(
     vals = list(per_seed.values())
     system = build_system(settings, name)
     theta_names = list(system.parameterization.names)
-    identified = identified_parameters(settings, system.param_names, name)
+    identified = identified_parameters(settings, system, name)
     J_finals = [v["J_final"] for v in vals if v["J_final"] is not None]
     J_final = float(np.median(J_finals)) if J_finals else None
     worst = [v["J_worst"] for v in vals if v["J_worst"] is not None]
