@@ -114,6 +114,7 @@ def test_overrides_merge_into_file(tmp_path):
         ({"mpc": {"barrier_steps": 3}}, "mpc.barrier_steps", "newton_steps"),
         ({"learner_options": {"sgd": {}}}, "learner_options.sgd", "unknown learner 'sgd'"),
         ({"learner_options": {"bo": 3}}, "learner_options.bo", "valid dictionary"),
+        ({"learner_options": 0}, "learner_options", "valid dictionary"),
         (
             {"learner_options": {"bo": {"deploy": {"confidence": 1.5}}}},
             "learner_options.bo.deploy.confidence:",
