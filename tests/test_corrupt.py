@@ -161,6 +161,7 @@ def test_bad_learner_options_exit_2_naming_the_option(tmp_path, learner, options
     assert f"learner_options.{learner}.{key}: " in text, text
     assert message in text, text
     assert f"the options of '{learner}' (with their defaults)" in text
+    assert "unexpected keyword" not in text  # validated, not passed on to a constructor
     if learner == "mpc-rl":
         assert "optimizer = {'rule': 'adam', 'lr': 0.03, 'max_step': 0.1}" in text
     else:
