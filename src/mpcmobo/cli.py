@@ -456,16 +456,39 @@ def plot(
     """Draw figures 1-4 (PNG and PDF) into DIR/figures from the records."""
     from mpcmobo.plots import make_figures
 
-    _require_run(directory)
+    run_dir = _require_run(directory)
     if not (directory / "episodes.parquet").exists():
         _fail(f"{directory} has no records yet (episodes.parquet)", 2)
     _check_records(directory)
+    summary = None
+    if not (directory / "summary.json").exists():  # e.g. a run of an older version
+        summary = _summary_from_records(run_dir)
     try:
-        paths = make_figures(directory, learner=learner)
+        paths = make_figures(directory, learner=learner, summary=summary)
     except ValueError as err:
         _fail(str(err), 2)
     for p in paths:
         console.print(str(p))
+
+
+def _summary_from_records(run_dir: RunDirectory) -> dict:
+    """The summary of a run without ``summary.json``, from its settings, reference and
+    episodes (as the study writes it)."""
+    import pandas as pd
+
+    from mpcmobo.experiment.study import summarize
+    from mpcmobo.experiment.training_reference import training_summary
+
+    try:
+        settings = run_dir.saved_settings(for_records=True)
+        reference = run_dir.reference()
+    except (SettingsError, StudyError) as err:
+        _fail(str(err), 2)
+    if reference is None:
+        _fail(f"{run_dir.path} has no reference.pkl: the figures need J*", 2)
+    summary = summarize(settings, reference, pd.read_parquet(run_dir.path / "episodes.parquet"), {})
+    summary.update(training_summary(reference))
+    return summary
 
 
 @app.command()
@@ -480,7 +503,9 @@ def evaluate(
 
     run_dir = _require_run(directory)
     try:
-        settings = run_dir.saved_settings(evaluation__n_starts=n_starts, evaluation__seed=seed)
+        settings = run_dir.saved_settings(
+            for_records=True, evaluation__n_starts=n_starts, evaluation__seed=seed
+        )
         incumbents = run_dir.incumbents(settings)
     except SettingsError as err:
         _fail(str(err), 2)
@@ -494,6 +519,9 @@ def evaluate(
         )
     try:
         evaluator = make_evaluator(settings, build_system(settings))
+        # a job with identification has the identified parameters in theta: its own MPC
+        evaluators = {n: make_evaluator(settings, build_system(settings, n))
+                      for n in dict.fromkeys(learner for learner, *_ in incumbents)}  # fmt: skip
     except SettingsError as err:
         _fail(str(err), 2)
     J_star = evaluator.J_star()
@@ -504,7 +532,7 @@ def evaluate(
     for col in ("learner", "seed", "episodes", "J_eval", gap_title):
         table.add_column(col, justify="right")
     for learner, s, episodes, incumbent in incumbents:
-        J = evaluator.J_eval(incumbent)
+        J = evaluators[learner].J_eval(incumbent)
         if J_star is not None:
             gap = f"{100 * (J - J_star) / abs(J_star):.2f}"
         else:

@@ -320,12 +320,16 @@ def _final_lines(ax: Axes, final: pd.DataFrame, col: str) -> None:
             ax.plot(g.t, g[col], color="tab:blue", lw=1.2)
 
 
-def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:
-    """Write figures 1-4 (PNG and PDF) into ``run_dir/figures``; return the paths."""
+def make_figures(
+    run_dir: str | Path, learner: str | None = None, summary: dict | None = None
+) -> list[Path]:
+    """Write figures 1-4 (PNG and PDF) into ``run_dir/figures``; return the paths.
+    ``summary``: the run's summary (default: ``summary.json``)."""
     run_dir = Path(run_dir)
     ep = pd.read_parquet(run_dir / "episodes.parquet")
     tr = pd.read_parquet(run_dir / "trajectories.parquet")
-    summary = json.loads((run_dir / "summary.json").read_text())
+    if summary is None:
+        summary = json.loads((run_dir / "summary.json").read_text())
     info = summary["system_info"]
     present = list(dict.fromkeys(ep["learner"]))
     learners = [n for n in summary["learners"] if n in present] or present

@@ -300,7 +300,8 @@ class Settings(_Section):
         for name, table in v.items():
             if name not in LEARNER_SPECS:
                 raise ValueError(
-                    f"options for unknown learner '{name}'; allowed: {list(LEARNER_SPECS)}"
+                    f"learner_options.{name}: options for an unknown learner; allowed: "
+                    f"{', '.join(LEARNER_SPECS)}"
                 )
             if not isinstance(table, dict):
                 raise ValueError(f"'{name}' must be a table of options")
@@ -483,8 +484,10 @@ def _format_error(err: Mapping[str, Any]) -> str:
     shown = repr(value)
     if len(shown) > 60:
         shown = shown[:57] + "..."
-    if not loc or loc == ("learner_options",):  # the message names the keys itself
-        return msg.replace("\n", "\n  ")
+    if not loc:  # a check across sections: its message names the keys itself
+        return msg
+    if loc[0] == "learner_options" and msg.startswith("learner_options"):
+        return msg.replace("\n", "\n  ")  # the learners' options name their keys themselves
     if typ in ("missing",):
         return f"{key}: {msg}"
     return f"{key}: {msg} (got {shown})"

@@ -113,11 +113,18 @@ _RULES = {"evidence", "incumbent", "adam", "gd", "verified", "iterate"}
 
 
 def _problem(err: ValidationError, prefix: str) -> str:
-    """The validation errors as ``prefix.key.path: message (got value)``, one per line."""
+    """The validation errors as ``prefix.key.path: message (got value)``, one per line.
+    pydantic's own parts of a path (a policy variant's name, ``function-after[...]``,
+    ``literal[False]``) are left out, and so is the error of the ``false`` alternative of a
+    table when the table itself has errors."""
+    errors = err.errors()
+    tables = {e["loc"][0] for e in errors if e["type"] != "literal_error" and len(e["loc"]) > 1}
     out = []
-    for e in err.errors():
+    for e in errors:
+        if e["type"] == "literal_error" and e["loc"] and e["loc"][0] in tables:
+            continue  # "Input should be False" next to the table's own errors
         parts = [str(p) for p in e["loc"]]
-        loc = ".".join(p for i, p in enumerate(parts) if not (i and p in _RULES))
+        loc = ".".join(p for i, p in enumerate(parts) if not ((i and p in _RULES) or "[" in p))
         msg = "unknown option" if e["type"] == "extra_forbidden" else e["msg"]
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, ") :]
