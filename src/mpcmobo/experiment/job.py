@@ -24,7 +24,7 @@ from threadpoolctl import threadpool_limits
 from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.logs import run_log
-from mpcmobo.experiment.loop import LearningRun
+from mpcmobo.experiment.loop import EpisodePlan, LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
 from mpcmobo.experiment.settings import (
@@ -38,7 +38,7 @@ from mpcmobo.experiment.settings import (
 from mpcmobo.identify import ModelFit
 from mpcmobo.learners import Learner, Starts, make_learner
 from mpcmobo.learners.identified import IdentifyFirst
-from mpcmobo.mpc import ParametricMPC
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import register_system
 
@@ -107,8 +107,11 @@ class Job:
         learner: str,
         seed: int,
         J_initial: float | None = None,
+        *,
+        evaluates: bool = True,
     ) -> None:
         self.settings, self.run_dir = settings, run_dir
+        self.evaluates = evaluates  # False: a plant that cannot be simulated (no J_eval)
         self.learner, self.seed = learner, seed
         system = build_system(settings, learner)  # theta with the identified parameters, if any
         plant = build_plant(settings, system) if needs_plant(settings) else None
@@ -116,13 +119,15 @@ class Job:
         self.evaluator = make_evaluator(settings, system, plant)
         # an interrupt during an MPC solve stops the job when the solve returns, never fails it
         interrupts.guard_solves(self.run.mpc)
-        interrupts.guard_solves(self.evaluator.mpc("imperfect"))
-        if J_initial is not None:
+        if evaluates:
+            interrupts.guard_solves(self.evaluator.mpc("imperfect"))
+        if J_initial is not None and evaluates:
             self.evaluator.remember(self.run.mpc.theta0, J_initial)
         self.schedule = EvaluationSchedule.from_settings(settings)
         self.rows: list[EpisodeRow] = []
         self.trajectories: list[Trajectory] = []
         self.wall_time_s = 0.0
+        self.pending: dict | None = None  # an episode planned and not yet completed (Tuner)
 
     @property
     def done(self) -> bool:
@@ -148,6 +153,7 @@ class Job:
             ) from None
         self.rows, self.trajectories = ckpt.rows, ckpt.trajectories
         self.wall_time_s = ckpt.wall_time_s
+        self.pending = ckpt.pending
         if len(self.rows) != self.run.episode:
             raise RunFileError(f"{path} is inconsistent (rows and state differ); {fix}")
         if ckpt.episodes < self.settings.episodes:
@@ -184,6 +190,7 @@ class Job:
             wall_time_s=self.wall_time_s,
             episodes=self.settings.episodes,
             done=self.done,
+            pending=self.pending,
         )
 
     def save(self) -> None:
@@ -202,6 +209,23 @@ class Job:
         interrupts.check()
         t_start = time.perf_counter()
         out, record = self.run.run_episode()
+        return self._recorded(out, record, t_start)
+
+    def complete(
+        self,
+        plan: EpisodePlan,
+        record: EpisodeRecord | None,
+        error: str = "",
+        mpc_time: float = 0.0,
+    ) -> EpisodeRow:
+        """Complete the episode of ``plan`` (from :meth:`LearningRun.plan`) that ran elsewhere,
+        from its ``record``, as :meth:`step` completes the episodes it runs."""
+        t_start = time.perf_counter()
+        out, record = self.run.finish(plan, record, error, mpc_time)
+        return self._recorded(out, record, t_start)
+
+    def _recorded(self, out: dict, record: EpisodeRecord | None, t_start: float) -> EpisodeRow:
+        """The episode's row, evaluated and stored as the schedule says."""
         interrupts.check()
         row = EpisodeRow.from_dict(out)
         t_eval = time.perf_counter()
@@ -217,7 +241,7 @@ class Job:
     def _evaluate(self, episode: int, incumbent: np.ndarray) -> float:
         """J_eval of the incumbent if the schedule evaluates it, else NaN; at the last episode
         the final incumbent's evaluation episodes are stored."""
-        if not self.schedule.step(episode, incumbent):
+        if not self.schedule.step(episode, incumbent) or not self.evaluates:
             return math.nan
         if episode == self.schedule.last:
             eps = self.evaluator.episodes(incumbent)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import gymnasium
 import numpy as np
@@ -15,6 +16,32 @@ from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
 
 START_MODES = ("random", "cycle")
+
+
+@dataclass
+class EpisodePlan:
+    """What one episode runs (:meth:`LearningRun.plan`): its theta, initial state, exploration
+    noise per step (T, nu; zero where the learner asked for a noise-free episode), the plant's
+    seed, the start's index in the cycle (-1: random) and the proposal's error if it failed."""
+
+    episode: int
+    theta: np.ndarray
+    x0: np.ndarray
+    noise: np.ndarray
+    explore: bool
+    plant_seed: int
+    start_id: int = -1
+    error: str = ""
+    propose_time: float = 0.0
+
+    def to_dict(self) -> dict:
+        """Plain data (a pending trial in a checkpoint)."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EpisodePlan:
+        """The inverse of :meth:`to_dict`."""
+        return cls(**d)
 
 
 def _as_list(values: np.ndarray | None) -> list[float]:
@@ -98,29 +125,81 @@ class LearningRun:
             return self.cycle_starts[self.episode % len(self.cycle_starts)].copy()
         return self.system.sample_initial_state(self.rng_start)
 
-    def run_episode(self) -> tuple[dict, EpisodeRecord | None]:
-        """Run one episode; return its row of records (the fields of :class:`EpisodeRow` except
-        ``J_eval_incumbent`` and ``eval_time_s``, which the study's job adds) and the episode."""
+    def plan(self) -> EpisodePlan:
+        """What the next episode runs: the learner's proposal, whether it explores, its initial
+        state and its exploration noise, drawn now (the random streams advance as if the
+        episode ran). :meth:`finish` completes the episode from its record."""
         t0 = time.perf_counter()
         theta, proposal_error = self._propose()
         explores = getattr(self.learner, "explores", None)  # duck-typed learners: always
         explore = True if explores is None else bool(explores())
         t_prop = time.perf_counter() - t0
         x0 = self.next_start()
+        self.exploration.episode = self.episode
+        exploration = self.exploration
+        if not explore:  # zero noise, drawn all the same: the stream does not depend on it
+            exploration = GaussianExploration(np.zeros(exploration.nu), episode=self.episode)
+        noise = np.array([exploration.sample(self.rng_noise, k) for k in range(self.steps)])
+        return EpisodePlan(
+            episode=self.episode,
+            theta=theta,
+            x0=x0,
+            noise=noise.reshape(self.steps, self.system.nu),
+            explore=explore,
+            plant_seed=self.plant_seed(),
+            start_id=self.episode % len(self.cycle_starts) if self.start_mode == "cycle" else -1,
+            error=proposal_error,
+            propose_time=t_prop,
+        )
+
+    def run_episode(self) -> tuple[dict, EpisodeRecord | None]:
+        """Run one episode; return its row of records (the fields of :class:`EpisodeRow` except
+        ``J_eval_incumbent`` and ``eval_time_s``, which the study's job adds) and the episode."""
+        plan = self.plan()
         t1 = time.perf_counter()
-        record, result, error = self._on_plant(theta, x0, explore)
-        error = "; ".join(e for e in (proposal_error, error) if e)
-        if self.start_mode == "cycle":
-            result.start_id = self.episode % len(self.cycle_starts)
+        try:
+            record: EpisodeRecord | None = rollout(
+                self.system,
+                self.mpc,
+                plan.theta,
+                plan.x0,
+                self.steps,
+                noise=plan.noise,
+                plant=self.plant,
+                plant_seed=plan.plant_seed,
+            )
+            error = ""
+        except (FloatingPointError, ValueError, RuntimeError) as err:
+            record, error = None, f"{type(err).__name__}: {err}"
+        return self.finish(plan, record, error, time.perf_counter() - t1)
+
+    def finish(
+        self,
+        plan: EpisodePlan,
+        record: EpisodeRecord | None,
+        error: str = "",
+        mpc_time: float = 0.0,
+    ) -> tuple[dict, EpisodeRecord | None]:
+        """Complete the episode of ``plan`` from its ``record`` (None: it failed, ``error``
+        says why): the critic and the objectives, the learner's observation, the row."""
+        if plan.episode != self.episode:
+            raise ValueError(f"the plan is of episode {plan.episode}, the run is at {self.episode}")
+        t1 = time.perf_counter()
+        result, error2 = self._result(plan.theta, record)
+        if error2:
+            record, error = None, "; ".join(e for e in (error, error2) if e)
+        error = "; ".join(e for e in (plan.error, error) if e)
+        theta, x0 = plan.theta, plan.x0
+        result.start_id = plan.start_id
         result.x0 = x0.copy()
         uses = getattr(self.learner, "uses_start_cost", None)  # duck-typed learners: no
         if uses is not None and uses():
             result.start_cost = self.start_cost(x0)
-        t_mpc = time.perf_counter() - t1
+        t_mpc = mpc_time + time.perf_counter() - t1
         t2 = time.perf_counter()
         self.learner.observe(theta, result)
         incumbent = np.asarray(self.learner.incumbent(), dtype=float)
-        t_learn = t_prop + time.perf_counter() - t2
+        t_learn = plan.propose_time + time.perf_counter() - t2
         if np.isfinite(result.Vc):
             self.previous_Vc = result.Vc
         f = result.objectives
@@ -181,36 +260,21 @@ class LearningRun:
             theta = np.asarray(self.learner.incumbent(), dtype=float)
             return theta, f"proposal failed, ran the incumbent: {type(err).__name__}: {err}"
 
-    def _on_plant(
-        self, theta: np.ndarray, x0: np.ndarray, explore: bool = True
-    ) -> tuple[EpisodeRecord | None, EpisodeResult, str]:
-        """The episode of ``theta`` from ``x0`` with exploration (``explore`` False: its noise
-        is zero, drawn all the same so that the random stream does not depend on it), and what
-        the learner observes of it; a diverged plant or a broken episode is recorded as NaN
-        (and its error)."""
-        self.exploration.episode = self.episode
-        exploration = self.exploration
-        if not explore:
-            exploration = GaussianExploration(np.zeros(exploration.nu), episode=self.episode)
-        try:
-            record = rollout(
-                self.system,
-                self.mpc,
-                theta,
-                x0,
-                self.steps,
-                rng=self.rng_noise,
-                exploration=exploration,
-                plant=self.plant,
-                plant_seed=self.plant_seed(),
-            )
-            result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
-        except (FloatingPointError, ValueError, RuntimeError) as err:
-            result = EpisodeResult(
-                objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
-            )
-            return None, result, f"{type(err).__name__}: {err}"
-        return record, result, ""
+    def _result(self, theta: np.ndarray, record: EpisodeRecord | None) -> tuple[EpisodeResult, str]:
+        """What the learner observes of an episode (the critic fitted to its record, the
+        objectives); a missing or broken episode is all NaN, with its error."""
+        if record is not None:
+            try:
+                result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
+                return result, ""
+            except (FloatingPointError, ValueError, RuntimeError) as err:
+                error = f"{type(err).__name__}: {err}"
+        else:
+            error = ""
+        nan = EpisodeResult(
+            objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
+        )
+        return nan, error
 
     def state_dict(self) -> dict:
         """Everything needed to continue the run exactly: episode, random streams, learner state."""

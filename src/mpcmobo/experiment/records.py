@@ -115,6 +115,7 @@ class Checkpoint:
     episodes: int
     done: bool
     schema: int = 2
+    pending: dict | None = None  # a trial asked for and not yet told (the Tuner's)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Checkpoint:
@@ -130,6 +131,7 @@ class Checkpoint:
             episodes=int(d["episodes"]),
             done=bool(d["done"]),
             schema=int(d.get("schema", 1)),
+            pending=d.get("pending"),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -142,6 +144,7 @@ class Checkpoint:
             "wall_time_s": self.wall_time_s,
             "episodes": self.episodes,
             "done": self.done,
+            "pending": self.pending,
         }  # storage.save_checkpoint adds the schema, learner and seed
 
     @property

@@ -224,6 +224,7 @@ class GPLearner(Learner):
         d["deployed"] = self.deployed_z_.copy()
         d["trust"] = None if self.trust_ is None else self.trust_.to_dict()
         d["n_seeded"] = self.n_seeded_
+        d["pending"] = self.pending_  # a proposal not yet observed (ask and tell)
         return d
 
     def load_state_dict(self, state: dict) -> None:
@@ -231,7 +232,7 @@ class GPLearner(Learner):
         super().load_state_dict(state)
         self.evidence_.load_state_dict(state["evidence"])
         self.n_seeded_ = int(state["n_seeded"])
-        self.pending_ = None
+        self.pending_ = state["pending"]
         self.deployed_z_ = np.array(state["deployed"], float)
         self.trust_ = None if state["trust"] is None else TrustState.from_dict(state["trust"])
         self.verify_z_ = None

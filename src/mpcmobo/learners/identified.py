@@ -201,13 +201,14 @@ class IdentifyLearner(Learner):
         """The base state and the switch's."""
         d = super().state_dict()
         d["switch"] = self.switch_.state_dict()
+        d["pending"] = self.pending_
         return d
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from a :meth:`state_dict`."""
         super().load_state_dict(state)
         self.switch_.load_state_dict(state["switch"])
-        self.pending_ = None
+        self.pending_ = state["pending"]
 
 
 class IdentifyFirst(Learner):
@@ -297,6 +298,7 @@ class IdentifyFirst(Learner):
         d["switch"] = self.switch_.state_dict()
         d["inner"] = None if self.inner_ is None else self.inner_.state_dict()
         d["history"] = list(self.history_)
+        d["pending"] = self.pending_
         return d
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -306,7 +308,7 @@ class IdentifyFirst(Learner):
         super().load_state_dict(state)
         self.switch_.load_state_dict(state["switch"])
         self.inner_ = None
-        self.pending_ = None
+        self.pending_ = state["pending"]
         self.history_ = [(np.array(t, float), r) for t, r in state["history"]]
         if state["inner"] is not None:
             inner = self._tuning()

@@ -41,6 +41,7 @@ def rollout(
     sensitivities: bool = True,
     plant: gymnasium.Env | None = None,
     plant_seed: int | None = None,
+    noise: np.ndarray | None = None,
 ) -> EpisodeRecord:
     """Run ``steps`` closed-loop steps from ``x0`` and record what the learners need.
 
@@ -48,7 +49,8 @@ def rollout(
     with ``seed=plant_seed`` and ``options={"x0": x0}`` (``x0`` None: the environment draws
     the start). At every step the MPC is solved at the measured state; its first input (or, if
     the solve failed, the safe fallback of :meth:`ParametricMPC.fallback_action`) plus the
-    exploration noise, clipped to the input bounds, is applied to the plant. The MPC is solved
+    exploration noise (``noise`` (steps, nu) drawn beforehand, else ``exploration`` sampled
+    with ``rng`` step by step), clipped to the input bounds, is applied to the plant. The MPC is solved
     once more at the final state so that ``V(x_T)`` exists. A failed solve never ends the
     episode; a plant that terminates ends it early (the record is shortened).
     """
@@ -56,8 +58,10 @@ def rollout(
     if steps < 1:
         raise ValueError(f"an episode needs at least one step, got {steps}")
     theta = mpc.check_theta(theta)
-    if exploration is not None and rng is None:
+    if exploration is not None and rng is None and noise is None:
         raise ValueError("exploration noise needs a random generator (rng)")
+    if noise is not None and np.shape(noise) != (steps, system.nu):
+        raise ValueError(f"noise must be ({steps}, {system.nu}), got {np.shape(noise)}")
     plant = SystemPlant(system) if plant is None else plant
     options = None if x0 is None else {"x0": system.check_state(x0)}
     obs, _ = plant.reset(seed=plant_seed, options=options)
@@ -70,7 +74,12 @@ def rollout(
         _record_solve(rec, k, sol, sensitivities)
         if k == steps:
             break
-        u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)  # type: ignore[arg-type]  # rng checked above
+        if noise is not None:
+            u = sol.action + noise[k]
+        elif exploration is not None:
+            u = sol.action + exploration.sample(rng, k)  # type: ignore[arg-type]  # checked above
+        else:
+            u = sol.action
         x, terminated = _apply(system, plant, rec, k, x, system.clip_input(u))
         if terminated:
             steps = k + 1  # solve once more at the last state, then shorten the record
@@ -101,6 +110,40 @@ def model_rollout(
     with theta0 it is the learners' start covariate (``EpisodeResult.start_cost``)."""
     plant = model_plant(system, mpc) if plant is None else plant
     return rollout(system, mpc, theta, x0, steps, sensitivities=False, plant=plant)
+
+
+def replay(
+    system: System,
+    mpc: ParametricMPC,
+    theta: np.ndarray | None,
+    states: np.ndarray,
+    inputs: np.ndarray,
+    stage_costs: np.ndarray | None = None,
+    violations: np.ndarray | None = None,
+) -> EpisodeRecord:
+    """The record of an episode that ran elsewhere (a real plant): the MPC solved again on the
+    logged ``states`` (T+1, nx), in order and warm-started as in :func:`rollout` (the MPC is
+    deterministic given x and theta, so its actions, values and sensitivities are those it
+    had), with the ``inputs`` (T, nu) actually applied; the stage costs and violations are
+    the system's where not given (T,)."""
+    theta = mpc.check_theta(theta)
+    X, U = np.asarray(states, float), np.asarray(inputs, float)
+    steps = U.shape[0]
+    rec = _blank_record(steps, system.nx, system.nu, theta, mpc.gamma)
+    mpc.reset()
+    for k in range(steps + 1):
+        x = system.check_state(X[k])
+        rec.x[k] = x
+        _record_solve(rec, k, mpc.solve(x, theta), True)
+        if k == steps:
+            break
+        u = U[k]
+        rec.u[k] = u
+        rec.L[k] = system.stage_cost(x, u) if stage_costs is None else float(stage_costs[k])
+        rec.violation[k] = (
+            system.constraint_violation(x, u) if violations is None else float(violations[k])
+        )
+    return rec
 
 
 def _measured(system: System, obs: Any, where: str) -> np.ndarray:

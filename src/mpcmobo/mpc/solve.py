@@ -153,6 +153,7 @@ class Solver:
             tol, kkt.tau, max_iter, options=solver_options, warm=warm_options
         )
         self.cold = ca.nlpsol("mpc", "ipopt", nlp, cold)
+        self.cold_options = cold  # the cold solver's options (the exported controller's)
         self.warm: ca.Function | None = (
             ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
         )

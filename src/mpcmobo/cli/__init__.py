@@ -8,7 +8,6 @@ or ``--seeds 0,1,2``. Invalid settings exit with code 2 and a message naming the
 
 from __future__ import annotations
 
-import math
 import os
 import sys
 import time
@@ -19,23 +18,16 @@ from typing import Annotated, Any, NoReturn
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TaskID,
-    TextColumn,
-    TimeElapsedColumn,
-)
 from rich.table import Table
 
 from mpcmobo import __version__
+from mpcmobo.cli.progress import Bars, Lines, fmt, progress_bars
 from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError, read_run_file
 from mpcmobo.experiment.settings import PAPER_LEARNERS, Settings, SettingsError, load_settings
 from mpcmobo.learners.registry import LEARNER_SPECS
 
-app = typer.Typer(
+app: typer.Typer = typer.Typer(
     name="mpcmobo",
     help="Tune an MPC from closed-loop data: MPC-RL (CDPG), BO and MPC-RL-MOBO.",
     no_args_is_help=True,
@@ -91,98 +83,6 @@ def _learners(option: str | None) -> list[str] | None:
     if option == "all":
         return list(LEARNER_SPECS)
     return [p for p in option.replace(",", " ").split() if p]
-
-
-def _fmt(x: float | None, digits: int = 5) -> str:
-    if x is None or (isinstance(x, float) and not math.isfinite(x)):
-        return "-"
-    return f"{x:.{digits}g}"
-
-
-def _progress() -> Progress:
-    """Progress bars, one line per job (fed by :class:`_Bars`)."""
-    return Progress(
-        TextColumn("{task.description:<14}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("f1 {task.fields[f1]:>10}"),
-        TextColumn("best J_eval {task.fields[best]:>10}"),
-        TimeElapsedColumn(),
-        console=console,
-        transient=False,
-    )
-
-
-class _Lines:
-    """Plain progress lines for a log (stdout not a terminal: CI, nohup, a scheduler): the
-    start, J*, and one line per job every ``every`` episodes and at its last episode."""
-
-    def __init__(self, every: int | None = None) -> None:
-        self.every = every
-        self.printed: dict[tuple[str, int], int] = {}
-        self.t0 = time.perf_counter()
-
-    def _print(self, text: str) -> None:
-        elapsed = time.perf_counter() - self.t0
-        console.print(f"[{elapsed:7.0f} s] {text}", markup=False, highlight=False, soft_wrap=True)
-        console.file.flush()
-
-    def __call__(self, event: dict) -> None:
-        kind = event.get("kind")
-        if kind == "start":
-            total = event["episodes"]
-            if self.every is None:
-                self.every = max(1, min(10, total // 10))
-            jobs = ", ".join(f"{n} s{s}" for n, s in event["jobs"])
-            self._print(f"study in {event['out_dir']}: {jobs}; {total} episodes each")
-        elif kind == "reference":
-            if event["status"] == "running":
-                self._print("computing J* and J(theta0)")
-            else:
-                self._print(f"J* = {_fmt(event['J_star'])}, J(theta0) = {_fmt(event['J_initial'])}")
-        elif kind == "episode":
-            job, n = (event["learner"], event["seed"]), event["episode"]
-            last = self.printed.get(job)
-            every = self.every or 1
-            due = last is None or n // every > last // every or n == event["episodes"]
-            if n == last or not due:
-                return
-            self.printed[job] = n
-            self._print(
-                f"{event['learner']} s{event['seed']}: episode {n}/{event['episodes']}, "
-                f"f1 {_fmt(event['f1'])}, best J_eval {_fmt(event['best_J_eval'])}"
-            )
-
-
-class _Bars:
-    """Rich progress bars, one per (learner, seed) job, fed by the study's progress events."""
-
-    def __init__(self, progress: Progress) -> None:
-        self.progress = progress
-        self.tasks: dict[tuple[str, int], TaskID] = {}
-        self.ref_task: TaskID | None = None
-
-    def __call__(self, event: dict) -> None:
-        kind = event.get("kind")
-        if kind == "start":
-            for n, s in event["jobs"]:
-                self.tasks[(n, s)] = self.progress.add_task(
-                    f"{n} s{s}", total=event["episodes"], f1="-", best="-"
-                )
-        elif kind == "reference":
-            if event["status"] == "running":
-                self.ref_task = self.progress.add_task("J*, J(theta0)", total=1, f1="", best="")
-            elif self.ref_task is not None:
-                self.progress.update(self.ref_task, completed=1, best=f"J*={_fmt(event['J_star'])}")
-        elif kind == "episode":
-            task = self.tasks.get((event["learner"], event["seed"]))
-            if task is not None:
-                self.progress.update(
-                    task,
-                    completed=event["episode"],
-                    f1=_fmt(event["f1"]),
-                    best=_fmt(event["best_J_eval"]),
-                )
 
 
 def _default(key: str) -> Any:
@@ -322,10 +222,10 @@ def run(
         if quiet:
             summary = run_study(settings, out, resume=resume)  # type: ignore[arg-type]  # --resume checked --out
         elif not console.is_terminal:
-            summary = run_study(settings, out, resume=resume, progress=_Lines())  # type: ignore[arg-type]  # --resume checked --out
+            summary = run_study(settings, out, resume=resume, progress=Lines(console))  # type: ignore[arg-type]  # --resume checked --out
         else:
-            with _progress() as progress:
-                summary = run_study(settings, out, resume=resume, progress=_Bars(progress))  # type: ignore[arg-type]  # --resume checked --out
+            with progress_bars(console) as progress:
+                summary = run_study(settings, out, resume=resume, progress=Bars(progress))  # type: ignore[arg-type]  # --resume checked --out
     except (SettingsError, OlderRunError) as err:
         _fail(str(err), 2)
     except StudyError as err:
@@ -401,9 +301,9 @@ def _report(summary: dict, out: Path, seconds: float, no_plot: bool) -> None:
 def _summary_table(summary: dict) -> Table:
     if summary["J_star"] is None:  # no reference model: the results are against theta0
         title = f"{summary['system']}: no J* (no reference model), J(theta0) = "
-        title += _fmt(summary["J_initial"])
+        title += fmt(summary["J_initial"])
     else:
-        title = f"{summary['system']}: J* = {_fmt(summary['J_star'])}"
+        title = f"{summary['system']}: J* = {fmt(summary['J_star'])}"
     table = Table(title=title)
     cols = ("learner", "J_initial", "J_final", "worst deployed", "to 2%", "to 5%", "wall time [s]")
     for col in cols:
@@ -411,9 +311,9 @@ def _summary_table(summary: dict) -> Table:
     for name, s in summary["learners"].items():
         table.add_row(
             name,
-            _fmt(s["J_initial"]),
-            _fmt(s["J_final"]),
-            _fmt(s.get("J_worst")),
+            fmt(s["J_initial"]),
+            fmt(s["J_final"]),
+            fmt(s.get("J_worst")),
             str(s["episodes_to_2pct"]) if s["episodes_to_2pct"] is not None else "-",
             str(s["episodes_to_5pct"]) if s["episodes_to_5pct"] is not None else "-",
             f"{s['wall_time_s']:.1f}",
@@ -526,7 +426,7 @@ def evaluate(
         _fail(str(err), 2)
     J_star = evaluator.J_star()
     J0 = evaluator.J_eval(None)
-    table = Table(title=f"{settings.system.name}: J* = {_fmt(J_star)}, J(theta0) = {_fmt(J0)}")
+    table = Table(title=f"{settings.system.name}: J* = {fmt(J_star)}, J(theta0) = {fmt(J0)}")
     # without a reference model (no J*), the gap is the improvement over theta0
     gap_title = "gap to J* [%]" if J_star is not None else "improvement over theta0 [%]"
     for col in ("learner", "seed", "episodes", "J_eval", gap_title):
@@ -537,7 +437,7 @@ def evaluate(
             gap = f"{100 * (J - J_star) / abs(J_star):.2f}"
         else:
             gap = f"{100 * (J0 - J) / abs(J0):.2f}"
-        table.add_row(learner, str(s), str(episodes), _fmt(J), gap)
+        table.add_row(learner, str(s), str(episodes), fmt(J), gap)
     console.print(table)
 
 
@@ -589,5 +489,4 @@ def systems() -> None:
     console.print(ADD_SYSTEM_HELP, markup=False, highlight=False)
 
 
-if __name__ == "__main__":  # pragma: no cover
-    app()
+from mpcmobo.cli import plant as _plant  # noqa: E402, F401 - registers ask, tell, status, export
