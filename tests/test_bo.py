@@ -175,9 +175,31 @@ def test_group_offsets_recover_the_start_free_cost():
     b2.fit(X, y, groups=g)
     assert error(b2) == error(a)
     assert b2.group_offsets.keys() == a.group_offsets.keys()
+    # each row's offset, and none for a row without a group
+    rows = grouped.start_offsets(np.array([0, 5, -1]))
+    np.testing.assert_array_equal(rows, [grouped.group_offsets[0], grouped.group_offsets[5], [0.0]])
     # no group information (-1 everywhere): plain model
     none = GPSurrogate(1, log_outcomes=[True], group_outputs=[True]).fit(X, y, groups=-np.ones(60))
     assert none.group_offsets == {}
+
+
+def test_cost_samples_follow_the_posterior_in_cost_units():
+    """Seeded posterior samples of the costs: their mean is the posterior mean of the cost
+    (log-normal on a log output), joint samples of two nearby points move together."""
+    X = sobol(16, 1, seed=1)
+    y = np.exp(3 * X[:, 0]) * (1 + 0.05 * np.sin(20 * X[:, 0]))
+    sur = GPSurrogate(1, log_outcomes=[True]).fit(X, y)
+    Z = np.array([[0.2], [0.21], [0.8]])
+    S = sur.cost_samples(Z, n_samples=4000, seed=3)
+    assert S.shape == (4000, 3, 1)
+    np.testing.assert_array_equal(S, sur.cost_samples(Z, n_samples=4000, seed=3))
+    assert not np.array_equal(S, sur.cost_samples(Z, n_samples=4000, seed=4))
+    mean, std = sur.predict(Z)
+    np.testing.assert_allclose(S.mean(axis=0), mean, rtol=0.02)
+    np.testing.assert_allclose(S.std(axis=0), std, rtol=0.1)
+    J = sur.cost_samples(Z[:2], n_samples=2000, seed=3, joint=True)[:, :, 0]
+    M = sur.cost_samples(Z[:2], n_samples=2000, seed=3)[:, :, 0]
+    assert np.corrcoef(J.T)[0, 1] > 0.9 > abs(np.corrcoef(M.T)[0, 1])
 
 
 def test_fast_posterior_matches_botorch():
