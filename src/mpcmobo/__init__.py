@@ -31,6 +31,7 @@ def __getattr__(name: str) -> Any:
         return Tuner
     raise AttributeError(f"module 'mpcmobo' has no attribute {name!r}")
 
+
 for _id, _name, _steps in (("mpcmobo/CSTR-v0", "cstr", 60), ("mpcmobo/LQ-v0", "lq", 30)):
     if _id not in _gymnasium.registry:
         _gymnasium.register(

@@ -173,10 +173,14 @@ class Learner(ABC):
             "n_observed": self.n_observed,
         }
 
-    def load_state_dict(self, state: dict) -> None:
-        """Continue from a :meth:`state_dict` of a learner of the same name."""
+    def _check_name(self, state: dict) -> None:
+        """A ``ValueError`` unless ``state`` is of a learner of this name."""
         if state.get("name") != self.name:
             raise ValueError(f"state of learner '{state.get('name')}' given to '{self.name}'")
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict` of a learner of the same name."""
+        self._check_name(state)
         self.seed = int(state["seed"])
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = state["rng"]

@@ -101,6 +101,7 @@ class MOBOLearner(GPLearner):
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from a :meth:`state_dict`."""
+        self._check_name(state)
         self.ref_point_ = None if state["ref_point"] is None else np.array(state["ref_point"])
         super().load_state_dict(state)
 
@@ -165,5 +166,6 @@ class HybridLearner(MOBOLearner):
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from a :meth:`state_dict`."""
+        self._check_name(state)
         self.n_proposals_ = int(state["n_proposals"])
         super().load_state_dict(state)
