@@ -35,9 +35,9 @@ from botorch.fit import fit_gpytorch_mll
 from botorch.models import ModelListGP, SingleTaskGP
 from botorch.optim import optimize_acqf
 from gpytorch.mlls import SumMarginalLogLikelihood
+from mpcmobo.learners.bo import MOBOLearner, _GPLearner, search_effort
 
 from mpcmobo.bo import AcqfSearch, EHVIOptions, GPSurrogate, propose_ehvi, reference_point
-from mpcmobo.learners.bo import MOBOLearner, _GPLearner, search_effort
 
 D, M = 13, 4
 # the EHVI options and search effort of the mobo learner (its constructors' defaults), halved

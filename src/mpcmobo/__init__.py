@@ -8,9 +8,8 @@ gymnasium as ``mpcmobo/CSTR-v0`` (and the test bed ``mpcmobo/LQ-v0``), lazily: t
 are strings, nothing heavy is imported here.
 """
 
-from typing import Any
-
 from importlib.metadata import PackageNotFoundError, version
+from typing import Any
 
 import gymnasium as _gymnasium
 
