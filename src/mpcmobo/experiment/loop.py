@@ -112,7 +112,10 @@ class LearningRun:
         self.episode = 0
         self.previous_Vc: float | None = None
         self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)
-        self._model_plant: gymnasium.Env | None = None  # the MPC's model as a plant (built once)
+        self._model_plants: dict[bytes, gymnasium.Env] = {}  # a model as a plant, per parameters
+        use = getattr(learner, "use_start_costs", None)  # a learner that recomputes covariates
+        if use is not None:
+            use(self.start_costs)
 
     def plant_seed(self) -> int:
         """The plant's seed of this episode (its own noise, if any): a function of (seed,
@@ -229,24 +232,42 @@ class LearningRun:
         self.episode += 1
         return row, record
 
-    def start_cost(self, x0: np.ndarray) -> float:
-        """theta0's (the learner's) mean stage cost from ``x0`` on the MPC's own model
-        (:func:`~mpcmobo.mpc.model_rollout`, noise-free, the episode's length), computed once
-        per distinct start; NaN if that closed loop fails. A function of ``x0`` alone, so
-        the random streams and a resumed run are unaffected."""
-        key = np.asarray(x0, float).tobytes()
+    def start_cost(
+        self,
+        x0: np.ndarray,
+        theta: np.ndarray | None = None,
+        params: np.ndarray | None = None,
+    ) -> float:
+        """The start covariate of ``x0``: the mean stage cost of ``theta`` (default the
+        learner's ``start_model()``, else its theta0) from ``x0`` in a noise-free closed loop on
+        the model with ``params`` (default the MPC's own model), the episode's length; NaN if
+        that closed loop fails. Cached; a function of its arguments alone, so the random streams
+        and a resumed run are unaffected."""
+        if theta is None:
+            model = getattr(self.learner, "start_model", lambda: None)()
+            if model is not None:
+                theta, params = model
+            else:
+                theta = getattr(self.learner, "theta0", None)  # None: the MPC's own theta0
+        theta = self.mpc.check_theta(theta)
+        p = np.asarray(self.mpc.model_params if params is None else params, float)
+        key = b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p))
         if key not in self._start_costs:
-            theta0 = getattr(self.learner, "theta0", None)  # None: the MPC's own theta0
             try:
-                if self._model_plant is None:
-                    self._model_plant = model_plant(self.system, self.mpc)
-                rec = model_rollout(
-                    self.system, self.mpc, theta0, x0, self.steps, plant=self._model_plant
-                )
+                plant = self._model_plants.get(p.tobytes())
+                if plant is None:
+                    plant = model_plant(self.system, self.mpc, p)
+                    self._model_plants[p.tobytes()] = plant
+                rec = model_rollout(self.system, self.mpc, theta, x0, self.steps, plant=plant)
                 self._start_costs[key] = mean_stage_cost(rec)
             except Exception:  # noqa: BLE001 - a covariate never ends a run (the tests fall back)
                 self._start_costs[key] = float("nan")
         return self._start_costs[key]
+
+    def start_costs(self, starts: np.ndarray, theta: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """:meth:`start_cost` of every start in ``starts`` (n, nx) (what a learner asks for when
+        its covariate's model changes)."""
+        return np.array([self.start_cost(x0, theta, params) for x0 in np.atleast_2d(starts)])
 
     def _propose(self) -> tuple[np.ndarray, str]:
         """The learner's proposal; if the learner fails (an exception, or a theta that is not

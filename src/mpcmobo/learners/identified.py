@@ -14,23 +14,32 @@ start-adjusted under random starts); a candidate the evidence does not support i
 * :class:`IdentifyFirst`: any other learner after the switch has decided, built with theta0
   the deployed theta (the identified model, or the nominal one if its candidate was dropped),
   so that it tunes theta from there.
+
+Under random starts the deployment tests adjust each episode's cost for how costly its start
+is; with a candidate, that covariate is the identified model's prediction of the episode (a
+twin: the candidate's closed loop on the identified model from the episode's initial state),
+for every episode the test compares, recomputed when the candidate is made.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from mpcmobo.identify import Identification, ModelFit, Transitions
 from mpcmobo.learners.base import EpisodeResult, Learner, Starts
-from mpcmobo.learners.deploy import evidence_policy
+from mpcmobo.learners.deploy import RandomEvidence, evidence_policy
 from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import EvidenceDeploy, IdentifyOptions
 from mpcmobo.systems.space import SearchSpace
 
 __all__ = ["IdentifyFirst", "IdentifyLearner", "ModelSwitch"]
+
+# the loop's covariate service: (starts (n, nx), theta, model parameters) -> (n,) costs
+StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
 
@@ -52,6 +61,11 @@ class ModelSwitch:
         self.candidate_: np.ndarray | None = None
         self.tried_: np.ndarray | None = None  # the estimate of the last candidate
         self.decisions_ = 0  # candidates deployed or dropped
+        self.x0s_: list[np.ndarray] = []  # each evidence row's initial state
+        # the start covariate's controller and model (None: theta0 on the nominal model)
+        self.twin_: tuple[np.ndarray, np.ndarray] | None = None
+        self.deployed_params_: np.ndarray | None = None  # the deployed theta's identified model
+        self.start_costs: StartCosts | None = None  # set by the loop (use_start_costs)
 
     # ------------------------------------------------------------------ episodes
     def observe(self, theta: np.ndarray, result: EpisodeResult, kind: str) -> None:
@@ -63,6 +77,8 @@ class ModelSwitch:
             y = np.array([result.f1])
             self.evidence_.append(theta, y, np.zeros(len(theta)), result.start_id,
                                   result.start_cost, kind)  # fmt: skip
+            x0 = np.full(self.fit.system.nx, np.nan) if result.x0 is None else result.x0
+            self.x0s_.append(np.asarray(x0, float).copy())
         self.refit()
         self.decide()
 
@@ -90,6 +106,7 @@ class ModelSwitch:
         conf = p.confidence_of(ev, None, c, d)
         if conf >= p.confidence:
             self.deployed_, self.candidate_ = c, None
+            self.deployed_params_ = None if self.twin_ is None else self.twin_[1].copy()
             self.decisions_ += 1
         elif conf < 0.5 or runs >= p.max_runs:
             self.candidate_ = None
@@ -107,6 +124,24 @@ class ModelSwitch:
                 return
         self.candidate_ = self.fit.theta_with(self.deployed_, fit.estimate)
         self.tried_ = fit.estimate.copy()
+        self._twin(self.candidate_, fit.params)
+
+    def _twin(self, theta: np.ndarray, params: np.ndarray) -> None:
+        """The identified model's prediction as the start covariate of every episode the
+        evidence holds (random starts only: the cycled tests are paired, no covariate)."""
+        self.twin_ = (theta.copy(), np.asarray(params, float).copy())
+        if self.start_costs is None or not isinstance(self.policy, RandomEvidence):
+            return
+        if self.x0s_:
+            costs = self.start_costs(np.array(self.x0s_), *self.twin_)
+            self.evidence_.start_costs = np.asarray(costs, float)
+
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model (None: the learner's theta0 on the MPC's
+        nominal model)."""
+        if self.twin_ is None or not isinstance(self.policy, RandomEvidence):
+            return None
+        return self.twin_[0].copy(), self.twin_[1].copy()
 
     def next_theta(self) -> tuple[str, np.ndarray]:
         """The theta of the next episode and its kind: the candidate or the deployed theta as
@@ -128,6 +163,9 @@ class ModelSwitch:
             "tried": None if self.tried_ is None else self.tried_.copy(),
             "decisions": self.decisions_,
             "estimate": None if ident is None else ident.estimate.copy(),
+            "x0s": [x.copy() for x in self.x0s_],
+            "twin": None if self.twin_ is None else (self.twin_[0].copy(), self.twin_[1].copy()),
+            "deployed_params": self.deployed_params_,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -138,6 +176,11 @@ class ModelSwitch:
         self.candidate_ = None if state["candidate"] is None else np.array(state["candidate"])
         self.tried_ = None if state["tried"] is None else np.array(state["tried"], float)
         self.decisions_ = int(state["decisions"])
+        self.x0s_ = [np.array(x, float) for x in state["x0s"]]
+        twin = state["twin"]
+        self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
+        dp = state["deployed_params"]
+        self.deployed_params_ = None if dp is None else np.array(dp, float)
         self.identification_ = None
         if state["estimate"] is not None and len(self.transitions_):
             self.identification_ = self.fit.fit(self.transitions_, start=state["estimate"])
@@ -192,6 +235,14 @@ class IdentifyLearner(Learner):
         """The evidence rule reads the episodes' start costs."""
         return True
 
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model (:meth:`ModelSwitch.start_model`)."""
+        return self.switch_.start_model()
+
+    def use_start_costs(self, fn: StartCosts) -> None:
+        """The loop's covariate service, for the twin covariate."""
+        self.switch_.start_costs = fn
+
     def identified(self) -> np.ndarray | None:
         """The current fit's estimate (None before a fit)."""
         ident = self.switch_.identification_
@@ -233,6 +284,7 @@ class IdentifyFirst(Learner):
         self.name = make_inner(self.theta0).name
         self.pending_: tuple[str, bytes] | None = None
         self.history_: list[tuple[np.ndarray, EpisodeResult]] = []  # the switch's episodes
+        self.start_costs: StartCosts | None = None
 
     def _tuning(self) -> Learner | None:
         """The learner that tunes, once the switch has decided: built then, and given the
@@ -242,10 +294,30 @@ class IdentifyFirst(Learner):
             self.inner_ = self.make_inner(deployed)
             seed = getattr(self.inner_, "seed_with", None)
             own = [(t, r) for t, r in self.history_ if theta_key(t) == theta_key(deployed)]
+            model = self.start_model()
             if seed is not None and own:
+                if model is not None and self.start_costs is not None:  # their twin covariate
+                    x0s = np.array([r.x0 for _, r in own])
+                    costs = self.start_costs(x0s, *model)
+                    own = [(t, replace(r, start_cost=float(c))) for (t, r), c in zip(own, costs)]
                 seed(own)
             self.history_ = []
         return self.inner_
+
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model: the switch's while it runs, then the
+        deployed theta on its identified model (None: the nominal model)."""
+        if self.switch_.decisions_ == 0:
+            return self.switch_.start_model()
+        params = self.switch_.deployed_params_
+        if params is None or not isinstance(self.switch_.policy, RandomEvidence):
+            return None
+        return self.switch_.deployed_.copy(), params.copy()
+
+    def use_start_costs(self, fn: StartCosts) -> None:
+        """The loop's covariate service, for the twin covariate."""
+        self.start_costs = fn
+        self.switch_.start_costs = fn
 
     def propose(self) -> np.ndarray:
         """The switch's theta, then the tuning learner's proposal."""

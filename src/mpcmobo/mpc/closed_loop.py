@@ -88,12 +88,15 @@ def rollout(
     return rec
 
 
-def model_plant(system: System, mpc: ParametricMPC) -> SystemPlant:
-    """The MPC's own prediction model (its nominal ``model_params``) as a plant: the system's
-    equations with those parameters. Building it builds the system's CasADi step function
-    again, so a caller that runs many model episodes builds it once (:func:`model_rollout`'s
-    ``plant``)."""
-    return SystemPlant(replace(system, true_params=np.asarray(mpc.model_params, dtype=float)))
+def model_plant(
+    system: System, mpc: ParametricMPC, params: np.ndarray | None = None
+) -> SystemPlant:
+    """The MPC's own prediction model (its nominal ``model_params``, or ``params``) as a
+    plant: the system's equations with those parameters. Building it builds the system's
+    CasADi step function again, so a caller that runs many model episodes builds it once
+    (:func:`model_rollout`'s ``plant``)."""
+    p = mpc.model_params if params is None else params
+    return SystemPlant(replace(system, true_params=np.asarray(p, dtype=float)))
 
 
 def model_rollout(
