@@ -35,7 +35,7 @@ def test_systems_is_a_narrow_table_and_one_description_line_per_system(monkeypat
         "name", "source", "states", "inputs", "theta", "steps", "J*"
     ]  # fmt: skip
     rows = {line.split()[1]: line for line in out if line.startswith("│")}
-    assert set(rows) == {"cstr", "lq"}  # one line each: no folded cell
+    assert set(rows) == {"cstr", "cstr-structural", "lq"}  # one line each: no folded cell
     assert all(len(line) <= 80 for line in out if line[:1] in "┏┃┡│└")
     cstr = get_system("cstr")
     assert rows["cstr"].replace("│", " ").split() == [
@@ -43,7 +43,7 @@ def test_systems_is_a_narrow_table_and_one_description_line_per_system(monkeypat
         str(cstr.search_space.n_theta), str(cstr.episode_steps), "yes",
     ]  # fmt: skip
     text = " ".join(res.output.split())
-    for name in ("cstr", "lq"):
+    for name in ("cstr", "cstr-structural", "lq"):
         s = get_system(name)
         assert f"{name} (continuous-time): {' '.join(s.description.split())}" in text
     assert "--system path/to/file.py:make_system" in text

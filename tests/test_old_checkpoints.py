@@ -98,7 +98,7 @@ def test_run_study_refuses_to_resume_it(old_run):
 
 def test_its_checkpoints_are_read_for_their_rows(old_run):
     """The rows and incumbents of a schema-1 checkpoint are read as they were written (a
-    column added since, ``start_cost``, is NaN)."""
+    column added since, ``start_cost``, is NaN, ``identified`` empty)."""
     run_dir = RunDirectory(old_run)
     settings = run_dir.saved_settings(for_records=True)
     for learner, seed in JOBS.items():
@@ -107,7 +107,8 @@ def test_its_checkpoints_are_read_for_their_rows(old_run):
         assert ckpt.schema == 1 and len(ckpt.rows) == RESUMED_AT
         for row, d in zip(ckpt.rows, raw["rows"], strict=True):
             got = row.to_dict()
-            assert set(got) == set(d) | {"start_cost"} and np.isnan(got["start_cost"])
+            assert set(got) == set(d) | {"start_cost", "identified"}
+            assert np.isnan(got["start_cost"]) and got["identified"] == []
             np.testing.assert_equal({k: got[k] for k in d}, d)  # NaN equal to NaN
     incumbents = run_dir.incumbents(settings)
     assert [(n, s, k) for n, s, k, _ in incumbents] == [("mpc-rl", 0, 4), ("mobo", 0, 4)]

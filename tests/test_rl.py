@@ -19,7 +19,6 @@ from mpcmobo.rl import (
     f1_closed_loop_cost,
     f2_optimality,
     f3_critic_drift,
-    f3_critic_drift_same_states,
     f4_lyapunov,
     mean_stage_cost,
     objectives,
@@ -302,40 +301,6 @@ def test_f3_first_episode_and_clipping():
     assert f3_critic_drift(10.0, np.nan) == 0.0
 
 
-def test_f3_same_states_is_the_drift_of_the_two_critics_on_one_trajectory():
-    rec, _ = synthetic(NU_TRUE, W_TRUE, rule="lstd", T=30)
-    res = CompatibleCritic(gamma=0.95, ridge=0.0).fit(rec)
-    prev = res.nu - 0.1 * np.sign(np.sum(rec.dV, axis=0))  # a previous critic below this one
-
-    def V_nu(nu):  # eq. nu, written out: V^nu(x_k) = V_theta(x_k) + grad V_theta(x_k)^T nu
-        return np.array([rec.V[k] + rec.dV[k] @ nu for k in range(rec.V.shape[0])])
-
-    expected = float(np.sum(V_nu(res.nu) - V_nu(prev)))
-    assert expected > 0
-    f = objectives(rec, res, previous_Vc=None, f3="same_states", previous_nu=prev)
-    assert f[2] == pytest.approx(expected, rel=1e-10)
-    assert f3_critic_drift_same_states(rec, res.nu, prev) == pytest.approx(expected, rel=1e-10)
-    # the clipping, the first episode and a failed previous critic
-    assert f3_critic_drift_same_states(rec, prev, res.nu) == 0.0
-    assert f3_critic_drift_same_states(rec, res.nu, None) == 0.0
-    assert f3_critic_drift_same_states(rec, res.nu, np.full_like(prev, np.nan)) == 0.0
-    # like for like: a trajectory whose MPC values are all larger (another start) leaves it
-    # unchanged, while the paper's f3 against the same previous episode moves with it
-    shifted = copy.deepcopy(rec)
-    shifted.V = rec.V + 50.0
-    assert f3_critic_drift_same_states(shifted, res.nu, prev) == pytest.approx(expected)
-    res_shifted = CompatibleCritic(gamma=0.95, ridge=0.0).fit(shifted)
-    assert f3_critic_drift(res_shifted.Vc, res.Vc) > f3_critic_drift(res.Vc, res.Vc) + 100
-    # a state without a sensitivity: the sum over the others, scaled to all states (as V^c)
-    rec.dV[3] = np.nan
-    n = rec.V.shape[0]
-    ok = np.arange(n) != 3
-    partial = float(np.sum((V_nu(res.nu) - V_nu(prev))[ok])) * n / (n - 1)
-    assert f3_critic_drift_same_states(rec, res.nu, prev) == pytest.approx(partial, rel=1e-10)
-    with pytest.raises(ValueError, match="f3"):
-        objectives(rec, res, previous_Vc=None, f3="nope")
-
-
 def test_f4_counts_only_increases():
     V = [5.0, 3.0, 4.0, 4.0, 10.0, np.nan, 0.0, 1.0]
     success = [True, True, True, True, True, False, True, True]
@@ -556,33 +521,3 @@ def test_step_rules_reject_bad_learning_rates(bad):
             cls(lr=bad)
     with pytest.raises(ValueError, match="max_step"):
         Adam(max_step=0.0)
-
-
-def test_f3_same_states_reaches_the_run_and_resumes_exactly():
-    """``[critic] f3 = "same_states"`` reaches the study's LearningRun, which keeps the last
-    critic's nu in its state, so a resumed run computes the same f3 as the uninterrupted one."""
-    from mpcmobo.experiment.job import _learning_run as make_learning_run
-
-    system = get_system("lq")
-    settings = load_settings(  # every episode explores (no verification block)
-        system={"name": "lq"},
-        critic={"f3": "same_states"},
-        steps=15,
-        learner_options={"mpc-rl": {"deploy": "iterate"}},
-    ).resolved()
-
-    def run(n, state=None):
-        r = make_learning_run(settings, system, "mpc-rl", seed=3)
-        if state is not None:
-            r.load_state_dict(state)
-        return r, [r.run_episode()[0]["f3"] for _ in range(n)]
-
-    _, straight = run(6)
-    first, head = run(4)
-    _, tail = run(2, first.state_dict())
-    assert first.f3 == "same_states" and head + tail == straight
-    assert straight[4] > 0  # the first episode after the resume has a drift to get right
-    paper = make_learning_run(load_settings(system={"name": "lq"}), system, "mpc-rl", 3)
-    assert paper.f3 == "paper"
-    with pytest.raises(SettingsError, match="critic.f3"):
-        load_settings(critic={"f3": "nope"})

@@ -112,7 +112,7 @@ def test_overrides_merge_into_file(tmp_path):
         ({"seeds": [1, 1]}, "seeds", "only once"),
         ({"workers": True}, "workers", "integer"),
         ({"mpc": {"barrier_steps": 3}}, "mpc.barrier_steps", "newton_steps"),
-        ({"learner_options": {"sgd": {}}}, "learner_options.sgd", "unknown learner 'sgd'"),
+        ({"learner_options": {"sgd": {}}}, "learner_options.sgd", "an unknown learner"),
         ({"learner_options": {"bo": 3}}, "learner_options.bo", "valid dictionary"),
         ({"learner_options": 0}, "learner_options", "valid dictionary"),
         (

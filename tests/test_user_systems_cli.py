@@ -21,6 +21,7 @@ from user_system_source import write_user_files
 import mpcmobo
 from mpcmobo.cli import app
 from mpcmobo.experiment import storage
+from mpcmobo.learners.registry import LEARNER_SPECS
 
 runner = CliRunner()
 WALL = ["mpc_time_s", "learner_time_s", "eval_time_s"]
@@ -78,7 +79,7 @@ def test_a_system_in_a_file_runs_every_learner_on_two_workers_and_resumes(files,
     res = runner.invoke(app, [*run_args(spec, ref, 1), "--quiet"])
     assert res.exit_code == 0, res.output
     got, want = records(out), records(ref)
-    assert len(got) == 12 and set(got.learner) == {"mpc-rl", "bo", "mobo", "hybrid"}
+    assert len(got) == 3 * len(LEARNER_SPECS) and set(got.learner) == set(LEARNER_SPECS)
     pd.testing.assert_frame_equal(got, want)
     summary = storage.read_json(out / "summary.json")
     assert summary["system"] == "double_integrator" and summary["J_star"] is not None
