@@ -40,9 +40,14 @@ def cstr_dynamics(x: ca.SX, u: ca.SX, p: ca.SX) -> ca.SX:
     x = (V [l], C_a [mol/l], T [K]), u = (q_s, q_c) [l/min]. With ``p = 1`` this is the true
     plant; with ``p = (1.1, 1.2, 1.15, 0.9, 1.2)`` it is eq. (CSTR_Wrongmodel).
     """
+    return _balances(x, u, p, ca.exp(-E_R / x[2]))
+
+
+def _balances(x: ca.SX, u: ca.SX, p: ca.SX, arrhenius: ca.SX) -> ca.SX:
+    """The mass and energy balances of eq. (CSTR_model) with the multipliers ``p[:5]`` and
+    the reaction's temperature dependence ``arrhenius``."""
     V, Ca, T = x[0], x[1], x[2]
     qs, qc = u[0], u[1]
-    arrhenius = ca.exp(-E_R / T)
     dV = Q_O - qs
     dCa = p[0] * Q_O / V * (C_AO - Ca) - p[1] * K0 * arrhenius * Ca
     dT = (
@@ -102,17 +107,7 @@ STRUCTURAL_MODEL = np.array([*IMPERFECT_PARAMS, 1.0])
 def structural_dynamics(x: ca.SX, u: ca.SX, p: ca.SX) -> ca.SX:
     """eq. (CSTR_model) with multipliers ``p[:5]`` and ``p[5]`` a factor on the activation
     energy E/R of the reaction."""
-    V, Ca, T = x[0], x[1], x[2]
-    qs, qc = u[0], u[1]
-    arrhenius = ca.exp(-p[5] * E_R / T)
-    dV = Q_O - qs
-    dCa = p[0] * Q_O / V * (C_AO - Ca) - p[1] * K0 * arrhenius * Ca
-    dT = (
-        Q_O / V * (T_O - T)
-        + p[2] * K1 * arrhenius * Ca
-        + p[3] * K2 * qc / V * (1 - ca.exp(-p[4] * K3 / qc)) * (T_CO - T)
-    )
-    return ca.vertcat(dV, dCa, dT)
+    return _balances(x, u, p, ca.exp(-p[5] * E_R / x[2]))
 
 
 def make_cstr_structural(**spec_overrides: Any) -> System:
