@@ -11,7 +11,7 @@ string when the other fields keep their defaults: ``deploy = "incumbent"``).
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -42,6 +42,20 @@ class _Options(BaseModel):
         allow_inf_nan=False,
         use_attribute_docstrings=True,
     )
+    # the policy tables of the class and the rule each one defaults to (``_rule_table``)
+    _rules: ClassVar[dict[str, str]] = {}
+
+    @model_validator(mode="before")
+    @classmethod
+    def _shorthands(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            data = dict(data)
+            for key, default in cls._rules.items():
+                if key in data:
+                    data[key] = _rule_table(data[key], default)
+            if data.get("trust_region") is True:
+                data["trust_region"] = {}
+        return data
 
 
 def _rule_table(value: Any, default: str) -> Any:
@@ -164,16 +178,7 @@ class BOOptions(_Options):
     """Which theta is deployed: ``"evidence"`` (the default) or ``"incumbent"`` (the
     paper's)."""
 
-    @model_validator(mode="before")
-    @classmethod
-    def _shorthands(cls, data: Any) -> Any:
-        if isinstance(data, dict):
-            data = dict(data)
-            if "deploy" in data:
-                data["deploy"] = _rule_table(data["deploy"], "evidence")
-            if data.get("trust_region") is True:
-                data["trust_region"] = {}
-        return data
+    _rules: ClassVar[dict[str, str]] = {"deploy": "evidence"}
 
 
 class MOBOOptions(BOOptions):
@@ -262,16 +267,7 @@ class MPCRLOptions(_Options):
     """Which theta is deployed: ``"verified"`` (the default) or ``"iterate"`` (the
     paper's)."""
 
-    @model_validator(mode="before")
-    @classmethod
-    def _shorthands(cls, data: Any) -> Any:
-        if isinstance(data, dict):
-            data = dict(data)
-            if "optimizer" in data:
-                data["optimizer"] = _rule_table(data["optimizer"], "adam")
-            if "deploy" in data:
-                data["deploy"] = _rule_table(data["deploy"], "verified")
-        return data
+    _rules: ClassVar[dict[str, str]] = {"optimizer": "adam", "deploy": "verified"}
 
 
 class IdentifyOptions(_Options):
@@ -283,12 +279,7 @@ class IdentifyOptions(_Options):
     """How an identified model is judged against the deployed one before it is deployed (the
     evidence rule of the GP learners)."""
 
-    @model_validator(mode="before")
-    @classmethod
-    def _shorthands(cls, data: Any) -> Any:
-        if isinstance(data, dict) and isinstance(data.get("deploy"), str):
-            data = {**data, "deploy": _rule_table(data["deploy"], "evidence")}
-        return data
+    _rules: ClassVar[dict[str, str]] = {"deploy": "evidence"}
 
 
 OPTIONS: dict[str, type[_Options]] = {
