@@ -1,10 +1,11 @@
-# ruff: noqa: B008 - typer declares options as argument defaults
 """The command line: ``mpcmobo run``, ``plot``, ``evaluate``, ``systems``.
 
 ``mpcmobo run`` with no arguments runs the paper's CSTR study on the default settings into a new
 directory ``runs/<timestamp>``. Seeds can be given as ``--seeds 0 --seeds 1``, ``--seeds 0 1 2``
 or ``--seeds 0,1,2``. Invalid settings exit with code 2 and a message naming the key.
 """
+
+# ruff: noqa: B008 - typer declares options as argument defaults
 
 from __future__ import annotations
 

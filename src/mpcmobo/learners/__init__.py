@@ -1,4 +1,4 @@
-"""Learners behind one propose/observe interface: MPC-RL, BO, MPC-RL-MOBO and the hybrid."""
+"""Learners behind one propose/observe interface: identify, MPC-RL, BO, MPC-RL-MOBO and the hybrid."""
 
 from mpcmobo.learners.base import EpisodeResult, Learner, Starts, episode_result
 from mpcmobo.learners.gp import BOLearner
