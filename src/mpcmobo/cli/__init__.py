@@ -258,7 +258,8 @@ def _interrupted(out: Path | None, name: str, code: int) -> None:
         )
     else:
         err_console.print(f"interrupted ({name}) before the run started", highlight=False)
-    if Path(sys.argv[0]).name in ("mpcmobo", "cli.py"):
+    program = Path(sys.argv[0])
+    if program.name == "mpcmobo" or program.match("mpcmobo/cli/__main__.py"):
         # the program itself (not the CLI inside a test): everything is on disk and fsync'ed,
         # so skip the interpreter's teardown (torch's alone takes about a second)
         sys.stdout.flush()
