@@ -32,7 +32,7 @@ def test_defaults_are_the_paper_study():
     assert s.system.name == "cstr"
     assert s.episodes == 600
     assert s.start_mode == "cycle"
-    assert s.learners == ["mpc-rl", "bo", "mobo"]
+    assert s.learners == ["mpc-rl", "bo", "mobo", "identify"]
     assert s.seeds == [0]
     assert s.evaluation.n_starts == 10 and s.evaluation.eval_every == 10
     assert s.workers == 2 and s.backend == "process"
@@ -267,3 +267,23 @@ def test_atomic_writes_follow_the_umask_without_changing_it(tmp_path):
         assert os.umask(0o027) == 0o027  # still the one set above
     finally:
         os.umask(old)
+
+
+NO_PARAMETERS = '''
+import dataclasses
+from mpcmobo.systems.lq import make_lq
+
+def make_system():
+    return dataclasses.replace(make_lq(), name="lq-known", identifiable=())
+'''
+
+
+def test_identify_is_a_default_learner_only_where_there_is_a_model_to_identify(tmp_path):
+    """The default study runs the paper's learners and ``identify``; on a system that declares
+    no model parameter to identify ``identify`` is left out, and naming it is an error."""
+    assert load_settings(None).resolved().learners == ["mpc-rl", "bo", "mobo", "identify"]
+    (tmp_path / "noparams.py").write_text(NO_PARAMETERS)
+    system = {"factory": f"{tmp_path / 'noparams.py'}:make_system"}
+    assert load_settings(None, system=system).resolved().learners == ["mpc-rl", "bo", "mobo"]
+    with pytest.raises(SettingsError, match="no model parameter to identify"):
+        load_settings(None, system=system, learners=["mobo", "identify"])

@@ -25,7 +25,7 @@ from mpcmobo import __version__
 from mpcmobo.cli.progress import Bars, Lines, fmt, progress_bars
 from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError, read_run_file
-from mpcmobo.experiment.settings import PAPER_LEARNERS, Settings, SettingsError, load_settings
+from mpcmobo.experiment.settings import DEFAULT_LEARNERS, Settings, SettingsError, load_settings
 from mpcmobo.learners.registry import LEARNER_SPECS
 
 app: typer.Typer = typer.Typer(
@@ -131,7 +131,7 @@ _Learner = Annotated[
         "--learner",
         "-l",
         help=f"{' | '.join([*LEARNER_SPECS, 'all'])} (or a comma list)",
-        show_default=",".join(PAPER_LEARNERS),
+        show_default=",".join(DEFAULT_LEARNERS),
     ),
 ]
 _Episodes = Annotated[

@@ -40,9 +40,11 @@ from mpcmobo.systems import (
 )
 from mpcmobo.systems.registry import is_factory_path, normalise_spec
 
-# the learners the settings accept by name, and those the paper's study runs (the default)
+# the learners the settings accept by name; those the paper's study runs; the default study's:
+# the paper's and the identification baseline
 KNOWN_LEARNERS = tuple(LEARNER_SPECS)
 PAPER_LEARNERS = tuple(name for name, spec in LEARNER_SPECS.items() if spec.in_paper)
+DEFAULT_LEARNERS = (*PAPER_LEARNERS, "identify")
 
 
 class SettingsError(ValueError):
@@ -269,8 +271,10 @@ class Settings(_Section):
     """The compatible critic."""
     beta: float = 1.0
     """The weight beta of f4 (the Lyapunov decrease)."""
-    learners: list[str] = Field(default_factory=lambda: list(PAPER_LEARNERS), min_length=1)
-    """The learners of the study (``mpc-rl``, ``bo``, ``mobo``, ``hybrid``)."""
+    learners: list[str] = Field(default_factory=lambda: list(DEFAULT_LEARNERS), min_length=1)
+    """The learners of the study (``mpc-rl``, ``bo``, ``mobo``, ``hybrid``, ``identify``): by
+    default the paper's three and ``identify``, the identification baseline (on a system
+    without model parameters to identify it runs theta0)."""
     learner_options: dict[str, dict[str, Any]] = Field(default_factory=dict)
     """A table of options per learner (below)."""
     evaluation: EvaluationSettings = Field(default_factory=EvaluationSettings)
@@ -329,7 +333,8 @@ class Settings(_Section):
 
     @model_validator(mode="after")
     def _fits_system(self) -> Settings:
-        if self.exploration.std is None and not self.system.learn_model:
+        identify = "learners" in self.model_fields_set and "identify" in self.learners
+        if self.exploration.std is None and not self.system.learn_model and not identify:
             return self  # nothing system-specific to check; avoid building the system
         try:
             system = build_system(self)
@@ -342,6 +347,11 @@ class Settings(_Section):
             raise ValueError(
                 f"exploration.std has {len(std)} entries; the system '{system.name}' has "
                 f"{system.nu} inputs {list(system.input_names)}"
+            )
+        if identify and not system.identifiable:
+            raise ValueError(
+                f"learners: the system '{system.name}' declares no model parameter to identify "
+                "(System.param_names): remove 'identify'"
             )
         return self
 
@@ -358,6 +368,8 @@ class Settings(_Section):
         d["mpc"]["horizon"] = int(spec.horizon if self.mpc.horizon is None else self.mpc.horizon)
         d["mpc"]["gamma"] = float(spec.gamma if self.mpc.gamma is None else self.mpc.gamma)
         d["steps"] = int(system.episode_steps if self.steps is None else self.steps)
+        if "learners" not in self.model_fields_set and not system.identifiable:
+            d["learners"] = [n for n in d["learners"] if n != "identify"]  # nothing to identify
         if self.exploration.std is None:
             span = system.u_ub - system.u_lb
             d["exploration"]["std"] = [
