@@ -273,8 +273,8 @@ class Settings(_Section):
     """The weight beta of f4 (the Lyapunov decrease)."""
     learners: list[str] = Field(default_factory=lambda: list(DEFAULT_LEARNERS), min_length=1)
     """The learners of the study (``mpc-rl``, ``bo``, ``mobo``, ``hybrid``, ``identify``): by
-    default the paper's three and ``identify``, the identification baseline (on a system
-    without model parameters to identify it runs theta0)."""
+    default the paper's three and ``identify``, the identification baseline (left out on a
+    system that declares no model parameter to identify)."""
     learner_options: dict[str, dict[str, Any]] = Field(default_factory=dict)
     """A table of options per learner (below)."""
     evaluation: EvaluationSettings = Field(default_factory=EvaluationSettings)
