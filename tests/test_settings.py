@@ -269,13 +269,13 @@ def test_atomic_writes_follow_the_umask_without_changing_it(tmp_path):
         os.umask(old)
 
 
-NO_PARAMETERS = '''
+NO_PARAMETERS = """
 import dataclasses
 from mpcmobo.systems.lq import make_lq
 
 def make_system():
     return dataclasses.replace(make_lq(), name="lq-known", identifiable=())
-'''
+"""
 
 
 def test_identify_is_a_default_learner_only_where_there_is_a_model_to_identify(tmp_path):
