@@ -1,4 +1,4 @@
-"""The mobo learner's time per episode, replayed from a finished study, old code against new.
+"""The mobo learner's time per episode, replayed from a finished study, one code against another.
 
 Replays the recorded episodes of one job of a run (``episodes.parquet``: theta, f1..f4, start)
 into a fresh learner built with the run's settings, so that the learner is timed alone, without
@@ -76,10 +76,11 @@ def _result(row: dict, n_cycle: int, start_mode: str, n_theta: int):  # noqa: AN
         start_id=int(row["episode"]) % n_cycle if start_mode == "cycle" else -1,
         x0=np.asarray(row["x0"], float),
         violation=float(row["violation"]),
+        start_cost=float(row.get("start_cost", np.nan)),
     )
 
 
-_PER_EPISODE = ("Z", "Y", "grads", "starts", "contexts_x0", "violations")
+_PER_EPISODE = ("Z", "Y", "grads", "starts", "start_costs", "kinds")
 
 
 def record(args: argparse.Namespace) -> dict:
@@ -90,17 +91,22 @@ def record(args: argparse.Namespace) -> dict:
         (args.run / "jobs" / f"{args.learner}-s{args.seed}" / "checkpoint.pkl").read_bytes()
     )
     final = ckpt["state"]["learner"]
-    n = len(final["Z"])
+    n = len(final["evidence"]["Z"])
     states = {}
     for i in range(args.offset, n, args.stride):
         if i < args.first:
             continue
         st = dict(final)
+        ev = dict(final["evidence"])
         for key in _PER_EPISODE:
-            st[key] = np.asarray(final[key])[:i].copy()
-        sur = dict(final["surrogate_pre_fit"])
+            ev[key] = list(ev[key][:i]) if key == "kinds" else np.asarray(ev[key])[:i].copy()
+        st["evidence"] = ev
+        pre = dict(final["pre_fit"])
+        sur = dict(pre["surrogate"])
         sur["calls_since_refit"] = 0  # the replayed fit and the timed one only condition
-        st["surrogate_pre_fit"] = sur
+        pre["surrogate"] = sur
+        st["pre_fit"] = pre
+        st["pending"] = None
         states[i] = pickle.dumps(st)
     return {"states": states, "n": n}
 

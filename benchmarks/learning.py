@@ -8,7 +8,7 @@ episode, and the largest episode per seed), and wall time per episode split into
 learner. ``--system`` and ``--config`` (a settings file, e.g. learner options) are passed to
 the study.
 
-Peer rows (issue 11, item 6): ``--learners optuna-tpe optuna-gp`` runs Optuna's TPE and GP
+Peer rows: ``--learners optuna-tpe optuna-gp`` runs Optuna's TPE and GP
 samplers through the same study (``benchmarks/optuna_learners.py``; needs the ``bench`` extra,
 ``pip install -e ".[bench]"``). They are registered in this process only, so a run with them
 uses one worker.
@@ -16,6 +16,7 @@ uses one worker.
     .venv/bin/python benchmarks/learning.py --episodes 50 --seeds 0 1 2 3 4 --out runs/bench-learning
     .venv/bin/python benchmarks/learning.py --learners optuna-tpe optuna-gp --workers 1 --out runs/bench-optuna
     .venv/bin/python benchmarks/learning.py --table-only --out runs/a runs/b   # seeds pooled
+    .venv/bin/python benchmarks/learning.py --compare "=runs/a" " + identification=runs/b"
 """
 
 from __future__ import annotations
@@ -103,6 +104,47 @@ def table(outs: list[Path], only_seeds: list[int] | None = None) -> str:
     return "\n".join(lines)
 
 
+def compare(runs: list[tuple[str, Path]]) -> str:
+    """One compact row per (label, learner) of several run directories of one system (same
+    J*), not pooled, and theta0's: the final J_eval/J* (median, worst seed), the final thetas
+    on fresh starts where the directory holds ``recheck.json`` (``benchmarks/recheck.py --thetas
+    final --json DIR/recheck.json``), the evaluations above theta0 and the seeds with them, the
+    violation per episode, the episodes to 2% of J* (median)."""
+    first = json.loads((runs[0][1] / "summary.json").read_text())
+    J_star, J0 = first["J_star"], first["J_initial"]
+    lines = [
+        "| learner | seeds | final J_eval/J* (median, worst) | on 100 fresh starts (median, worst) "
+        "| evaluations above theta0 (seeds) | violation per episode | episodes to 2% |",
+        "|---|---|---|---|---|---|---|",
+        f"| theta0 | | {J0 / J_star:.3f} | | | | |",
+    ]
+    for label, out in runs:
+        summary = json.loads((out / "summary.json").read_text())
+        if not np.isclose(summary["J_star"], J_star):
+            raise SystemExit(f"{out} has another J* than {runs[0][1]}")
+        df = pd.read_parquet(out / "episodes.parquet")
+        fresh: dict[tuple[str, int], float] = {}
+        if (out / "recheck.json").exists():
+            for r in json.loads((out / "recheck.json").read_text()):
+                if r["theta"] == "final":
+                    fresh[(r["learner"], int(r["seed"]))] = r["J_fresh_ratio"]
+        for name, s in summary["learners"].items():
+            per = s["per_seed"]
+            ratio = np.array([per[k]["J_final"] / J_star for k in sorted(per, key=int)])
+            d = df[df["learner"] == name]
+            ev = d.dropna(subset=["J_eval_incumbent"])
+            above = ev[ev["J_eval_incumbent"] > J0 * (1 + 1e-9)]
+            f = np.array([v for (n, _), v in fresh.items() if n == name])
+            fresh_col = f"{np.median(f):.3f}, {f.max():.3f}" if len(f) else "-"
+            to2 = _median_episodes([per[k]["episodes_to_2pct"] for k in per])
+            lines.append(
+                f"| {name}{label} | {len(per)} | {np.median(ratio):.3f}, {ratio.max():.3f} "
+                f"| {fresh_col} | {len(above)} ({above['seed'].nunique()}) "
+                f"| {d['violation'].mean():.3g} | {to2} |"
+            )
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--learners", nargs="+", default=["mpc-rl", "bo", "mobo", "hybrid"])
@@ -124,9 +166,21 @@ def main() -> None:
     )
     ap.add_argument("--table-only", action="store_true", help="only print the table of --out")
     ap.add_argument(
+        "--compare",
+        nargs="+",
+        default=None,
+        metavar="LABEL=DIR",
+        help="print the compact table of these run directories (a label per directory, added "
+        "to its learners' names; an empty label: LABEL is empty before '=')",
+    )
+    ap.add_argument(
         "--only-seeds", type=int, nargs="+", default=None, help="table: only these seeds"
     )
     args = ap.parse_args()
+    if args.compare:
+        pairs = [item.partition("=") for item in args.compare]
+        print(compare([(label, Path(d)) for label, _, d in pairs]))
+        return
     if any(name.startswith("optuna-") for name in args.learners):
         from optuna_learners import register  # benchmarks/ is on sys.path when run as a script
 

@@ -1,5 +1,5 @@
-"""Optuna as a peer learner for the learning benchmark (issue 11, item 6): what a user would
-pick instead of mpcmobo.
+"""Optuna as a peer learner for the learning benchmark: what a user would pick instead of
+mpcmobo.
 
 ``optuna-tpe`` and ``optuna-gp`` tune the same theta as the other learners, in the same unit
 cube of the search space (one ``suggest_float(f"z{i}", 0, 1)`` per free coordinate), through the
@@ -20,7 +20,7 @@ import pickle
 
 import numpy as np
 
-from mpcmobo.learners.base import EpisodeResult, Learner
+from mpcmobo.learners.base import EpisodeResult, Learner, Starts
 from mpcmobo.learners.registry import LearnerSpec, register_learner
 from mpcmobo.systems.space import SearchSpace
 
@@ -33,9 +33,9 @@ class OptunaLearner(Learner):
     sampler_name = "tpe"
 
     def __init__(
-        self, space: SearchSpace, theta0: np.ndarray, seed: int = 0, *, contexts: object = None
+        self, space: SearchSpace, theta0: np.ndarray, seed: int = 0, *, starts: Starts | None = None
     ) -> None:
-        super().__init__(space, theta0, seed)
+        super().__init__(space, theta0, seed, starts=starts)
         self.study = self._new_study()
         self.z0 = space.to_unit(self.theta0)
         self.study.enqueue_trial(self._params(self.z0))
@@ -57,17 +57,12 @@ class OptunaLearner(Learner):
     def _z(self, params: dict[str, float]) -> np.ndarray:
         return np.array([params[f"z{i}"] for i in range(self.space.dim)], dtype=float)
 
-    def _theta(self, z: np.ndarray) -> np.ndarray:
-        if np.array_equal(z, self.z0):
-            return self.theta0.copy()  # exactly theta0, not its round trip through z
-        return self.space.from_unit(z, base=self.theta0)
-
     def propose(self) -> np.ndarray:
         if self._trial is None:
             self._trial = self.study.ask()
             for i in range(self.space.dim):
                 self._trial.suggest_float(f"z{i}", 0.0, 1.0)
-        return self._theta(self._z(self._trial.params))
+        return self.theta_of(self._z(self._trial.params))
 
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
         from optuna.trial import TrialState
@@ -86,7 +81,7 @@ class OptunaLearner(Learner):
 
         if not self.study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
             return self.theta0.copy()
-        return self._theta(self._z(self.study.best_trial.params))
+        return self.theta_of(self._z(self.study.best_trial.params))
 
     def state_dict(self) -> dict:
         d = super().state_dict()

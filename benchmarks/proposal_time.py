@@ -22,7 +22,6 @@ it once at start); the plain loop runs with torch's default thread count.
 from __future__ import annotations
 
 import argparse
-import inspect
 import os
 import platform
 import statistics
@@ -37,18 +36,16 @@ from botorch.optim import optimize_acqf
 from gpytorch.mlls import SumMarginalLogLikelihood
 
 from mpcmobo.bo import AcqfSearch, EHVIOptions, GPSurrogate, propose_ehvi, reference_point
-from mpcmobo.learners.bo import MOBOLearner, _GPLearner, search_effort
+from mpcmobo.learners.mobo import search_effort
+from mpcmobo.learners.options import MOBOOptions
 
 D, M = 13, 4
-# the EHVI options and search effort of the mobo learner (its constructors' defaults), halved
-# from reduce_effort_after observations on, as in MOBOLearner.search_effort
-_MOBO = inspect.signature(MOBOLearner.__init__).parameters
-_GP = inspect.signature(_GPLearner.__init__).parameters
-OPTIONS = EHVIOptions(
-    **{k: _MOBO[k].default for k in ("mc_samples", "max_baseline", "method")},
-)
-SEARCH = AcqfSearch(**{k: _GP[k].default for k in ("num_restarts", "raw_samples", "maxiter")})
-REDUCE_AFTER = _MOBO["reduce_effort_after"].default
+# the mobo learner's EHVI options and search effort at its defaults, halved from
+# reduce_effort_after observations on (search_effort, as in MOBOLearner)
+_SEARCH = MOBOOptions().search
+OPTIONS = EHVIOptions(mc_samples=_SEARCH.mc_samples)
+SEARCH = AcqfSearch(_SEARCH.num_restarts, _SEARCH.raw_samples, _SEARCH.maxiter)
+REDUCE_AFTER = _SEARCH.reduce_effort_after
 
 
 def make_problem(seed: int = 0):

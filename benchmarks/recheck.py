@@ -1,4 +1,4 @@
-"""Recheck a run's deployed thetas on many fresh initial states (issue 11, item 5).
+"""Recheck a run's deployed thetas on many fresh initial states.
 
 J_eval is the mean cost over ``evaluation.n_starts`` (10) fixed starts, and on the CSTR a few
 starts dominate that mean: a theta can win on most starts and still lose in J_eval because of
@@ -9,9 +9,12 @@ system's initial-state distribution with their own seed (never the evaluation st
 fed back to a learner), with the same MPC options and plant as the run. It prints, per theta,
 its mean cost over the fresh starts relative to J* on the same starts, the paired difference
 from theta0's mean with its standard error over the starts, and on how many starts it beats
-theta0; "regression" is a mean above theta0's.
+theta0; "regression" is a mean above theta0's. ``--thetas final`` rechecks the final thetas
+only; ``--summary`` prints one row per learner instead (the median and the worst seed of the
+final theta on the fresh starts, and the seeds whose final theta is worse than theta0 there).
 
     .venv/bin/python benchmarks/recheck.py --out runs/a --starts 100 --json runs/a/recheck.json
+    .venv/bin/python benchmarks/recheck.py --out runs/a --thetas final --summary
 """
 
 from __future__ import annotations
@@ -30,26 +33,41 @@ from mpcmobo.rl.objectives import mean_stage_cost
 RECHECK_SEED = 4242  # the fresh starts' seed: apart from the evaluation's (2025)
 
 
-def _thetas(df: pd.DataFrame) -> dict[str, tuple[np.ndarray, float]]:
+def _thetas(df: pd.DataFrame, which: tuple[str, ...]) -> dict[str, tuple[np.ndarray, float]]:
     """The final and the worst deployed theta of one job's rows, each with its J_eval."""
     rows = df.sort_values("episode")
     J = rows["J_eval_incumbent"].to_numpy(float)
     picks = {"final": len(J) - 1, "worst": int(np.argmax(np.where(np.isfinite(J), J, -np.inf)))}
     return {
-        k: (np.asarray(rows["incumbent"].iloc[i], float), float(J[i])) for k, i in picks.items()
+        k: (np.asarray(rows["incumbent"].iloc[i], float), float(J[i]))
+        for k, i in picks.items()
+        if k in which
     }
 
 
-def recheck(out: Path, starts: int, seed: int, only_seeds: list[int] | None) -> list[dict]:
+def recheck(
+    out: Path,
+    starts: int,
+    seed: int,
+    only_seeds: list[int] | None,
+    which: tuple[str, ...] = ("final", "worst"),
+) -> list[dict]:
     """The recheck rows of one run directory (one per learner, seed and theta)."""
     settings = load_settings(out / "config.toml")
-    system = build_system(settings)
-    ev = make_evaluator(settings, system, n_starts=starts, seed=seed)
+    ev = make_evaluator(settings, build_system(settings), n_starts=starts, seed=seed)
+    evs: dict[str, object] = {}  # a job with identification: its own MPC (theta is longer)
     summary = json.loads((out / "summary.json").read_text())
     df = pd.read_parquet(out / "episodes.parquet")
 
-    def costs(theta: np.ndarray | None, model: str = "imperfect") -> np.ndarray:
-        return np.array([mean_stage_cost(r) for r in ev.episodes(theta, model)])
+    def costs(theta: np.ndarray | None, model: str = "imperfect", learner: str = "") -> np.ndarray:
+        e = ev
+        if learner:
+            if learner not in evs:
+                evs[learner] = make_evaluator(
+                    settings, build_system(settings, learner), n_starts=starts, seed=seed
+                )
+            e = evs[learner]  # type: ignore[assignment]
+        return np.array([mean_stage_cost(r) for r in e.episodes(theta, model)])
 
     ref = costs(None, "perfect") if ev.has_J_star else None
     c0 = costs(None)
@@ -59,17 +77,17 @@ def recheck(out: Path, starts: int, seed: int, only_seeds: list[int] | None) -> 
     for (learner, s), job in df.groupby(["learner", "seed"], sort=True):
         if only_seeds is not None and int(s) not in only_seeds:
             continue
-        for which, (theta, J_eval) in _thetas(job).items():
+        for name, (theta, J_eval) in _thetas(job, which).items():
             key = theta.tobytes()
             if key not in cache:
-                cache[key] = costs(theta)
+                cache[key] = costs(theta, learner=learner)
             c = cache[key]
             rows.append(
                 {
                     "run": out.name,
                     "learner": learner,
                     "seed": int(s),
-                    "theta": which,
+                    "theta": name,
                     "J_eval_ratio": J_eval / summary["J_star"],
                     "J_fresh_ratio": float(c.mean()) / J_star,
                     "J0_fresh_ratio": float(c0.mean()) / J_star,
@@ -93,8 +111,18 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=RECHECK_SEED, help="their seed")
     ap.add_argument("--only-seeds", type=int, nargs="+", default=None)
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    ap.add_argument("--thetas", nargs="+", default=["final", "worst"], choices=["final", "worst"])
+    ap.add_argument("--summary", action="store_true", help="one row per learner")
     args = ap.parse_args()
-    rows = [r for out in args.out for r in recheck(out, args.starts, args.seed, args.only_seeds)]
+    which = tuple(args.thetas)
+    rows = [
+        r for out in args.out for r in recheck(out, args.starts, args.seed, args.only_seeds, which)
+    ]
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=1))
+    if args.summary:
+        print(summary_table(rows, args.starts))
+        return
     print(
         "| run | learner | seed | theta | J_eval/J* (10 evaluation starts) "
         f"| J/J* on {args.starts} fresh starts | theta0 there | difference (SE) "
@@ -108,8 +136,25 @@ def main() -> None:
             f"| {r['diff_ratio']:+.2f} ({r['diff_se_ratio']:.2f}) | {r['wins']}/{r['starts']} "
             f"| {'yes' if r['regression'] else 'no'} |"
         )
-    if args.json is not None:
-        args.json.write_text(json.dumps(rows, indent=1))
+
+
+def summary_table(rows: list[dict], starts: int) -> str:
+    """One markdown row per learner: its final thetas on the fresh starts."""
+    lines = [
+        f"| learner | seeds | final J/J* on {starts} fresh starts (median, worst) "
+        "| theta0 there | seeds worse than theta0 there |",
+        "|---|---|---|---|---|",
+    ]
+    finals = [r for r in rows if r["theta"] == "final"]
+    for learner in dict.fromkeys(r["learner"] for r in finals):
+        rs = [r for r in finals if r["learner"] == learner]
+        v = np.array([r["J_fresh_ratio"] for r in rs])
+        worse = [str(r["seed"]) for r in rs if r["regression"]]
+        lines.append(
+            f"| {learner} | {len(rs)} | {np.median(v):.3f}, {v.max():.3f} "
+            f"| {rs[0]['J0_fresh_ratio']:.3f} | {', '.join(worse) or 'none'} |"
+        )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""The numbers of docs/reproduction.md, claim by claim, from run directories (issue 15).
+"""The numbers of docs/reproduction.md, claim by claim, from run directories.
 
     PYTHONPATH=src .venv/bin/python benchmarks/reproduction.py runs/paper runs/default \
         --labels paper default
@@ -34,10 +34,13 @@ WINDOWS = [(0, 50), (50, 200), (200, 400), (400, 600)]
 
 
 def load(run: Path) -> tuple[pd.DataFrame, pd.DataFrame, dict]:
-    """Episodes, trajectories and summary of one run directory."""
+    """Episodes, trajectories and summary of one run directory (of a stopped run: the
+    learners that have episodes)."""
     ep = pd.read_parquet(run / "episodes.parquet")
     tr = pd.read_parquet(run / "trajectories.parquet")
-    return ep, tr, json.loads((run / "summary.json").read_text())
+    s = json.loads((run / "summary.json").read_text())
+    s["learners"] = {k: v for k, v in s["learners"].items() if (ep.learner == k).any()}
+    return ep, tr, s
 
 
 def first_within(d: pd.DataFrame, target: float) -> int | None:

@@ -13,13 +13,13 @@ For every state of a few 60-step closed-loop CSTR episodes, this times
   guess is the previous step's primal solution (unshifted); at the first step of an episode,
   the current state for every predicted state and ``u_ref`` for every input, zero slacks.
 * ``baseline_mx``, an extra row: the same ``Opti`` problem with MX function graphs, called
-  through ``opti.solve()`` (the baseline of issue 2, which made the ratios look 4-5x larger).
+  through ``opti.solve()`` (MX graphs evaluate more slowly than SX: against it every ratio
+  looks 4-5x larger).
 * ``mpcrl``, a peer row (``pip install 'mpcmobo[bench]'``, skipped without it): the same MPC
   in ``mpcrl`` 1.4.1 driven by its ``LstdDpgAgent`` (:class:`MpcrlPeer`): its solve plus its
   dpi/dtheta per step.
 
-For our variants the step is split into components: the solver (IPOPT calls, Newton steps and
-the barrier path;
+For our variants the step is split into components: the solver (IPOPT calls and Newton steps;
 of the IPOPT calls, IPOPT's own function-evaluation time from its statistics), the two
 sensitivities, and the rest (Python); ``build_s`` is the construction time of the MPC (with
 ``codegen``, the first build in a run compiles into an empty cache directory, the second one
@@ -36,7 +36,7 @@ same against ``baseline_mx``.
 
     .venv/bin/python benchmarks/step_time.py            # 4 episodes x 60 steps
     .venv/bin/python benchmarks/step_time.py --quick    # 1 episode x 20 steps
-    .venv/bin/python benchmarks/step_time.py --variants default jit --no-peers
+    .venv/bin/python benchmarks/step_time.py --variants default codegen --no-peers
 """
 
 from __future__ import annotations
@@ -64,8 +64,8 @@ class OptiBaseline:
 
     ``expand=True``: the NLP functions are expanded to SX (``opti.solver("ipopt", {"expand":
     True})``) and the solve is one call of ``opti.to_function`` (what a CasADi expert writes; the
-    reference). ``expand=False``: MX function graphs, called through ``opti.solve()`` (the
-    baseline of issue 2, kept as an extra row). IPOPT: the tolerances of our MPC (``tol`` 1e-8,
+    reference). ``expand=False``: MX function graphs, called through ``opti.solve()`` (an extra
+    row). IPOPT: the tolerances of our MPC (``tol`` 1e-8,
     ``acceptable_tol`` 1e-6, which are also IPOPT's defaults), otherwise IPOPT's defaults.
     """
 
@@ -295,54 +295,32 @@ VARIANTS: dict[str, dict] = {
     # (shifted primal-dual warm start, no lam_p) when they do not converge; adjoint
     # sensitivities (sparse QR)
     "default": {},
-    # then (issue 13, session 6; not the default) the barrier path of at most 30 Newton steps
-    # from mu_0 = 1e-3 down to tau before IPOPT ("default" in runs J-L of docs/benchmarks.md)
-    "barrier": {"barrier_steps": 30},
-    "ipopt": {"newton_steps": 0, "barrier_steps": 0},  # IPOPT only
-    # IPOPT only, with lam_p: the default before issue 13's second part
-    "ipopt_lam_p": {
-        "newton_steps": 0,
-        "barrier_steps": 0,
-        "solver_options": {"calc_lam_p": True},
-    },
+    "ipopt": {"newton_steps": 0},  # IPOPT only
+    # IPOPT only, with lam_p (the multipliers of the parameters: one more gradient evaluation
+    # per solve, unused by the sensitivities)
+    "ipopt_lam_p": {"newton_steps": 0, "solver_options": {"calc_lam_p": True}},
     "cold": {"warm_start": False},  # no warm start (so no Newton steps either)
-    "warm_mu_init_1e-5": {
-        "newton_steps": 0,
-        "barrier_steps": 0,
-        "warm_options": {"mu_init": 1e-5},
-    },
-    "warm_mu_adaptive": {
-        "newton_steps": 0,
-        "barrier_steps": 0,
-        "warm_options": {"mu_strategy": "adaptive"},
-    },
+    "warm_mu_init_1e-5": {"newton_steps": 0, "warm_options": {"mu_init": 1e-5}},
+    "warm_mu_adaptive": {"newton_steps": 0, "warm_options": {"mu_strategy": "adaptive"}},
     "hess_lbfgs": {
         "newton_steps": 0,
-        "barrier_steps": 0,
         "solver_options": {"hessian_approximation": "limited-memory"},
     },
     # generated C, compiled once per machine and problem, cached on disk
-    "codegen_ipopt": {"codegen": True, "newton_steps": 0, "barrier_steps": 0},
+    "codegen_ipopt": {"codegen": True, "newton_steps": 0},
     "codegen": {"codegen": True},  # generated C and the Newton steps
-    "codegen_barrier": {"codegen": True, "barrier_steps": 30},  # and the barrier path
-    # the barrier path only from interior warm starts (violated rows: IPOPT), session 7
-    "barrier_interior": {"barrier_steps": 30, "barrier_push": False},
-    "codegen_barrier_interior": {"codegen": True, "barrier_steps": 30, "barrier_push": False},
-    # CasADi's jit: compiled again at every build
-    "jit": {"jit": True, "newton_steps": 0, "barrier_steps": 0},
 }
-# run by default (jit: a 20-45 s compile at every build; codegen does the same, cached)
-DEFAULT_VARIANTS = [v for v in VARIANTS if v != "jit"]
+DEFAULT_VARIANTS = list(VARIANTS)
 
 
 # name -> OptiBaseline options; "baseline" is the reference of every ratio.
 BASELINES: dict[str, dict] = {
     "baseline": {"expand": True},  # SX, Opti.to_function, warm: the expert's formulation
-    "baseline_mx": {"expand": False},  # MX, opti.solve(), warm: the baseline of issue 2
+    "baseline_mx": {"expand": False},  # MX, opti.solve(), warm: an extra row
 }
 _BASELINE_LABELS = {
     "baseline": "Opti, expand=True (SX), Opti.to_function, our tolerances",
-    "baseline_mx": "Opti, MX, opti.solve(), our tolerances (the issue-2 baseline)",
+    "baseline_mx": "Opti, MX, opti.solve(), our tolerances",
     "mpcrl": "mpcrl 1.4.1 LstdDpgAgent: state_value + its dpi/dtheta per step",
 }
 
@@ -382,7 +360,6 @@ class _Components:
 
         mpc._run_solver, mpc._sensitivities = timed_run, timed_sens
         mpc._newton_solve = timed(mpc._newton_solve)
-        mpc._barrier_solve = timed(mpc._barrier_solve)
 
     def take(self) -> tuple[float, float, float]:
         out = (self.solver, self.sens, self.fun)
@@ -411,8 +388,8 @@ def run(
     fails = {n: 0 for n in names}
     du = {n: [] for n in mpcs}  # |action - baseline action|, a sanity check of "same problem"
     du_first = {n: [] for n in names}  # |action - first variant's action|: "same policy"
-    paths = {n: {"newton": 0, "barrier": 0, "ipopt": 0} for n in mpcs}  # which path solved
-    path_times = {n: {"newton": [], "barrier": [], "ipopt": []} for n in mpcs}  # step times by path
+    paths = {n: {"newton": 0, "ipopt": 0} for n in mpcs}  # which path solved
+    path_times = {n: {"newton": [], "ipopt": []} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
     order_rng = np.random.default_rng(seed + 1)
@@ -437,7 +414,7 @@ def run(
         for _ in range(steps):
             # a new random order every step (seeded): with a rotation the variants kept their
             # neighbours, and one that ran after another calling the same compiled library
-            # found its code in warm caches (docs/benchmarks.md, step time, session 7)
+            # found its code in warm caches (docs/benchmarks.md, step time)
             order = [names[i] for i in order_rng.permutation(len(names))]
             actions = {}
             for n in order:
@@ -451,9 +428,9 @@ def run(
                     dt = time.perf_counter() - t0
                     parts[n].append(comps[n].take())
                     ok, it = sol.success, sol.iterations
-                    path = {"Newton_Succeeded": "newton", "Barrier_Succeeded": "barrier"}
-                    paths[n][path.get(sol.status, "ipopt")] += 1
-                    path_times[n][path.get(sol.status, "ipopt")].append(dt)
+                    path = "newton" if sol.status == "Newton_Succeeded" else "ipopt"
+                    paths[n][path] += 1
+                    path_times[n][path].append(dt)
                     actions[n] = sol.action
                     ok = ok and bool(np.all(np.isfinite(sol.dpi_dtheta)))
                 times[n].append(dt)
@@ -526,7 +503,7 @@ def main(argv=None) -> None:
         "--variants",
         nargs="*",
         default=None,
-        help=f"subset of {list(VARIANTS)} (default: all but jit)",
+        help=f"subset of {list(VARIANTS)} (default: all)",
     )
     ap.add_argument("--json", default=None, help="write the results to this file")
     ap.add_argument("--no-peers", action="store_true", help="without the mpcrl row")
@@ -548,14 +525,13 @@ def main(argv=None) -> None:
         f"{first!r} median. ratio_mx: the same against baseline_mx"
     )
     print(
-        "components (medians, ms): solver = IPOPT calls, Newton steps and the barrier path, "
-        "fun = IPOPT's "
+        "components (medians, ms): solver = IPOPT calls and Newton steps, fun = IPOPT's "
         "function evaluations; sens = both sensitivities; other = the rest of the step (Python)"
     )
     hdr = (
         f"{'variant':<18} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
         f"{'ratio':>6} {'ratio_mx':>8} {'du_first':>9} {'n>1e-4':>6} {'solver':>6} {'fun':>6} "
-        f"{'sens':>6} {'other':>6} {'build s':>7} {'Newton/barrier/IPOPT':>20}"
+        f"{'sens':>6} {'other':>6} {'build s':>7} {'Newton/IPOPT':>20}"
     )
     print(hdr)
     for n, r in res.items():
@@ -573,7 +549,7 @@ def main(argv=None) -> None:
             f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rmx} {duf} "
             f"{r['n_du_vs_first_gt_1e-4']:>6d} {comp}"
         )
-    print("median step [ms] by the path that solved it (Newton steps / barrier path / IPOPT):")
+    print("median step [ms] by the path that solved it (Newton steps / IPOPT):")
     for n, r in res.items():
         if "median_ms_by_path" in r:
             by = r["median_ms_by_path"].values()

@@ -1,6 +1,7 @@
 """MkDocs hooks of the documentation site (``mkdocs.yml``: ``hooks``).
 
-- The home page is the README and the contributing page CONTRIBUTING.md, read at build time
+- The home page is the README, the contributing and changelog pages CONTRIBUTING.md and
+  CHANGELOG.md, read at build time
   (their links into ``docs/`` rewritten), so the site and the repository never drift apart.
 - The API reference has one page per public module of ``src/mpcmobo``, generated here from the
   package tree (``griffe``, the loader mkdocstrings uses), so a new module gets its page and its
@@ -22,7 +23,11 @@ from mkdocs.structure.files import File, Files
 ROOT = Path(__file__).resolve().parent.parent
 SRC = ROOT / "src"
 PACKAGE = "mpcmobo"
-ROOT_PAGES = {"index.md": "README.md", "contributing.md": "CONTRIBUTING.md"}
+ROOT_PAGES = {
+    "index.md": "README.md",
+    "contributing.md": "CONTRIBUTING.md",
+    "changelog.md": "CHANGELOG.md",
+}
 
 
 def _public_modules() -> list[griffe.Module]:
@@ -57,12 +62,14 @@ def _page(module: griffe.Module) -> str:
     if not _is_package(module):
         return "\n".join(lines) + "\n"
     # a package renders what its __init__ defines itself; its re-exports render in their modules
-    own = [n for n in module.exports if not module[n].is_alias]
+    # names exported lazily (a module __getattr__) have no member to render here
+    exports = [n for n in module.exports or () if n in module.all_members]
+    own = [n for n in exports if not module[n].is_alias]
     members = f"[{', '.join(own)}]" if own else "false"
     lines += ["    options:", f"      members: {members}", ""]
-    if module.exports:
+    if exports:
         lines += ["## Public names", "", "| name | defined in |", "|---|---|"]
-        for name in module.exports:
+        for name in exports:
             obj = module[name]
             target = obj.target_path if obj.is_alias else obj.path
             home = target.rsplit(".", 1)[0]
@@ -102,6 +109,8 @@ def on_files(files: Files, config: MkDocsConfig) -> Files:
     for page, source in ROOT_PAGES.items():
         text = (ROOT / source).read_text(encoding="utf-8")
         text = re.sub(r"\]\(docs/", "](", text)  # links into docs/ from the repository root
+        text = text.replace("](CONTRIBUTING.md)", "](contributing.md)")
+        text = text.replace("](CHANGELOG.md)", "](changelog.md)")
         files.append(File.generated(config, page, content=text))
     for module in _public_modules():
         files.append(File.generated(config, f"api/{module.path}.md", content=_page(module)))

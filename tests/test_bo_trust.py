@@ -1,9 +1,9 @@
-"""The trust region of the GP learners (``trust_region``, :mod:`mpcmobo.bo.trust`, session 7).
+"""The trust region of the GP learners (``trust_region``, :mod:`mpcmobo.bo.trust`).
 
 Its rule written out by hand (double after a run of successes, halve after a run of failures,
 cap, restart at the floor); the learners' proposals inside the box of the current length around
-the deployed theta; the box following a success; the state saved and resumed exactly; old
-states resuming without it; bad options refused with a message naming the problem.
+the deployed theta; the box following a success; the state saved and resumed exactly; the
+option's table reaching the learner, and bad values refused with a message naming the option.
 """
 
 from __future__ import annotations
@@ -12,13 +12,18 @@ import numpy as np
 import pytest
 
 from mpcmobo.bo import AcqfSearch, GPSurrogate, propose_ei
-from mpcmobo.bo.trust import TrustRegion, TrustState, trust_region_from_option
+from mpcmobo.bo.trust import TrustRegion, TrustState
 from mpcmobo.learners import EpisodeResult, make_learner
-from mpcmobo.learners.bo import _DefaultAny
 from mpcmobo.learners.registry import LearnerOptionError
 from mpcmobo.systems import get_system
 
-FAST = {"n_init": 3, "num_restarts": 2, "raw_samples": 32, "maxiter": 20}
+FAST = {"n_init": 3, "search": {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}}
+# the EHVI learners with fewer quasi-MC samples: the box, not the acquisition, is tested here
+EHVI = {"n_init": 3, "search": {**FAST["search"], "mc_samples": 16}}
+
+
+def _fast(name):
+    return FAST if name == "bo" else EHVI
 
 
 def test_length_doubles_halves_caps_and_restarts_as_written():
@@ -51,21 +56,51 @@ def test_box_is_centred_and_clipped():
     np.testing.assert_allclose(hi, [0.6, 0.15, 1.0])
 
 
-def test_option_values_and_errors():
-    assert trust_region_from_option("off") is None and trust_region_from_option(None) is None
-    assert trust_region_from_option("auto") == TrustRegion()
-    assert trust_region_from_option({"length_init": 0.1}) == TrustRegion(length_init=0.1)
-    with pytest.raises(ValueError, match="unknown key.*'length'"):
-        trust_region_from_option({"length": 0.1})
-    with pytest.raises(ValueError, match="length_min <= length_init"):
-        trust_region_from_option({"length_init": 3.0})
-    with pytest.raises(ValueError, match="success_tolerance must be an integer >= 1"):
-        trust_region_from_option({"success_tolerance": 0})
-    with pytest.raises(ValueError, match="trust_region must be 'off', 'auto'"):
-        trust_region_from_option("on")
+def test_the_option_reaches_the_learner():
     s = get_system("lq")
-    with pytest.raises(LearnerOptionError, match="trust_region"):
-        make_learner("bo", s.search_space, s.parameterization.theta0, trust_region="yes")
+    space, theta0 = s.search_space, s.parameterization.theta0
+    assert make_learner("bo", space, theta0).trust_region == TrustRegion()  # the default
+    assert make_learner("bo", space, theta0, trust_region=True).trust_region == TrustRegion()
+    off = make_learner("bo", space, theta0, trust_region=False)
+    assert off.trust_region is None and off.trust_ is None
+    tr = {"length_init": 0.1, "success_tolerance": 3, "failure_tolerance": 5}
+    lr = make_learner("mobo", space, theta0, trust_region=tr)
+    assert lr.trust_region == TrustRegion(**tr)
+    assert lr.trust_ == TrustState(0.1, 0, 0)
+
+
+def test_the_trust_regions_own_checks():
+    with pytest.raises(ValueError, match="length_min <= length_init"):
+        TrustRegion(length_init=3.0)
+    with pytest.raises(ValueError, match="success_tolerance must be an integer >= 1"):
+        TrustRegion(success_tolerance=0)
+    with pytest.raises(ValueError, match="length_min must be a finite number"):
+        TrustRegion(length_min=float("nan"))
+
+
+@pytest.mark.parametrize(
+    "value, match",
+    [
+        ({"length": 0.1}, r"^trust_region\.length: unknown option"),
+        ({"length_init": 3.0}, r"^trust_region\.length_init: .*less than or equal to 2"),
+        ({"success_tolerance": 0}, r"^trust_region\.success_tolerance: "),
+        ({"length_init": 0.01}, r"^trust_region: needs length_min <= length_init <= length_max"),
+    ],
+)
+def test_bad_trust_region_options_name_the_option(value, match):
+    """The message's first line names the option by its dotted path, as for every other
+    nested table (``deploy.confidence``, ``search.num_restarts``)."""
+    s = get_system("lq")
+    with pytest.raises(LearnerOptionError, match=match) as err:
+        make_learner("bo", s.search_space, s.parameterization.theta0, trust_region=value)
+    assert "the options of 'bo'" in str(err.value)
+
+
+def test_a_bad_trust_region_value_is_refused():
+    s = get_system("lq")
+    for bad in ("yes", "auto", 0.2):
+        with pytest.raises(LearnerOptionError, match="trust_region"):
+            make_learner("bo", s.search_space, s.parameterization.theta0, trust_region=bad)
 
 
 def test_acquisition_stays_in_the_box():
@@ -94,12 +129,13 @@ def test_every_proposal_lies_in_the_box_around_the_deployed_theta(name):
     space, theta0 = s.search_space, s.parameterization.theta0
     z0 = space.to_unit(theta0)
     tr = {"length_init": 0.1, "success_tolerance": 1, "failure_tolerance": 2}
-    # the incumbent rule deploys after every fit (no start_id: random starts, where "auto" has
-    # needed 6 episodes a side since session 11), so that the box can move within 10 episodes
-    learner = make_learner(name, space, theta0, seed=3, trust_region=tr, deploy="incumbent", **FAST)
+    # the incumbent rule deploys after every fit, so that the box can move within 8 episodes
+    learner = make_learner(
+        name, space, theta0, seed=3, trust_region=tr, deploy="incumbent", **_fast(name)
+    )
     rng = np.random.default_rng(0)
     lengths, successes = [], 0
-    for k in range(10):
+    for k in range(8):
         center, length = space.to_unit(learner.incumbent()), learner.trust_.length
         theta = learner.propose()
         z = space.to_unit(theta)
@@ -115,36 +151,28 @@ def test_every_proposal_lies_in_the_box_around_the_deployed_theta(name):
 
 
 @pytest.mark.parametrize("name", ["bo", "hybrid"])
-def test_trust_state_resumes_exactly_and_old_states_resume_without_it(name):
+def test_trust_state_resumes_exactly(name):
     s = get_system("lq")
     space, theta0 = s.search_space, s.parameterization.theta0
     tr = {"length_init": 0.1, "success_tolerance": 1, "failure_tolerance": 2}
-    a = make_learner(name, space, theta0, seed=3, trust_region=tr, **FAST)
+    a = make_learner(
+        name, space, theta0, seed=3, trust_region=tr, deploy="incumbent", **_fast(name)
+    )
     rng = np.random.default_rng(1)
-    for _ in range(7):
+    for k in range(12):  # past the design, until the state is not the first one
         th = a.propose()
         z = space.to_unit(th)
         a.observe(th, _result((1.0 + float(np.sum((z - 0.6) ** 2)), 1.0, 0, 0), rng, space.n_theta))
+        if k >= 4 and a.trust_ != TrustState(0.1, 0, 0):
+            break
+    assert a.trust_ != TrustState(0.1, 0, 0)  # the resume has something to restore
     state = a.state_dict()
-    assert state["trust_region"] == a.trust_.to_dict()
-    b = make_learner(name, space, theta0, seed=99, trust_region=tr, **FAST)
+    assert state["trust"] == a.trust_.to_dict()
+    b = make_learner(
+        name, space, theta0, seed=99, trust_region=tr, deploy="incumbent", **_fast(name)
+    )
     b.load_state_dict(state)
     assert b.trust_ == a.trust_
     np.testing.assert_array_equal(a.propose(), b.propose())
-    # a state written before session 7 (no "trust_region" key) was made without a trust
-    # region: a learner whose option is at its default (a marked default, as the option
-    # would be if "auto" became the default) resumes without one; an explicit one keeps it
-    old_state = {k: v for k, v in state.items() if k not in ("trust_region", "trust_pre_fit")}
-    marked = make_learner(name, space, theta0, seed=3, trust_region=_DefaultAny("auto"), **FAST)
-    assert marked.trust_region is not None
-    marked.load_state_dict(old_state)
-    assert marked.trust_region is None and marked.trust_ is None
-    explicit = make_learner(name, space, theta0, seed=3, trust_region="auto", **FAST)
-    explicit.load_state_dict(old_state)
-    assert explicit.trust_region is not None
-    # a state written with the trust region off (its key None) resumes without one too
-    off_state = make_learner(name, space, theta0, seed=3, trust_region="off", **FAST).state_dict()
-    assert off_state["trust_region"] is None
-    marked = make_learner(name, space, theta0, seed=3, trust_region=_DefaultAny("auto"), **FAST)
-    marked.load_state_dict(off_state)
-    assert marked.trust_region is None
+    off = make_learner(name, space, theta0, seed=3, trust_region=False, **FAST)
+    assert off.state_dict()["trust"] is None

@@ -17,10 +17,36 @@ SMALL = ["--system", "lq", "--learner", "mpc-rl", "--episodes", "3", "--steps", 
          "--workers", "1"]  # fmt: skip
 
 
-def test_systems_lists_cstr():
+def test_systems_is_a_narrow_table_and_one_description_line_per_system(monkeypatch):
+    """``mpcmobo systems`` in 80 columns: a table of the built-in systems that fits without
+    folding a cell (one line per system), then one line per system with its kind and
+    description."""
+    from rich.console import Console
+
+    import mpcmobo.cli as cli
+    from mpcmobo.systems import get_system
+
+    monkeypatch.setattr(cli, "console", Console(width=80))
     res = runner.invoke(app, ["systems"])
-    assert res.exit_code == 0
-    assert "cstr" in res.output and "lq" in res.output
+    assert res.exit_code == 0, res.output
+    out = res.output.splitlines()
+    header = next(line for line in out if line.startswith("┃"))
+    assert header.replace("┃", " ").split() == [
+        "name", "source", "states", "inputs", "theta", "steps", "J*"
+    ]  # fmt: skip
+    rows = {line.split()[1]: line for line in out if line.startswith("│")}
+    assert set(rows) == {"cstr", "cstr-structural", "lq"}  # one line each: no folded cell
+    assert all(len(line) <= 80 for line in out if line[:1] in "┏┃┡│└")
+    cstr = get_system("cstr")
+    assert rows["cstr"].replace("│", " ").split() == [
+        "cstr", "built-in", "V,", "Ca,", "T", "qs,", "qc",
+        str(cstr.search_space.n_theta), str(cstr.episode_steps), "yes",
+    ]  # fmt: skip
+    text = " ".join(res.output.split())
+    for name in ("cstr", "cstr-structural", "lq"):
+        s = get_system(name)
+        assert f"{name} (continuous-time): {' '.join(s.description.split())}" in text
+    assert "--system path/to/file.py:make_system" in text
 
 
 @pytest.mark.parametrize(
@@ -57,7 +83,9 @@ def test_invalid_config_file_exit_2(tmp_path):
 )
 @given(
     st.dictionaries(
-        st.sampled_from(["episodes", "mpc", "seeds", "learners", "beta", "system", "zz"]),
+        st.sampled_from(
+            ["episodes", "mpc", "seeds", "learners", "beta", "system", "learner_options", "zz"]
+        ),
         st.one_of(
             st.integers(-5, 5),
             st.text(max_size=4),

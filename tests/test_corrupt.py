@@ -1,4 +1,4 @@
-"""Damaged run files, bad output paths and bad learner options (issue 14): a clear error naming
+"""Damaged run files, bad output paths and bad learner options: a clear error naming
 the file or option and the fix (exit 1 or 2, no traceback), a fallback to the previous
 checkpoint generation, and nothing created when a run cannot start."""
 
@@ -135,23 +135,52 @@ def test_bad_out_paths_are_clear_errors_and_create_nothing(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "options, message",
+    "learner, options, key, message",
     [
-        ("lr_rate = 0.1", "unexpected learner option 'lr_rate'"),
-        ('lr = "big"', "lr = 'big': must be a number"),
-        ("lr = -1.0", "learning rate must be positive"),
+        ("mpc-rl", "lr_rate = 0.1", "lr_rate", "unknown option"),
+        ("mpc-rl", 'optimizer = {lr = "big"}', "optimizer.lr", "valid number (got 'big')"),
+        ("mpc-rl", 'optimizer = {rule = "gd", lr = -1.0}', "optimizer.lr", "greater than 0"),
+        ("mpc-rl", 'deploy = "pooled"', "deploy", "'verified', 'iterate'"),
+        ("bo", "deploy = {confidence = 1.5}", "deploy.confidence", "less than 1 (got 1.5)"),
+        ("bo", 'deploy = {rule = "incumbent", min_runs = 3}', "deploy.min_runs", "unknown"),
+        ("mobo", "search = {num_restarts = 0}", "search.num_restarts", "greater than or equal"),
+        ("mobo", "context = 'none'", "context", "unknown option"),
+        ("hybrid", "gradient_every = 0", "gradient_every", "greater than or equal to 1"),
     ],
 )
-def test_bad_learner_options_exit_2_listing_the_options(tmp_path, options, message):
+def test_bad_learner_options_exit_2_naming_the_option(tmp_path, learner, options, key, message):
+    """A bad option in a settings file: exit 2 before anything is written, one message that
+    names the option as ``learner_options.NAME.key`` and lists the learner's options with their
+    defaults."""
     cfg = tmp_path / "c.toml"
-    cfg.write_text(f"[learner_options.mpc-rl]\n{options}\n")
+    cfg.write_text(f"[learner_options.{learner}]\n{options}\n")
     res = runner.invoke(app, ["run", *SMALL, "--config", str(cfg), "--out", str(tmp_path / "o")])
     assert res.exit_code == 2, res.output
     no_traceback(res)
     text = " ".join(res.output.split())
-    assert "learner_options.mpc-rl" in text and message in text
-    assert "lr = 0.03" in text and "optimizer = 'adam'" in text  # the options, with defaults
-    assert "unexpected keyword" not in text
+    assert f"learner_options.{learner}.{key}: " in text, text
+    assert message in text, text
+    assert f"the options of '{learner}' (with their defaults)" in text
+    assert "unexpected keyword" not in text  # validated, not passed on to a constructor
+    if learner == "mpc-rl":
+        assert "optimizer = {'rule': 'adam', 'lr': 0.03, 'max_step': 0.1}" in text
+    else:
+        assert "n_init = 5" in text and "'confidence': 0.9" in text
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_bad_trust_region_option_is_named_by_its_dotted_path(tmp_path):
+    """An option inside the ``trust_region`` table (a table or ``false``) is named like any
+    other: ``learner_options.bo.trust_region.length_inti``, one line, without the names of
+    the validator's alternatives."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[learner_options.bo]\ntrust_region = {length_inti = 0.3}\n")
+    res = runner.invoke(app, ["run", *SMALL, "--config", str(cfg), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    no_traceback(res)
+    text = " ".join(res.output.split())
+    assert "learner_options.bo.trust_region.length_inti: unknown option" in text, text
+    assert "function-after" not in text and "literal[False]" not in text, text
     assert not (tmp_path / "o").exists()
 
 
@@ -161,7 +190,12 @@ def test_run_help_shows_defaults_and_learner_options():
     text = " ".join(res.output.split())
     assert re.search(r"episodes per job \[default: \(?600\)?\]", text), text
     assert re.search(r"parallel processes \[default: \(?2\)?\]", text), text
-    assert "n_init = 5" in text and "lr = 0.03" in text
+    # every learner's options with their defaults, as TOML
+    assert 'optimizer = {rule = "adam", lr = 0.03, max_step = 0.1}' in text, text
+    assert 'deploy = {rule = "evidence", confidence = 0.9, min_runs = 6}' in text
+    assert "n_init = 5" in text and "gradient_every = 3" in text
+    for name in ("mpc-rl", "bo", "mobo", "hybrid"):
+        assert f"{name}: " in text
 
 
 def test_summary_counts_the_warnings_logged_in_run_log(tmp_path):

@@ -1,4 +1,4 @@
-"""The value of the EHVI acquisition against a brute-force Monte Carlo estimate (issue 16, item 2).
+"""The value of the EHVI acquisition against a brute-force Monte Carlo estimate.
 
 The GPs of a mobo learner at its defaults (log f1 and f2, identity f3 and f4, one offset per
 cycled start on the log outputs) are fitted to a synthetic 4-objective problem with per-start
@@ -60,12 +60,12 @@ def mobo_acquisition():
     sampling error is small), its reference point fixed from the first 6 as the learner does."""
     space = get_system("lq").search_space
     theta0 = get_system("lq").parameterization.theta0
-    mobo = make_learner("mobo", space, theta0, seed=0, mc_samples=512)
+    mobo = make_learner("mobo", space, theta0, seed=0, search={"mc_samples": 512})
     rng = np.random.default_rng(0)
     Z = rng.uniform(size=(14, space.dim))
     starts = np.arange(14) % 3
     Y = np.array([_objectives(z, g, rng) for z, g in zip(Z, starts)])
-    ref = reference_point(Y[:6], margin=mobo.ref_margin)
+    ref = reference_point(Y[:6], margin=mobo.options.ref_margin)
     sur = mobo.surrogate.fit(Z, Y, groups=starts)
     captured = []
 
@@ -210,7 +210,7 @@ def _value_and_grad(acqf, X0):
 
 
 def test_single_point_shortcut_is_botorchs_logehvi_bit_for_bit(mobo_acquisition):
-    """The q = 1 path of the acquisition (issue 13, speed) gives BoTorch's own qLogEHVI values
+    """The q = 1 path of the acquisition (the fast path) gives BoTorch's own qLogEHVI values
     and gradients exactly, for one candidate per batch; q = 2 takes BoTorch's general code."""
     from botorch.acquisition.multi_objective.logei import qLogExpectedHypervolumeImprovement
 
@@ -232,34 +232,3 @@ def test_posterior_mean_alone_is_the_posterior_mean_bit_for_bit(mobo_acquisition
     X = np.random.default_rng(2).uniform(size=(7, sur.train_X.shape[1]))
     mt, _ = sur.posterior_model_space(X)
     assert np.array_equal(sur.posterior_mean_model_space(X), mt)
-
-
-def test_direct_samples_give_the_same_acquisition_up_to_rounding(mobo_acquisition):
-    """``direct_samples``: the quasi-MC samples straight from the posterior mean and standard
-    deviation give BoTorch's values and gradients up to rounding, and the same for q = 2
-    (which takes BoTorch's path)."""
-    acq = mobo_acquisition[-1][0]
-    sampler = type(acq.sampler)(sample_shape=acq.sampler.sample_shape, seed=acq.sampler.seed)
-    direct = _with_boxes_of(acq, acquisition._SingleLogEHVI, sampler)
-    direct.direct_samples = True
-    calls = []
-    single = acq.model.mean_std_single
-
-    def counted(X):
-        calls.append(X.shape)
-        return single(X)
-
-    object.__setattr__(acq.model, "mean_std_single", counted)
-    d = acq.model.Xs.shape[-1]
-    gen = torch.Generator().manual_seed(4)
-    for shape in [(5, 1, d), (1, 1, d), (3, 2, d)]:
-        X0 = torch.rand(*shape, generator=gen, dtype=torch.float64)
-        (v1, g1), (v2, g2) = _value_and_grad(acq, X0), _value_and_grad(direct, X0)
-        torch.testing.assert_close(v2, v1, rtol=1e-9, atol=1e-9)
-        torch.testing.assert_close(g2, g1, rtol=1e-7, atol=1e-9)
-    assert len(calls) == 2  # the q = 1 batches took the direct path, q = 2 did not
-    object.__delattr__(acq.model, "mean_std_single")
-    mean, std = acq.model.mean_std_single(X0[:, :1])
-    post = acq.model.posterior(X0[:, :1])
-    torch.testing.assert_close(mean, post.mean, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(std, post.variance.sqrt(), rtol=1e-9, atol=1e-12)

@@ -1,4 +1,4 @@
-"""Fault injection (issue 14): failed MPC solves at random steps, NaN and inf objectives, and a
+"""Fault injection: failed MPC solves at random steps, NaN and inf objectives, and a
 learner whose proposal raises; each is recorded and the run goes on, with no crash."""
 
 from __future__ import annotations
@@ -11,11 +11,12 @@ import pytest
 from mpcmobo.experiment import loop, storage
 from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
-from mpcmobo.learners import bo as bo_learners
+from mpcmobo.learners.gp import BOLearner
 from mpcmobo.learners.mpc_rl import MPCRL
 from mpcmobo.mpc import ParametricMPC
 
 EPISODES = 8
+FAST_SEARCH = {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}  # a cheap acquisition search
 
 
 def small(learners, **kw):
@@ -27,7 +28,7 @@ def small(learners, **kw):
         steps=8,
         workers=1,
         evaluation={"n_starts": 2},
-        learner_options={"bo": {"n_init": 3}},
+        learner_options={"bo": {"n_init": 3, "search": FAST_SEARCH}},
         **kw,
     )
 
@@ -90,7 +91,7 @@ def test_nan_and_inf_objectives_are_recorded_not_fitted(tmp_path, monkeypatch, l
                     assert not np.array_equal(incumbents[j], thetas[k])
 
 
-@pytest.mark.parametrize("learner, cls", [("mpc-rl", MPCRL), ("bo", bo_learners.BOLearner)])
+@pytest.mark.parametrize("learner, cls", [("mpc-rl", MPCRL), ("bo", BOLearner)])
 def test_a_failing_proposal_is_recorded_and_the_incumbent_runs(tmp_path, monkeypatch, learner, cls):
     original = cls.propose
     calls = []

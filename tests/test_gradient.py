@@ -1,4 +1,4 @@
-"""The gradient the study uses, at the study's settings (issue 16, item 1).
+"""The gradient the study uses, at the study's settings.
 
 ``tests/test_learners.py`` checks the CDPG direction with a discounted weighting, no warm start
 and tol 1e-10; ``tests/test_mpc.py`` the MPC's sensitivities with no warm start and tol 1e-10.

@@ -1,4 +1,4 @@
-"""Interrupts and orphaned workers (issue 14): SIGINT / SIGTERM stop a run with exit code 130 /
+"""Interrupts and orphaned workers: SIGINT / SIGTERM stop a run with exit code 130 /
 143, records that are a prefix of the uninterrupted run's and no solver failure; ``--resume``
 then gives the uninterrupted records; workers never outlive their study.
 
@@ -18,6 +18,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+import mpcmobo
 from mpcmobo.experiment import storage
 from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.settings import load_settings
@@ -33,6 +34,14 @@ steps = {STEPS}
 evaluation = {{ n_starts = 2 }}
 """
 GUARD_S = 120  # a hang guard, not a measurement
+
+
+def same_source_env() -> dict[str, str]:
+    """The environment of a child Python: this test's ``mpcmobo`` first on its path, so that the
+    child runs the source tree under test (not whichever copy is installed)."""
+    src = str(Path(mpcmobo.__file__).parents[1])
+    path = os.environ.get("PYTHONPATH")
+    return dict(os.environ, PYTHONPATH=src if not path else f"{src}{os.pathsep}{path}")
 
 
 def settings(seeds=(0,), workers=1):
@@ -93,6 +102,7 @@ def cli(config: str, args: list[str]) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        env=same_source_env(),
     )
 
 
@@ -236,7 +246,9 @@ if __name__ == "__main__":
 def test_idle_workers_exit_when_the_study_is_killed(tmp_path):
     script = tmp_path / "parent.py"
     script.write_text(PARENT)
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=same_source_env()
+    )
     proc.stdout.readline()
     workers = {int(p) for p in proc.stdout.readline().split()}
     assert workers and all(alive(p) for p in workers)

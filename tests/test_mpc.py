@@ -186,7 +186,7 @@ def _active_theta(mpc):
 
 @pytest.mark.parametrize("active", [False, True])
 def test_newton_path_gives_the_ipopt_solution(cstr, active):
-    ipopt = ParametricMPC(cstr, newton_steps=0, barrier_steps=0)
+    ipopt = ParametricMPC(cstr, newton_steps=0)
     newton = ParametricMPC(cstr, newton_steps=6)
     x = np.array([100.0, 0.15, 430.0])
     theta = _active_theta(newton) if active else newton.theta0
@@ -219,17 +219,17 @@ def test_newton_steps_must_be_a_count(cstr):
 
 
 def test_numpy_call_gives_the_function_outputs_bit_for_bit():
-    # the buffer-based call of the Newton, barrier and sensitivity functions: the numbers of
+    # the buffer-based call of the Newton and sensitivity functions: the numbers of
     # the CasADi call itself, in its shapes (a matrix, a scalar, a structurally sparse output)
     import casadi as ca
 
-    from mpcmobo.mpc.parametric import _NumpyCall
+    from mpcmobo.mpc.kkt import NumpyCall
 
     a, b = ca.MX.sym("a", 3), ca.MX.sym("b", 2)
     fn = ca.Function(
         "f", [a, b], [ca.sin(a) * b[0], ca.dot(a, a) + b[1], ca.mtimes(a, b.T), ca.tril(a @ a.T)]
     )
-    call = _NumpyCall(fn)
+    call = NumpyCall(fn)
     rng = np.random.default_rng(0)
     for _ in range(3):  # the buffers are reused
         x, y = rng.normal(size=3), rng.normal(size=2)

@@ -105,8 +105,6 @@ def test_concurrent_builds_share_one_library(tmp_path):
 
 
 def test_codegen_errors(lq, tmp_path, monkeypatch):
-    with pytest.raises(ValueError, match="jit and codegen"):
-        ParametricMPC(lq, jit=True, codegen=True)
     monkeypatch.setenv("CC", "no-such-compiler-xyz")
     with pytest.raises(RuntimeError, match="needs a C compiler: 'no-such-compiler-xyz'"):
         ParametricMPC(lq, horizon=4, codegen=True, cache_dir=tmp_path)
@@ -118,19 +116,3 @@ def test_cache_directory_follows_the_environment(monkeypatch, tmp_path):
     assert cg.cache_directory() == tmp_path / "mpcmobo"
     monkeypatch.setenv("MPCMOBO_CACHE_DIR", str(tmp_path / "own"))
     assert cg.cache_directory() == tmp_path / "own"
-
-
-@needs_cc
-def test_compiled_barrier_path_gives_the_interpreted_numbers(lq, cache):
-    # a warm start, then a state beyond x_ub: the barrier path, compiled and interpreted
-    interp = ParametricMPC(lq, barrier_steps=30)
-    compiled = ParametricMPC(lq, codegen=True, cache_dir=cache, barrier_steps=30)
-    for m in (interp, compiled):
-        m.solve(np.array([9.5, 0.0]), m.theta0)
-    x = np.array([10.2, 0.0])
-    a, b = interp.solve(x, interp.theta0), compiled.solve(x, compiled.theta0)
-    assert a.status == b.status == "Barrier_Succeeded" and a.iterations == b.iterations
-    np.testing.assert_allclose(b.action, a.action, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(b.value, a.value, rtol=1e-10)
-    np.testing.assert_allclose(b.dpi_dtheta, a.dpi_dtheta, rtol=1e-8, atol=1e-12)
-    np.testing.assert_allclose(b.dV_dtheta, a.dV_dtheta, rtol=1e-8, atol=1e-12)

@@ -1,4 +1,4 @@
-"""The MPC's cost and plan against independent references (issue 16, item 3).
+"""The MPC's cost and plan against independent references.
 
 * the paper's cost (section 5) recomputed from the returned plan equals ``sol.value``;
 * the envelope theorem: dV/dtheta of every cost parameter is the partial derivative of that
@@ -253,7 +253,7 @@ def test_mpc_policy_is_the_discounted_lqr_gain():
 def test_perfect_model_mpc_predicts_with_the_perfect_model_when_the_model_is_learnable():
     """With learnable model parameters, theta carries the model: the default theta of the
     perfect-model MPC must carry the perfect model, so that J* is the perfect-model MPC's
-    closed loop and not the imperfect one's (found by this issue's tests: J* was J_initial)."""
+    closed loop and not the imperfect one's (with the imperfect model, J* would be J_initial)."""
     from mpcmobo.experiment.evaluation import Evaluator
 
     plain = get_system("lq")

@@ -1,98 +1,173 @@
-"""Runs written by mpcmobo 0.1.0 (commit 9ff9153, before the issue-10 refactor) resume exactly.
+"""Runs written by mpcmobo 0.1.0: refused on resume, their records still readable.
 
-``tests/data/checkpoints_v0.1`` holds an LQ study (mpc-rl and mobo, 8 episodes) interrupted after
-4 episodes by that version, with the records of the same study run uninterrupted by that version
-(``make_fixture.py`` made both, run with the old code). Resuming the old checkpoints with today's
-code must give the old uninterrupted records: the checkpoint, reference and learner-state formats
-stay readable, and the learners continue exactly.
+``tests/data/checkpoints_v0.1`` holds an LQ study (mpc-rl and mobo, 8 episodes) that 0.1.0
+interrupted after 4 episodes (``run/``: its settings, reference and job checkpoints of
+checkpoint schema 1), and the records of the same study run uninterrupted by that version
+(``expected_*.parquet``); ``make_fixture.py`` made both with that version. 1.0's learners keep
+another state (options objects and evidence), so such a run cannot continue: ``--resume``
+exits with code 2 naming the version and what to do, and writes nothing. What the run
+recorded stays readable: ``mpcmobo plot`` draws its records and ``mpcmobo evaluate`` evaluates
+the incumbents of its checkpoints.
 """
 
 from __future__ import annotations
 
-import pickle
+import hashlib
 import shutil
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
+import pytest
+from typer.testing import CliRunner
 
-from mpcmobo.experiment import run_study, storage
+from mpcmobo.cli import app
+from mpcmobo.experiment import storage
+from mpcmobo.experiment.rundir import OlderRunError, RunDirectory
+from mpcmobo.experiment.settings import load_settings
+from mpcmobo.experiment.study import run_study
+from mpcmobo.plots import FIGURES
 
 DATA = Path(__file__).parent / "data" / "checkpoints_v0.1"
+JOBS = {"mpc-rl": 0, "mobo": 0}  # the fixture's jobs (learner: seed)
+RESUMED_AT = 4  # the checkpoints hold episodes 0-3 of each job
+runner = CliRunner()
 
 
-def _drop_wall(df: pd.DataFrame) -> pd.DataFrame:
-    return df.drop(columns=[c for c in df.columns if c.endswith("time_s")]).reset_index(drop=True)
-
-
-RESUMED_AT = 4  # the fixture's checkpoints hold episodes 0-3 of each job
-
-
-def _assert_close(got: pd.DataFrame, expected: pd.DataFrame) -> None:
-    """Equal columns and non-numeric values, numbers (lists of numbers too) to rtol 1e-9."""
-    assert list(got.columns) == list(expected.columns) and len(got) == len(expected)
-    for col in got.columns:
-        for a, b in zip(got[col], expected[col], strict=True):
-            try:
-                x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-            except (TypeError, ValueError):
-                assert a == b, (col, a, b)
-                continue
-            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12, err_msg=col)
-
-
-def _split(df: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
-    """(the episodes in the checkpoint, MPC-RL's continuation, mobo's continuation)."""
-    after = df["episode"] >= RESUMED_AT
-    rl = df["learner"] == "mpc-rl"
-    return tuple(d.reset_index(drop=True) for d in (df[~after], df[after & rl], df[after & ~rl]))
-
-
-def test_resuming_a_v0_1_run_gives_its_uninterrupted_records(tmp_path):
-    """Resumed with today's code, the old checkpoints give the old uninterrupted records: bit
-    for bit for the episodes in the checkpoint, to 1e-9 for MPC-RL's continuation (CasADi and
-    IPOPT: bit for bit on the machines of sessions 1-10, 1e-14 apart on that of session 11).
-    mobo's continuation was bit for bit there too; on the machine of session 11 its
-    acquisition search took another path from its first proposal on (theta's third digit:
-    floating point of another CPU and BLAS, amplified by the optimiser), so it is held to the
-    same shape, and to today's code resuming it exactly from a second interruption."""
+@pytest.fixture
+def old_run(tmp_path) -> Path:
+    """A copy of the interrupted 0.1.0 run."""
     out = tmp_path / "run"
     shutil.copytree(DATA / "run", out)
-    summary = run_study(None, out, resume=True)
-    assert summary["complete"] is True
-    expected = _drop_wall(pd.read_parquet(DATA / "expected_episodes.parquet"))
-    got = _drop_wall(storage.read_episodes(out))
-    assert len(got) == 16
-    # a column added since (session 13): old runs resume without the start covariate
-    assert got["start_cost"].isna().all()
-    got = got.drop(columns=["start_cost"])
-    (got_ckpt, got_rl, got_gp), (exp_ckpt, exp_rl, exp_gp) = _split(got), _split(expected)
-    pd.testing.assert_frame_equal(got_ckpt, exp_ckpt, check_exact=True)
-    _assert_close(got_rl, exp_rl)
-    pd.testing.assert_frame_equal(got_gp.iloc[:0], exp_gp.iloc[:0])  # same columns and dtypes
-    assert list(got_gp["episode"]) == list(exp_gp["episode"])
-    assert got_gp["f1"].notna().all() and (got_gp["error"].fillna("") == "").all()
-    traj_got, traj_exp = (
-        _split(df.reset_index(drop=True))
-        for df in (
-            storage.read_trajectories(out),
-            pd.read_parquet(DATA / "expected_trajectories.parquet"),
-        )
+    return out
+
+
+@pytest.fixture
+def old_records(old_run) -> Path:
+    """The copy with that version's records beside its checkpoints, as 0.1.0 wrote them."""
+    shutil.copy(DATA / "expected_episodes.parquet", old_run / "episodes.parquet")
+    shutil.copy(DATA / "expected_trajectories.parquet", old_run / "trajectories.parquet")
+    return old_run
+
+
+def snapshot(directory: Path) -> dict[str, tuple[str, int]]:
+    """Every file and directory under ``directory``: content hash (directories: "") and
+    modification time."""
+    out = {}
+    for p in sorted(directory.rglob("*")):
+        digest = hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else ""
+        out[str(p.relative_to(directory))] = (digest, p.stat().st_mtime_ns)
+    return out
+
+
+def test_the_fixture_is_a_schema_1_run():
+    """What the tests below rely on: both checkpoints are 0.1.0's (``"version": 1``, no
+    ``schema``) with 4 of 8 episodes, and there are no records in ``run/``."""
+    for learner, seed in JOBS.items():
+        d = storage.read_pickle(storage.checkpoint_path(DATA / "run", learner, seed))
+        assert "schema" not in d and d["version"] == 1 and storage.checkpoint_schema(d) == 1
+        assert len(d["rows"]) == RESUMED_AT and d["episodes"] == 8 and not d["done"]
+    names = {p.name for p in (DATA / "run").iterdir()}
+    assert names == {"config.toml", "reference.pkl", "jobs"}
+
+
+def test_cli_resume_exits_2_naming_the_version_and_writes_nothing(old_run):
+    before = snapshot(old_run)
+    for extra in ([], ["--episodes", "10"]):  # extending the budget is refused the same way
+        res = runner.invoke(app, ["run", "--resume", "--out", str(old_run), "-q", *extra])
+        assert res.exit_code == 2, res.output
+        assert res.exception is None or isinstance(res.exception, SystemExit), res.exception
+        text = " ".join(res.output.split())
+        assert "Traceback" not in text
+        assert "written by mpcmobo 0.1.0" in text and "schema 1" in text, text
+        assert "mpcmobo 1.0.0 resumes only its own checkpoints (schema 2)" in text, text
+        # what to do: read the records, or start a new run from the saved settings
+        assert f"mpcmobo plot {old_run}" in text and f"mpcmobo evaluate {old_run}" in text
+        assert "start a new run" in text and "config.toml" in text
+        assert snapshot(old_run) == before  # not a file written, touched or removed
+
+
+def test_run_study_refuses_to_resume_it(old_run):
+    before = snapshot(old_run)
+    with pytest.raises(OlderRunError, match=r"mpcmobo 0\.1\.0 \(checkpoint schema 1\)"):
+        run_study(None, old_run, resume=True)
+    longer = load_settings(old_run / "config.toml", episodes=10)
+    with pytest.raises(OlderRunError):  # before the larger budget is saved
+        run_study(longer, old_run, resume=True)
+    assert snapshot(old_run) == before
+
+
+def test_its_checkpoints_are_read_for_their_rows(old_run):
+    """The rows and incumbents of a schema-1 checkpoint are read as they were written (a
+    column added since, ``start_cost``, is NaN, ``identified`` empty)."""
+    run_dir = RunDirectory(old_run)
+    settings = run_dir.saved_settings(for_records=True)
+    for learner, seed in JOBS.items():
+        ckpt = run_dir.checkpoint(learner, seed)
+        raw = storage.read_pickle(storage.checkpoint_path(old_run, learner, seed))
+        assert ckpt.schema == 1 and len(ckpt.rows) == RESUMED_AT
+        for row, d in zip(ckpt.rows, raw["rows"], strict=True):
+            got = row.to_dict()
+            assert set(got) == set(d) | {"start_cost", "identified"}
+            assert np.isnan(got["start_cost"]) and got["identified"] == []
+            np.testing.assert_equal({k: got[k] for k in d}, d)  # NaN equal to NaN
+    incumbents = run_dir.incumbents(settings)
+    assert [(n, s, k) for n, s, k, _ in incumbents] == [("mpc-rl", 0, 4), ("mobo", 0, 4)]
+    for learner, _, _, theta in incumbents:
+        np.testing.assert_array_equal(theta, run_dir.checkpoint(learner, 0).rows[-1].incumbent)
+
+
+def test_plot_draws_the_figures_of_an_old_run(old_records):
+    """``mpcmobo plot`` on the records 0.1.0 left (``episodes.parquet``,
+    ``trajectories.parquet``; no ``summary.json`` in the fixture) draws figures 1-4."""
+    res = runner.invoke(app, ["plot", str(old_records)])
+    assert res.exit_code == 0, f"{res.output}\n{res.exception!r}"
+    for name in FIGURES:
+        for ext in ("png", "pdf"):
+            p = old_records / "figures" / f"{name}.{ext}"
+            assert p.exists() and p.stat().st_size > 1000, p
+
+
+def _table(output: str) -> dict[str, list[str]]:
+    """The rows of ``mpcmobo evaluate``'s table by learner: [seed, episodes, J_eval, gap]."""
+    rows = {}
+    for line in output.splitlines():
+        cells = [c.strip() for c in line.strip("│").split("│")]
+        if line.startswith("│") and cells[0] in JOBS:
+            rows[cells[0]] = cells[1:]
+    return rows
+
+
+def test_evaluate_prints_the_J_eval_of_the_saved_incumbents(old_records):
+    """``mpcmobo evaluate`` reads the old run's settings (2 evaluation starts of seed 2025, 10
+    steps) and its checkpoints' incumbents: J* and J(theta0) are 0.1.0's own reference values,
+    and mobo's incumbent (theta0's, evaluated by 0.1.0 at episode 0) has the J_eval that
+    version recorded."""
+    reference = storage.read_pickle(old_records / "reference.pkl")
+    res = runner.invoke(app, ["evaluate", str(old_records)])
+    assert res.exit_code == 0, res.output
+    text = " ".join(res.output.split())
+    assert f"J* = {reference['J_star']:.5g}, J(theta0) = {reference['J_initial']:.5g}" in text
+    rows = _table(res.output)
+    assert set(rows) == set(JOBS)
+    for learner in JOBS:
+        seed, episodes, J, _gap = rows[learner]
+        assert (seed, episodes) == ("0", str(RESUMED_AT))
+        assert np.isfinite(float(J))
+    ckpt = RunDirectory(old_records).checkpoint("mobo", 0)
+    assert all(np.array_equal(r.incumbent, ckpt.rows[0].incumbent) for r in ckpt.rows)
+    assert rows["mobo"][2] == f"{ckpt.rows[0].J_eval_incumbent:.5g}"
+
+
+def test_evaluate_reads_an_old_run_whose_options_this_version_renamed(old_records):
+    """A 0.1.0 run that wrote MPC-RL's options as that version named them (``lr``,
+    ``optimizer = "adam"``: its defaults, so the same run) is evaluated like the fixture:
+    evaluating needs no learner options."""
+    plain = runner.invoke(app, ["evaluate", str(old_records)])
+    assert plain.exit_code == 0, plain.output
+    config = old_records / "config.toml"
+    config.write_text(
+        config.read_text() + '\n[learner_options.mpc-rl]\noptimizer = "adam"\nlr = 0.03\n'
     )
-    pd.testing.assert_frame_equal(traj_got[0], traj_exp[0], check_exact=True)
-    _assert_close(traj_got[1], traj_exp[1])
-    assert len(traj_got[2]) == len(traj_exp[2])
-
-    # what today's code writes after resuming the old checkpoint keeps the old rules (the
-    # legacy defaults, the incumbent rule): session 11 found a second resume switching them
-    with open(out / "jobs" / "mobo-s0" / "checkpoint.pkl", "rb") as fh:
-        state = pickle.load(fh)["state"]["learner"]
-    assert state["design"] is None and state["deploy_option"] == "incumbent"
-
-    # the same resume interrupted once more (after 2 of the 4 episodes): the same records
-    again = tmp_path / "again"
-    shutil.copytree(DATA / "run", again)
-    assert run_study(None, again, resume=True, max_episodes_this_call=2)["complete"] is False
-    assert run_study(None, again, resume=True)["complete"] is True
-    twice = _drop_wall(storage.read_episodes(again)).drop(columns=["start_cost"])
-    pd.testing.assert_frame_equal(twice, got, check_exact=True)
+    res = runner.invoke(app, ["evaluate", str(old_records)])
+    assert res.exit_code == 0, res.output
+    assert _table(res.output) == _table(plain.output)

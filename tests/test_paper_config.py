@@ -1,22 +1,39 @@
-"""benchmarks/configs/paper.toml, the paper's protocol (issue 15): it loads, its learners accept
-their options, and it says what section 5 of the paper says."""
+"""benchmarks/configs/paper.toml, the paper's protocol: it loads, its learners accept their
+options, MPC-RL steps and deploys as the paper does (the plain step in theta, the iterate
+deployed) and BO and MOBO deploy the GP's incumbent over the whole box (no trust region)."""
 
 from __future__ import annotations
 
 import tomllib
 from pathlib import Path
 
-from mpcmobo.experiment.settings import load_settings, validate_settings
+import numpy as np
+import pytest
+
+from mpcmobo.experiment.job import make_study_learner
+from mpcmobo.experiment.settings import build_system, load_settings
 from mpcmobo.experiment.study import check_learners
+from mpcmobo.learners.base import EpisodeResult
+from mpcmobo.learners.deploy import Incumbent
+from mpcmobo.learners.options import IncumbentDeploy, IterateDeploy, PlainStep
+from mpcmobo.rl.steps import PlainGradient
 
-PAPER = Path(__file__).parents[1] / "benchmarks" / "configs" / "paper.toml"
-# the paper's constant step rule in theta itself (eq. theta) with its step size, and the iterate
-# deployed (no judge)
-PAPER_RL = {"optimizer": "gd", "lr": 0.003, "deploy": "iterate"}
+CONFIGS = Path(__file__).parents[1] / "benchmarks" / "configs"
+PAPER = CONFIGS / "paper.toml"
 
 
-def test_paper_config_loads_with_the_papers_protocol():
-    s = load_settings(PAPER).resolved()
+@pytest.fixture(scope="module")
+def paper():
+    settings = load_settings(PAPER)
+    return settings, build_system(settings)
+
+
+def test_the_paper_config_is_the_only_benchmark_config():
+    assert sorted(p.name for p in CONFIGS.glob("*.toml")) == ["paper.toml"]
+
+
+def test_paper_config_loads_with_the_papers_protocol(paper):
+    s = paper[0].resolved()
     assert (s.episodes, s.steps, s.start_mode, s.mpc.horizon) == (600, 60, "random", 10)
     assert (s.critic.method, s.critic.q_target, s.critic.weighting) == (
         "paper",
@@ -27,25 +44,65 @@ def test_paper_config_loads_with_the_papers_protocol():
     assert s.exploration.std == [1.7, 1.7] and not s.system.learn_model
 
 
-def test_paper_config_learner_options():
-    """Every learner accepts its options, and MPC-RL steps and deploys as the paper does."""
+def test_paper_config_learner_options_are_the_papers_rules(paper):
+    """The file's tables, read as the learners read them: the gd rule with alpha = 0.003 and
+    the iterate deployed; BO and MOBO with the incumbent rule and no trust region. Every
+    learner accepts its options."""
+    settings, _ = paper
     data = tomllib.loads(PAPER.read_text())
-    options = data["learner_options"]["mpc-rl"]
-    assert {k: options[k] for k in PAPER_RL} == PAPER_RL
-    check_learners(validate_settings(data))
-    assert data["learner_options"]["bo"]["context"] == "none"
-    assert data["learner_options"]["mobo"]["context"] == "none"
+    assert data["learner_options"]["mpc-rl"] == {
+        "optimizer": {"rule": "gd", "lr": 0.003},
+        "deploy": "iterate",
+    }
+    for name in ("bo", "mobo"):
+        assert data["learner_options"][name] == {"trust_region": False, "deploy": "incumbent"}
+    check_learners(settings)
+    resolved = settings.resolved().learner_options
+    assert resolved["mpc-rl"]["optimizer"] == {"rule": "gd", "lr": 0.003}
+    assert resolved["mpc-rl"]["deploy"] == {"rule": "iterate"}
+    for name in ("bo", "mobo"):
+        assert resolved[name]["deploy"] == {"rule": "incumbent"}
+        assert resolved[name]["trust_region"] is False
 
 
-def test_every_benchmark_config_loads_and_its_learners_accept_their_options():
-    """Each file of benchmarks/configs (the options that docs/benchmarks.md measures) is valid
-    settings, and every learner it configures accepts its options: a misspelt option in one of
-    them is an error here, not a silently different benchmark."""
-    files = sorted(PAPER.parent.glob("*.toml"))
-    assert PAPER in files and len(files) > 5
-    for path in files:
-        data = tomllib.loads(path.read_text())
-        settings = validate_settings(data)
-        check_learners(
-            settings.model_copy(update={"learners": list(data.get("learner_options", {}))})
-        )
+def _result(grad: np.ndarray, f1: float = 1.0) -> EpisodeResult:
+    return EpisodeResult(objectives=np.array([f1, 1.0, 0.0, 0.0]), grad=grad, critic_ok=True)
+
+
+def test_paper_mpc_rl_steps_in_theta_and_deploys_the_iterate(paper):
+    """Built from the file for the study's random starts, MPC-RL takes the plain step
+    ``theta - 0.003 grad`` in theta itself on its first episode, explores on every episode (no
+    verification block) and deploys the new iterate at once."""
+    settings, system = paper
+    theta0 = system.parameterization.theta0
+    learner = make_study_learner(settings, system, "mpc-rl", theta0, seed=0)
+    assert isinstance(learner.options.optimizer, PlainStep)
+    assert isinstance(learner.options.deploy, IterateDeploy)
+    assert isinstance(learner.rule, PlainGradient) and learner.rule.lr == 0.003
+    assert learner.blocks_ is None and learner.explores()
+    theta = learner.propose()
+    np.testing.assert_array_equal(theta, learner.incumbent())
+    space = system.search_space
+    grad = np.zeros(len(theta0))
+    i = int(np.flatnonzero(space.free)[0])  # a searched coordinate, moved well inside its bounds
+    grad[i] = -0.01 * abs(theta[i]) / 0.003 - 1.0
+    learner.observe(theta, _result(grad))
+    expected = space.clip(theta - 0.003 * grad)
+    np.testing.assert_allclose(learner.incumbent(), expected, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(learner.propose(), expected, rtol=1e-10, atol=1e-12)
+    assert not np.array_equal(learner.incumbent(), theta)
+
+
+@pytest.mark.parametrize("name", ["bo", "mobo"])
+def test_paper_gp_learners_use_the_incumbent_rule_without_trust_region(paper, name):
+    settings, system = paper
+    theta0 = system.parameterization.theta0
+    learner = make_study_learner(settings, system, name, theta0, seed=0)
+    assert isinstance(learner.options.deploy, IncumbentDeploy)
+    assert isinstance(learner.policy, Incumbent)
+    assert learner.options.trust_region is False and learner.trust_region is None
+    assert learner.trust_ is None and learner._trust_box() is None
+    # the initial design spreads over the whole cube, not a box around theta0
+    z0 = system.search_space.to_unit(theta0)
+    design = learner.design[1:]
+    assert np.max(np.abs(design - z0)) > 0.2

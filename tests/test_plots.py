@@ -1,7 +1,7 @@
 """Figures 1-4 from the records of a small real run (lq, two learners, two seeds), checked for
 their content: the drawn lines are the medians of the records, the bands their quartiles, the
 legends say how many seeds, and each curve of Fig. 1 is drawn against a reference computed with
-the same formula on the same kind of episodes (issue 15)."""
+the same formula on the same kind of episodes."""
 
 from __future__ import annotations
 

@@ -1,12 +1,14 @@
-"""Study-level resume of the GP learners past a hyperparameter refit (issue 16, item 5).
+"""Study-level resume of the GP learners past a hyperparameter refit.
 
 ``tests/test_study.py`` resumes mpc-rl at study level; the GP learners are resumed there only
 inside their first episodes, where every fit is a full refit (fewer observations than the
 surrogate's ``min_refit_n`` = 20). Here mobo and hybrid run 24 episodes with ``refit_every = 2``:
-from the 20th observation on, fits alternate between a full refit and a warm-started fit
-(hyperparameters reused; refits at 19 and 22 observations), and the run is interrupted after 21,
-22 and 23 episodes, i.e. after fits of both kinds. The resumed records must equal the
-uninterrupted run's.
+from the 20th observation on, fits alternate between full refits and fits that reuse the
+hyperparameters (a full refit at 22 observations), and the run is interrupted after 21, 22 and
+23 episodes, i.e. after fits of both kinds. The resumed records must equal the uninterrupted
+run's. Random starts: the deployment policy's baseline and verification episodes and its
+start costs are part of what is resumed, and no per-start offsets are fitted (two more
+likelihood fits per refit under cycled starts; their resume is tested in test_learners.py).
 """
 
 from __future__ import annotations
@@ -20,14 +22,8 @@ from mpcmobo.experiment.study import run_study
 
 WALL = ["mpc_time_s", "learner_time_s", "eval_time_s"]
 EPISODES = 24
-CHEAP = {  # a small acquisition search: the resume, not the search, is tested here
-    "n_init": 4,
-    "refit_every": 2,
-    "num_restarts": 1,
-    "raw_samples": 16,
-    "maxiter": 10,
-    "start_effects": False,  # per-start offsets: two more likelihood fits per refit
-}
+SEARCH = {"num_restarts": 1, "raw_samples": 16, "maxiter": 10, "mc_samples": 8}
+CHEAP = {"n_init": 4, "refit_every": 2, "search": SEARCH}  # the resume, not the search
 
 
 def _settings():
@@ -38,10 +34,10 @@ def _settings():
         episodes=EPISODES,
         steps=6,
         seeds=[0],
-        n_cycle_starts=3,
+        start_mode="random",
         evaluation={"n_starts": 2, "eval_every": 5},
         records={"trajectory_every": 5},
-        learner_options={"mobo": {**CHEAP, "mc_samples": 8}, "hybrid": {**CHEAP, "mc_samples": 8}},
+        learner_options={"mobo": CHEAP, "hybrid": CHEAP},
         workers=2,
     )
 
@@ -74,6 +70,8 @@ def test_gp_learners_resume_past_a_refit_with_identical_records(uninterrupted, t
     # hyperparameters once since the refit at 22
     for learner in ("mobo", "hybrid"):
         state = storage.load_checkpoint(out, learner, 0)["state"]["learner"]
-        assert len(state["Z"]) == EPISODES
-        assert state["surrogate_pre_fit"]["min_refit_n"] == 20
-        assert state["surrogate_pre_fit"]["calls_since_refit"] == 1
+        assert len(state["evidence"]["Z"]) == EPISODES
+        assert "baseline" in state["evidence"]["kinds"]  # the policy's episodes are resumed
+        surrogate = state["pre_fit"]["surrogate"]
+        assert surrogate["min_refit_n"] == 20
+        assert surrogate["calls_since_refit"] == 1

@@ -24,6 +24,7 @@ from mpcmobo.experiment.storage import (
     write_json,
     write_pickle,
 )
+from mpcmobo.learners.registry import learner_options
 
 
 def test_defaults_are_the_paper_study():
@@ -31,7 +32,7 @@ def test_defaults_are_the_paper_study():
     assert s.system.name == "cstr"
     assert s.episodes == 600
     assert s.start_mode == "cycle"
-    assert s.learners == ["mpc-rl", "bo", "mobo"]
+    assert s.learners == ["mpc-rl", "bo", "mobo", "identify"]
     assert s.seeds == [0]
     assert s.evaluation.n_starts == 10 and s.evaluation.eval_every == 10
     assert s.workers == 2 and s.backend == "process"
@@ -48,6 +49,43 @@ def test_resolved_fills_system_defaults_and_round_trips(tmp_path):
     again = load_settings(p)
     assert again == r
     assert tomllib.loads(text)["system"]["name"] == "cstr"
+    # every option of the study's learners, with its default (what config.toml holds)
+    assert r.learner_options == {"mpc-rl": learner_options("mpc-rl")}
+    assert tomllib.loads(text)["learner_options"]["mpc-rl"]["optimizer"]["lr"] == 0.03
+
+
+def test_resolved_learner_options_keep_the_given_ones_and_fill_the_rest():
+    """Given options stay, shorthands are written out in full (``deploy = "incumbent"``,
+    ``trust_region = true``), the rest take their defaults; a table for a learner that the
+    study does not run is kept too."""
+    s = load_settings(
+        None,
+        learners=["mpc-rl", "mobo"],
+        learner_options={
+            "mobo": {"n_init": 3, "search": {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}},
+            "mpc-rl": {"optimizer": "gd", "deploy": "iterate"},
+            "bo": {"deploy": "incumbent", "trust_region": True},
+        },
+    )
+    opts = s.resolved().learner_options
+    assert list(opts) == ["mpc-rl", "mobo", "bo"]
+    assert opts["mpc-rl"] == {
+        "optimizer": {"rule": "gd", "lr": 0.003},
+        "deploy": {"rule": "iterate"},
+    }
+    mobo = learner_options("mobo")
+    assert opts["mobo"]["search"] == dict(
+        mobo["search"], num_restarts=2, raw_samples=32, maxiter=20
+    )
+    assert opts["mobo"]["n_init"] == 3 and opts["mobo"]["deploy"] == mobo["deploy"]
+    assert {k: v for k, v in opts["mobo"].items() if k not in ("n_init", "search")} == {
+        k: v for k, v in mobo.items() if k not in ("n_init", "search")
+    }
+    bo = learner_options("bo")
+    assert opts["bo"] == dict(bo, deploy={"rule": "incumbent"})
+    assert opts["bo"]["trust_region"] == bo["trust_region"]  # ``true``: the default table
+    # the resolved options are valid settings, and resolving them again changes nothing
+    assert s.resolved().resolved().learner_options == opts
 
 
 def test_overrides_merge_into_file(tmp_path):
@@ -73,6 +111,31 @@ def test_overrides_merge_into_file(tmp_path):
         ({"backend": "dask"}, "backend", "'process' or 'ray'"),
         ({"seeds": [1, 1]}, "seeds", "only once"),
         ({"workers": True}, "workers", "integer"),
+        ({"mpc": {"barrier_steps": 3}}, "mpc.barrier_steps", "newton_steps"),
+        ({"learner_options": {"sgd": {}}}, "learner_options.sgd", "an unknown learner"),
+        ({"learner_options": {"bo": 3}}, "learner_options.bo", "valid dictionary"),
+        ({"learner_options": 0}, "learner_options", "valid dictionary"),
+        (
+            {"learner_options": {"bo": {"deploy": {"confidence": 1.5}}}},
+            "learner_options.bo.deploy.confidence:",
+            "(got 1.5)",
+        ),
+        ({"learner_options": {"mpc-rl": {"lr": 0.1}}}, "learner_options.mpc-rl.lr:", "unknown"),
+        (
+            {"learner_options": {"mobo": {"search": {"num_restarts": 0}}}},
+            "learner_options.mobo.search.num_restarts:",
+            "greater than or equal to 1",
+        ),
+        (
+            {"learner_options": {"hybrid": {"deploy": "verified"}}},
+            "learner_options.hybrid.deploy:",
+            "'evidence', 'incumbent'",
+        ),
+        (
+            {"learner_options": {"mpc-rl": {"deploy": {"runs": 8, "max_runs": 6}}}},
+            "learner_options.mpc-rl.deploy:",
+            "max_runs (6) must be at least runs (8)",
+        ),
     ],
 )
 def test_invalid_values_name_the_key(data, key, allowed):
@@ -119,6 +182,19 @@ KEYS = [
     "eval_every",
     "records",
     "junk",
+    "mpc-rl",
+    "bo",
+    "mobo",
+    "hybrid",
+    "n_init",
+    "deploy",
+    "search",
+    "trust_region",
+    "optimizer",
+    "rule",
+    "num_restarts",
+    "confidence",
+    "lr",
 ]
 scalars = st.one_of(
     st.none(),
@@ -127,6 +203,7 @@ scalars = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
     st.text(max_size=8),
     st.sampled_from(["cstr", "lq", "mpc-rl", "bo", "random", "cycle", "lstd", "ray", "k0"]),
+    st.sampled_from(["incumbent", "evidence", "gd", "adam", "iterate", "verified"]),
 )
 values = st.recursive(
     scalars,
@@ -190,3 +267,23 @@ def test_atomic_writes_follow_the_umask_without_changing_it(tmp_path):
         assert os.umask(0o027) == 0o027  # still the one set above
     finally:
         os.umask(old)
+
+
+NO_PARAMETERS = """
+import dataclasses
+from mpcmobo.systems.lq import make_lq
+
+def make_system():
+    return dataclasses.replace(make_lq(), name="lq-known", identifiable=())
+"""
+
+
+def test_identify_is_a_default_learner_only_where_there_is_a_model_to_identify(tmp_path):
+    """The default study runs the paper's learners and ``identify``; on a system that declares
+    no model parameter to identify ``identify`` is left out, and naming it is an error."""
+    assert load_settings(None).resolved().learners == ["mpc-rl", "bo", "mobo", "identify"]
+    (tmp_path / "noparams.py").write_text(NO_PARAMETERS)
+    system = {"factory": f"{tmp_path / 'noparams.py'}:make_system"}
+    assert load_settings(None, system=system).resolved().learners == ["mpc-rl", "bo", "mobo"]
+    with pytest.raises(SettingsError, match="no model parameter to identify"):
+        load_settings(None, system=system, learners=["mobo", "identify"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import tomllib
 
 import numpy as np
 import pandas as pd
@@ -72,16 +73,52 @@ def test_records_layout_and_eval_policy(full_run):
 
 
 def test_checkpoints_are_plain_dicts_that_round_trip(full_run):
-    """A checkpoint on disk is a plain dict (no class of the package inside, so that files of
-    older versions load and new files stay readable); its typed form gives it back unchanged."""
+    """A checkpoint on disk is a plain dict (no class of the package inside, so that its rows
+    stay readable by later versions) of this version's schema; its typed form gives it back
+    unchanged."""
     from mpcmobo.experiment.records import Checkpoint
 
     out, _, _ = full_run
     d = storage.load_checkpoint(out, "mpc-rl", 0)
     assert type(d) is dict and all(type(r) is dict for r in d["rows"])
-    again = dict(Checkpoint.from_dict(d).to_dict(), version=d["version"], learner="mpc-rl", seed=0)
+    assert d["schema"] == storage.CHECKPOINT_SCHEMA == 2 and "version" not in d
+    assert storage.checkpoint_schema(d) == 2
+    ckpt = Checkpoint.from_dict(d)
+    assert ckpt.schema == 2
+    again = dict(ckpt.to_dict(), schema=d["schema"], learner="mpc-rl", seed=0)
     assert list(again) == list(d) and list(again["rows"][0]) == list(d["rows"][0])
     np.testing.assert_equal(again, d)  # nested: arrays, lists, NaN equal to NaN
+
+
+def test_config_toml_holds_every_learner_option_default(full_run, tmp_path):
+    """``config.toml`` of a run holds every option of its learners with its default (nothing
+    was given), and the given ones where they were: a later version with other defaults
+    resumes the run with the options it was started with."""
+    from mpcmobo.learners.registry import learner_options
+
+    out, _, _ = full_run
+    saved = tomllib.loads((out / "config.toml").read_text())
+    assert saved["learner_options"] == {"mpc-rl": learner_options("mpc-rl")}
+    assert saved["learner_options"]["mpc-rl"]["deploy"]["max_runs"] == 12
+    options = {
+        "mobo": {"n_init": 3, "search": {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}},
+        "bo": {"deploy": "incumbent", "trust_region": False},
+    }
+    s = small(learners=["mpc-rl", "mobo"], learner_options=options, episodes=1, seeds=[0])
+    run_study(s, tmp_path / "run", max_episodes_this_call=0)
+    saved = tomllib.loads((tmp_path / "run" / "config.toml").read_text())["learner_options"]
+    assert set(saved) == {"mpc-rl", "mobo", "bo"}  # the run's learners and the given tables
+    mobo = learner_options("mobo")
+    mobo["n_init"] = 3
+    mobo["search"].update(num_restarts=2, raw_samples=32, maxiter=20)
+    assert saved["mobo"] == mobo and saved["mobo"]["search"]["mc_samples"] == 64
+    bo = learner_options("bo")
+    bo.update(deploy={"rule": "incumbent"}, trust_region=False)
+    assert saved["bo"] == bo
+    assert saved["mpc-rl"] == learner_options("mpc-rl")
+    # the saved file is what a resumed run reads: the same options
+    again = load_settings(tmp_path / "run" / "config.toml")
+    assert again.learner_options == saved
 
 
 def test_summary_matches_records(full_run):
@@ -176,8 +213,8 @@ def test_refuses_to_overwrite_and_checks_learners(full_run, tmp_path, monkeypatc
         run_study(small(), out_full)
     with pytest.raises(StudyError, match="nothing to resume"):
         run_study(None, tmp_path / "empty", resume=True)
-    with pytest.raises(SettingsError, match="learner_options.mpc-rl"):
-        run_study(small(learner_options={"mpc-rl": {"lr": -1.0}}), tmp_path / "bad")
+    with pytest.raises(SettingsError, match=r"learner_options\.mpc-rl\.optimizer\.lr: "):
+        run_study(small(learner_options={"mpc-rl": {"optimizer": {"lr": -1.0}}}), tmp_path / "bad")
     assert not (tmp_path / "bad").exists()  # nothing written: the fixed settings can use it
     # the Ray backend without ray installed (hidden here, installed or not): a settings error
     monkeypatch.setitem(sys.modules, "ray", None)
@@ -202,7 +239,7 @@ def test_orphaned_worker_stops_after_its_checkpoint(tmp_path):
 
 def test_ray_backend_matches_serial(full_run, tmp_path):
     """The optional Ray backend (pip install 'mpcmobo[ray]') gives the serial records, with the
-    system given as a factory path that the Ray workers import themselves (issue 12)."""
+    system given as a factory path that the Ray workers import themselves."""
     ray = pytest.importorskip("ray")
     out_full, _, _ = full_run
     out = tmp_path / "ray"
@@ -253,7 +290,7 @@ def test_evaluation_schedule_every_eval_every_when_the_incumbent_changes():
 
 
 def test_summary_counts_the_deployed_thetas_worst_evaluation_and_regressions():
-    """Issue 11, item 3: per seed the worst J_eval of the deployed theta over the run (not the
+    """Per seed the worst J_eval of the deployed theta over the run (not the
     last), the evaluations above J_eval(theta0) and the mean violation; per learner the worst
     seed's final, the worst deployed J_eval of any seed and the regressions summed."""
     from mpcmobo.experiment.records import Reference

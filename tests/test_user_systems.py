@@ -1,4 +1,4 @@
-"""Any plant, any model (issue 12): validation of a system at build, discrete models, path
+"""Any plant, any model: validation of a system at build, discrete models, path
 constraints, full weights, the plant as a gymnasium environment, systems found by factory path
 or plug-in, J* absent. The CLI acceptance test is in tests/test_user_systems_cli.py."""
 

@@ -1,4 +1,4 @@
-"""Issue 12 through the command line: a user's system in a temporary file, run with every
+"""User systems through the command line: a user's system in a temporary file, run with every
 learner and two workers, interrupted and resumed; bad factories and mismatched plants exit with
 code 2, one line and no traceback; ``mpcmobo systems`` lists plug-ins.
 
@@ -18,12 +18,22 @@ import pytest
 from typer.testing import CliRunner
 from user_system_source import write_user_files
 
+import mpcmobo
 from mpcmobo.cli import app
 from mpcmobo.experiment import storage
+from mpcmobo.learners.registry import LEARNER_SPECS
 
 runner = CliRunner()
 WALL = ["mpc_time_s", "learner_time_s", "eval_time_s"]
 GUARD_S = 240  # a hang guard, not a measurement
+
+
+def same_source_env() -> dict[str, str]:
+    """The environment of a child Python: this test's ``mpcmobo`` first on its path, so that the
+    child runs the source tree under test (not whichever copy is installed)."""
+    src = str(Path(mpcmobo.__file__).parents[1])
+    path = os.environ.get("PYTHONPATH")
+    return dict(os.environ, PYTHONPATH=src if not path else f"{src}{os.pathsep}{path}")
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +60,7 @@ def test_a_system_in_a_file_runs_every_learner_on_two_workers_and_resumes(files,
     proc = subprocess.Popen(
         [sys.executable, "-m", "mpcmobo.cli", *run_args(spec, out, 2)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        env=same_source_env(),
     )  # fmt: skip
     jobs = out / "jobs"
     deadline = time.monotonic() + GUARD_S
@@ -68,7 +79,7 @@ def test_a_system_in_a_file_runs_every_learner_on_two_workers_and_resumes(files,
     res = runner.invoke(app, [*run_args(spec, ref, 1), "--quiet"])
     assert res.exit_code == 0, res.output
     got, want = records(out), records(ref)
-    assert len(got) == 12 and set(got.learner) == {"mpc-rl", "bo", "mobo", "hybrid"}
+    assert len(got) == 3 * len(LEARNER_SPECS) and set(got.learner) == set(LEARNER_SPECS)
     pd.testing.assert_frame_equal(got, want)
     summary = storage.read_json(out / "summary.json")
     assert summary["system"] == "double_integrator" and summary["J_star"] is not None
@@ -118,7 +129,10 @@ def test_systems_lists_plugins_and_says_how_to_add_one(files, tmp_path, monkeypa
     res = runner.invoke(app, ["systems"])
     assert res.exit_code == 0, res.output
     lines = {line.split()[1]: line for line in res.output.splitlines() if line.startswith("│")}
-    assert "built-in" in lines["cstr"] and "plug-in" in lines["di"]
-    assert "discrete, 1 path constraint" in lines["di"]
+    assert "built-in" in lines["cstr"] and "plug-in usersys:make_system (userplug)" in lines["di"]
+    assert "pos, vel" in lines["di"] and "force" in lines["di"]
+    # one description line per system, after the table: its kind and its description
+    notes = [line for line in res.output.splitlines() if line.startswith("di (")]
+    assert len(notes) == 1 and notes[0].startswith("di (discrete-time, 1 path constraint): ")
     assert "--system path/to/file.py:make_system" in res.output
     assert '"mpcmobo.systems"' in res.output

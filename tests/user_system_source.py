@@ -1,5 +1,5 @@
-"""Sources of user-defined systems and plants that the tests write into temporary files
-(issue 12): a system is then found by its path, ``file.py:make_system``, as a user's would be."""
+"""Sources of user-defined systems and plants that the tests write into temporary files: a
+system is then found by its path, ``file.py:make_system``, as a user's would be."""
 
 from pathlib import Path
 

@@ -1,12 +1,15 @@
 """mpcmobo: tune a model predictive controller with MPC-based RL, BO and multi-objective BO.
 
-The subpackages follow the paper's pipeline (``systems -> mpc -> rl -> bo -> learners ->
-experiment``); ``mpcmobo.__version__`` is the installed distribution's version. Importing the
-package registers the paper's CSTR plant with gymnasium as ``mpcmobo/CSTR-v0`` (and the test bed
-``mpcmobo/LQ-v0``), lazily: the entry points are strings, nothing heavy is imported here.
+The subpackages follow the pipeline (``systems -> mpc -> identify -> rl -> bo -> learners ->
+experiment``); ``mpcmobo.__version__`` is the installed distribution's version and
+``mpcmobo.Tuner`` the ask-and-tell tuner of a real plant (:mod:`mpcmobo.experiment.tuner`,
+imported when first used). Importing the package registers the paper's CSTR plant with
+gymnasium as ``mpcmobo/CSTR-v0`` (and the test bed ``mpcmobo/LQ-v0``), lazily: the entry points
+are strings, nothing heavy is imported here.
 """
 
 from importlib.metadata import PackageNotFoundError, version
+from typing import Any
 
 import gymnasium as _gymnasium
 
@@ -16,7 +19,17 @@ except PackageNotFoundError:  # pragma: no cover - a source tree that was never 
     __version__ = "0+unknown"
 """The installed distribution's version (``importlib.metadata``); ``mpcmobo --version``."""
 
-__all__ = ["__version__"]
+__all__ = ["Tuner", "__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    """``mpcmobo.Tuner``, imported on first use (it pulls in CasADi, torch and BoTorch)."""
+    if name == "Tuner":
+        from mpcmobo.experiment.tuner import Tuner
+
+        return Tuner
+    raise AttributeError(f"module 'mpcmobo' has no attribute {name!r}")
+
 
 for _id, _name, _steps in (("mpcmobo/CSTR-v0", "cstr", 60), ("mpcmobo/LQ-v0", "lq", 30)):
     if _id not in _gymnasium.registry:

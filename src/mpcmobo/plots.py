@@ -5,7 +5,7 @@ the system's names, references and limits). Outputs: ``DIR/figures/fig{1..4}_*.{
 With several seeds, per-episode curves are the median over seeds with the interquartile band,
 and the legend says how many seeds; a run with one seed draws single lines.
 
-Fig. 1 compares like with like (issue 15): the training curve J~ (f1, eq. cl_perf: discounted,
+Fig. 1 compares like with like: the training curve J~ (f1, eq. cl_perf: discounted,
 with exploration, on the training starts) is drawn against J~* (the same f1 of the perfect-model
 MPC on the same training starts with the same noise, ``summary.json`` ``J_tilde_star``), and
 J_eval of the deployed theta (undiscounted, no exploration, on the fixed evaluation starts)
@@ -39,6 +39,7 @@ from mpcmobo.learners.registry import LEARNER_SPECS
 COLORS = {name: spec.color for name, spec in LEARNER_SPECS.items()}
 LABELS = {name: spec.label for name, spec in LEARNER_SPECS.items()}
 FIGURES = ("fig1_performance", "fig2_advantage_pareto", "fig3_states", "fig4_inputs")
+IDENTIFIED = "fig5_identified"  # drawn when a learner identifies the model
 
 
 def seeds_note(n_seeds: int) -> str:
@@ -320,12 +321,16 @@ def _final_lines(ax: Axes, final: pd.DataFrame, col: str) -> None:
             ax.plot(g.t, g[col], color="tab:blue", lw=1.2)
 
 
-def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:
-    """Write figures 1-4 (PNG and PDF) into ``run_dir/figures``; return the paths."""
+def make_figures(
+    run_dir: str | Path, learner: str | None = None, summary: dict | None = None
+) -> list[Path]:
+    """Write figures 1-4 (PNG and PDF) into ``run_dir/figures``; return the paths.
+    ``summary``: the run's summary (default: ``summary.json``)."""
     run_dir = Path(run_dir)
     ep = pd.read_parquet(run_dir / "episodes.parquet")
     tr = pd.read_parquet(run_dir / "trajectories.parquet")
-    summary = json.loads((run_dir / "summary.json").read_text())
+    if summary is None:
+        summary = json.loads((run_dir / "summary.json").read_text())
     info = summary["system_info"]
     present = list(dict.fromkeys(ep["learner"]))
     learners = [n for n in summary["learners"] if n in present] or present
@@ -341,4 +346,49 @@ def make_figures(run_dir: str | Path, learner: str | None = None) -> list[Path]:
     paths += _save(fig2(ep, learners, reference_window(summary)), out, FIGURES[1])
     paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2])
     paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3])
+    fig5 = identified_figure(ep, summary, learners)
+    if fig5 is not None:
+        paths += _save(fig5, out, IDENTIFIED)
     return paths
+
+
+def identified_figure(ep: pd.DataFrame, summary: dict, learners: list[str]) -> Figure | None:
+    """The model parameters identified after each episode (median and interquartile band over
+    seeds, per learner that identifies), with the MPC's nominal values and, where known, the
+    plant's true values; None when no learner identifies."""
+    if "identified" not in ep.columns:
+        return None
+    who = {n: summary["learners"].get(n, {}).get("identified_names") or [] for n in learners}
+    who = {n: names for n, names in who.items() if names}
+    if not who:
+        return None
+    names = list(dict.fromkeys(p for v in who.values() for p in v))
+    info = summary.get("system_info", {})
+    pnames = info.get("param_names", [])
+    nominal, true = info.get("nominal_params"), info.get("true_params")
+    fig = Figure(figsize=(4.2 * min(3, len(names)), 2.8 * int(np.ceil(len(names) / 3))))
+    axes = fig.subplots(int(np.ceil(len(names) / 3)), min(3, len(names)), squeeze=False)
+    for k, name in enumerate(names):
+        ax = axes.flat[k]
+        for learner, ids in who.items():
+            if name not in ids:
+                continue
+            d = ep[ep["learner"] == learner].copy()
+            j = ids.index(name)
+            d["value"] = [v[j] if v is not None and len(v) > j else np.nan for v in d["identified"]]
+            _curve(ax, d, "value", COLORS.get(learner, "k"), LABELS.get(learner, learner),
+                   d["seed"].nunique())  # fmt: skip
+        if name in pnames:
+            i = pnames.index(name)
+            if nominal is not None:
+                ax.axhline(nominal[i], color="grey", ls=":", lw=1, label="nominal model")
+            if true is not None:
+                ax.axhline(true[i], color="k", ls="--", lw=1, label="plant")
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("episode")
+    for ax in list(axes.flat)[len(names) :]:
+        ax.set_visible(False)
+    axes.flat[0].legend(fontsize=7)
+    fig.suptitle("Model parameters identified from the plant's transitions")
+    fig.tight_layout()
+    return fig

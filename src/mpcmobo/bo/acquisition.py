@@ -26,27 +26,20 @@ import torch
 from botorch.acquisition.acquisition import AcquisitionFunction
 from botorch.acquisition.analytic import LogExpectedImprovement
 from botorch.acquisition.multi_objective import logei as _logei
-from botorch.acquisition.multi_objective.logei import (
-    qLogExpectedHypervolumeImprovement,
-    qLogNoisyExpectedHypervolumeImprovement,
-)
+from botorch.acquisition.multi_objective.logei import qLogExpectedHypervolumeImprovement
 from botorch.optim import optimize_acqf
 from botorch.sampling.normal import SobolQMCNormalSampler
 from botorch.utils.multi_objective.box_decompositions.non_dominated import (
     FastNondominatedPartitioning,
-    NondominatedPartitioning,
 )
 from botorch.utils.safe_math import logmeanexp, logsumexp
 from torch import Tensor
 
-from mpcmobo.bo.fastpost import ExactIndependentGP
 from mpcmobo.bo.groups import DTYPE, MAX_CHOLESKY
 from mpcmobo.bo.pareto import pareto_mask
 from mpcmobo.bo.surrogate import GPSurrogate
 
 __all__ = ["AcqfSearch", "EHVIOptions", "posterior_front", "propose_ehvi", "propose_ei"]
-
-EHVI_METHODS = ("logehvi", "lognehvi")
 
 
 @dataclass(frozen=True)
@@ -62,27 +55,12 @@ class AcqfSearch:
 
 @dataclass(frozen=True)
 class EHVIOptions:
-    """The (log) EHVI acquisition of :func:`propose_ehvi` (eq. EHVI).
-
-    ``mc_samples``: quasi-MC Sobol base samples. ``max_baseline``: at most this many observed
-    points define the current front (:func:`posterior_front`). ``alpha > 0``: approximate box
-    decomposition (``NondominatedPartitioning(alpha)``). ``method``: ``"logehvi"`` or
-    ``"lognehvi"`` (see :func:`propose_ehvi`). ``direct_samples`` (``"logehvi"`` only): draw
-    the quasi-MC samples of a candidate directly from its posterior mean and standard
-    deviation (:class:`_SingleLogEHVI`): the same acquisition up to rounding, about 1.6x
-    faster to evaluate, but not the same numbers bit for bit, so the search and the records
-    change (``docs/benchmarks.md``, "The mobo learner's time per episode").
-    """
+    """The log EHVI acquisition of :func:`propose_ehvi` (eq. EHVI): ``mc_samples`` quasi-MC
+    Sobol base samples; at most ``max_baseline`` observed points define the current front
+    (:func:`posterior_front`)."""
 
     mc_samples: int = 64
     max_baseline: int = 32
-    alpha: float = 0.0
-    method: str = "logehvi"
-    direct_samples: bool = False
-
-    def __post_init__(self) -> None:
-        if self.method not in EHVI_METHODS:
-            raise ValueError(f"unknown method {self.method!r}")
 
 
 def _prepare(surrogate: GPSurrogate, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -196,31 +174,8 @@ class _SingleLogEHVI(qLogExpectedHypervolumeImprovement):
     exactly and pass its gradient on multiplied by exactly 1. This class skips them and
     computes ``logmeanexp(logsumexp(log_areas))`` of the same fused log areas: the same values
     and gradients, bit for bit (``tests/test_ehvi_value.py``), 2.7-3.6x faster
-    (``docs/benchmarks.md``, "The mobo learner's time per episode"). Anything else falls back
-    to BoTorch's general code.
+    (``docs/benchmarks.md``, proposal time). Anything else falls back to BoTorch's code.
     """
-
-    direct_samples: bool = False  # set by _logehvi (EHVIOptions.direct_samples)
-
-    def forward(self, X: Tensor) -> Tensor:
-        """BoTorch's forward; with ``direct_samples`` and one point per batch, the quasi-MC
-        samples ``mean + std * z`` straight from the posterior mean and standard deviation
-        (:meth:`~mpcmobo.bo.fastpost.ExactIndependentGP.mean_std_single`) with the sampler's
-        own base samples ``z``."""
-        model = self.model
-        if (
-            not self.direct_samples
-            or X.dim() < 3
-            or X.shape[-2] != 1
-            or self.X_pending is not None
-            or not isinstance(model, ExactIndependentGP)
-        ):
-            return super().forward(X)
-        if self.sampler.base_samples is None:  # BoTorch draws them from a first posterior
-            self.sampler(model.posterior(X.detach()))
-        mean, std = model.mean_std_single(X)  # (b, 1, m)
-        samples = mean + std * self.sampler.base_samples  # (mc, b, 1, m)
-        return self._compute_log_qehvi(samples=samples, X=X)
 
     def _compute_log_qehvi(self, samples: Tensor, X: Tensor | None = None) -> Tensor:
         # torch types a Module attribute as Tensor; BoTorch set it to an MCMultiOutputObjective
@@ -252,8 +207,6 @@ def _logehvi(
     base: np.ndarray,
     tref: torch.Tensor,
     sampler: SobolQMCNormalSampler,
-    alpha: float,
-    direct_samples: bool = False,
 ) -> qLogExpectedHypervolumeImprovement:
     """qLogEHVI with the posterior-mean front at ``Xf[base]`` as ``P`` (one box
     decomposition of the region it dominates)."""
@@ -263,46 +216,13 @@ def _logehvi(
         front = torch.as_tensor(mt.reshape(-1, m), dtype=DTYPE)
     else:  # no posterior mean beats the reference point yet: the whole box is improvement
         front = torch.empty((0, m), dtype=DTYPE)
-    if alpha > 0:
-        part = NondominatedPartitioning(ref_point=tref, Y=front, alpha=alpha)
-    else:
-        part = FastNondominatedPartitioning(ref_point=tref, Y=front)  # type: ignore[assignment]  # botorch takes any box decomposition
-    acq = _SingleLogEHVI(  # eq. EHVI (log, MC)
+    part = FastNondominatedPartitioning(ref_point=tref, Y=front)
+    return _SingleLogEHVI(  # eq. EHVI (log, MC)
         surrogate.fast_model,  # same posterior, faster
         ref_point=tref,
-        partitioning=part,
+        partitioning=part,  # type: ignore[arg-type]  # botorch takes any box decomposition
         sampler=sampler,
     )
-    acq.direct_samples = direct_samples
-    return acq
-
-
-def _lognehvi(
-    surrogate: GPSurrogate,
-    Xf: np.ndarray,
-    base: np.ndarray,
-    tref: torch.Tensor,
-    sampler: SobolQMCNormalSampler,
-    alpha: float,
-    seed: int,
-) -> qLogNoisyExpectedHypervolumeImprovement:
-    """qLogNEHVI with the baseline points ``Xf[base]`` (the front integrated over the joint
-    posterior there)."""
-    # nothing better than ref yet: fall back to the best point per objective
-    if base.size == 0:
-        mt, _ = surrogate.posterior_model_space(Xf)
-        base = np.unique(np.argmax(mt, axis=0))
-    with torch.random.fork_rng():
-        torch.manual_seed(seed)
-        return qLogNoisyExpectedHypervolumeImprovement(  # eq. EHVI (log, noisy, MC)
-            surrogate.model,  # type: ignore[arg-type]  # fitted by _prepare
-            ref_point=tref,
-            X_baseline=torch.as_tensor(Xf[base], dtype=DTYPE),
-            sampler=sampler,
-            prune_baseline=False,
-            alpha=alpha,
-            cache_root=True,
-        )
 
 
 def propose_ehvi(
@@ -321,18 +241,10 @@ def propose_ehvi(
     ``alpha_EHVI(theta) = E[ V(P u {f(theta)}) - V(P) ]`` with ``P`` the current front and
     ``V`` the hypervolume w.r.t. ``ref_point`` (minimisation units, mapped to the model's
     maximisation space with the surrogate's outcome transform; fix it once per run, see
-    :func:`~mpcmobo.bo.pareto.reference_point`). Computed in log form by quasi-MC with
-    ``options.mc_samples`` Sobol base samples.
-
-    ``options.method``:
-      * ``"logehvi"`` (default, fast): ``P`` = the posterior-mean Pareto front at the observed
-        points (pruned by :func:`posterior_front`), one box decomposition of the region it
-        dominates (``FastNondominatedPartitioning``, or the approximate
-        ``NondominatedPartitioning(alpha)`` when ``alpha > 0``), then
-        ``qLogExpectedHypervolumeImprovement``.
-      * ``"lognehvi"``: ``qLogNoisyExpectedHypervolumeImprovement`` with the same pruned
-        baseline points ``X_baseline`` (the front is then integrated over the joint posterior
-        at the baseline, one decomposition per MC sample: slower, accounts for noise).
+    :func:`~mpcmobo.bo.pareto.reference_point`), computed in log form by quasi-MC with
+    ``options.mc_samples`` Sobol base samples. ``P`` is the posterior-mean Pareto front at the
+    observed points, pruned by :func:`posterior_front`, with one box decomposition of the
+    region it dominates (``FastNondominatedPartitioning``).
 
     ``search`` bounds the maximisation (:class:`AcqfSearch`); ``box = (lower, upper)``
     restricts it to a sub-box of the cube (a trust region, :mod:`mpcmobo.bo.trust`).
@@ -345,9 +257,5 @@ def propose_ehvi(
     base = posterior_front(surrogate, Xf, ref_t, options.max_baseline)
     tref = torch.as_tensor(ref_t, dtype=DTYPE)
     sampler = SobolQMCNormalSampler(sample_shape=torch.Size([options.mc_samples]), seed=seed)
-    alpha = float(options.alpha)
-    if options.method == "logehvi":
-        acq = _logehvi(surrogate, Xf, base, tref, sampler, alpha, options.direct_samples)
-    else:
-        acq = _lognehvi(surrogate, Xf, base, tref, sampler, alpha, seed)
+    acq = _logehvi(surrogate, Xf, base, tref, sampler)
     return _optimize(acq, Xf.shape[1], seed, search, box)

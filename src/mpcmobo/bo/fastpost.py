@@ -122,23 +122,6 @@ class ExactIndependentGP(Model):
         mean = mean + self.y_mean.view(-1, 1, 1)  # (m, B, q)
         return mean.permute(1, 2, 0).reshape(*batch, q, self._m)
 
-    def mean_std_single(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Posterior mean and standard deviation (..., 1, m) of single points ``X`` (..., 1, d),
-        differentiable, for the direct quasi-MC samples of :class:`~mpcmobo.bo.acquisition.\
-_SingleLogEHVI`: the variance ``1 - |L^-1 k_*|^2`` by a triangular solve (half the memory
-        traffic of the dense product of :meth:`posterior`), no posterior objects. The same
-        numbers as :meth:`posterior` up to rounding (not bit for bit)."""
-        if X.shape[-2] != 1:
-            raise ValueError("mean_std_single takes one point per batch (q = 1)")
-        batch = X.shape[:-2]
-        _, Ks = self._scaled(X)  # (m, N, n)
-        mean = self._latent_mean(Ks) * self.y_std.view(-1, 1) + self.y_mean.view(-1, 1)
-        W = torch.linalg.solve_triangular(self.L, Ks.transpose(-1, -2), upper=False)  # (m, n, N)
-        # the kernel has no output scale: k(x, x) = 1; a variance lost to rounding is floored
-        var = (1.0 - (W * W).sum(-2)).clamp_min(1e-12) * (self.y_std**2).view(-1, 1)
-        shape = (*batch, 1, self._m)
-        return mean.transpose(0, 1).reshape(shape), var.sqrt().transpose(0, 1).reshape(shape)
-
     def posterior(
         self,
         X: torch.Tensor,

@@ -1,63 +1,28 @@
 """Gaussian-process surrogates of the costs (eq. GP, post, mean_var).
 
-One GP per output (eq. GP), ``J_j(theta) ~ GP(mu_j, k_j)``, with the squared-exponential
-kernel of the paper generalised to one length scale per input (ARD), BoTorch's default
-``SingleTaskGP`` priors, a constant mean and a Gaussian likelihood with inferred noise
-``sigma_n^2``. The ``m`` GPs are held as one batched multi-output ``SingleTaskGP`` (batch
-shape ``[m]``, independent outputs, same training inputs), which is numerically the same as a
-``ModelListGP`` of ``m`` models but fits and predicts in one batched call.
+One GP per output (eq. GP), ``J_j(theta) ~ GP(mu_j, k_j)``: the squared-exponential kernel of
+the paper with one length scale per input (ARD), BoTorch's default ``SingleTaskGP`` priors, a
+constant mean and a Gaussian likelihood with inferred noise. The ``m`` GPs are one batched
+``SingleTaskGP`` (independent outputs, same inputs), fitted and evaluated in one call.
 
-Conventions
------------
-* Inputs ``X`` (n, d) already lie in the unit cube of the free coordinates of the search
-  space: no input transform.
-* Outcomes ``Y`` (n, m) are COSTS to be MINIMISED. BoTorch maximises, so the model is trained
-  on ``t = -g(y)``: the fitted ``.model`` lives in the *maximisation* convention. ``g`` is the
-  identity, or for outputs flagged in ``log_outcomes`` a shifted log; this cost-space transform
-  is one object, ``.transform`` (:mod:`mpcmobo.bo.transforms`), refitted on each fit. A
-  ``Standardize`` outcome transform then maps each ``t_j`` to zero mean / unit variance.
-* Rows of ``Y`` (or ``X``) containing NaN or inf are dropped before fitting: a failed episode
-  is never fitted as a number.
-* Everything is float64. Torch's thread count is the process's (the study's workers set one
-  thread once, at start); nothing here changes it.
-
-Posterior (eq. mean_var) and back transform
--------------------------------------------
-``predict`` returns the latent-function posterior (no observation noise) in the original
-minimisation units: the model-space posterior ``N(mu_t, sigma_t^2)`` mapped back by
-``.transform`` (for identity outputs ``(-mu_t, sigma_t)``, for log outputs the mean and
-standard deviation of the log-normal cost).
-
-Hyperparameter warm start
--------------------------
-A full type-II maximum-likelihood fit (``fit_gpytorch_mll``, L-BFGS-B) starts from the previous
-hyperparameters and runs while ``n < min_refit_n`` and otherwise once every
-``max(refit_every, ceil(refit_fraction n))`` calls (by default every 10 up to 100 points, then
-after every 10% growth of the data: hyperparameters of a large data set move little per point);
-in between, the previous hyperparameters (in standardised units) are reused and the GP is only
-conditioned on the new data (a new exact GP on all data, no optimisation). Above
-``fit_subsample`` points the full fit maximises the marginal likelihood of a seeded random
-subset (O(k^3) per iteration), and the GP on all points takes those hyperparameters.
-
-Start effects (an additive offset per group of observations)
-------------------------------------------------------------
-When episodes cycle through a fixed set of initial states, the start explains much of an
-episode's cost (on the CSTR the log cost of one theta spans a factor of e^5 across starts).
-``fit(X, Y, groups)`` with an integer group per row (the start's index; -1 = no group) fits,
-for the outputs flagged in ``group_outputs``, the additive model
-``t_i = h(x_i) + b_{g_i} + eps_i`` in the model space: ``h`` is the GP, ``b`` one offset per
-group with a Gaussian prior ``b_s ~ N(0, tau^2)`` (``group_prior_std`` times the output's
-standard deviation). At a full fit the offsets are maximised together with the GP's
-hyperparameters (:func:`mpcmobo.bo.groups.fit_group_offsets`). Between full fits, with the
-hyperparameters fixed, the offsets are the random-effects (GLS) posterior mean
-
-``(H^T A H + I / tau^2) b = H^T A (t - mean(t))``,  ``A = (s^2 (K + sigma_n^2 I))^-1``,
-
-``H`` the (n, G) group indicator matrix and ``s`` the outcome scale of the standardised GP;
-this is also the fixed point of backfitting ``h = S (t - H b)``, ``b = D^-1 H^T (t - h)``.
-The offsets are centred and the GP is conditioned on ``t - b_g``. The GP then models the
-start-free cost ``h``: predictions, EI and EHVI see the cost of an average start, so
-candidates run on different starts are compared fairly.
+* Inputs ``X`` lie in the unit cube of the search space. Outcomes ``Y`` are costs to be
+  minimised; the model is trained on ``t = -g(y)`` (BoTorch maximises), ``g`` the identity or,
+  for outputs flagged in ``log_outcomes``, a shifted log (:mod:`mpcmobo.bo.transforms`),
+  then standardised. Rows with NaN or inf are never fitted. Everything is float64.
+* Hyperparameters: a full type-II maximum-likelihood fit (``fit_gpytorch_mll``) starts from
+  the previous hyperparameters and runs while ``n < min_refit_n`` and then once every
+  ``max(refit_every, ceil(refit_fraction n))`` fits; in between the GP is conditioned on all
+  data with the last hyperparameters. Above ``fit_subsample`` points the full fit maximises
+  the likelihood of a seeded subset.
+* Start effects: with cycled starts, ``fit(X, Y, groups)`` fits for the outputs flagged in
+  ``group_outputs`` the additive model ``t_i = h(x_i) + b_{g_i} + eps_i``, one offset per
+  start with the prior ``b_s ~ N(0, tau^2)``: jointly with the hyperparameters at a full fit
+  (:mod:`mpcmobo.bo.groups`), else as their random-effects (GLS) posterior mean
+  ``(H^T A H + I / tau^2) b = H^T A (t - mean(t))``, ``A = (s^2 (K + sigma_n^2 I))^-1``.
+  The offsets are centred, and the GP models the cost of an average start, so candidates run
+  from different starts are compared fairly.
+* Posterior: :meth:`GPSurrogate.predict` gives the latent posterior in cost units;
+  :meth:`GPSurrogate.cost_samples` joint or marginal posterior samples of the costs.
 """
 
 from __future__ import annotations
@@ -195,7 +160,6 @@ class GPSurrogate:
         self.group_offsets: dict[int, np.ndarray] = {}  # group -> (m,) offsets in model space
         self.model: SingleTaskGP | None = None
         self._fast: ExactIndependentGP | None = None
-        self._memo: dict[str, dict] = {}  # fit_memo: posterior pieces of this fit
         self.train_X: np.ndarray | None = None  # finite rows used in the last fit
         self.train_Y: np.ndarray | None = None
         self.last_fit_was_full = False
@@ -237,8 +201,9 @@ class GPSurrogate:
             model.load_state_dict(hyper, strict=False)
         return model
 
-    def _group_matrix(self, groups: np.ndarray) -> np.ndarray:
-        """(n, m) offsets of each row's group (0 for group -1 and for unflagged outputs)."""
+    def start_offsets(self, groups: np.ndarray) -> np.ndarray:
+        """(n, m) model-space offsets of each row's group (0 for group -1 and for unflagged
+        outputs)."""
         cols = np.asarray(self.group_outputs, dtype=float)
         zero = np.zeros(self.num_outputs)
         return np.array([self.group_offsets.get(int(g), zero) for g in groups]) * cols
@@ -267,7 +232,7 @@ class GPSurrogate:
         (module docstring, "Start effects"), from the previous offsets' adjusted targets."""
         ids = np.unique(groups[groups >= 0])
         H = (groups[:, None] == ids[None, :]).astype(float)  # (n, G)
-        T_adj = T - self._group_matrix(groups)  # scale of the GP's (adjusted) targets
+        T_adj = T - self.start_offsets(groups)  # scale of the GP's (adjusted) targets
         model = self._make_model(
             torch.as_tensor(X, dtype=DTYPE), torch.as_tensor(T_adj, dtype=DTYPE)
         )
@@ -328,7 +293,7 @@ class GPSurrogate:
         full = self._refit_due(n)
         self.group_offsets = self._offsets_for_fit(Xf, T, gf, full)
         tX = torch.as_tensor(Xf, dtype=DTYPE)
-        tY = torch.as_tensor(T if gf is None else T - self._group_matrix(gf), dtype=DTYPE)
+        tY = torch.as_tensor(T if gf is None else T - self.start_offsets(gf), dtype=DTYPE)
         # eq. GP: one independent GP per output (batched), SE-ARD kernel, Gaussian noise
         model = self._make_model(tX, tY)
         if full:
@@ -342,7 +307,6 @@ class GPSurrogate:
         self._n_fits += 1
         self.model = model
         self._fast = None
-        self._memo = {}
         return self
 
     def _subsample(self, n: int) -> np.ndarray | None:
@@ -419,11 +383,30 @@ class GPSurrogate:
                 out.append(self.fast_model.posterior_mean(tX).squeeze(-2).numpy().copy())
         return out[0] if len(out) == 1 else np.concatenate(out)
 
-    def fit_memo(self, name: str) -> dict:
-        """A dictionary ``name`` that lives as long as the current fit (emptied by every
-        :meth:`fit` and state load): for posterior pieces that several callers need from the
-        same model (:func:`mpcmobo.bo.context.expected_outcome_means`). Never saved."""
-        return self._memo.setdefault(name, {})
+    def cost_samples(
+        self, Z: np.ndarray, *, n_samples: int, seed: int, joint: bool = False
+    ) -> np.ndarray:
+        """Posterior samples (S, n, m) of the latent costs at the points ``Z`` (n, d), in cost
+        units, seeded (a forked torch random state). ``joint=False``: each point sampled on its
+        own (the marginals); ``joint=True``: all n points on one joint posterior (common
+        random numbers for comparing a few points)."""
+        X = torch.as_tensor(np.atleast_2d(np.asarray(Z, dtype=np.float64)), dtype=DTYPE)
+        X = X.unsqueeze(0) if joint else X.unsqueeze(-2)  # (1, n, d) or (n, 1, d)
+        offsets = self.offsets
+        with (
+            torch.no_grad(),
+            torch.random.fork_rng(),
+            gpytorch.settings.max_cholesky_size(MAX_CHOLESKY),
+        ):
+            torch.manual_seed(int(seed))
+            s = self.fast_model.posterior(X).rsample(torch.Size([int(n_samples)]))
+            cols = []
+            for j in range(s.shape[-1]):
+                t = s[..., j]
+                cols.append(torch.exp(-t) - float(offsets[j]) if self.log_outcomes[j] else -t)
+            out = torch.stack(cols, dim=-1)  # S x b x q x m
+        out = out[:, 0] if joint else out.reshape(int(n_samples), -1, out.shape[-1])
+        return out.numpy().astype(np.float64)
 
     def predict(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Posterior mean and std (n, m) of the costs in the original minimisation units.
@@ -457,32 +440,23 @@ class GPSurrogate:
         }
 
     def load_state_dict(self, d: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict`, also one written before the issue-10 clean-up: its
-        ``num_threads`` is ignored (torch's threads are the process's), and a ``noise_floor``
-        other than None (an option removed then) is refused."""
-        if d.get("noise_floor") is not None:
-            raise ValueError(
-                f"this GP state has noise_floor = {d['noise_floor']}, an option removed in the "
-                "issue-10 clean-up (it made results worse, docs/benchmarks.md); it cannot be "
-                "restored"
-            )
+        """Restore :meth:`state_dict` (no fitted model: the next :meth:`fit` rebuilds it)."""
         self.num_outputs = int(d["num_outputs"])
         self.refit_every = int(d["refit_every"])
-        # checkpoints written before refit_fraction existed refit every refit_every calls
-        self.refit_fraction = float(d.get("refit_fraction", 0.0))
+        self.refit_fraction = float(d["refit_fraction"])
         self.log_outcomes = [bool(b) for b in d["log_outcomes"]]
         self.min_refit_n = int(d["min_refit_n"])
         self.fit_maxiter = int(d["fit_maxiter"])
-        fs = d.get("fit_subsample")
+        fs = d["fit_subsample"]
         self.fit_subsample = None if fs is None else int(fs)
         self._calls_since_refit = int(d["calls_since_refit"])
         self._n_fits = int(d["n_fits"])
         h = d["hyper"]
         self._hyper = None if h is None else {k: np.array(v) for k, v in h.items()}
-        self.group_outputs = [bool(b) for b in d.get("group_outputs", [False] * self.num_outputs)]
-        self.group_prior_std = float(d.get("group_prior_std", 1.0))
+        self.group_outputs = [bool(b) for b in d["group_outputs"]]
+        self.group_prior_std = float(d["group_prior_std"])
         self._reset_fit()
-        self.group_offsets = {int(g): np.array(v) for g, v in d.get("group_offsets", {}).items()}
+        self.group_offsets = {int(g): np.array(v) for g, v in d["group_offsets"].items()}
 
 
 def fit_gp(

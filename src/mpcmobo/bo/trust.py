@@ -8,16 +8,15 @@ row, capped at ``length_max``. What differs from TuRBO-1, and why:
 
 * the centre is the deployed theta (the learner's incumbent rule), not the best noisy
   observation: a single episode is too noisy to be the centre (``docs/benchmarks.md``);
-* one GP on all the data, not a local GP: the per-start offsets and the context model need
-  every episode;
+* one GP on all the data, not a local GP: the per-start offsets need every episode;
 * when ``L`` falls below ``length_min`` the region restarts at ``length_init`` around the same
   deployed theta (the data are kept), instead of a fresh design elsewhere: the deployed theta
-  must stay the one the evidence supports (issue 11, item 3);
+  must stay the one the evidence supports;
 * the box is a cube (no lengthscale weighting): with a few dozen noisy episodes the fitted
   lengthscales are not yet trustworthy.
 
 All lengths are in the unit cube of the search space, so the defaults are scale-free: the
-same fraction of every declared range on any system (issue 11, item 7).
+same fraction of every declared range on any system.
 
 :class:`TrustRegion` is the configuration (frozen); :class:`TrustState` what is learned (the
 current length and the two counters), saved in the learner's state.
@@ -25,12 +24,12 @@ current length and the two counters), saved in the learner's state.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
-__all__ = ["TrustRegion", "TrustState", "trust_region_from_option"]
+__all__ = ["TrustRegion", "TrustState"]
 
 
 @dataclass(frozen=True)
@@ -109,28 +108,3 @@ class TrustState:
     def from_dict(cls, d: dict[str, Any]) -> TrustState:
         """The inverse of :meth:`to_dict`."""
         return cls(float(d["length"]), int(d["successes"]), int(d["failures"]))
-
-
-def trust_region_from_option(value: Any) -> TrustRegion | None:
-    """The ``trust_region`` learner option: ``"off"`` (or ``None``/``false``) for none,
-    ``"auto"`` (or ``true``) for the defaults of :class:`TrustRegion`, or a table of its
-    fields (``{length_init = 0.1, ...}``; the others keep their defaults)."""
-    if value is None or value is False or value == "off":
-        return None
-    if value is True or value == "auto":
-        return TrustRegion()
-    if isinstance(value, TrustRegion):
-        return value
-    if isinstance(value, dict):
-        known = {f.name for f in fields(TrustRegion)}
-        bad = sorted(set(value) - known)
-        if bad:
-            raise ValueError(
-                f"trust_region: unknown key(s) {', '.join(map(repr, bad))}; "
-                f"known: {', '.join(sorted(known))}"
-            )
-        return TrustRegion(**value)
-    raise ValueError(
-        f"trust_region must be 'off', 'auto' or a table of {', '.join(f.name for f in fields(TrustRegion))}, "
-        f"got {value!r}"
-    )

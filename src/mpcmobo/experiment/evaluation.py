@@ -12,7 +12,7 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 
-from mpcmobo.experiment.settings import Settings, build_plant
+from mpcmobo.experiment.settings import Settings, build_plant, needs_plant
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
@@ -132,5 +132,5 @@ def make_evaluator(
         seed=ev.seed if seed is None else seed,
         steps=ev.steps if ev.steps is not None else settings.steps,
         mpc_options=settings.mpc.options(),
-        plant=build_plant(settings, system) if plant is None and settings.system.plant else plant,
+        plant=build_plant(settings, system) if plant is None and needs_plant(settings) else plant,
     )

@@ -21,16 +21,24 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from mpcmobo.bo.context import ContextSpec
 from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.logs import run_log
-from mpcmobo.experiment.loop import LearningRun
+from mpcmobo.experiment.loop import EpisodePlan, LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
-from mpcmobo.experiment.settings import Settings, build_plant, build_system, validate_settings
-from mpcmobo.learners import Learner, make_learner
-from mpcmobo.mpc import ParametricMPC
+from mpcmobo.experiment.settings import (
+    Settings,
+    build_plant,
+    build_system,
+    identified_parameters,
+    needs_plant,
+    validate_settings,
+)
+from mpcmobo.identify import ModelFit
+from mpcmobo.learners import Learner, Starts, make_learner
+from mpcmobo.learners.identified import IdentifyFirst
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import register_system
 
@@ -99,22 +107,27 @@ class Job:
         learner: str,
         seed: int,
         J_initial: float | None = None,
+        *,
+        evaluates: bool = True,
     ) -> None:
         self.settings, self.run_dir = settings, run_dir
+        self.evaluates = evaluates  # False: a plant that cannot be simulated (no J_eval)
         self.learner, self.seed = learner, seed
-        system = build_system(settings)
-        plant = build_plant(settings, system) if settings.system.plant else None
+        system = build_system(settings, learner)  # theta with the identified parameters, if any
+        plant = build_plant(settings, system) if needs_plant(settings) else None
         self.run = _learning_run(settings, system, learner, seed, plant)
         self.evaluator = make_evaluator(settings, system, plant)
         # an interrupt during an MPC solve stops the job when the solve returns, never fails it
         interrupts.guard_solves(self.run.mpc)
-        interrupts.guard_solves(self.evaluator.mpc("imperfect"))
-        if J_initial is not None:
+        if evaluates:
+            interrupts.guard_solves(self.evaluator.mpc("imperfect"))
+        if J_initial is not None and evaluates:
             self.evaluator.remember(self.run.mpc.theta0, J_initial)
         self.schedule = EvaluationSchedule.from_settings(settings)
         self.rows: list[EpisodeRow] = []
         self.trajectories: list[Trajectory] = []
         self.wall_time_s = 0.0
+        self.pending: dict | None = None  # an episode planned and not yet completed (Tuner)
 
     @property
     def done(self) -> bool:
@@ -128,6 +141,8 @@ class Job:
         ckpt = self.run_dir.checkpoint(self.learner, self.seed)
         if ckpt is None:
             return
+        if ckpt.schema != storage.CHECKPOINT_SCHEMA:
+            self.run_dir.check_schema()  # raises OlderRunError, naming the version
         path = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
         fix = f"delete {path.parent} to run this job again from its first episode"
         try:
@@ -138,6 +153,7 @@ class Job:
             ) from None
         self.rows, self.trajectories = ckpt.rows, ckpt.trajectories
         self.wall_time_s = ckpt.wall_time_s
+        self.pending = ckpt.pending
         if len(self.rows) != self.run.episode:
             raise RunFileError(f"{path} is inconsistent (rows and state differ); {fix}")
         if ckpt.episodes < self.settings.episodes:
@@ -174,6 +190,7 @@ class Job:
             wall_time_s=self.wall_time_s,
             episodes=self.settings.episodes,
             done=self.done,
+            pending=self.pending,
         )
 
     def save(self) -> None:
@@ -192,6 +209,23 @@ class Job:
         interrupts.check()
         t_start = time.perf_counter()
         out, record = self.run.run_episode()
+        return self._recorded(out, record, t_start)
+
+    def complete(
+        self,
+        plan: EpisodePlan,
+        record: EpisodeRecord | None,
+        error: str = "",
+        mpc_time: float = 0.0,
+    ) -> EpisodeRow:
+        """Complete the episode of ``plan`` (from :meth:`LearningRun.plan`) that ran elsewhere,
+        from its ``record``, as :meth:`step` completes the episodes it runs."""
+        t_start = time.perf_counter()
+        out, record = self.run.finish(plan, record, error, mpc_time)
+        return self._recorded(out, record, t_start)
+
+    def _recorded(self, out: dict, record: EpisodeRecord | None, t_start: float) -> EpisodeRow:
+        """The episode's row, evaluated and stored as the schedule says."""
         interrupts.check()
         row = EpisodeRow.from_dict(out)
         t_eval = time.perf_counter()
@@ -207,7 +241,7 @@ class Job:
     def _evaluate(self, episode: int, incumbent: np.ndarray) -> float:
         """J_eval of the incumbent if the schedule evaluates it, else NaN; at the last episode
         the final incumbent's evaluation episodes are stored."""
-        if not self.schedule.step(episode, incumbent):
+        if not self.schedule.step(episode, incumbent) or not self.evaluates:
             return math.nan
         if episode == self.schedule.last:
             eps = self.evaluator.episodes(incumbent)
@@ -242,11 +276,24 @@ class Job:
 def make_study_learner(
     settings: Settings, system: System, name: str, theta0: np.ndarray, seed: int
 ) -> Learner:
-    """The learner ``name`` with the study's options for it, and the system's initial-state
-    distribution as its contexts (issue 11; used only by learners with ``context = "x0"``)."""
+    """The learner ``name`` with the study's options for it, built for the study's start
+    design (cycled or random starts); with identification (``system`` built for the job by
+    :func:`~mpcmobo.experiment.settings.build_system`, theta holding the identified
+    parameters), the identify learner, or the learner tuning after the model switch."""
     options = settings.learner_options.get(name, {})
-    contexts = ContextSpec.from_system(system)
-    return make_learner(name, system.search_space, theta0, seed=seed, contexts=contexts, **options)
+    starts = Starts(settings.start_mode, settings.n_cycle_starts)
+    names = identified_parameters(settings, system, name)
+    if not names:
+        return make_learner(name, system.search_space, theta0, seed=seed, starts=starts, **options)
+    fit = ModelFit(system, names)
+    if name == "identify":
+        return make_learner(name, system.search_space, theta0, seed=seed, starts=starts,
+                            model_fit=fit, **options)  # fmt: skip
+
+    def tuner(theta: np.ndarray) -> Learner:
+        return make_learner(name, system.search_space, theta, seed=seed, starts=starts, **options)
+
+    return IdentifyFirst(tuner, system.search_space, theta0, seed, starts=starts, model_fit=fit)
 
 
 def _learning_run(
@@ -271,7 +318,6 @@ def _learning_run(
         critic_min_valid_steps=settings.critic.min_valid_steps,
         critic_weighting=settings.critic.weighting,
         beta=settings.beta,
-        f3=settings.critic.f3,
         plant=plant,
     )
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import gymnasium
 import numpy as np
@@ -11,10 +12,41 @@ import numpy as np
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, model_plant, model_rollout, rollout
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
-from mpcmobo.rl.objectives import F3_MODES, mean_stage_cost
+from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
 
 START_MODES = ("random", "cycle")
+
+
+@dataclass
+class EpisodePlan:
+    """What one episode runs (:meth:`LearningRun.plan`): its theta, initial state, exploration
+    noise per step (T, nu; zero where the learner asked for a noise-free episode), the plant's
+    seed, the start's index in the cycle (-1: random) and the proposal's error if it failed."""
+
+    episode: int
+    theta: np.ndarray
+    x0: np.ndarray
+    noise: np.ndarray
+    explore: bool
+    plant_seed: int
+    start_id: int = -1
+    error: str = ""
+    propose_time: float = 0.0
+
+    def to_dict(self) -> dict:
+        """Plain data (a pending trial in a checkpoint)."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EpisodePlan:
+        """The inverse of :meth:`to_dict`."""
+        return cls(**d)
+
+
+def _as_list(values: np.ndarray | None) -> list[float]:
+    """A learner's identified parameters as a record's list (empty: none)."""
+    return [] if values is None else [float(v) for v in np.asarray(values).reshape(-1)]
 
 
 class LearningRun:
@@ -48,7 +80,6 @@ class LearningRun:
         critic_min_valid_steps: int = 2,
         critic_weighting: str = "uniform",
         beta: float = 1.0,
-        f3: str = "paper",
         plant: gymnasium.Env | None = None,
     ) -> None:
         if start_mode not in START_MODES:
@@ -68,9 +99,6 @@ class LearningRun:
             weighting=critic_weighting,
         )
         self.beta = float(beta)
-        if f3 not in F3_MODES:
-            raise ValueError(f"f3 must be one of {F3_MODES}, got '{f3}'")
-        self.f3 = f3
         self.start_mode = start_mode
         # separate streams: initial states, exploration noise
         ss = np.random.SeedSequence([self.seed, 7])
@@ -83,9 +111,11 @@ class LearningRun:
         )
         self.episode = 0
         self.previous_Vc: float | None = None
-        self.previous_nu: np.ndarray | None = None  # the last fitted critic's nu (f3 "same_states")
         self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)
-        self._model_plant: gymnasium.Env | None = None  # the MPC's model as a plant (built once)
+        self._model_plants: dict[bytes, gymnasium.Env] = {}  # a model as a plant, per parameters
+        use = getattr(learner, "use_start_costs", None)  # a learner that recomputes covariates
+        if use is not None:
+            use(self.start_costs)
 
     def plant_seed(self) -> int:
         """The plant's seed of this episode (its own noise, if any): a function of (seed,
@@ -98,29 +128,81 @@ class LearningRun:
             return self.cycle_starts[self.episode % len(self.cycle_starts)].copy()
         return self.system.sample_initial_state(self.rng_start)
 
-    def run_episode(self) -> tuple[dict, EpisodeRecord | None]:
-        """Run one episode; return its row of records (the fields of :class:`EpisodeRow` except
-        ``J_eval_incumbent`` and ``eval_time_s``, which the study's job adds) and the episode."""
+    def plan(self) -> EpisodePlan:
+        """What the next episode runs: the learner's proposal, whether it explores, its initial
+        state and its exploration noise, drawn now (the random streams advance as if the
+        episode ran). :meth:`finish` completes the episode from its record."""
         t0 = time.perf_counter()
         theta, proposal_error = self._propose()
         explores = getattr(self.learner, "explores", None)  # duck-typed learners: always
         explore = True if explores is None else bool(explores())
         t_prop = time.perf_counter() - t0
         x0 = self.next_start()
+        self.exploration.episode = self.episode
+        exploration = self.exploration
+        if not explore:  # zero noise, drawn all the same: the stream does not depend on it
+            exploration = GaussianExploration(np.zeros(exploration.nu), episode=self.episode)
+        noise = np.array([exploration.sample(self.rng_noise, k) for k in range(self.steps)])
+        return EpisodePlan(
+            episode=self.episode,
+            theta=theta,
+            x0=x0,
+            noise=noise.reshape(self.steps, self.system.nu),
+            explore=explore,
+            plant_seed=self.plant_seed(),
+            start_id=self.episode % len(self.cycle_starts) if self.start_mode == "cycle" else -1,
+            error=proposal_error,
+            propose_time=t_prop,
+        )
+
+    def run_episode(self) -> tuple[dict, EpisodeRecord | None]:
+        """Run one episode; return its row of records (the fields of :class:`EpisodeRow` except
+        ``J_eval_incumbent`` and ``eval_time_s``, which the study's job adds) and the episode."""
+        plan = self.plan()
         t1 = time.perf_counter()
-        record, result, error = self._on_plant(theta, x0, explore)
-        error = "; ".join(e for e in (proposal_error, error) if e)
-        if self.start_mode == "cycle":
-            result.start_id = self.episode % len(self.cycle_starts)
-        result.x0 = x0.copy()  # the context of the episode (issue 11)
+        try:
+            record: EpisodeRecord | None = rollout(
+                self.system,
+                self.mpc,
+                plan.theta,
+                plan.x0,
+                self.steps,
+                noise=plan.noise,
+                plant=self.plant,
+                plant_seed=plan.plant_seed,
+            )
+            error = ""
+        except (FloatingPointError, ValueError, RuntimeError) as err:
+            record, error = None, f"{type(err).__name__}: {err}"
+        return self.finish(plan, record, error, time.perf_counter() - t1)
+
+    def finish(
+        self,
+        plan: EpisodePlan,
+        record: EpisodeRecord | None,
+        error: str = "",
+        mpc_time: float = 0.0,
+    ) -> tuple[dict, EpisodeRecord | None]:
+        """Complete the episode of ``plan`` from its ``record`` (None: it failed, ``error``
+        says why): the critic and the objectives, the learner's observation, the row."""
+        if plan.episode != self.episode:
+            raise ValueError(f"the plan is of episode {plan.episode}, the run is at {self.episode}")
+        t1 = time.perf_counter()
+        result, error2 = self._result(plan.theta, record)
+        if error2:
+            record, error = None, "; ".join(e for e in (error, error2) if e)
+        error = "; ".join(e for e in (plan.error, error) if e)
+        theta, x0 = plan.theta, plan.x0
+        result.start_id = plan.start_id
+        result.x0 = x0.copy()
         uses = getattr(self.learner, "uses_start_cost", None)  # duck-typed learners: no
         if uses is not None and uses():
             result.start_cost = self.start_cost(x0)
-        t_mpc = time.perf_counter() - t1
+        t_mpc = mpc_time + time.perf_counter() - t1
         t2 = time.perf_counter()
         self.learner.observe(theta, result)
         incumbent = np.asarray(self.learner.incumbent(), dtype=float)
-        t_learn = t_prop + time.perf_counter() - t2
+        t_learn = plan.propose_time + time.perf_counter() - t2
         if np.isfinite(result.Vc):
             self.previous_Vc = result.Vc
         f = result.objectives
@@ -145,28 +227,47 @@ class LearningRun:
             "incumbent": incumbent.tolist(),
             "error": error,
             "start_cost": float(result.start_cost),
+            "identified": _as_list(getattr(self.learner, "identified", lambda: None)()),
         }
         self.episode += 1
         return row, record
 
-    def start_cost(self, x0: np.ndarray) -> float:
-        """theta0's (the learner's) mean stage cost from ``x0`` on the MPC's own model
-        (:func:`~mpcmobo.mpc.model_rollout`, noise-free, the episode's length), computed once
-        per distinct start; NaN if that closed loop fails. A function of ``x0`` alone, so
-        the random streams and a resumed run are unaffected."""
-        key = np.asarray(x0, float).tobytes()
+    def start_cost(
+        self,
+        x0: np.ndarray,
+        theta: np.ndarray | None = None,
+        params: np.ndarray | None = None,
+    ) -> float:
+        """The start covariate of ``x0``: the mean stage cost of ``theta`` (default the
+        learner's ``start_model()``, else its theta0) from ``x0`` in a noise-free closed loop on
+        the model with ``params`` (default the MPC's own model), the episode's length; NaN if
+        that closed loop fails. Cached; a function of its arguments alone, so the random streams
+        and a resumed run are unaffected."""
+        if theta is None:
+            model = getattr(self.learner, "start_model", lambda: None)()
+            if model is not None:
+                theta, params = model
+            else:
+                theta = getattr(self.learner, "theta0", None)  # None: the MPC's own theta0
+        theta = self.mpc.check_theta(theta)
+        p = np.asarray(self.mpc.model_params if params is None else params, float)
+        key = b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p))
         if key not in self._start_costs:
-            theta0 = getattr(self.learner, "theta0", None)  # None: the MPC's own theta0
             try:
-                if self._model_plant is None:
-                    self._model_plant = model_plant(self.system, self.mpc)
-                rec = model_rollout(
-                    self.system, self.mpc, theta0, x0, self.steps, plant=self._model_plant
-                )
+                plant = self._model_plants.get(p.tobytes())
+                if plant is None:
+                    plant = model_plant(self.system, self.mpc, p)
+                    self._model_plants[p.tobytes()] = plant
+                rec = model_rollout(self.system, self.mpc, theta, x0, self.steps, plant=plant)
                 self._start_costs[key] = mean_stage_cost(rec)
             except Exception:  # noqa: BLE001 - a covariate never ends a run (the tests fall back)
                 self._start_costs[key] = float("nan")
         return self._start_costs[key]
+
+    def start_costs(self, starts: np.ndarray, theta: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """:meth:`start_cost` of every start in ``starts`` (n, nx) (what a learner asks for when
+        its covariate's model changes)."""
+        return np.array([self.start_cost(x0, theta, params) for x0 in np.atleast_2d(starts)])
 
     def _propose(self) -> tuple[np.ndarray, str]:
         """The learner's proposal; if the learner fails (an exception, or a theta that is not
@@ -180,52 +281,27 @@ class LearningRun:
             theta = np.asarray(self.learner.incumbent(), dtype=float)
             return theta, f"proposal failed, ran the incumbent: {type(err).__name__}: {err}"
 
-    def _on_plant(
-        self, theta: np.ndarray, x0: np.ndarray, explore: bool = True
-    ) -> tuple[EpisodeRecord | None, EpisodeResult, str]:
-        """The episode of ``theta`` from ``x0`` with exploration (``explore`` False: its noise
-        is zero, drawn all the same so that the random stream does not depend on it), and what
-        the learner observes of it; a diverged plant or a broken episode is recorded as NaN
-        (and its error)."""
-        self.exploration.episode = self.episode
-        exploration = self.exploration
-        if not explore:
-            exploration = GaussianExploration(np.zeros(exploration.nu), episode=self.episode)
-        try:
-            record = rollout(
-                self.system,
-                self.mpc,
-                theta,
-                x0,
-                self.steps,
-                rng=self.rng_noise,
-                exploration=exploration,
-                plant=self.plant,
-                plant_seed=self.plant_seed(),
-            )
-            result, cr = episode_result(
-                record,
-                self.critic,
-                self.previous_Vc,
-                self.beta,
-                f3=self.f3,
-                previous_nu=self.previous_nu,
-            )
-            if cr.ok and np.all(np.isfinite(cr.nu)):
-                self.previous_nu = np.asarray(cr.nu, float).copy()
-        except (FloatingPointError, ValueError, RuntimeError) as err:
-            result = EpisodeResult(
-                objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
-            )
-            return None, result, f"{type(err).__name__}: {err}"
-        return record, result, ""
+    def _result(self, theta: np.ndarray, record: EpisodeRecord | None) -> tuple[EpisodeResult, str]:
+        """What the learner observes of an episode (the critic fitted to its record, the
+        objectives); a missing or broken episode is all NaN, with its error."""
+        if record is not None:
+            try:
+                result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
+                return result, ""
+            except (FloatingPointError, ValueError, RuntimeError) as err:
+                error = f"{type(err).__name__}: {err}"
+        else:
+            error = ""
+        nan = EpisodeResult(
+            objectives=np.full(4, np.nan), grad=np.zeros(len(theta)), critic_ok=False
+        )
+        return nan, error
 
     def state_dict(self) -> dict:
         """Everything needed to continue the run exactly: episode, random streams, learner state."""
         return {
             "episode": self.episode,
             "previous_Vc": self.previous_Vc,
-            "previous_nu": self.previous_nu,
             "rng_start": self.rng_start.bit_generator.state,
             "rng_noise": self.rng_noise.bit_generator.state,
             "learner": self.learner.state_dict(),
@@ -235,7 +311,6 @@ class LearningRun:
         """Continue from a :meth:`state_dict`."""
         self.episode = int(state["episode"])
         self.previous_Vc = state["previous_Vc"]
-        self.previous_nu = state.get("previous_nu")  # absent in checkpoints before issue 11
         self.rng_start.bit_generator.state = state["rng_start"]
         self.rng_noise.bit_generator.state = state["rng_noise"]
         self.learner.load_state_dict(state["learner"])

@@ -1,8 +1,7 @@
 """What a study keeps, as types: episode rows, stored trajectories, job checkpoints, reference.
 
 On disk these are plain pickled dicts and Parquet columns (layout in :mod:`storage`); each type
-converts with ``to_dict`` / ``from_dict``, so that files written before these types existed
-still load and files written now hold the same keys and values.
+converts with ``to_dict`` / ``from_dict``.
 """
 
 from __future__ import annotations
@@ -21,7 +20,8 @@ class EpisodeRow:
     The objectives f1..f4 are those of the paper (eq. cl_perf, f2, f3, f4); ``J_tilde`` is f1;
     ``mean_stage_cost`` is the undiscounted mean of L over the episode; ``J_eval_incumbent`` is
     NaN where the job's evaluation schedule did not evaluate the incumbent; ``start_cost`` is
-    theta0's cost from the episode's start on the MPC's own model (NaN unless the learner used it).
+    theta0's cost from the episode's start on the MPC's own model (NaN unless the learner used
+    it); ``identified`` the model parameters identified so far (empty without identification).
     """
 
     learner: str
@@ -48,6 +48,8 @@ class EpisodeRow:
     # theta0's mean stage cost from x0 on the MPC's own model (EpisodeResult.start_cost), the
     # deployment tests' covariate; NaN where the learner did not use it (and in older files)
     start_cost: float = math.nan
+    # the model parameters the learner has identified after the episode (empty: none)
+    identified: list[float] = field(default_factory=list)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EpisodeRow:
@@ -98,7 +100,9 @@ class Checkpoint:
     """What a job saves after every episode: everything needed to continue it exactly.
 
     ``state`` is the :class:`LearningRun` state (learner and random generators), ``eval_state``
-    the :class:`EvaluationSchedule` state, ``episodes`` the budget the job was run with.
+    the :class:`EvaluationSchedule` state, ``episodes`` the budget the job was run with,
+    ``schema`` the format it was written in (:data:`~mpcmobo.experiment.storage.CHECKPOINT_SCHEMA`:
+    only a checkpoint of the current schema can be resumed; the rows of an older one are read).
     """
 
     learner: str
@@ -110,6 +114,8 @@ class Checkpoint:
     wall_time_s: float
     episodes: int
     done: bool
+    schema: int = 2
+    pending: dict | None = None  # a trial asked for and not yet told (the Tuner's)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Checkpoint:
@@ -124,6 +130,8 @@ class Checkpoint:
             wall_time_s=float(d["wall_time_s"]),
             episodes=int(d["episodes"]),
             done=bool(d["done"]),
+            schema=int(d.get("schema", 1)),
+            pending=d.get("pending"),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -136,7 +144,8 @@ class Checkpoint:
             "wall_time_s": self.wall_time_s,
             "episodes": self.episodes,
             "done": self.done,
-        }  # storage.save_checkpoint adds the version, learner and seed
+            "pending": self.pending,
+        }  # storage.save_checkpoint adds the schema, learner and seed
 
     @property
     def incumbent(self) -> np.ndarray | None:

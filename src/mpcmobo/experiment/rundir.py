@@ -18,6 +18,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from mpcmobo import __version__
 from mpcmobo.experiment import storage
 from mpcmobo.experiment.logs import RunFileWarning
 from mpcmobo.experiment.records import Checkpoint, Reference
@@ -41,6 +42,16 @@ class StudyError(RuntimeError):
 
 class RunFileError(StudyError):
     """A file of a run cannot be read; the message names it and says what to do."""
+
+
+class OlderRunError(StudyError):
+    """The run was written by an older mpcmobo whose checkpoints this version cannot resume
+    (the CLI's exit code 2); its records stay readable."""
+
+
+# keys an older version wrote to config.toml that this one does not know; dropped when an old
+# run's settings are read for its records (plot, evaluate), never on resume
+READ_ONLY_DROPS = {"mpc": ("barrier_steps", "barrier_mu0", "barrier_push")}
 
 
 # what reading a damaged pickle or Parquet file can raise (truncated, empty, garbage, wrong type)
@@ -87,20 +98,27 @@ class RunDirectory:
         """Whether the directory holds a run (its ``config.toml`` exists)."""
         return self.config.exists()
 
-    def saved_settings(self, **overrides: Any) -> Settings:
-        """The run's saved settings (with ``overrides``, see :func:`load_settings`)."""
+    def saved_settings(self, *, for_records: bool = False, **overrides: Any) -> Settings:
+        """The run's saved settings (with ``overrides``, see :func:`load_settings`).
+
+        ``for_records``: the settings to read the run's records with (``plot``,
+        ``evaluate``): the learners' options are left out and keys an older version saved
+        that this one does not know are dropped, so that a run of an older version can still
+        be evaluated."""
         if self.path.exists() and not self.path.is_dir():
             raise StudyError(f"{self.path} is a file, not a run directory")
         if not self.holds_run():
             raise StudyError(f"nothing to resume: {self.config} does not exist")
         try:
-            saved = read_toml(self.config)
-            if "newton_steps" not in saved.get("mpc", {}):
-                # saved before the setting existed: that run's MPC was IPOPT only (issue 13)
-                overrides = {"mpc__newton_steps": 0, **overrides}
-            if "barrier_steps" not in saved.get("mpc", {}):
-                # saved before the barrier path existed (issue 13, session 6): without it
-                overrides = {"mpc__barrier_steps": 0, **overrides}
+            if for_records:
+                saved = read_toml(self.config)
+                saved.pop("learner_options", None)
+                mpc = saved.setdefault("mpc", {})
+                mpc.setdefault("newton_steps", 0)  # a run saved before the setting: IPOPT only
+                for section, keys in READ_ONLY_DROPS.items():
+                    for key in keys:
+                        saved.get(section, {}).pop(key, None)
+                return load_settings(None, **{**saved, **overrides})
             return load_settings(self.config, **overrides)
         except SettingsError as err:
             if str(err).startswith(str(self.config)):  # the file itself, not an override
@@ -161,9 +179,30 @@ class RunDirectory:
             raise StudyError(f"--out {self.path}: cannot write the run there ({err})") from None
         return resolved
 
+    def check_schema(self) -> None:
+        """That every job checkpoint of the run is of this version's schema, else an
+        :class:`OlderRunError` naming the version that wrote it and what to do."""
+        for path in sorted((self.path / "jobs").glob("*/checkpoint*.pkl")):
+            try:
+                schema = storage.checkpoint_schema(storage.read_pickle(path))
+            except READ_ERRORS:
+                continue  # damaged: the checkpoint's own reading reports it
+            if schema is not None and schema != storage.CHECKPOINT_SCHEMA:
+                made_by = "mpcmobo 0.1.0" if schema == 1 else f"checkpoint schema {schema}"
+                raise OlderRunError(
+                    f"{path}: this run was written by {made_by} (checkpoint schema {schema}); "
+                    f"mpcmobo {__version__} resumes only its own checkpoints (schema "
+                    f"{storage.CHECKPOINT_SCHEMA}). Its records stay readable: `mpcmobo plot "
+                    f"{self.path}` and `mpcmobo evaluate {self.path}`; to go on learning, start a "
+                    "new run with the same settings (--config config.toml) in a new directory"
+                )
+
     def reopen(self, settings: Settings | None) -> Settings:
         """The saved settings, with the changes a resumed run may take from ``settings``; a
-        larger budget is saved (the settings of the run from now on), a smaller one refused."""
+        larger budget is saved (the settings of the run from now on), a smaller one refused.
+        A run written by an older version is refused (:meth:`check_schema`)."""
+        if self.holds_run():
+            self.check_schema()
         saved = self.saved_settings()
         if settings is None:
             return saved
@@ -266,14 +305,14 @@ def open_run(
 
 
 def _read_checkpoint(path: Path, learner: str, seed: int) -> Checkpoint:
-    """One checkpoint file, checked: it is a checkpoint of this version and job."""
+    """One checkpoint file, checked: it is a checkpoint of a known schema and of this job."""
 
     def read(p: Path) -> Checkpoint:
         d: Any = storage.read_pickle(p)
         if not isinstance(d, dict):
             raise TypeError(f"holds a {type(d).__name__}, not a checkpoint")
-        if d.get("version") != storage.CHECKPOINT_VERSION:
-            raise ValueError(f"checkpoint version {d.get('version')} is not supported")
+        if storage.checkpoint_schema(d) not in (1, storage.CHECKPOINT_SCHEMA):
+            raise ValueError(f"checkpoint schema {storage.checkpoint_schema(d)} is not known")
         if d.get("learner") != learner or int(d.get("seed", -1)) != int(seed):
             raise ValueError(f"it is the checkpoint of {d.get('learner')}-s{d.get('seed')}")
         return Checkpoint.from_dict(d)

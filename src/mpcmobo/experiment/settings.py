@@ -29,7 +29,7 @@ from pydantic import (
     model_validator,
 )
 
-from mpcmobo.learners.registry import LEARNER_SPECS
+from mpcmobo.learners.registry import LEARNER_SPECS, LearnerOptionError, validate_options
 from mpcmobo.systems import (
     System,
     SystemDefinitionError,
@@ -40,9 +40,11 @@ from mpcmobo.systems import (
 )
 from mpcmobo.systems.registry import is_factory_path, normalise_spec
 
-# the learners the settings accept by name, and those the paper's study runs (the default)
+# the learners the settings accept by name; those the paper's study runs; the default study's:
+# the paper's and the identification baseline
 KNOWN_LEARNERS = tuple(LEARNER_SPECS)
 PAPER_LEARNERS = tuple(name for name, spec in LEARNER_SPECS.items() if spec.in_paper)
+DEFAULT_LEARNERS = (*PAPER_LEARNERS, "identify")
 
 
 class SettingsError(ValueError):
@@ -51,7 +53,11 @@ class SettingsError(ValueError):
 
 class _Section(BaseModel):
     model_config = ConfigDict(
-        extra="forbid", strict=True, allow_inf_nan=False, validate_assignment=True
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        validate_assignment=True,
+        use_attribute_docstrings=True,
     )
 
 
@@ -60,28 +66,42 @@ class SystemSettings(_Section):
     (overrides of ``System.mpc_spec``)."""
 
     # factory before name: the name is checked only without a factory (``_known_system``)
-    factory: str | None = Field(
-        None, description="the system's factory, 'module:function' or 'path/file.py:function'"
-    )
-    name: str = Field(
-        "cstr", description="registered system or plug-in (`mpcmobo systems`); with factory: "
-        "the name of the system it builds"
-    )  # fmt: skip
-    plant: str | None = Field(
-        None,
-        description="the plant: a gymnasium id or a factory of a gymnasium.Env "
-        "('module:function', 'path/file.py:function'); default: the system's own equations",
-    )
-    learn_model: list[str] = Field(
-        default_factory=list, description="model parameters made learnable"
-    )
+    factory: str | None = None
+    """The system's factory, ``"module:function"`` or ``"path/file.py:function"`` (a function
+    that returns a ``mpcmobo.systems.System``); unset: the system ``name``."""
+    name: str = "cstr"
+    """A registered system or plug-in (``mpcmobo systems``); with ``factory``: the name of the
+    system it builds."""
+    plant: str | None = None
+    """The plant: a gymnasium id or the factory of a ``gymnasium.Env``; unset: the system's own
+    equations with its true parameters."""
+    learn_model: list[str] = Field(default_factory=list)
+    """Model parameters made learnable (part of theta, searched around their nominal value)."""
     learn_backoff: bool = False
+    """Constraint back-offs of the state bounds made learnable (part of theta)."""
     learn_theta_c: bool = False
-    full_weights: bool = Field(
-        False, description="full positive-definite MPC weights (Cholesky factors in theta)"
-    )
+    """Search the cost's constant ``theta_c`` too (it changes V but never the policy)."""
+    full_weights: bool = False
+    """Full positive-definite MPC weights (Cholesky factors in theta) instead of diagonal."""
     weight_log_range: float | None = Field(None, gt=0, le=20)
+    """The cost weights are searched within theta0's times ``e^(+-weight_log_range)``; unset: the
+    system's (4 on the CSTR)."""
     model_log_range: float | None = Field(None, gt=0, le=10)
+    """Learnable model parameters are searched within their nominal value times
+    ``e^(+-model_log_range)``; unset: the system's. The same bounds hold for identification."""
+    process_noise: list[float] | None = None
+    """Standard deviation of Gaussian noise added to each state by every step of the system's
+    own plant (seeded per episode from the study's seed); unset: none."""
+    measurement_noise: list[float] | None = None
+    """Standard deviation of Gaussian noise on each state the system's own plant reports to
+    the MPC, the learners and the identification; unset: none."""
+    identify: bool | list[str] = False
+    """Identify the model first: after every episode the model parameters (``true``: all the
+    system declares; a list: those) are fitted to the plant's transitions, and each learner
+    tunes from the identified model once its evidence supports it (a few episodes of the
+    study; the fit itself takes a fraction of a second). ``false``: the learners tune the
+    nominal model. The ``identify`` learner identifies these, or all parameters when this is
+    ``false``."""
 
     @field_validator("factory", "plant")
     @classmethod
@@ -105,6 +125,19 @@ class SystemSettings(_Section):
                 "system.factory ('module:function' or 'path/file.py:function')"
             )
         return v
+
+    @field_validator("process_noise", "measurement_noise")
+    @classmethod
+    def _noise_levels(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and (len(v) == 0 or any(s < 0 for s in v)):
+            raise ValueError("must be a list of numbers >= 0 (one per state)")
+        return v
+
+    @property
+    def noisy(self) -> bool:
+        """Whether the system's own plant adds noise."""
+        levels = [*(self.process_noise or []), *(self.measurement_noise or [])]
+        return any(s > 0 for s in levels)
 
     @property
     def spec(self) -> str:
@@ -132,41 +165,26 @@ class MPCSettings(_Section):
     """Horizon, discount and solver options of the parametric MPC."""
 
     horizon: int | None = Field(None, ge=1, le=500)
+    """Prediction horizon N; unset: the system's (10 on the CSTR)."""
     gamma: float | None = Field(None, gt=0, le=1)
+    """Discount of the MPC cost and of f1; unset: the system's (0.99 on the CSTR)."""
     tau: float = Field(1e-6, gt=0, lt=1)
+    """Barrier parameter at which the MPC is solved and differentiated (scaled units): the
+    sensitivities are those of the barrier problem, smooth across active-set changes."""
     tol: float = Field(1e-8, gt=0, lt=1)
+    """IPOPT's tolerance (and the Newton steps')."""
     max_iter: int = Field(150, ge=1, le=100_000)
+    """IPOPT's iteration limit per solve; a solve that reaches it uses the fallback input."""
     warm_start: bool = True
-    newton_steps: int = Field(
-        6,
-        ge=0,
-        le=100,
-        description="warm solves first try this many Newton steps on the barrier KKT system "
-        "(IPOPT if they do not converge); 0: always IPOPT",
-    )
-    barrier_steps: int = Field(
-        0,
-        ge=0,
-        le=1000,
-        description="when the Newton steps do not converge, warm solves try a short "
-        "interior-point path of at most this many Newton steps (IPOPT if it does not converge); "
-        "0: off (the default; 30 measured faster, but from a few states whose new plant state "
-        "violates a row of the shifted plan it reaches another local minimum than IPOPT)",
-    )
-    barrier_mu0: float = Field(
-        1e-3, gt=0, lt=1, description="first barrier parameter of that path (scaled units)"
-    )
-    barrier_push: bool = Field(
-        True,
-        description="let the barrier path start from warm starts that violate a row (pushed "
-        "inside); false: only from strictly interior warm starts, IPOPT elsewhere (IPOPT's "
-        "solution on every state of the step-time benchmark)",
-    )
-    codegen: bool = Field(
-        False,
-        description="generated C code of the MPC, compiled once per machine and problem and "
-        "cached ($MPCMOBO_CACHE_DIR, else $XDG_CACHE_HOME/mpcmobo or ~/.cache/mpcmobo)",
-    )
+    """Start each solve from the previous solution shifted by one step."""
+    newton_steps: int = Field(6, ge=0, le=100)
+    """Warm solves first try this many Newton steps on the barrier KKT system and accept them
+    only at IPOPT's solution (to its tolerance); else IPOPT solves. 0: IPOPT always (a step about
+    twice as slow)."""
+    codegen: bool = False
+    """Generated C code of the MPC's functions, compiled once per machine and problem and cached
+    (``$MPCMOBO_CACHE_DIR``, else ``~/.cache/mpcmobo``): the same numbers, faster steps; needs a
+    C compiler; the first build takes tens of seconds."""
 
     def options(self) -> dict[str, Any]:
         """The options given to ``ParametricMPC`` (the unset ones left to the system)."""
@@ -175,12 +193,12 @@ class MPCSettings(_Section):
 
 
 class ExplorationSettings(_Section):
-    """Gaussian input noise of the learning episodes (per input; decay per episode)."""
+    """Gaussian input noise of the learning episodes."""
 
-    std: list[float] | None = Field(
-        None, description="standard deviation per input; default 2% of each input's range"
-    )
+    std: list[float] | None = None
+    """Standard deviation of the noise added to each input; unset: 2% of each input's range."""
     decay: float = Field(1.0, gt=0, le=1)
+    """The standard deviation is multiplied by this factor after every episode (1: constant)."""
 
     @field_validator("std")
     @classmethod
@@ -191,60 +209,84 @@ class ExplorationSettings(_Section):
 
 
 class CriticSettings(_Section):
-    """The compatible critic (``mpcmobo.rl.CompatibleCritic``): LSTDV / LSTDQ and the DPG."""
+    """The compatible critic (LSTDV and LSTDQ) and the policy gradient."""
 
     ridge: float = Field(1e-6, ge=0)
+    """Relative ridge of the least-squares solves (numerical safety only)."""
     method: Literal["lstd", "paper"] = "lstd"
-    q_target: Literal["V_theta", "V_nu"] | None = Field(
-        None, description="value of x_{k+1} in the LSTDQ target; default: follows the method"
-    )
-    min_valid_steps: int = Field(2, ge=1, description="fewer usable transitions: the fit fails")
-    weighting: Literal["uniform", "discounted"] = Field(
-        "uniform", description="mean of the per-step DPG terms: uniform (paper) or discounted"
-    )
-    f3: Literal["paper", "same_states"] = Field(
-        "paper",
-        description="f3 of eq. f3 on the two episodes' own trajectories (paper) or both critics "
-        "on this episode's states (same_states, like for like)",
-    )
+    """``"lstd"``: LSTDV with the TD target of V^nu; ``"paper"``: the value critic as printed
+    in eq. lstdv_update (nu regresses the TD error of V_theta on grad V_theta)."""
+    q_target: Literal["V_theta", "V_nu"] | None = None
+    """Value of x_{k+1} in the LSTDQ target; unset: ``V_nu`` with ``"lstd"``, ``V_theta`` with
+    ``"paper"``."""
+    min_valid_steps: int = Field(2, ge=1)
+    """With fewer usable transitions the episode's critic fit fails (no gradient)."""
+    weighting: Literal["uniform", "discounted"] = "uniform"
+    """The mean of the per-step DPG terms: uniform (the paper's eq. DPG) or discounted by
+    gamma^k."""
 
 
 class EvaluationSettings(_Section):
-    """The evaluation protocol: J_eval on ``n_starts`` seeded initial states."""
+    """The evaluation protocol: J_eval, the mean stage cost of the deployed theta from
+    ``n_starts`` fixed initial states without exploration."""
 
     n_starts: int = Field(10, ge=1, le=10_000)
+    """Initial states of the evaluation (drawn with ``seed``; never shown to a learner)."""
     seed: int = Field(2025, ge=0)
-    steps: int | None = Field(None, ge=1, le=1_000_000, description="default: settings.steps")
+    """Seed of the evaluation starts."""
+    steps: int | None = Field(None, ge=1, le=1_000_000)
+    """Steps per evaluation episode; unset: ``steps``."""
     eval_every: int = Field(10, ge=1)
+    """The deployed theta is evaluated when it changes, at most every this many episodes, and
+    at the first and last episode."""
 
 
 class RecordsSettings(_Section):
     """What is stored besides the per-episode rows."""
 
-    trajectory_every: int = Field(
-        20, ge=1, description="store the learning episode's states/inputs every N episodes"
-    )
+    trajectory_every: int = Field(20, ge=1)
+    """Store every this many episodes the learning episode's states and inputs."""
 
 
 class Settings(_Section):
-    """Everything a study needs. See ``docs`` and ``mpcmobo run --help``."""
+    """Everything a study needs; a settings file holds any subset of it."""
 
     system: SystemSettings = Field(default_factory=SystemSettings)
+    """The system, its plant and the MPC's parameterization."""
     mpc: MPCSettings = Field(default_factory=MPCSettings)
+    """The parametric MPC."""
     exploration: ExplorationSettings = Field(default_factory=ExplorationSettings)
+    """The exploration noise of learning episodes."""
     episodes: int = Field(600, ge=1, le=1_000_000)
+    """Episodes per job (learner and seed)."""
     steps: int | None = Field(None, ge=1, le=1_000_000)
+    """Time steps per episode; unset: the system's (60 on the CSTR)."""
     start_mode: Literal["random", "cycle"] = "cycle"
+    """``"cycle"``: episode k starts from the (k mod ``n_cycle_starts``)-th of a fixed seeded set
+    of initial states, so that thetas are compared from common starts; ``"random"``: a fresh
+    initial state per episode (the paper's)."""
     n_cycle_starts: int = Field(6, ge=1, le=100_000)
+    """Starts of the cycle (``start_mode = "cycle"``)."""
     critic: CriticSettings = Field(default_factory=CriticSettings)
+    """The compatible critic."""
     beta: float = 1.0
-    learners: list[str] = Field(default_factory=lambda: list(PAPER_LEARNERS), min_length=1)
+    """The weight beta of f4 (the Lyapunov decrease)."""
+    learners: list[str] = Field(default_factory=lambda: list(DEFAULT_LEARNERS), min_length=1)
+    """The learners of the study (``mpc-rl``, ``bo``, ``mobo``, ``hybrid``, ``identify``): by
+    default the paper's three and ``identify``, the identification baseline (left out on a
+    system that declares no model parameter to identify)."""
     learner_options: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    """A table of options per learner (below)."""
     evaluation: EvaluationSettings = Field(default_factory=EvaluationSettings)
+    """The evaluation protocol."""
     records: RecordsSettings = Field(default_factory=RecordsSettings)
+    """What is stored besides the per-episode rows."""
     seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
+    """The seeds: one job per learner and seed."""
     workers: int = Field(2, ge=1, le=1024)
+    """Jobs run in parallel (processes, or Ray tasks)."""
     backend: Literal["process", "ray"] = "process"
+    """Where jobs run: local processes, or a Ray cluster (``pip install -e ".[ray]"``)."""
 
     @field_validator("learners")
     @classmethod
@@ -259,11 +301,18 @@ class Settings(_Section):
     @field_validator("learner_options")
     @classmethod
     def _options_tables(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-        for name in v:
+        for name, table in v.items():
             if name not in LEARNER_SPECS:
                 raise ValueError(
-                    f"options for unknown learner '{name}'; allowed: {list(LEARNER_SPECS)}"
+                    f"learner_options.{name}: options for an unknown learner; allowed: "
+                    f"{', '.join(LEARNER_SPECS)}"
                 )
+            if not isinstance(table, dict):
+                raise ValueError(f"'{name}' must be a table of options")
+            try:
+                validate_options(name, table, prefix=f"learner_options.{name}.")
+            except LearnerOptionError as err:
+                raise ValueError(str(err)) from None
         return v
 
     @field_validator("seeds")
@@ -284,7 +333,8 @@ class Settings(_Section):
 
     @model_validator(mode="after")
     def _fits_system(self) -> Settings:
-        if self.exploration.std is None and not self.system.learn_model:
+        identify = "learners" in self.model_fields_set and "identify" in self.learners
+        if self.exploration.std is None and not self.system.learn_model and not identify:
             return self  # nothing system-specific to check; avoid building the system
         try:
             system = build_system(self)
@@ -297,6 +347,11 @@ class Settings(_Section):
             raise ValueError(
                 f"exploration.std has {len(std)} entries; the system '{system.name}' has "
                 f"{system.nu} inputs {list(system.input_names)}"
+            )
+        if identify and not system.identifiable:
+            raise ValueError(
+                f"learners: the system '{system.name}' declares no model parameter to identify "
+                "(System.param_names): remove 'identify'"
             )
         return self
 
@@ -313,6 +368,8 @@ class Settings(_Section):
         d["mpc"]["horizon"] = int(spec.horizon if self.mpc.horizon is None else self.mpc.horizon)
         d["mpc"]["gamma"] = float(spec.gamma if self.mpc.gamma is None else self.mpc.gamma)
         d["steps"] = int(system.episode_steps if self.steps is None else self.steps)
+        if "learners" not in self.model_fields_set and not system.identifiable:
+            d["learners"] = [n for n in d["learners"] if n != "identify"]  # nothing to identify
         if self.exploration.std is None:
             span = system.u_ub - system.u_lb
             d["exploration"]["std"] = [
@@ -320,11 +377,21 @@ class Settings(_Section):
             ]
         if self.evaluation.steps is None:
             d["evaluation"]["steps"] = d["steps"]
+        d["learner_options"] = {  # every learner option in force, defaults filled in
+            name: _options_dump(name, self.learner_options.get(name, {}))
+            for name in dict.fromkeys([*self.learners, *self.learner_options])
+        }
         return validate_settings(d)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict without ``None`` values (TOML has no null)."""
         return _drop_none(self.model_dump())
+
+
+def _options_dump(name: str, table: dict[str, Any]) -> dict[str, Any]:
+    """The learner's options in force as a plain table (every default filled in)."""
+    options = validate_options(name, table)
+    return {} if options is None else options.model_dump()
 
 
 def _drop_none(d: Any) -> Any:
@@ -335,23 +402,64 @@ def _drop_none(d: Any) -> Any:
     return d
 
 
-def build_system(settings: Settings) -> System:
-    """The system of the settings, with its MPC-spec overrides applied; a system that cannot
-    be found, imported or built is a :class:`SettingsError` (one line, naming the key)."""
+def build_system(settings: Settings, learner: str | None = None) -> System:
+    """The system of the settings, with its MPC-spec overrides applied; for ``learner``'s job
+    with the parameters it identifies in theta (:func:`identified_parameters`). A system that
+    cannot be found, imported or built is a :class:`SettingsError` (one line, naming the key)."""
     key = "system.factory" if settings.system.factory is not None else "system.name"
     try:
-        return get_system(settings.system.spec, **settings.system.spec_overrides())
+        system = get_system(settings.system.spec, **settings.system.spec_overrides())
+        names = identified_parameters(settings, system, learner)
+        if not names:
+            return system
+        return get_system(
+            settings.system.spec, **settings.system.spec_overrides(), identify=tuple(names)
+        )
     except (SystemSpecError, SystemDefinitionError) as err:
         raise SettingsError(f"{key}: {err}") from None
     except ValueError as err:  # an MPC setting the system refuses
         raise SettingsError(f"system: {err}") from None
 
 
+def identified_parameters(
+    settings: Settings, system: System, learner: str | None
+) -> tuple[str, ...]:
+    """The model parameters ``learner``'s job identifies: ``[system] identify`` (``true``: the
+    system's identifiable ones, ``param_names``), and those for the ``identify`` learner; none
+    without a learner (the study's reference)."""
+    ident = settings.system.identify
+    if learner is None:
+        return ()
+    if isinstance(ident, list) and ident:
+        unknown = [n for n in ident if n not in system.param_names]
+        if unknown:
+            raise ValueError(
+                f"identify: unknown model parameter(s) {unknown}; the system has "
+                f"{list(system.param_names)}"
+            )
+        return tuple(ident)
+    if ident is True or learner == "identify":
+        return tuple(system.identifiable or ())
+    return ()
+
+
+def needs_plant(settings: Settings) -> bool:
+    """Whether a study builds its plant (:func:`build_plant`): a plant of the settings, or the
+    system's own with noise; else the closed loop runs the system's equations itself."""
+    return settings.system.plant is not None or settings.system.noisy
+
+
 def build_plant(settings: Settings, system: System) -> Any:
-    """The plant of the settings (``system.plant``, default the system's equations), checked
-    against the system's sizes; a problem is a :class:`SettingsError`."""
+    """The plant of the settings (``system.plant``, default the system's equations with the
+    settings' noise), checked against the system's sizes; a problem is a
+    :class:`SettingsError`."""
     try:
-        return make_plant(settings.system.plant, system)
+        return make_plant(
+            settings.system.plant,
+            system,
+            process_noise=settings.system.process_noise,
+            measurement_noise=settings.system.measurement_noise,
+        )
     except (SystemSpecError, SystemDefinitionError) as err:
         key = "system.plant" if settings.system.plant is not None else "system"
         raise SettingsError(f"{key}: {err}") from None
@@ -390,6 +498,8 @@ def _format_error(err: Mapping[str, Any]) -> str:
         shown = shown[:57] + "..."
     if not loc:  # a check across sections: its message names the keys itself
         return msg
+    if loc[0] == "learner_options" and msg.startswith("learner_options"):
+        return msg.replace("\n", "\n  ")  # the learners' options name their keys themselves
     if typ in ("missing",):
         return f"{key}: {msg}"
     return f"{key}: {msg} (got {shown})"

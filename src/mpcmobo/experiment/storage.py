@@ -37,7 +37,8 @@ import pandas as pd
 
 from mpcmobo.experiment.records import ROW_FIELDS
 
-CHECKPOINT_VERSION = 1
+# the checkpoint format: 2 since mpcmobo 1.0 (learner state as options + evidence); 1 was 0.1.0's
+CHECKPOINT_SCHEMA = 2
 EPISODE_COLUMNS = list(ROW_FIELDS)
 WALL_TIME_COLUMNS = ("mpc_time_s", "learner_time_s", "eval_time_s")
 
@@ -166,7 +167,7 @@ def save_checkpoint(out_dir: str | Path, learner: str, seed: int, ckpt: dict) ->
     """Write the job's checkpoint atomically; the one it replaces becomes
     ``checkpoint.prev.pkl`` (a hard link made before the replacement, so that the latest
     checkpoint exists at every moment)."""
-    ckpt = dict(ckpt, version=CHECKPOINT_VERSION, learner=learner, seed=int(seed))
+    ckpt = dict(ckpt, schema=CHECKPOINT_SCHEMA, learner=learner, seed=int(seed))
     path = checkpoint_path(out_dir, learner, seed)
     data = pickle.dumps(ckpt, protocol=pickle.HIGHEST_PROTOCOL)
     if path.exists():
@@ -186,9 +187,17 @@ def load_checkpoint(out_dir: str | Path, learner: str, seed: int) -> dict | None
     if not path.exists():
         return None
     ckpt = read_pickle(path)
-    if ckpt.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: checkpoint version {ckpt.get('version')} is not supported")
+    if checkpoint_schema(ckpt) != CHECKPOINT_SCHEMA:
+        raise ValueError(f"{path}: checkpoint schema {checkpoint_schema(ckpt)} is not supported")
     return ckpt
+
+
+def checkpoint_schema(ckpt: dict) -> int | None:
+    """The schema of a checkpoint's dictionary: its ``schema`` key (1.0 and later) or 1 for
+    mpcmobo 0.1.0's (a ``version`` key of 1); None when it is neither."""
+    if "schema" in ckpt:
+        return int(ckpt["schema"])
+    return 1 if ckpt.get("version") == 1 else None
 
 
 def load_checkpoints(out_dir: str | Path, jobs: Iterable[tuple[str, int]]) -> list[dict]:

@@ -30,7 +30,13 @@ from mpcmobo.experiment.job import Progress, make_study_learner, progress_event,
 from mpcmobo.experiment.logs import count_warnings, run_log
 from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
-from mpcmobo.experiment.settings import Settings, SettingsError, build_plant, build_system
+from mpcmobo.experiment.settings import (
+    Settings,
+    SettingsError,
+    build_plant,
+    build_system,
+    identified_parameters,
+)
 from mpcmobo.experiment.training_reference import training_references, training_summary
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems.base import System
@@ -61,6 +67,11 @@ def system_info(system: System) -> dict:
         "u_lb": system.u_lb.tolist(),
         "u_ub": system.u_ub.tolist(),
         "theta_names": list(system.parameterization.names),
+        "param_names": list(system.param_names),
+        "nominal_params": np.asarray(system.models["imperfect"], float).tolist(),
+        "true_params": None
+        if system.true_params is None
+        else np.asarray(system.true_params, float).tolist(),
     }
 
 
@@ -69,10 +80,11 @@ def check_learners(settings: Settings) -> None:
     its options (else a SettingsError naming them), before anything is written."""
     system = build_system(settings)
     build_plant(settings, system).close()
-    theta0 = system.parameterization.theta0
     for name in settings.learners:
+        job_system = build_system(settings, name)
         try:
-            make_study_learner(settings, system, name, theta0, seed=0)
+            theta0 = job_system.parameterization.theta0
+            make_study_learner(settings, job_system, name, theta0, seed=0)
         except (TypeError, ValueError) as err:
             raise SettingsError(f"learner_options.{name}: {err}") from None
 
@@ -98,7 +110,7 @@ def compute_reference(settings: Settings) -> Reference:
         trajectories += [
             Trajectory(phase, -1, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
         ]
-    # J~*, like for like (issue 15): needs the perfect model
+    # J~*, like for like: needs the perfect model
     training = training_references(settings, system) if evaluator.has_J_star else []
     return Reference(
         J_star=values.get("perfect"),
@@ -153,7 +165,7 @@ def _seed_summary(
     violation = s["violation"].to_numpy(float)
     return {
         "J_final": float(J[-1]) if len(J) else None,
-        # issue 11, item 3: the worst J_eval of the deployed theta over the run, and how many
+        # the worst J_eval of the deployed theta over the run, and how many
         # evaluations found it worse than theta0 (J_eval > J_initial)
         "J_worst": float(J.max()) if len(J) else None,
         "regressions": int(np.count_nonzero(J > float(reference.J_initial))),
@@ -163,15 +175,27 @@ def _seed_summary(
         "episodes_to_2pct": _first_within(s, reference, 0.02),
         "episodes_to_5pct": _first_within(s, reference, 0.05),
         "theta_final": [float(x) for x in s["incumbent"].iloc[-1]],
+        "identified_final": _last_identified(s),
         "wall_time_s": float(wall_time_s),
     }
 
 
+def _last_identified(s: pd.DataFrame) -> list[float] | None:
+    """The model parameters identified after the job's last episode (None: none)."""
+    if "identified" not in s.columns:
+        return None
+    last = s["identified"].iloc[-1]
+    return None if last is None or len(last) == 0 else [float(x) for x in last]
+
+
 def _learner_summary(
-    per_seed: dict[str, Any], settings: Settings, reference: Reference
+    name: str, per_seed: dict[str, Any], settings: Settings, reference: Reference
 ) -> dict[str, Any]:
     """The summary of one learner: medians over its seeds' summaries ``per_seed``."""
     vals = list(per_seed.values())
+    system = build_system(settings, name)
+    theta_names = list(system.parameterization.names)
+    identified = identified_parameters(settings, system, name)
     J_finals = [v["J_final"] for v in vals if v["J_final"] is not None]
     J_final = float(np.median(J_finals)) if J_finals else None
     worst = [v["J_worst"] for v in vals if v["J_worst"] is not None]
@@ -190,7 +214,8 @@ def _learner_summary(
         "regressions": int(sum(v["regressions"] for v in vals)),
         "seeds_with_regressions": sum(1 for v in vals if v["regressions"] > 0),
         "theta_final": vals[0]["theta_final"] if vals else None,
-        "theta_names": reference.system["theta_names"],
+        "theta_names": theta_names,
+        "identified_names": list(identified),
         "wall_time_s": float(sum(v["wall_time_s"] for v in vals)) if vals else 0.0,
         "complete": bool(vals)
         and all(v["complete"] for v in vals)
@@ -210,7 +235,7 @@ def summarize(settings: Settings, reference: Reference, df: pd.DataFrame, wall_t
             if len(s):
                 wall = wall_times.get((name, seed), math.nan)
                 per_seed[str(seed)] = _seed_summary(s, settings, reference, wall)
-        learners[name] = _learner_summary(per_seed, settings, reference)
+        learners[name] = _learner_summary(name, per_seed, settings, reference)
     return {
         "system": reference.system.get("name", settings.system.name),
         "J_star": None if reference.J_star is None else float(reference.J_star),

@@ -23,7 +23,7 @@ import numpy as np
 from mpcmobo.experiment import interrupts
 from mpcmobo.experiment.job import _learning_run
 from mpcmobo.experiment.records import Reference, TrainingReference
-from mpcmobo.experiment.settings import Settings
+from mpcmobo.experiment.settings import Settings, build_plant, needs_plant
 from mpcmobo.mpc import ParametricMPC, rollout
 from mpcmobo.rl.objectives import f1_closed_loop_cost
 from mpcmobo.systems.base import System
@@ -46,14 +46,16 @@ def training_reference(
     episodes 0..n-1 on that seed, and the same function,
     :func:`~mpcmobo.rl.objectives.f1_closed_loop_cost`, that gives the learners' J~. A diverged
     episode counts as NaN, as it does for a learner."""
-    run = _learning_run(settings, system, settings.learners[0], seed)  # its starts and noise
+    plant = build_plant(settings, system) if needs_plant(settings) else None
+    run = _learning_run(settings, system, settings.learners[0], seed, plant)  # starts, noise
     values, starts = [], []
     for episode in range(n_episodes):
         x0 = run.next_start()
         run.exploration.episode = episode
         try:
             record = rollout(system, mpc, None, x0, run.steps, rng=run.rng_noise,
-                             exploration=run.exploration, sensitivities=False)  # fmt: skip
+                             exploration=run.exploration, sensitivities=False,
+                             plant=plant, plant_seed=run.plant_seed())  # fmt: skip
             values.append(f1_closed_loop_cost(record))
         except (FloatingPointError, ValueError, RuntimeError):
             values.append(math.nan)

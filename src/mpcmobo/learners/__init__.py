@@ -1,8 +1,15 @@
-"""Learners behind one propose/observe interface: MPC-RL, BO and MPC-RL-MOBO."""
+"""Learners behind one propose/observe interface: identify, MPC-RL, BO, MPC-RL-MOBO and the hybrid."""
 
-from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
-from mpcmobo.learners.bo import BOLearner, HybridLearner, MOBOLearner
+from mpcmobo.learners.base import EpisodeResult, Learner, Starts, episode_result
+from mpcmobo.learners.gp import BOLearner
+from mpcmobo.learners.mobo import HybridLearner, MOBOLearner
 from mpcmobo.learners.mpc_rl import MPCRL
+from mpcmobo.learners.options import (
+    BOOptions,
+    HybridOptions,
+    MOBOOptions,
+    MPCRLOptions,
+)
 from mpcmobo.learners.registry import LEARNER_SPECS, LEARNERS, LearnerSpec, make_learner
 
 __all__ = [
@@ -10,11 +17,16 @@ __all__ = [
     "LEARNER_SPECS",
     "MPCRL",
     "BOLearner",
-    "HybridLearner",
-    "MOBOLearner",
+    "BOOptions",
     "EpisodeResult",
+    "HybridLearner",
+    "HybridOptions",
     "Learner",
     "LearnerSpec",
+    "MOBOLearner",
+    "MOBOOptions",
+    "MPCRLOptions",
+    "Starts",
     "episode_result",
     "make_learner",
 ]

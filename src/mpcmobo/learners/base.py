@@ -1,10 +1,17 @@
-"""One interface for every learner: propose the next theta, observe the finished episode."""
+"""One interface for every learner: propose the next theta, observe the finished episode.
+
+A learner is built with its options (one typed object, :mod:`mpcmobo.learners.options`) and
+the study's start design (:class:`Starts`: cycled or random initial states), and never
+changes its configuration afterwards; what it learns lives in attributes with a trailing
+underscore and is what :meth:`Learner.state_dict` saves.
+"""
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Collection
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -23,6 +30,22 @@ def check_choice(name: str, value: object, choices: Collection[str]) -> str:
     return str(value)
 
 
+@dataclass(frozen=True)
+class Starts:
+    """How a study's episodes start: ``"cycle"`` through ``n_starts`` fixed seeded initial
+    states (episode ``k`` from start ``k mod n_starts``, so candidates are compared from common
+    starts) or ``"random"``, a fresh draw per episode (the paper's setting)."""
+
+    mode: Literal["cycle", "random"] = "random"
+    n_starts: int = 1
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("cycle", "random"):
+            raise ValueError(f"start mode must be 'cycle' or 'random', got {self.mode!r}")
+        if int(self.n_starts) < 1:
+            raise ValueError(f"n_starts must be at least 1, got {self.n_starts}")
+
+
 @dataclass
 class EpisodeResult:
     """What a learner observes of one episode: the objectives f1..f4 and the CDPG gradient."""
@@ -34,12 +57,14 @@ class EpisodeResult:
     mean_abs_advantage: float = float("nan")
     failures: int = 0  # failed MPC solves in the episode
     start_id: int = -1  # index of the initial state in a fixed cycled set; -1: a random start
-    x0: np.ndarray | None = None  # the episode's initial state (a context the learner observes)
+    x0: np.ndarray | None = None  # the episode's initial state
     violation: float = float("nan")  # plant constraint violation summed over the episode
     stage_cost: float = float("nan")  # the plain (undiscounted) mean stage cost, as J_eval's
     # theta0's mean stage cost from x0 on the MPC's own model (NaN unless the learner asks for
     # it, Learner.uses_start_cost): how hard the start is, a covariate of the episode's cost
     start_cost: float = float("nan")
+    states: np.ndarray | None = None  # (T+1, nx) the plant's states (None: the episode failed)
+    inputs: np.ndarray | None = None  # (T, nu) the inputs applied
 
     @property
     def f1(self) -> float:
@@ -57,16 +82,10 @@ def episode_result(
     critic: CompatibleCritic,
     previous_Vc: float | None,
     beta: float = 1.0,
-    *,
-    f3: str = "paper",
-    previous_nu: np.ndarray | None = None,
 ) -> tuple[EpisodeResult, CriticResult]:
-    """Fit the compatible critic to a record and compute the four objectives of section 4
-    (``f3``, ``previous_nu``: see :func:`mpcmobo.rl.objectives`)."""
+    """Fit the compatible critic to a record and compute the four objectives of section 4."""
     cr = critic.fit(record)
-    f = np.asarray(
-        objectives(record, cr, previous_Vc, beta, f3=f3, previous_nu=previous_nu), dtype=float
-    )
+    f = np.asarray(objectives(record, cr, previous_Vc, beta), dtype=float)
     res = EpisodeResult(
         objectives=f,
         grad=np.where(np.isfinite(cr.grad), cr.grad, 0.0) if cr.ok else np.zeros_like(cr.grad),
@@ -77,6 +96,8 @@ def episode_result(
         x0=np.asarray(record.x[0], dtype=float).copy(),
         violation=float(np.sum(record.violation)),
         stage_cost=mean_stage_cost(record),
+        states=np.asarray(record.x, dtype=float),
+        inputs=np.asarray(record.u, dtype=float),
     )
     return res, cr
 
@@ -86,19 +107,30 @@ class Learner(ABC):
 
     The loop is ``theta = learner.propose(); ...run an episode (with exploration noise unless
     learner.explores() is False)...; learner.observe(theta, result)``.
-    ``incumbent()`` is the learner's current best guess, the theta that is evaluated and deployed.
+    ``incumbent()`` is the deployed theta: what the plant runs outside learning and what J_eval
+    measures.
     ``state_dict()`` holds the whole state (random generators included) as plain Python and NumPy
     objects, and ``load_state_dict`` restores it so that the next proposal is exactly the same.
     """
 
     name: str = "learner"
 
-    def __init__(self, space: SearchSpace, theta0: np.ndarray, seed: int = 0) -> None:
+    def __init__(
+        self, space: SearchSpace, theta0: np.ndarray, seed: int = 0, *, starts: Starts | None = None
+    ) -> None:
         self.space = space
         self.theta0 = space.clip(np.asarray(theta0, dtype=float))
         self.seed = int(seed)
+        self.starts = Starts() if starts is None else starts
         self.rng = np.random.default_rng(self.seed)
         self.n_observed = 0
+
+    def theta_of(self, z: np.ndarray) -> np.ndarray:
+        """The theta of the unit-cube point ``z``: exactly theta0 at theta0's own point (its
+        round trip through ``z`` moves it by about 1e-12, which J_eval on the CSTR can tell)."""
+        if np.array_equal(z, self.space.to_unit(self.theta0)):
+            return self.theta0.copy()
+        return self.space.from_unit(z, base=self.theta0)
 
     @abstractmethod
     def propose(self) -> np.ndarray:
@@ -110,13 +142,18 @@ class Learner(ABC):
 
     @abstractmethod
     def incumbent(self) -> np.ndarray:
-        """The current best theta."""
+        """The deployed theta."""
 
     def explores(self) -> bool:
         """Whether the episode of the last proposal runs with the exploration noise (default
         True). A learner may ask for a noise-free episode to measure a theta (MPC-RL's
         verification blocks); such an episode has no critic, so no gradient."""
         return True
+
+    def identified(self) -> np.ndarray | None:
+        """The model parameters the learner has identified from the plant (None: it does not
+        identify, or has no fit yet)."""
+        return None
 
     def uses_start_cost(self) -> bool:
         """Whether the learner reads ``EpisodeResult.start_cost`` (default False): theta0's
@@ -136,10 +173,14 @@ class Learner(ABC):
             "n_observed": self.n_observed,
         }
 
-    def load_state_dict(self, state: dict) -> None:
-        """Continue from a :meth:`state_dict` of a learner of the same name."""
+    def _check_name(self, state: dict) -> None:
+        """A ``ValueError`` unless ``state`` is of a learner of this name."""
         if state.get("name") != self.name:
             raise ValueError(f"state of learner '{state.get('name')}' given to '{self.name}'")
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict` of a learner of the same name."""
+        self._check_name(state)
         self.seed = int(state["seed"])
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = state["rng"]

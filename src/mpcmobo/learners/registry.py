@@ -1,28 +1,49 @@
 """Learners by name: one :class:`LearnerSpec` per learner carries everything the package knows
-about it (class, label and colour in the figures, scheduling cost, whether the paper runs it).
-Adding a learner is one entry in ``LEARNER_SPECS``."""
+about it (class, options class, label and colour in the figures, scheduling cost, whether the
+paper runs it). Adding a learner is one entry in ``LEARNER_SPECS``."""
 
 from __future__ import annotations
 
-import inspect
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ValidationError
 
-from mpcmobo.learners.base import Learner
-from mpcmobo.learners.bo import BOLearner, HybridLearner, MOBOLearner
+from mpcmobo.learners.base import Learner, Starts
+from mpcmobo.learners.gp import BOLearner
+from mpcmobo.learners.identified import IdentifyLearner
+from mpcmobo.learners.mobo import HybridLearner, MOBOLearner
 from mpcmobo.learners.mpc_rl import MPCRL
+from mpcmobo.learners.options import (
+    BOOptions,
+    HybridOptions,
+    IdentifyOptions,
+    MOBOOptions,
+    MPCRLOptions,
+)
 from mpcmobo.systems.space import SearchSpace
+
+__all__ = [
+    "LEARNERS",
+    "LEARNER_SPECS",
+    "LearnerOptionError",
+    "LearnerSpec",
+    "describe_options",
+    "learner_options",
+    "make_learner",
+    "option_fields",
+    "register_learner",
+    "validate_options",
+]
 
 
 @dataclass(frozen=True)
 class LearnerSpec:
-    """One learner: its settings name, class, figure label and colour, its relative cost per
-    episode (used only to start the slowest jobs first; measured in docs/benchmarks.md: the
-    EHVI learners spend the most per episode, MPC-RL the least), and whether the paper's
-    study runs it (the default ``learners`` of the settings)."""
+    """One learner: its settings name, class, options class (None: it takes no options),
+    figure label and colour, its relative cost per episode (only to start the slowest jobs
+    first: the EHVI learners spend the most per episode, MPC-RL the least), and whether the
+    paper's study runs it (the default ``learners`` of the settings)."""
 
     name: str
     cls: type[Learner]
@@ -30,15 +51,17 @@ class LearnerSpec:
     color: str
     job_cost: int
     in_paper: bool
+    options: type[BaseModel] | None = None
 
 
 LEARNER_SPECS: dict[str, LearnerSpec] = {
     spec.name: spec
     for spec in (
-        LearnerSpec("mpc-rl", MPCRL, "MPC-RL", "tab:green", job_cost=1, in_paper=True),
-        LearnerSpec("bo", BOLearner, "BO", "grey", job_cost=3, in_paper=True),
-        LearnerSpec("mobo", MOBOLearner, "MPC-RL-MOBO", "tab:red", job_cost=4, in_paper=True),
-        LearnerSpec("hybrid", HybridLearner, "hybrid", "tab:purple", job_cost=4, in_paper=False),
+        LearnerSpec("mpc-rl", MPCRL, "MPC-RL", "tab:green", 1, True, MPCRLOptions),
+        LearnerSpec("bo", BOLearner, "BO", "grey", 3, True, BOOptions),
+        LearnerSpec("mobo", MOBOLearner, "MPC-RL-MOBO", "tab:red", 4, True, MOBOOptions),
+        LearnerSpec("hybrid", HybridLearner, "hybrid", "tab:purple", 4, False, HybridOptions),
+        LearnerSpec("identify", IdentifyLearner, "identify", "tab:blue", 1, False, IdentifyOptions),
     )
 }
 """The learners by name, one entry each: what the settings, the CLI and the figures read."""
@@ -56,86 +79,99 @@ def register_learner(spec: LearnerSpec) -> None:
     LEARNERS[spec.name] = spec.cls
 
 
-# the constructor arguments of every learner that are not options
-_NOT_OPTIONS = ("self", "space", "theta0", "seed")
-
-
 class LearnerOptionError(ValueError, TypeError):
-    """An unknown or invalid learner option; the message lists the learner's options. A
-    ``ValueError`` and, as an unknown option always was, a ``TypeError``."""
+    """An unknown or invalid learner option; the message names it and lists the learner's
+    options."""
+
+
+def _spec(name: str) -> LearnerSpec:
+    if name not in LEARNER_SPECS:
+        raise ValueError(f"unknown learner '{name}'; available: {', '.join(sorted(LEARNERS))}")
+    return LEARNER_SPECS[name]
 
 
 def learner_options(name: str) -> dict[str, Any]:
-    """The options of the learner ``name`` and their defaults, read from the keyword arguments
-    of its class's constructor and those of its base classes (a subclass's default wins), so
-    that an option added to a learner is known here without further change."""
-    if name not in LEARNERS:
-        raise ValueError(f"unknown learner '{name}'; available: {', '.join(sorted(LEARNERS))}")
-    options: dict[str, Any] = {}
-    for cls in LEARNERS[name].__mro__:
-        init = cls.__dict__.get("__init__")
-        if init is None:
-            continue
-        for p in inspect.signature(init).parameters.values():
-            if p.name in _NOT_OPTIONS or p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL):
-                continue
-            if p.default is not p.empty:
-                options.setdefault(p.name, p.default)
-    return options
+    """The options of the learner ``name`` and their defaults (tables as dicts)."""
+    cls = _spec(name).options
+    return {} if cls is None else cls().model_dump()
+
+
+def option_fields(name: str) -> dict[str, Any]:
+    """The options of ``name`` as pydantic fields (name -> FieldInfo), in their order: what
+    the registry counts as the learner's user options."""
+    cls = _spec(name).options
+    return {} if cls is None else dict(cls.model_fields)
 
 
 def describe_options(name: str) -> str:
     """``n_init = 5, refit_every = 10, ...``: the options of ``name`` with their defaults."""
-    return ", ".join(f"{k} = {v!r}" for k, v in learner_options(name).items())
+    return ", ".join(f"{k} = {v!r}" for k, v in learner_options(name).items()) or "none"
 
 
-def _type_problem(key: str, value: Any, default: Any) -> str | None:
-    """What is wrong with the type of ``value`` given the option's default (None: nothing
-    that can be told from the default)."""
-    if isinstance(default, bool):
-        ok = isinstance(value, bool)
-        want = "true or false"
-    elif isinstance(default, int):
-        ok = isinstance(value, int) and not isinstance(value, bool)
-        want = "an integer"
-    elif isinstance(default, float):
-        ok = isinstance(value, int | float) and not isinstance(value, bool)
-        want = "a number"
-        if ok and math.isnan(value):
-            return f"{key} = {value!r}: must be a number, not NaN"
-    elif isinstance(default, str):
-        ok, want = isinstance(value, str), "a string"
-    else:
+# the names of the policy variants (``rule``): pydantic puts the chosen one into an error's path
+_RULES = {"evidence", "incumbent", "adam", "gd", "verified", "iterate"}
+
+
+def _problem(err: ValidationError, prefix: str) -> str:
+    """The validation errors as ``prefix.key.path: message (got value)``, one per line.
+    pydantic's own parts of a path (a policy variant's name, ``function-after[...]``,
+    ``literal[False]``) are left out, and so is the error of the ``false`` alternative of a
+    table when the table itself has errors."""
+    errors = err.errors()
+    tables = {e["loc"][0] for e in errors if e["type"] != "literal_error" and len(e["loc"]) > 1}
+    out = []
+    for e in errors:
+        if e["type"] == "literal_error" and e["loc"] and e["loc"][0] in tables:
+            continue  # "Input should be False" next to the table's own errors
+        parts = [str(p) for p in e["loc"]]
+        loc = ".".join(p for i, p in enumerate(parts) if not ((i and p in _RULES) or "[" in p))
+        msg = "unknown option" if e["type"] == "extra_forbidden" else e["msg"]
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, ") :]
+        got = "" if e["type"] in ("extra_forbidden", "missing") else f" (got {e['input']!r})"
+        out.append(f"{prefix}{loc}: {msg}{got}" if loc else f"{prefix.rstrip('.')}: {msg}")
+    return "\n".join(out)
+
+
+def validate_options(
+    name: str, options: dict[str, Any] | BaseModel | None, prefix: str = ""
+) -> BaseModel | None:
+    """The options object of the learner ``name`` from a settings table; a problem is a
+    :class:`LearnerOptionError` that names the option (after ``prefix``, e.g.
+    ``"learner_options.bo."``) and lists the learner's options."""
+    cls = _spec(name).options
+    if cls is None:
+        if options:
+            raise LearnerOptionError(f"the learner '{name}' takes no options, got {options!r}")
         return None
-    return None if ok else f"{key} = {value!r}: must be {want}"
+    if isinstance(options, cls):
+        return options
+    try:
+        return cls.model_validate(options or {})
+    except ValidationError as err:
+        listing = f"the options of '{name}' (with their defaults): {describe_options(name)}"
+        raise LearnerOptionError(f"{_problem(err, prefix)}\n{listing}") from None
 
 
 def make_learner(
-    name: str, space: SearchSpace, theta0: np.ndarray, seed: int = 0, **options: Any
+    name: str,
+    space: SearchSpace,
+    theta0: np.ndarray,
+    seed: int = 0,
+    *,
+    starts: Starts | None = None,
+    model_fit: Any = None,
+    **options: Any,
 ) -> Learner:
-    """Build the learner ``name`` ("mpc-rl", "bo", "mobo", "hybrid") with its options.
-
-    An unknown option, one of the wrong type, or one its learner rejects raises a
-    :class:`LearnerOptionError` (a ``ValueError``) listing the learner's options and defaults
-    (:func:`learner_options`). Options the learner's constructor takes through ``**kwargs``
-    (e.g. removed options at their old "off" value) are left to it.
-    """
-    allowed = learner_options(name)
-    listing = f"the options of '{name}' (with their defaults): {describe_options(name)}"
-    problems = [
-        p
-        for key, value in options.items()
-        if key in allowed and (p := _type_problem(key, value, allowed[key])) is not None
-    ]
-    if problems:
-        raise LearnerOptionError(f"{'; '.join(problems)}; {listing}")
-    unknown = [k for k in options if k not in allowed]
-    try:
-        return LEARNERS[name](space, theta0, seed, **options)
-    except (TypeError, ValueError) as err:
-        if unknown and isinstance(err, TypeError):
-            what = "unexpected learner option" + ("s " if len(unknown) > 1 else " ")
-            raise LearnerOptionError(
-                f"{what}{', '.join(repr(k) for k in unknown)}; {listing}"
-            ) from None
-        raise LearnerOptionError(f"{err}; {listing}") from None
+    """Build the learner ``name`` ("mpc-rl", "bo", "mobo", "hybrid", "identify") with its
+    options (the keys of its settings table) for the study's start design ``starts`` (default:
+    random); ``model_fit``: the identification of the ``identify`` learner
+    (:class:`~mpcmobo.identify.ModelFit`). A bad option is a :class:`LearnerOptionError` (a
+    ``ValueError``)."""
+    spec = _spec(name)
+    opts = validate_options(name, options)
+    extra = {} if model_fit is None else {"model_fit": model_fit}
+    if spec.options is None:
+        return spec.cls(space, theta0, seed, starts=starts, **extra)
+    cls: Any = spec.cls  # a learner with options takes them after the seed
+    return cls(space, theta0, seed, opts, starts=starts, **extra)

@@ -1,8 +1,9 @@
 """The parametric MPC of eq. (V0), its sensitivities and closed-loop episodes."""
 
-from mpcmobo.mpc.closed_loop import model_plant, model_rollout, rollout
-from mpcmobo.mpc.parametric import MPCSolution, ParametricMPC
+from mpcmobo.mpc.closed_loop import model_plant, model_rollout, replay, rollout
+from mpcmobo.mpc.parametric import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
+from mpcmobo.mpc.solve import MPCSolution
 
 __all__ = [
     "EpisodeRecord",
@@ -10,5 +11,6 @@ __all__ = [
     "ParametricMPC",
     "model_plant",
     "model_rollout",
+    "replay",
     "rollout",
 ]

@@ -1,4 +1,4 @@
-"""Closed-loop episodes: the MPC (eq. Policy) driving the plant, with exploration.
+"""Closed-loop episodes: the MPC's policy driving the plant, with exploration.
 
 The plant is a ``gymnasium.Env`` (:mod:`mpcmobo.systems.plant`): the loop calls
 ``reset(seed=..., options={"x0": x0})`` and ``step(u)``, reads the measured state from the
@@ -15,8 +15,9 @@ from typing import Any, Protocol
 import gymnasium
 import numpy as np
 
-from mpcmobo.mpc.parametric import MPCSolution, ParametricMPC
+from mpcmobo.mpc.parametric import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
+from mpcmobo.mpc.solve import MPCSolution
 from mpcmobo.systems.base import System
 from mpcmobo.systems.plant import SystemPlant
 
@@ -40,6 +41,7 @@ def rollout(
     sensitivities: bool = True,
     plant: gymnasium.Env | None = None,
     plant_seed: int | None = None,
+    noise: np.ndarray | None = None,
 ) -> EpisodeRecord:
     """Run ``steps`` closed-loop steps from ``x0`` and record what the learners need.
 
@@ -47,7 +49,8 @@ def rollout(
     with ``seed=plant_seed`` and ``options={"x0": x0}`` (``x0`` None: the environment draws
     the start). At every step the MPC is solved at the measured state; its first input (or, if
     the solve failed, the safe fallback of :meth:`ParametricMPC.fallback_action`) plus the
-    exploration noise, clipped to the input bounds, is applied to the plant. The MPC is solved
+    exploration noise (``noise`` (steps, nu) drawn beforehand, else ``exploration`` sampled
+    with ``rng`` step by step), clipped to the input bounds, is applied to the plant. The MPC is solved
     once more at the final state so that ``V(x_T)`` exists. A failed solve never ends the
     episode; a plant that terminates ends it early (the record is shortened).
     """
@@ -55,8 +58,10 @@ def rollout(
     if steps < 1:
         raise ValueError(f"an episode needs at least one step, got {steps}")
     theta = mpc.check_theta(theta)
-    if exploration is not None and rng is None:
+    if exploration is not None and rng is None and noise is None:
         raise ValueError("exploration noise needs a random generator (rng)")
+    if noise is not None and np.shape(noise) != (steps, system.nu):
+        raise ValueError(f"noise must be ({steps}, {system.nu}), got {np.shape(noise)}")
     plant = SystemPlant(system) if plant is None else plant
     options = None if x0 is None else {"x0": system.check_state(x0)}
     obs, _ = plant.reset(seed=plant_seed, options=options)
@@ -69,7 +74,12 @@ def rollout(
         _record_solve(rec, k, sol, sensitivities)
         if k == steps:
             break
-        u = sol.action if exploration is None else sol.action + exploration.sample(rng, k)  # type: ignore[arg-type]  # rng checked above
+        if noise is not None:
+            u = sol.action + noise[k]
+        elif exploration is not None:
+            u = sol.action + exploration.sample(rng, k)  # type: ignore[arg-type]  # checked above
+        else:
+            u = sol.action
         x, terminated = _apply(system, plant, rec, k, x, system.clip_input(u))
         if terminated:
             steps = k + 1  # solve once more at the last state, then shorten the record
@@ -78,12 +88,15 @@ def rollout(
     return rec
 
 
-def model_plant(system: System, mpc: ParametricMPC) -> SystemPlant:
-    """The MPC's own prediction model (its nominal ``model_params``) as a plant: the system's
-    equations with those parameters. Building it builds the system's CasADi step function
-    again, so a caller that runs many model episodes builds it once (:func:`model_rollout`'s
-    ``plant``)."""
-    return SystemPlant(replace(system, true_params=np.asarray(mpc.model_params, dtype=float)))
+def model_plant(
+    system: System, mpc: ParametricMPC, params: np.ndarray | None = None
+) -> SystemPlant:
+    """The MPC's own prediction model (its nominal ``model_params``, or ``params``) as a
+    plant: the system's equations with those parameters. Building it builds the system's
+    CasADi step function again, so a caller that runs many model episodes builds it once
+    (:func:`model_rollout`'s ``plant``)."""
+    p = mpc.model_params if params is None else params
+    return SystemPlant(replace(system, true_params=np.asarray(p, dtype=float)))
 
 
 def model_rollout(
@@ -97,10 +110,43 @@ def model_rollout(
     """The closed loop of ``theta`` from ``x0`` on the MPC's own prediction model instead of the
     plant (``plant``: :func:`model_plant`, built here if not given): noise-free, without
     sensitivities. What the model predicts of an episode from ``x0``, at no cost to the plant;
-    with theta0 it is the learners' start covariate (``EpisodeResult.start_cost``, issue 11,
-    item 1)."""
+    with theta0 it is the learners' start covariate (``EpisodeResult.start_cost``)."""
     plant = model_plant(system, mpc) if plant is None else plant
     return rollout(system, mpc, theta, x0, steps, sensitivities=False, plant=plant)
+
+
+def replay(
+    system: System,
+    mpc: ParametricMPC,
+    theta: np.ndarray | None,
+    states: np.ndarray,
+    inputs: np.ndarray,
+    stage_costs: np.ndarray | None = None,
+    violations: np.ndarray | None = None,
+) -> EpisodeRecord:
+    """The record of an episode that ran elsewhere (a real plant): the MPC solved again on the
+    logged ``states`` (T+1, nx), in order and warm-started as in :func:`rollout` (the MPC is
+    deterministic given x and theta, so its actions, values and sensitivities are those it
+    had), with the ``inputs`` (T, nu) actually applied; the stage costs and violations are
+    the system's where not given (T,)."""
+    theta = mpc.check_theta(theta)
+    X, U = np.asarray(states, float), np.asarray(inputs, float)
+    steps = U.shape[0]
+    rec = _blank_record(steps, system.nx, system.nu, theta, mpc.gamma)
+    mpc.reset()
+    for k in range(steps + 1):
+        x = system.check_state(X[k])
+        rec.x[k] = x
+        _record_solve(rec, k, mpc.solve(x, theta), True)
+        if k == steps:
+            break
+        u = U[k]
+        rec.u[k] = u
+        rec.L[k] = system.stage_cost(x, u) if stage_costs is None else float(stage_costs[k])
+        rec.violation[k] = (
+            system.constraint_violation(x, u) if violations is None else float(violations[k])
+        )
+    return rec
 
 
 def _measured(system: System, obs: Any, where: str) -> np.ndarray:
@@ -145,7 +191,7 @@ def _blank_record(steps: int, nx: int, nu: int, theta: np.ndarray, gamma: float)
 
 def _record_solve(rec: EpisodeRecord, k: int, sol: MPCSolution, sensitivities: bool) -> None:
     """The solve at x_k: success, time, status, V_theta(x_k) and its gradients, pi_theta(x_k)."""
-    rec.success[k], rec.solve_time[k] = sol.success, sol.solve_time  # type: ignore[index]  # None only in old records
+    rec.success[k], rec.solve_time[k] = sol.success, sol.solve_time  # type: ignore[index]  # set by _blank_record
     rec.status.append(sol.status)
     if sol.success:
         rec.V[k] = sol.value

@@ -1,162 +1,53 @@
-"""The parametric NMPC of eq. (V0): policy (eq. Policy), value and their KKT sensitivities.
+"""The parametric MPC of a system, built once and solved many times, and the parts it composes.
 
-The optimal control problem, with the cost of section 5 of the paper::
+:class:`ParametricMPC` checks the options and the inputs and builds the pipeline of one MPC:
 
-    V_theta(x) = min  theta_c + sum_{i<N} gamma^i [ |x_i - x_r|^2_Q + |u_i - u_r|^2_R + Gamma^T eta_i ]
-                      + sum_{i<N} G^T [x_i - x_r; u_i - u_r] + G_x^T (x_N - x_r)
-                      + gamma^N [ |x_N - x_r|^2_T + Gamma_f^T eta_N ]                  (eq. cost_mpc)
-         s.t.  x_{i+1} = f_hat_theta(x_i, u_i)                                        (eq. mpc_model)
-               x_0 = x                                                                (eq. v2)
-               u_lb <= u_i <= u_ub                                 (pure input bounds g(u) <= 0)
-               x_lb + b_lb - eta_i <= x_i <= x_ub - b_ub + eta_i, i = 0..N           (eq. violation)
-               eta_i >= 0                                                             (eq. slack)
-               h(x_i, u_i) <= eta^h_i, eta^h_i >= 0, i = 0..N (u_N := u_{N-1})   (path constraints)
+- :mod:`mpcmobo.mpc.transcription`: the optimal control problem as an NLP in scaled variables,
+  and the layout of its decision vector;
+- :mod:`mpcmobo.mpc.kkt`: the NLP's barrier-relaxed KKT residual, the sensitivities of the
+  policy and the value, and the Newton step of warm solves;
+- :mod:`mpcmobo.mpc.codegen` (option ``codegen``): those functions as compiled C, cached;
+- :mod:`mpcmobo.mpc.solve`: the solve paths (Newton steps, IPOPT warm and cold, the fallback
+  input) and their result, :class:`~mpcmobo.mpc.solve.MPCSolution`.
 
-A system's general path constraints ``h(x, u) <= 0`` are relaxed like the state bounds, with
-slacks ``eta^h`` penalised by ``Gamma_h`` (l1) in the stage and terminal costs. With
-``MPCSpec.full_weights`` the weights ``T``, ``Q``, ``R`` are full matrices ``L L^T`` from the
-Cholesky entries in theta; otherwise diagonal as written above.
-
-The linear term ``G`` acts on deviations from the reference (the paper writes it on ``[x, u]``;
-the two differ by a constant, so the policy is the same and the value is better scaled).
-
-Decision variables are scaled, ``x = x_r + S_x z_x``, ``u = u_r + S_u z_u``, ``eta = S_x z_eta``,
-and the cost is divided by ``cost_scale``; values and sensitivities are returned in physical units.
-
-Sensitivities (eq. nabla_pi). IPOPT is run to the barrier parameter ``tau`` (option ``mu_target``),
-so its solution is exactly the root of the barrier-relaxed primal-dual KKT residual::
-
-    R(y, p) = [ grad_zeta Lagr ;  G ;  diag(mu) H + tau ],   y = (zeta, lambda, mu),
-
-with ``Lagr = Phi + lambda^T G + mu^T H`` and ``H <= 0`` collecting every inequality (general and
-simple bounds). ``R`` is smooth across active-set changes and ``dR/dy`` stays invertible, so
-
-    d pi / d theta = - (dR/dtheta)^T (dR/dy)^{-T} e_{u_0}                             (eq. nabla_pi)
-    d V  / d theta = d Lagr / d theta at the solution                                  (grad V)
-
-and the finite differences of the solver's own outputs agree with them.
-
-The same residual gives a fast path for warm solves (``newton_steps``): from the shifted
-previous solution, Newton steps ``dR/dy dy = -R`` with a fraction-to-boundary rule reach the
-root of ``R`` in 3-4 steps when the active set does not change; accepted at ``|R| <= tol`` at a
-strictly interior point, it is the point IPOPT stops at. When they do not converge (the new
-state violates a state bound of the shifted plan), a small primal-dual interior-point method
-(``barrier_steps``) follows the barrier path ``R_mu(y, p) = 0`` (``tau`` replaced by ``mu``)
-from ``mu_0`` down to ``tau`` after pushing the violated rows inside through their slacks; its
-result passes the same test and a second-order check. IPOPT solves when neither converges.
+The attributes of the parts that tests and benchmarks read or patch (``_prev``,
+``_run_solver``, ``_kkt``, ``nw``, ...) are names on the MPC that read and assign the part
+that owns them.
 """
 
 from __future__ import annotations
 
 import os
-import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
 from mpcmobo.mpc.codegen import compiled_library
+from mpcmobo.mpc.kkt import KKTSystem
+from mpcmobo.mpc.solve import MPCSolution, Solver
+from mpcmobo.mpc.transcription import Transcription
 from mpcmobo.systems.base import System
-from mpcmobo.systems.parameterization import Parameterization, weight_matrix
-
-_SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
-_MAX_BACKTRACKS = 10  # halvings of a barrier-path step before it gives up (IPOPT solves)
-# a barrier path whose steps are cut below 0.1 by the fraction-to-boundary rule this many times
-# in a row gives up (on the benchmark's states, converging paths had at most 9 such steps in a
-# row, the ones that ran out of steps 15 or more)
-_STALL_STEPS = 12
-_JIT_OPTIONS = {"flags": ["-O2"], "verbose": False}
-# options of CasADi's nlpsol itself (not IPOPT's): passed without the "ipopt." prefix
-_CASADI_NLPSOL_KEYS = (
-    "print_time",
-    "show_eval_warnings",
-    "calc_lam_p",
-    "calc_lam_x",
-    "calc_f",
-    "calc_g",
-    "bound_consistency",
-    "record_time",
-)
+from mpcmobo.systems.parameterization import Parameterization
 
 
-@dataclass
-class MPCSolution:
-    """Result of one MPC solve at state ``x`` with parameters ``theta``."""
+class _Part:
+    """An attribute of the MPC that lives in one of its parts: ``mpc.<name>`` reads (and
+    assigns) ``getattr(mpc, part).<attr>``, so a patch of ``mpc._run_solver`` reaches the
+    solver that calls it."""
 
-    action: np.ndarray  # (nu,) pi_theta(x), or the fallback input when the solve failed
-    value: float  # V_theta(x) (NaN when failed)
-    dpi_dtheta: np.ndarray | None  # (n_theta, nu)
-    dV_dtheta: np.ndarray | None  # (n_theta,)
-    success: bool
-    status: str
-    slack: float = 0.0  # sum of the slacks eta, physical units
-    iterations: int = 0
-    plan_u: np.ndarray | None = None  # (N, nu) predicted inputs
-    plan_x: np.ndarray | None = None  # (N+1, nx) predicted states
-    solve_time: float = 0.0  # seconds, solve + sensitivities
-    fallback: bool = False
-    info: dict = field(default_factory=dict)
+    def __init__(self, part: str, attr: str) -> None:
+        self.part, self.attr = part, attr
 
+    def __get__(self, obj: Any, owner: Any = None) -> Any:
+        if obj is None:
+            return self
+        return getattr(getattr(obj, self.part), self.attr)
 
-def _fraction_to_boundary(mu: ca.MX, dmu: ca.MX, H: ca.MX, dH: ca.MX) -> ca.MX:
-    """The step length ``a <= 1`` of a Newton step after which the multipliers ``mu + a dmu``
-    and (to first order) the inequalities ``H + a dH`` keep 0.5 % of their distance to 0."""
-    big = ca.DM(1e300)
-    a_mu = ca.mmin(ca.if_else(dmu < 0, -mu / dmu, big))
-    a_H = ca.mmin(ca.if_else(dH > 0, -H / dH, big))
-    return ca.fmin(1.0, 0.995 * ca.fmin(a_mu, a_H))
-
-
-class _NumpyCall:
-    """A CasADi function evaluated into preallocated numpy arrays: ``f(*args)`` returns its
-    outputs (2-d arrays in the function's shapes, floats for scalars), the numbers of ``fn(*args)``
-    bit for bit, without converting every argument and result to a ``DM`` (that conversion was
-    half the time of a compiled Newton step's call). The buffers are made at the first call, so
-    a fresh MPC holds plain CasADi functions only. The returned arrays are copies."""
-
-    def __init__(self, fn: ca.Function) -> None:
-        self.fn = fn
-        self._state: tuple | None = None
-
-    def _setup(self) -> tuple:
-        fn = self.fn
-        buf, run = fn.buffer()
-        args = []
-        for i in range(fn.n_in()):
-            if fn.nnz_in(i) != fn.numel_in(i):  # not expected: every input here is dense
-                raise ValueError(f"{fn.name()}: input {i} is sparse")
-            args.append(np.zeros(fn.nnz_in(i)))
-            # CasADi's stubs ask for a size the Python binding takes from the buffer itself
-            buf.set_arg(i, memoryview(args[-1]))  # type: ignore[call-arg, arg-type]
-        res, shapes = [], []
-        for i in range(fn.n_out()):
-            sp = fn.sparsity_out(i)
-            res.append(np.zeros(sp.nnz()))
-            buf.set_res(i, memoryview(res[-1]))  # type: ignore[call-arg, arg-type]
-            dense = sp.nnz() == sp.numel()
-            shapes.append((sp.size1(), sp.size2(), None if dense else np.array(sp.find())))
-        self._state = (buf, run, args, res, shapes)
-        return self._state
-
-    def __call__(self, *values: Any) -> tuple:
-        _, run, args, res, shapes = self._state or self._setup()
-        for a, v in zip(args, values):
-            a[:] = v
-        run()
-        out: list = []
-        for r, (n1, n2, nz) in zip(res, shapes):
-            if nz is not None:  # structural zeros: scatter (column-major positions)
-                d = np.zeros(n1 * n2)
-                d[nz] = r
-                r = d
-            if n1 * n2 == 1:
-                out.append(float(r[0]))
-            else:
-                out.append(r.reshape((n1, n2), order="F").copy())
-        return tuple(out)
+    def __set__(self, obj: Any, value: Any) -> None:
+        setattr(getattr(obj, self.part), self.attr, value)
 
 
 class ParametricMPC:
@@ -171,17 +62,20 @@ class ParametricMPC:
         The system whose model, bounds, references and parameterization are used.
     model:
         ``"imperfect"``, ``"perfect"``, another name in ``system.models`` or a parameter vector.
+    horizon, gamma:
+        Prediction horizon N and discount (default: the system's ``mpc_spec``).
     tau:
         Barrier parameter at which the problem is solved and differentiated (scaled units).
     tol:
-        IPOPT tolerance on the barrier problem.
+        IPOPT tolerance on the barrier problem, and the Newton steps' acceptance test.
+    max_iter:
+        IPOPT's iteration limit (the warm-started solver: at most 50).
     warm_start:
         Initialise each solve from the shifted previous solution.
     solver_options:
         Extra IPOPT options (``{"max_iter": 200}``, ...), for the cold and the warm solver.
-    jit:
-        Compile generated C code of the NLP and KKT functions (needs a C compiler; building
-        takes 10-20 s, a step is then about 1.5x faster, see ``docs/benchmarks.md``, step time).
+    cost_scale:
+        The cost is divided by it (default: the mean reference weight in scaled units).
     warm_options:
         IPOPT options of the warm-started solver only (after the built-in warm-start settings).
     linsol:
@@ -193,7 +87,7 @@ class ParametricMPC:
         step, compiled once per machine and problem and cached on disk (``mpcmobo.mpc.codegen``):
         the first build compiles (tens of seconds), later builds of the same problem load the
         library. Same numbers as without it, faster steps (``docs/benchmarks.md``, step time).
-        Needs a C compiler (``$CC`` or ``cc``); an alternative to ``jit``.
+        Needs a C compiler (``$CC`` or ``cc``).
     cache_dir:
         Directory of the compiled libraries (default: ``mpcmobo.mpc.codegen.cache_directory()``).
     newton_steps:
@@ -201,33 +95,28 @@ class ParametricMPC:
         ``R(y, p) = 0`` from the shifted previous solution (fraction-to-boundary steps that keep
         ``H < 0`` and ``mu > 0``). Accepted only when ``|R|_inf <= tol`` at a strictly interior
         point: then it is the barrier solution IPOPT stops at, to its tolerance; otherwise IPOPT
-        solves as without it. 0: no Newton steps at the fixed tau.
-    barrier_steps:
-        With a warm start, when the Newton steps at the fixed tau do not converge (typically:
-        the new state violates a state bound of the shifted plan, and the active set changes),
-        first try a short primal-dual interior-point path of at most this many Newton steps
-        (``_barrier_solve``): the violated rows' slacks are enlarged so that the start is
-        strictly interior, then the barrier parameter decreases from ``barrier_mu0`` to tau.
-        Accepted under the same test as the Newton steps (``|R|_inf <= tol`` at tau, strictly
-        interior) and only at a local minimum of the barrier problem (its Hessian positive
-        definite on the null space of the equality constraints); otherwise IPOPT solves.
-        0 (the default): off. Not the default (yet): it changes the last digits of the
-        sensitivities, and a short seeded mpc-rl run on the CSTR (``tests/test_learners.py``)
-        amplifies such differences into another outcome (as it does between IPOPT only and the
-        Newton steps); and where two local minima compete it can reach another one than IPOPT
-        (one state of the step-time benchmark's 240, with the default MPC's closed loop); see
-        ``docs/benchmarks.md``, step time.
-    barrier_mu0:
-        The first barrier parameter of that path (scaled units), in (0, 1); IPOPT's warm
-        solver starts at 1e-3 too (``mu_init``).
-    barrier_push:
-        True (the default): where the new state violates rows of the shifted plan, the barrier
-        path starts after pushing them inside through their slacks. False: the barrier path
-        only runs from a strictly interior warm start (the Newton steps at tau did not converge
-        there, typically too slowly), and IPOPT solves where rows are violated. With False the
-        path reached IPOPT's local solution on every state of the step-time benchmark, with
-        True not on one state where two local minima compete (``docs/benchmarks.md``).
+        solves as without it. 0: no Newton steps.
     """
+
+    # the transcription's scales, weights, sizes and layout of w (_problem: Transcription)
+    N = _Part("_problem", "N")
+    gamma = _Part("_problem", "gamma")
+    Sx, Su, Sh = _Part("_problem", "Sx"), _Part("_problem", "Su"), _Part("_problem", "Sh")
+    Gamma, Gamma_f = _Part("_problem", "Gamma"), _Part("_problem", "Gamma_f")
+    nh, Gamma_h = _Part("_problem", "nh"), _Part("_problem", "Gamma_h")
+    cost_scale = _Part("_problem", "cost_scale")
+    nw, neq, nin = _Part("_problem", "nw"), _Part("_problem", "neq"), _Part("_problem", "nin")
+    _iu, _ix, _ie = _Part("_problem", "iu"), _Part("_problem", "ix"), _Part("_problem", "ie")
+    _lbw, _ubw = _Part("_problem", "lbw"), _Part("_problem", "ubw")
+    _transcribe, _cold_guess = _Part("_problem", "transcribe"), _Part("_problem", "cold_guess")
+    # the KKT system (_kkt_system: KKTSystem)
+    tau, nH = _Part("_kkt_system", "tau"), _Part("_kkt_system", "nH")
+    _kkt, _multipliers = _Part("_kkt_system", "kkt"), _Part("_kkt_system", "multipliers")
+    # the solve paths and their warm start (_paths: Solver)
+    warm_start, _prev = _Part("_paths", "warm_start"), _Part("_paths", "prev")
+    _solver, _solver_warm = _Part("_paths", "cold"), _Part("_paths", "warm")
+    _run_solver, _newton_solve = _Part("_paths", "ipopt"), _Part("_paths", "newton")
+    _sensitivities, _failed_solution = _Part("_paths", "sensitivities"), _Part("_paths", "failed")
 
     def __init__(
         self,
@@ -242,36 +131,19 @@ class ParametricMPC:
         warm_start: bool = True,
         solver_options: dict | None = None,
         cost_scale: float | None = None,
-        jit: bool = False,
         warm_options: dict | None = None,
         linsol: str = "qr",
         codegen: bool = False,
         cache_dir: str | os.PathLike | None = None,
         newton_steps: int = 6,
-        barrier_steps: int = 0,
-        barrier_mu0: float = 1e-3,
-        barrier_push: bool = True,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
         self.model = model if isinstance(model, str) else "custom"
         self.model_params = np.array(system.model_params(model), dtype=float)
-        self.N = int(spec.horizon if horizon is None else horizon)
-        self.gamma = float(spec.gamma if gamma is None else gamma)
-        _check_options(self.N, self.gamma, tau, linsol)
-        if int(newton_steps) != newton_steps or newton_steps < 0:
-            raise ValueError(f"newton_steps must be an integer >= 0, got {newton_steps}")
-        self._newton = int(newton_steps)
-        if int(barrier_steps) != barrier_steps or barrier_steps < 0:
-            raise ValueError(f"barrier_steps must be an integer >= 0, got {barrier_steps}")
-        if not 0 < barrier_mu0 < 1:
-            raise ValueError(f"barrier_mu0 must be in (0, 1), got {barrier_mu0}")
-        self._barrier_steps = int(barrier_steps)
-        self._barrier_mu0 = max(float(barrier_mu0), float(tau))
-        self._barrier_push = bool(barrier_push)
-        self._tol = float(tol)
-        self.tau = float(tau)
-        self.warm_start = bool(warm_start)
+        N = int(spec.horizon if horizon is None else horizon)
+        gamma = float(spec.gamma if gamma is None else gamma)
+        _check_options(N, gamma, tau, linsol, newton_steps)
         self.param: Parameterization = system.parameterization
         self.theta0 = self.param.theta0.copy()
         if "model" in self.param.blocks:  # learnable model parameters: this MPC's own model
@@ -280,344 +152,46 @@ class ParametricMPC:
         self.theta_names = list(self.param.names)
         self.n_theta = self.param.n_theta
         self.nx, self.nu = system.nx, system.nu
-        self.Sx, self.Su = np.asarray(system.x_scale, float), np.asarray(system.u_scale, float)
-        self.Gamma = np.full(self.nx, 1e5) if spec.Gamma is None else np.asarray(spec.Gamma, float)
-        self.Gamma_f = self.Gamma if spec.Gamma_f is None else np.asarray(spec.Gamma_f, float)
-        self.nh = system.nh  # general path constraints h(x, u) <= 0, l1-relaxed
-        self.Gamma_h = np.asarray(system.Gamma_h if spec.Gamma_h is None else spec.Gamma_h, float)
-        self.Sh = np.asarray(system.h_scale, float) if self.nh else np.zeros(0)
-        self._slack_scale = np.concatenate([self.Sx, self.Sh])
-        if cost_scale is None:
-            cost_scale = float(np.sum(system.Q * self.Sx**2) + np.sum(system.R * self.Su**2)) / (
-                self.nx + self.nu
-            )
-        self.cost_scale = float(cost_scale)
-        self._linsol = linsol
-        self._jit = bool(jit)
-        self._codegen = bool(codegen)
-        if self._jit and self._codegen:
-            raise ValueError("jit and codegen are alternatives: choose one of them")
-        self._build()
-        cold, warm = _ipopt_options(
-            tol, self.tau, max_iter, jit=self._jit, options=solver_options, warm=warm_options
+        self._problem = Transcription(
+            system, self.model_params, self.param, horizon=N, gamma=gamma, cost_scale=cost_scale
         )
-        nlp: dict | str = self._nlp
+        self._kkt_system = KKTSystem(self._problem, tau, linsol)
         #: how the MPC's functions were built: {"codegen", and with it "path", "cached", "seconds"}
-        self.build_info: dict = {"codegen": self._codegen}
-        if self._codegen:
+        self.build_info: dict = {"codegen": bool(codegen)}
+        nlp: dict | str = self._problem.nlp
+        if codegen:
             lib = self._compiled_library(cache_dir)
             nlp = str(lib)
-            self._sens = ca.external("sens", str(lib))
-            self._newton_fn = ca.external("newton", str(lib))
-            if self._barrier_steps:
-                self._barrier_fn = ca.external("barrier", str(lib))
-                self._barrier_point = ca.external("barrier_point", str(lib))
-                self._h_fn = ca.external("barrier_h", str(lib))
-                self._soc_fn = ca.external("barrier_soc", str(lib))
-        # the functions of the Newton steps, the barrier path and the sensitivities, called
-        # on numpy buffers (the same numbers, without a DM per argument)
-        self._newton_call = _NumpyCall(self._newton_fn)
-        self._barrier_call = _NumpyCall(self._barrier_fn)
-        self._point_call = _NumpyCall(self._barrier_point)
-        self._h_call = _NumpyCall(self._h_fn)
-        self._sens_call = _NumpyCall(self._sens)
-        self._soc_call = _NumpyCall(self._soc_fn)
-        self._solver = ca.nlpsol("mpc", "ipopt", nlp, cold)
-        self._solver_warm: ca.Function | None = (
-            ca.nlpsol("mpc_warm", "ipopt", nlp, warm) if self.warm_start else None
+            self._kkt_system.load(lib)
+        self._paths = Solver(
+            self._problem,
+            self._kkt_system,
+            nlp,
+            tol=tol,
+            max_iter=max_iter,
+            newton_steps=int(newton_steps),
+            warm_start=warm_start,
+            solver_options=solver_options,
+            warm_options=warm_options,
         )
-        self._prev: dict | None = None
-
-    # ------------------------------------------------------------------ construction
-    def _build(self) -> None:
-        """The NLP of eq. (V0) in the scaled variables, its warm-start shifts and KKT system."""
-        x0 = ca.SX.sym("x0", self.nx)
-        th = ca.SX.sym("theta", self.n_theta)
-        wv, geq, gin, f = self._transcribe(x0, th)
-        p = ca.vertcat(x0, th)
-        self.nw, self.neq, self.nin = wv.numel(), geq.numel(), gin.numel()
-        self._lbg = np.concatenate([np.zeros(self.neq), np.full(self.nin, -np.inf)])
-        self._ubg = np.zeros(self.neq + self.nin)
-        self._nlp = {"x": wv, "p": p, "f": f, "g": ca.vertcat(geq, gin)}
-        self._iu_flat = np.array(sum(self._iu, []))
-        self._ix_flat = np.array(sum(self._ix, []))
-        self._ie_flat = np.array(sum(self._ie, []))
-        self._wshift, self._gshift = self._shift_maps()
-        self._kkt_functions(wv, geq, gin, f, th, p)
-
-    def _theta_terms(self, th: ca.SX) -> _ThetaTerms:
-        """The blocks of theta as the cost weights, model parameters and bounds they set."""
-        sysm, P, nx = self.system, self.param, self.nx
-        b = P.blocks
-        theta_c = th[b["theta_c"]][0]
-        Tw, G, Qw, Rw = th[b["T"]], th[b["G"]], th[b["Q"]], th[b["R"]]
-        pm = ca.SX(ca.DM(self.model_params))
-        if "model" in b:  # learnable model parameters (eq. mpc_model with f_hat_theta)
-            mth = th[b["model"]]
-            for j, idx in enumerate(P.model_param_index):
-                pm[idx] = mth[j]
-        if sysm.mpc_spec.full_weights:  # W = L L^T from the Cholesky entries
-            Tw, Qw = weight_matrix(Tw, nx), weight_matrix(Qw, nx)
-            Rw = weight_matrix(Rw, self.nu)
-        x_lo, x_hi = ca.SX(ca.DM(sysm.x_lb)), ca.SX(ca.DM(sysm.x_ub))
-        if "backoff" in b:  # constraint back-offs b_lb, b_ub (eq. violation)
-            bo = th[b["backoff"]]
-            x_lo, x_hi = x_lo + bo[:nx], x_hi - bo[nx:]
-        return _ThetaTerms(theta_c, Tw, G, Qw, Rw, pm, x_lo, x_hi)
-
-    def _transcribe(self, x0: ca.SX, th: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
-        """Multiple shooting of eq. (V0) over stages 0..N: (w, G, H, cost / cost_scale).
-
-        Sets the bounds of ``w`` and the index lists of its inputs, states and slacks.
-        """
-        sysm, nx, N = self.system, self.nx, self.N
-        Sx, Su, xr, ur = self.Sx, self.Su, sysm.x_ref, sysm.u_ref
-        t = self._theta_terms(th)
-        F = sysm.discrete_step
-        w = _Decisions()
-        self._iu: list[int] = []  # index lists into w
-        self._ix: list[int] = []
-        self._ie: list[int] = []
-        zu_lb, zu_ub = (sysm.u_lb - ur) / Su, (sysm.u_ub - ur) / Su
-        g_eq, g_in = [], []
-        cost = t.theta_c
-        x_phys = x0
-        nh = self.nh
-        for i in range(N + 1):
-            ze = w.add(f"eta{i}", [0.0] * (nx + nh), [np.inf] * (nx + nh), self._ie)  # eq. slack
-            eta, eta_h = (Sx * ze[:nx], self.Sh * ze[nx:]) if nh else (Sx * ze, None)
-            g_in += self._state_rows(x_phys, eta, t)
-            dx = x_phys - xr
-            if i < N:
-                zu = w.add(f"u{i}", list(zu_lb), list(zu_ub), self._iu)
-                u_phys = ur + Su * zu
-                du = u_phys - ur
-                gi = self.gamma**i
-                cost += gi * (_quad(dx, t.Q) + _quad(du, t.R) + ca.dot(self.Gamma, eta))
-                cost += ca.dot(t.G, ca.vertcat(dx, du))
-            if nh:  # h(x_i, u_i) <= eta^h_i; at stage N with the last input
-                h = sysm.path_function(x_phys, u_phys)  # type: ignore[misc]  # nh > 0: set
-                g_in += [(h[j] - eta_h[j]) / self.Sh[j] for j in range(nh)]  # type: ignore[index]
-                cost += (gi if i < N else self.gamma**N) * ca.dot(self.Gamma_h, eta_h)  # type: ignore[arg-type]
-            if i < N:
-                zx = w.add(f"x{i + 1}", [-np.inf] * nx, [np.inf] * nx, self._ix)
-                x_next = xr + Sx * zx
-                g_eq.append((F(x_phys, u_phys, t.pm) - x_next) / Sx)  # (eq. mpc_model)
-                x_phys = x_next
-            else:
-                cost += ca.dot(t.G[:nx], dx)
-                cost += self.gamma**N * (_quad(dx, t.T) + ca.dot(self.Gamma_f, eta))
-        self._lbw, self._ubw = np.array(w.lb), np.array(w.ub)
-        return ca.vertcat(*w.w), ca.vertcat(*g_eq), ca.vertcat(*g_in), cost / self.cost_scale
-
-    def _state_rows(self, x_phys: ca.SX, eta: ca.SX | np.ndarray, t: _ThetaTerms) -> list:
-        """l1-relaxed state constraints of one stage (eq. violation), scaled rows ``H <= 0``."""
-        sysm, Sx = self.system, self.Sx
-        rows = []
-        for j in range(self.nx):
-            if np.isfinite(sysm.x_lb[j]):
-                rows.append((t.x_lo[j] - x_phys[j] - eta[j]) / Sx[j])
-            if np.isfinite(sysm.x_ub[j]):
-                rows.append((x_phys[j] - t.x_hi[j] - eta[j]) / Sx[j])
-        return rows
-
-    def _shift_maps(self) -> tuple[np.ndarray, np.ndarray]:
-        """One-stage shift of ``w`` and of the constraint rows (the last stage is repeated)."""
-        N, nx = self.N, self.nx
-        wshift = np.arange(self.nw)
-        for lst in (self._iu, self._ix, self._ie):
-            for i in range(len(lst) - 1):
-                wshift[lst[i]] = lst[i + 1]
-        m = self.nin // (N + 1)  # inequality rows per stage
-        eq_rows = np.arange(self.neq).reshape(N, nx)
-        in_rows = self.neq + np.arange(self.nin).reshape(N + 1, m)
-        gshift = np.concatenate(
-            [
-                np.vstack([eq_rows[1:], eq_rows[-1:]]).reshape(-1),
-                np.vstack([in_rows[1:], in_rows[-1:]]).reshape(-1),
-            ]
-        )
-        return wshift, gshift
-
-    def _kkt_functions(
-        self, wv: ca.SX, geq: ca.SX, gin: ca.SX, f: ca.SX, th: ca.SX, p: ca.SX
-    ) -> None:
-        """The barrier-relaxed KKT residual R(y, p) and its Jacobians (eq. nabla_pi).
-
-        Sets ``_kkt`` = (w, lam, mu, p) -> (dR/dy, dR/dtheta, df/dtheta, df/dw) and the
-        sensitivity function ``_sens`` built on it.
-        """
-        lb_idx = np.flatnonzero(np.isfinite(self._lbw))
-        ub_idx = np.flatnonzero(np.isfinite(self._ubw))
-        self._lb_idx, self._ub_idx = lb_idx, ub_idx
-        H = ca.vertcat(
-            gin,
-            ca.DM(self._lbw[lb_idx]) - wv[lb_idx.tolist()],
-            wv[ub_idx.tolist()] - ca.DM(self._ubw[ub_idx]),
-        )
-        self.nH = H.numel()
-        lam = ca.SX.sym("lam", self.neq)
-        mu = ca.SX.sym("mu", self.nH)
-        lagr = f + ca.dot(lam, geq) + ca.dot(mu, H)
-        grad_lagr = ca.gradient(lagr, wv)
-        R = ca.vertcat(grad_lagr, geq, mu * H + self.tau)
-        y = ca.vertcat(wv, lam, mu)
-        Jy = ca.jacobian(R, y)
-        Jth = ca.jacobian(R, th)
-        # total derivative of the returned value f(w*(theta), theta): partial in theta plus
-        # grad_w f . dw/dtheta. It equals dLagr/dtheta up to O(tau) terms and is exact for the
-        # barrier solution the solver returns.
-        dfdth = ca.gradient(f, th)
-        dfdw = ca.gradient(f, wv)
-        kkt_opts: dict[str, Any] = {}
-        if self._jit:  # the exact Hessian inside dR/dy dominates this evaluation
-            kkt_opts = {"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS}
-        self._kkt = ca.Function("kkt", [wv, lam, mu, p], [Jy, Jth, dfdth, dfdw], kkt_opts)
-        self._ny = y.numel()
-        self._sens = self._sensitivity_function(self._linsol)
-        self._newton_fn = self._newton_function(wv, y, p, R, Jy, H, f, kkt_opts)
-        mu_bar = ca.SX.sym("mu_bar")
-        R_bar = ca.vertcat(grad_lagr, geq, mu * H + mu_bar)  # R at the barrier mu_bar
-        self._barrier_fn, self._barrier_point = self._barrier_functions(
-            wv, y, p, mu_bar, R_bar, Jy, H, f, kkt_opts
-        )
-        self._h_fn = ca.Function("barrier_h", [wv, p], [H, ca.gradient(f, wv)], kkt_opts)
-        # second-order check of a barrier-path solution: the barrier Hessian
-        # K = W + dH^T diag(mu / -H) dH reduced to the null space of the equality Jacobian A
-        dHdw = ca.jacobian(H, wv)
-        K = ca.hessian(lagr, wv)[0] + ca.mtimes(dHdw.T, ca.mtimes(ca.diag(mu / -H), dHdw))
-        # in the blocks of (the predicted states, the rest), dense: the reduction to the null
-        # space is done in numpy (_is_local_minimum; as one CasADi function it took longer)
-        ix = self._ix_flat.tolist()
-        ir = np.setdiff1d(np.arange(self.nw), self._ix_flat).tolist()
-        A = ca.jacobian(geq, wv)
-        blocks = [K[ix, ix], K[ix, ir], K[ir, ir], A[:, ix], A[:, ir]]
-        self._soc_fn = ca.Function("barrier_soc", [wv, lam, mu, p], [ca.densify(b) for b in blocks])
-        self._row_slack, self._row_coef = self._slack_rows(gin, wv)
-
-    def _newton_function(
-        self,
-        wv: ca.SX,
-        y: ca.SX,
-        p: ca.SX,
-        R: ca.SX,
-        Jy: ca.SX,
-        H: ca.SX,
-        f: ca.SX,
-        opts: dict,
-    ) -> ca.Function:
-        """(y, p) -> (y+ = y + a dy, |R(y)|_inf, |R(y+)|_inf, f(y+), max H(y+), min mu+): one
-        Newton step on the barrier KKT system, ``dR/dy dy = -R``, with the fraction-to-boundary
-        rule ``a <= 1``: ``mu + a dmu`` and (to first order) ``H + a dH`` keep 0.5 % of their
-        distance to 0; and the residual at the new point, so that no step is taken in vain."""
-        nw, neq = self.nw, self.neq
-        dw = ca.SX.sym("dw", self.nw)
-        res = ca.Function("newton_res", [y, p], [R, Jy, H], opts)
-        point = ca.Function("newton_point", [y, p], [ca.norm_inf(R), f, ca.mmax(H)], opts)
-        dH = ca.Function("newton_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)], opts)
-        Y = ca.MX.sym("y", self._ny)
-        P = ca.MX.sym("p", p.numel())
-        Rv, J, Hv = res(Y, P)
-        dy = ca.solve(J, -Rv, self._linsol)
-        a = _fraction_to_boundary(Y[nw + neq :], dy[nw + neq :], Hv, dH(Y[:nw], P, dy[:nw]))
-        Y1 = Y + a * dy
-        res1, f1, h1 = point(Y1, P)
-        out = [Y1, ca.norm_inf(Rv), res1, f1, h1, ca.mmin(Y1[nw + neq :]), ca.mmax(Hv)]
-        return ca.Function("newton", [Y, P], out)
-
-    def _barrier_functions(
-        self,
-        wv: ca.SX,
-        y: ca.SX,
-        p: ca.SX,
-        mu_bar: ca.SX,
-        R: ca.SX,
-        Jy: ca.SX,
-        H: ca.SX,
-        f: ca.SX,
-        opts: dict,
-    ) -> tuple[ca.Function, ca.Function]:
-        """The Newton step of the barrier path and the merit of a point, at barrier ``mu_bar``.
-
-        ``barrier``: (y, p, mu_bar) -> (dy, a_max, |R(y)|_inf, |R(y)|_2, y1 = y + a_max dy,
-        |R(y1)|_inf, |R(y1)|_2, max H(y1), min mu1, f(y1)), with ``dR/dy dy = -R`` and the
-        fraction-to-boundary rule ``a_max <= 1`` (``mu`` and, to first order, ``H`` keep 0.5 %
-        of their distance to 0). ``barrier_point``: (y, p, mu_bar) -> (|R|_inf, |R|_2, max H,
-        min mu, f) at a trial point of the line search."""
-        nw, neq = self.nw, self.neq
-        dw = ca.SX.sym("dw", self.nw)
-        res = ca.Function("barrier_res", [y, p, mu_bar], [R, Jy, H], opts)
-        mu = y[nw + neq :]
-        point = ca.Function(
-            "barrier_point",
-            [y, p, mu_bar],
-            [ca.norm_inf(R), ca.norm_2(R), ca.mmax(H), ca.mmin(mu), f],
-            opts,
-        )
-        dH = ca.Function("barrier_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)], opts)
-        Y = ca.MX.sym("y", self._ny)
-        P = ca.MX.sym("p", p.numel())
-        M = ca.MX.sym("mu_bar")
-        Rv, J, Hv = res(Y, P, M)
-        dy = ca.solve(J, -Rv, self._linsol)
-        a = _fraction_to_boundary(Y[nw + neq :], dy[nw + neq :], Hv, dH(Y[:nw], P, dy[:nw]))
-        Y1 = Y + a * dy
-        r1, r1_2, h1, m1, f1 = point(Y1, P, M)
-        out = [dy, a, ca.norm_inf(Rv), ca.norm_2(Rv), Y1, r1, r1_2, h1, m1, f1]
-        return ca.Function("barrier", [Y, P, M], out), point
-
-    def _slack_rows(self, gin: ca.SX, wv: ca.SX) -> tuple[np.ndarray, np.ndarray]:
-        """For every row of ``gin``: the position in ``w`` of its slack and the slack's
-        (negative, constant) coefficient in the row (the rows are ``... - eta <= 0``)."""
-        jac = ca.Function("jac_gin", [wv], [ca.jacobian(gin, wv)])
-        J = np.asarray(jac(np.zeros(self.nw)))
-        slack = np.full(self.nin, -1)
-        coef = np.zeros(self.nin)
-        for r in range(self.nin):
-            cols = [c for c in self._ie_flat if J[r, c] < 0]
-            if len(cols) == 1:
-                slack[r], coef[r] = cols[0], J[r, cols[0]]
-        return slack, coef
-
-    def _sensitivity_function(self, linsol: str) -> ca.Function:
-        """(w, lam, mu, p) -> (dpi/dtheta, dV/dtheta), one call, one sparse factorisation.
-
-        Adjoint form: with ``dy/dtheta = -(dR/dy)^-1 dR/dtheta``, only ``nu + 1`` linear
-        functionals of ``dy`` are needed (the first input and ``grad_w f . dw``), so one solve
-        with the transposed KKT matrix and ``nu + 1`` right-hand sides gives both gradients.
-        """
-        nu, n_th = self.nu, self.n_theta
-        w = ca.MX.sym("w", self.nw)
-        lam = ca.MX.sym("lam", self.neq)
-        mu = ca.MX.sym("mu", self.nH)
-        p = ca.MX.sym("p", self.nx + n_th)
-        Jy, Jth, dfdth, dfdw = self._kkt(w, lam, mu, p)
-        E = np.zeros((self._ny, nu))
-        E[self._iu[0], np.arange(nu)] = self.Su
-        B = ca.horzcat(ca.DM(E), ca.vertcat(dfdw, ca.DM.zeros(self._ny - self.nw)))
-        L = ca.solve(Jy.T, B, linsol)
-        dpi = -ca.mtimes(Jth.T, L[:, :nu])  # (eq. nabla_pi), physical, (n_theta, nu)
-        dV = self.cost_scale * (dfdth - ca.mtimes(Jth.T, L[:, nu]))
-        return ca.Function("sens", [w, lam, mu, p], [dpi, dV])
 
     def _compiled_library(self, cache_dir: str | os.PathLike | None) -> Path:
-        """The NLP functions IPOPT calls, ``_sens`` and ``_newton_fn``, compiled (or loaded from
-        the cache)."""
+        """The NLP functions IPOPT calls, the sensitivity function and the Newton step,
+        compiled (or loaded from the cache)."""
+        nlp_dict = self._problem.nlp
         nlp = ca.Function(
             "nlp",
-            [self._nlp["x"], self._nlp["p"]],
-            [self._nlp["f"], self._nlp["g"]],
+            [nlp_dict["x"], nlp_dict["p"]],
+            [nlp_dict["f"], nlp_dict["g"]],
             ["x", "p"],
             ["f", "g"],
         )
-        probe = ca.nlpsol("probe", "ipopt", self._nlp, {"calc_lam_p": True})
+        probe = ca.nlpsol("probe", "ipopt", nlp_dict, {"calc_lam_p": True})
         names = ("nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l", "nlp_grad")
-        functions = [nlp, *(probe.get_function(n) for n in names), self._sens, self._newton_fn]
-        if self._barrier_steps:  # only then: the library of an MPC without them is unchanged
-            functions += [self._barrier_fn, self._barrier_point, self._h_fn, self._soc_fn]
+        kkt = self._kkt_system
+        functions = [nlp, *(probe.get_function(n) for n in names), kkt.sens, kkt.newton]
         return compiled_library(functions, directory=cache_dir, info=self.build_info)
 
-    # ------------------------------------------------------------------ validation
     def check_theta(self, theta: ArrayLike | None) -> np.ndarray:
         """``theta`` as a float vector of length ``n_theta`` (None: theta0); a wrong shape or a
         non-finite value is a ``ValueError``."""
@@ -634,377 +208,23 @@ class ParametricMPC:
 
     def reset(self) -> None:
         """Forget the warm start (call between episodes)."""
-        self._prev = None
-
-    # ------------------------------------------------------------------ solve
-    def _cold_guess(self, x: np.ndarray) -> np.ndarray:
-        w0 = np.zeros(self.nw)
-        zx0 = (x - self.system.x_ref) / self.Sx
-        for idx in self._ix:
-            w0[idx] = zx0
-        return w0
+        self._paths.reset()
 
     def fallback_action(self) -> np.ndarray:
         """The safe input used when a solve fails: the shifted previous plan, else ``u_r``."""
-        if self._prev is not None and self._prev["plan_u"] is not None:
-            plan = self._prev["plan_u"]
-            age = min(self._prev["age"] + 1, plan.shape[0] - 1)
-            return self.system.clip_input(plan[age])
-        return self.system.clip_input(self.system.u_ref)
+        return self._paths.fallback_action()
 
     def solve(
         self, x: ArrayLike, theta: ArrayLike | None = None, sensitivities: bool = True
     ) -> MPCSolution:
-        """Solve eq. (V0) at state ``x``; return pi_theta(x), V_theta(x) and their gradients."""
+        """Solve eq. (V0) at state ``x``; return pi_theta(x), V_theta(x) and their gradients
+        (``sensitivities``), by the paths of :mod:`mpcmobo.mpc.solve`."""
         x = self.system.check_state(x)
         theta = self.check_theta(theta)
-        t0 = time.perf_counter()
-        p = np.concatenate([x, theta])
-        warm = self.warm_start and self._prev is not None
-        if warm and (self._newton or self._barrier_steps):
-            found = self._newton_solve(p) if self._newton else None
-            if found is None and self._barrier_steps:
-                found = self._barrier_solve(p)
-            if found is not None:
-                sol = self._solution(x, p, *found, sensitivities=sensitivities)
-                sol.solve_time = time.perf_counter() - t0
-                return sol
-        ok, status, iters, out, wopt = self._run_solver(x, p, warm)
-        if not ok and warm:  # a warm start can mislead IPOPT: retry once from a cold start
-            ok, status, iters2, out, wopt = self._run_solver(x, p, False)
-            iters += iters2
-        if not ok:
-            sol = self._failed_solution(status, iters, sensitivities)
-        else:
-            sol = self._solution(x, p, out, wopt, status, iters, sensitivities=sensitivities)
-        sol.solve_time = time.perf_counter() - t0
-        return sol
-
-    def _failed_solution(self, status: str, iters: int, sensitivities: bool) -> MPCSolution:
-        """The fallback input (the previous plan, one step older) and NaN value and gradients."""
-        act = self.fallback_action()
-        if self._prev is not None:
-            self._prev["age"] += 1
-        nan = np.full(self.n_theta, np.nan)
-        return MPCSolution(
-            action=act,
-            value=np.nan,
-            dpi_dtheta=np.full((self.n_theta, self.nu), np.nan) if sensitivities else None,
-            dV_dtheta=nan if sensitivities else None,
-            success=False,
-            status=status,
-            slack=np.nan,
-            iterations=iters,
-            fallback=True,
-        )
-
-    def _solution(
-        self,
-        x: np.ndarray,
-        p: np.ndarray,
-        out: dict[str, ca.DM],
-        wopt: np.ndarray,
-        status: str,
-        iters: int,
-        mult: tuple[np.ndarray, np.ndarray] | None = None,
-        sensitivities: bool = True,
-    ) -> MPCSolution:
-        """pi_theta(x) (eq. Policy), V_theta(x), the plan and, if asked, the sensitivities;
-        the solution, shifted, is the next warm start."""
-        lam_g = np.asarray(out["lam_g"]).reshape(-1)
-        lam_x = np.asarray(out["lam_x"]).reshape(-1)
-        plan_u = self.system.u_ref + self.Su * wopt[self._iu_flat].reshape(self.N, self.nu)
-        plan_x = np.vstack(
-            [x, self.system.x_ref + self.Sx * wopt[self._ix_flat].reshape(self.N, self.nx)]
-        )
-        slack = float(np.sum(np.tile(self._slack_scale, self.N + 1) * wopt[self._ie_flat]))
-        value = float(out["f"]) * self.cost_scale
-        action = self.system.clip_input(plan_u[0])
-        sol = MPCSolution(
-            action=action,
-            value=value,
-            dpi_dtheta=None,
-            dV_dtheta=None,
-            success=True,
-            status=status,
-            slack=slack,
-            iterations=iters,
-            plan_u=plan_u,
-            plan_x=plan_x,
-        )
-        if sensitivities:
-            try:
-                sol.dpi_dtheta, sol.dV_dtheta = self._sensitivities(wopt, lam_g, lam_x, p, mult)
-            except (RuntimeError, ValueError) as err:  # singular KKT matrix
-                sol.dpi_dtheta = np.full((self.n_theta, self.nu), np.nan)
-                sol.dV_dtheta = np.full(self.n_theta, np.nan)
-                sol.info["sensitivity_error"] = str(err)
-        self._remember(wopt, lam_g, lam_x, plan_u)
-        return sol
-
-    def _newton_solve(
-        self, p: np.ndarray
-    ) -> tuple[dict, np.ndarray, str, int, tuple[np.ndarray, np.ndarray]] | None:
-        """Newton steps on R(y, p) = 0 from the shifted previous solution (``newton_steps``).
-
-        Returns the arguments of ``_solution`` (CasADi-style outputs, w, status, steps, and the
-        multipliers (lambda, mu)) when ``|R|_inf <= tol`` at a point with ``H < 0``, ``mu > 0``;
-        None when the steps do not get there (IPOPT then solves)."""
-        prev = self._prev
-        if prev is None:
-            return None
-        w = prev["w_shift"]
-        lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
-        y = np.concatenate([w, lam, mu])
-        if not np.all(mu > 0):
-            return None
-        for k in range(1, self._newton + 1):
-            y_next, *scalars = self._newton_call(y, p)
-            res0, res, f, h_max, mu_min, h0_max = (float(v) for v in scalars)
-            # not interior (the new state violates a row of the old plan), not converging
-            # (from the 2nd step on, the residual must fall tenfold per step), or out of steps
-            if not (h0_max < 0 and h_max < 0 and mu_min > 0 and np.isfinite(res)):
-                return None
-            y = np.asarray(y_next).reshape(-1)
-            if res <= self._tol:
-                break
-            if k == self._newton or (k >= 2 and res > 0.1 * res0):
-                return None
-        return self._newton_result(y, f, "Newton_Succeeded", k)
-
-    def _barrier_solve(
-        self, p: np.ndarray
-    ) -> tuple[dict, np.ndarray, str, int, tuple[np.ndarray, np.ndarray]] | None:
-        """A short primal-dual interior-point path from the shifted previous solution.
-
-        The warm start is made strictly interior: the slack of every row with ``H >= 0`` is
-        enlarged until ``mu_r H_r = -mu_0``, with the row's multiplier ``mu_r`` raised to the
-        slack's cost (the slack's stationarity) and the slack's bound multiplier set from
-        complementarity, ``z eta = mu_0``. Then Newton steps on ``R_mu(y, p) = 0`` follow a
-        decreasing barrier ``mu_0 -> tau`` (IPOPT's rule: ``mu <- max(tau, min(0.2 mu, mu^1.5))`` once
-        ``|R_mu|_inf <= 10 mu``), with the fraction-to-boundary rule and a backtracking line
-        search on ``|R_mu|_2``. Returns what ``_newton_solve`` returns when ``|R_tau|_inf <= tol``
-        at a strictly interior point within ``barrier_steps`` Newton steps, else None."""
-        prev = self._prev
-        if prev is None:
-            return None
-        mu_bar = self._barrier_mu0
-        w = prev["w_shift"].copy()
-        lam, mu = self._multipliers(w, prev["lam_g"], prev["lam_x"])
-        Hg, dfdw = (np.asarray(v).reshape(-1) for v in self._h_call(w, p))
-        Hg = Hg[: self.nin]
-        rows = np.flatnonzero(Hg >= 0)  # not interior: the new state violates them
-        if rows.size and not self._barrier_push:
-            return None  # only from interior starts (barrier_push=False): IPOPT solves
-        if np.any(self._row_slack[rows] < 0):
-            return None  # a row without a slack to push it inside
-        if rows.size:
-            # the row's multiplier takes the slack's cost (the slack's stationarity) and the
-            # row moves inside to barrier complementarity, mu_r H_r = -mu_bar
-            slack, coef = self._row_slack[rows], -self._row_coef[rows]
-            mu[rows] = np.maximum(mu[rows], np.maximum(dfdw[slack] / coef, mu_bar))
-            need = (Hg[rows] + mu_bar / mu[rows]) / coef
-            inc: dict[int, float] = {}
-            for c, d in zip(slack.tolist(), need.tolist()):
-                inc[c] = max(inc.get(c, 0.0), d)
-            idx = np.fromiter(inc, int)
-            w[idx] += np.fromiter(inc.values(), float)
-            pos = np.searchsorted(self._lb_idx, idx)  # the slacks' bounds eta >= 0
-            mu[self.nin + pos] = mu_bar / (w[idx] - self._lbw[idx])
-        y = np.concatenate([w, lam, mu])
-        steps = short = 0
-        while steps < self._barrier_steps:
-            steps += 1
-            dy, a, _, r2, y1, r1, r1_2, h1, m1, f1 = self._barrier_call(y, p, mu_bar)
-            a, r2 = float(a), float(r2)
-            # jamming: the fraction-to-boundary rule keeps cutting the steps short
-            short = short + 1 if a < 0.1 else 0
-            if short >= _STALL_STEPS:
-                return None
-            r1, r1_2, h1, m1 = float(r1), float(r1_2), float(h1), float(m1)
-            t = a
-            for _ in range(_MAX_BACKTRACKS):
-                if h1 < 0 and m1 > 0 and np.isfinite(r1_2) and r1_2 <= (1 - 1e-4 * t) * r2:
-                    break
-                t *= 0.5
-                y1 = y + t * np.asarray(dy).reshape(-1)
-                r1, r1_2, h1, m1, f1 = (float(v) for v in self._point_call(y1, p, mu_bar))
-            else:
-                return None  # the residual does not fall along the Newton direction
-            y = np.asarray(y1).reshape(-1)
-            if mu_bar <= self.tau:
-                if r1 <= self._tol:
-                    if not self._is_local_minimum(y, p):
-                        return None  # a saddle point of the barrier problem: IPOPT solves
-                    return self._newton_result(y, float(f1), "Barrier_Succeeded", steps)
-            elif r1 <= 10 * mu_bar:
-                mu_bar = max(self.tau, min(0.2 * mu_bar, mu_bar**1.5))
-        return None
-
-    def _is_local_minimum(self, y: np.ndarray, p: np.ndarray) -> bool:
-        """Whether the barrier Hessian is positive definite on the null space of the equality
-        Jacobian at y (second-order sufficient condition of the barrier problem): a root of R
-        that the residual line search reached may be a saddle point, which IPOPT (inertia
-        correction) would not return."""
-        M = self._reduced_hessian(y, p)
-        if M is None:
-            return False
-        try:
-            np.linalg.cholesky(M)
-        except np.linalg.LinAlgError:
-            return False
-        return True
-
-    def _reduced_hessian(self, y: np.ndarray, p: np.ndarray) -> np.ndarray | None:
-        """``Z^T K Z`` at y: the barrier Hessian ``K = W + dH^T diag(mu / -H) dH`` on the null
-        space of the equality Jacobian ``A``, with ``Z = [-A_x^-1 A_r; I]`` in (the predicted
-        states, the rest) (the states are the dependent variables: their block ``A_x`` is square
-        and invertible, multiple shooting). None when it is not finite."""
-        nw, neq = self.nw, self.neq
-        Kxx, Kxr, Krr, Ax, Ar = self._soc_call(y[:nw], y[nw : nw + neq], y[nw + neq :], p)
-        try:
-            S = -np.linalg.solve(Ax, Ar)
-        except np.linalg.LinAlgError:
-            return None
-        KxrS = Kxr.T @ S
-        M = Krr + KxrS + KxrS.T + S.T @ (Kxx @ S)
-        return M if np.all(np.isfinite(M)) else None
-
-    def _newton_result(
-        self, y: np.ndarray, f: float, status: str, steps: int
-    ) -> tuple[dict, np.ndarray, str, int, tuple[np.ndarray, np.ndarray]]:
-        """The arguments of ``_solution`` for a root y = (w, lambda, mu) of R(y, p)."""
-        nw, neq = self.nw, self.neq
-        w, lam, mu = y[:nw], y[nw : nw + neq], y[nw + neq :]
-        mu_g, n_lb = mu[: self.nin], len(self._lb_idx)
-        lam_x = np.zeros(nw)
-        lam_x[self._ub_idx] += mu[self.nin + n_lb :]
-        lam_x[self._lb_idx] -= mu[self.nin : self.nin + n_lb]
-        out = {"lam_g": np.concatenate([lam, mu_g]), "lam_x": lam_x, "f": f}
-        return out, w, status, steps, (lam, mu)
-
-    def _run_solver(
-        self, x: np.ndarray, p: np.ndarray, warm: bool
-    ) -> tuple[bool, str, int, Any, Any]:  # (ok, status, iterations, solver output, w)
-        if warm:
-            w0, lam_g0, lam_x0 = self._prev["w_shift"], self._prev["lam_g"], self._prev["lam_x"]  # type: ignore[index]  # warm: _prev is set
-        else:
-            w0, lam_g0, lam_x0 = self._cold_guess(x), None, None
-        args = {
-            "x0": w0,
-            "p": p,
-            "lbx": self._lbw,
-            "ubx": self._ubw,
-            "lbg": self._lbg,
-            "ubg": self._ubg,
-        }
-        if lam_g0 is not None:
-            args["lam_g0"], args["lam_x0"] = lam_g0, lam_x0
-        solver: ca.Function = self._solver_warm if warm else self._solver  # type: ignore[assignment]  # warm: built
-        try:
-            out = solver(**args)
-        except RuntimeError as err:  # IPOPT can raise on evaluation errors
-            return False, f"Exception: {err}", 0, None, None
-        st = solver.stats()
-        status, iters = st.get("return_status", "unknown"), int(st.get("iter_count", 0))
-        wopt = np.asarray(out["x"]).reshape(-1)
-        ok = status in _SUCCESS and bool(np.all(np.isfinite(wopt)))
-        return ok, status, iters, out, wopt
-
-    def _remember(
-        self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray, plan_u: np.ndarray | None
-    ) -> None:
-        """Store the solution and its multipliers, shifted by one stage, as the next warm start."""
-        self._prev = {
-            "w_shift": w[self._wshift],
-            "lam_g": lam_g[self._gshift],
-            "lam_x": lam_x[self._wshift],
-            "plan_u": plan_u,
-            "age": 0,
-        }
-
-    def _multipliers(
-        self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Split CasADi's multipliers into (lambda for G, mu >= 0 for every row of H)."""
-        tau = self.tau
-        lam = lam_g[: self.neq]
-        mu_g = np.maximum(lam_g[self.neq :], 1e-300)
-        # casadi: lam_x = z_U - z_L. With both bounds finite, the far bound's multiplier follows
-        # from barrier complementarity, z * gap = tau; the near one from the difference.
-        gap_l = w - self._lbw
-        gap_u = self._ubw - w
-        zL = np.maximum(-lam_x, 0.0)
-        zU = np.maximum(lam_x, 0.0)
-        both = np.isfinite(gap_l) & np.isfinite(gap_u)
-        near_l = both & (gap_l <= gap_u)
-        near_u = both & ~near_l
-        zU = np.where(near_l, tau / np.maximum(gap_u, 1e-300), zU)
-        zL = np.where(near_l, zU - lam_x, zL)
-        zL = np.where(near_u, tau / np.maximum(gap_l, 1e-300), zL)
-        zU = np.where(near_u, lam_x + zL, zU)
-        mu = np.concatenate(
-            [mu_g, np.maximum(zL[self._lb_idx], 1e-300), np.maximum(zU[self._ub_idx], 1e-300)]
-        )
-        return lam, mu
-
-    def _sensitivities(
-        self,
-        w: np.ndarray,
-        lam_g: np.ndarray,
-        lam_x: np.ndarray,
-        p: np.ndarray,
-        mult: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(dpi/dtheta, dV/dtheta) at a solution (eq. nabla_pi, grad V); ``mult``: its
-        (lambda, mu) when known (Newton), else recovered from CasADi's multipliers."""
-        lam, mu = self._multipliers(w, lam_g, lam_x) if mult is None else mult
-        dpi, dV = self._sens_call(w, lam, mu, p)
-        dpi, dV = np.asarray(dpi), np.asarray(dV).reshape(-1)
-        if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
-            raise ValueError("non-finite sensitivity (singular KKT matrix)")
-        return dpi, dV
+        return self._paths.solve(x, theta, sensitivities)
 
 
-class _ThetaTerms(NamedTuple):
-    """The symbolic pieces of eq. (V0) that theta sets."""
-
-    theta_c: ca.SX  # constant cost offset
-    T: ca.SX  # terminal weights (nx,)
-    G: ca.SX  # linear cost terms (nx + nu,)
-    Q: ca.SX  # stage state weights (nx,)
-    R: ca.SX  # stage input weights (nu,)
-    pm: ca.SX  # model parameters of f_hat_theta, the learnable ones from theta
-    x_lo: ca.SX  # state bounds with the back-offs
-    x_hi: ca.SX
-
-
-@dataclass
-class _Decisions:
-    """The decision vector w of the NLP as it is built: symbols and their bounds, in order."""
-
-    w: list = field(default_factory=list)
-    lb: list = field(default_factory=list)
-    ub: list = field(default_factory=list)
-
-    def add(self, name: str, lb: list, ub: list, index: list) -> ca.SX:
-        """A new block of ``len(lb)`` variables; its positions in w are appended to ``index``."""
-        z = ca.SX.sym(name, len(lb))
-        index.append(list(range(len(self.lb), len(self.lb) + len(lb))))
-        self.w.append(z)
-        self.lb += lb
-        self.ub += ub
-        return z
-
-
-def _quad(d: Any, W: Any) -> Any:
-    """``d^T W d``: ``W`` a vector of diagonal weights or a full matrix."""
-    if W.shape[1] == 1:
-        return ca.dot(d, W * d)
-    return ca.dot(d, ca.mtimes(W, d))
-
-
-def _check_options(horizon: int, gamma: float, tau: float, linsol: str) -> None:
+def _check_options(horizon: int, gamma: float, tau: float, linsol: str, newton_steps: int) -> None:
     if horizon < 1:
         raise ValueError(f"horizon must be at least 1, got {horizon}")
     if not 0 < gamma <= 1:
@@ -1013,62 +233,5 @@ def _check_options(horizon: int, gamma: float, tau: float, linsol: str) -> None:
         raise ValueError(f"tau must be positive, got {tau}")
     if not ca.has_linsol(linsol):
         raise ValueError(f"linsol '{linsol}' is not a linear solver plugin of this CasADi")
-
-
-def _ipopt_options(
-    tol: float,
-    tau: float,
-    max_iter: int,
-    *,
-    jit: bool = False,
-    options: dict | None = None,
-    warm: dict | None = None,
-) -> tuple[dict, dict]:
-    """CasADi ``nlpsol`` options of the cold and of the warm-started IPOPT solver.
-
-    IPOPT stops at the barrier parameter ``tau`` (``mu_target``, the point that eq. nabla_pi
-    differentiates). ``options`` go to both solvers, then ``warm`` to the warm one only, after its
-    warm-start settings; a key is an IPOPT option (``"max_iter"`` or ``"ipopt.max_iter"``) unless
-    it is one of CasADi's own (``"print_time"``, ``"show_eval_warnings"``).
-    """
-    cold = {
-        "ipopt.print_level": 0,
-        "print_time": False,
-        # lam_p (the multipliers of the parameters) costs one more gradient evaluation per
-        # solve and is not used: the sensitivities come from the KKT system
-        "calc_lam_p": False,
-        # IPOPT may probe wild iterates (Inf/NaN in the model, see NOTES): it backtracks by
-        # itself, and a failed solve is reported in MPCSolution, so CasADi's per-evaluation
-        # warnings on stderr are only noise that would bury the progress bars
-        "show_eval_warnings": False,
-        "ipopt.sb": "yes",
-        "ipopt.tol": tol,
-        "ipopt.acceptable_tol": max(1e-6, 100 * tol),
-        "ipopt.mu_target": tau,
-        "ipopt.max_iter": max_iter,
-        "ipopt.bound_relax_factor": 0.0,
-        "ipopt.honor_original_bounds": "no",
-        "ipopt.nlp_scaling_method": "none",
-    }
-    if jit:  # generated C code of the NLP functions, compiled once (needs a C compiler)
-        cold.update({"jit": True, "compiler": "shell", "jit_options": _JIT_OPTIONS})
-    cold.update(_casadi_keys(options))
-    warm_opts = {
-        **cold,
-        "ipopt.warm_start_init_point": "yes",
-        "ipopt.warm_start_bound_push": 1e-6,
-        "ipopt.warm_start_mult_bound_push": 1e-6,
-        "ipopt.mu_init": 1e-3,
-        "ipopt.max_iter": min(max_iter, 50),
-    }
-    warm_opts.update(_casadi_keys(warm))
-    return cold, warm_opts
-
-
-def _casadi_keys(options: dict | None) -> dict:
-    """User solver options with IPOPT's keys prefixed ``ipopt.`` as CasADi expects."""
-    own = _CASADI_NLPSOL_KEYS
-    return {
-        k if k.startswith("ipopt.") or k in own else f"ipopt.{k}": v
-        for k, v in (options or {}).items()
-    }
+    if int(newton_steps) != newton_steps or newton_steps < 0:
+        raise ValueError(f"newton_steps must be an integer >= 0, got {newton_steps}")

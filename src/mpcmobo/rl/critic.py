@@ -7,69 +7,22 @@ From one closed-loop episode (an :class:`~mpcmobo.mpc.records.EpisodeRecord`) th
   .. math:: V^\nu(x) = V_\theta(x) + \nabla_\theta V_\theta(x)^\top \nu,
 
   i.e. features :math:`\phi_k = \nabla_\theta V_\theta(x_k)` on top of the MPC value, by LSTDV
-  (eq. lstdv_update);
+  (eq. lstdv_update, or the LSTD(0) fixed point: ``method``);
 * the compatible advantage (eq. Q_w, eq. adv)
 
   .. math:: A^w(x_k, u_k) = \Psi_k^\top w, \qquad
             \Psi_k = \nabla_\theta \pi_\theta(x_k)\,(u_k - \pi_\theta(x_k)),
 
-  by LSTDQ (eq. lstdq_update), and from it
+  by LSTDQ (eq. lstdq_update, target: ``q_target``), and from it
 * the deterministic policy gradient (eq. DPG)
 
   .. math:: \nabla_\theta J \approx \frac{1}{T} \sum_k
             \nabla_\theta\pi_\theta(x_k)\nabla_\theta\pi_\theta(x_k)^\top w .
 
-The policy *minimises* the cost, so ``grad`` is the gradient of the closed-loop cost J and the
-actor step is ``theta <- theta - alpha * grad`` (eq. theta).
-
-Two LSTDV rules
----------------
-``method="paper"`` is eq. lstdv_update as printed,
-
-.. math:: \nu = \Xi_\nu^{-1} b_\nu,\quad \Xi_\nu = \sum_k \phi_k\phi_k^\top,\quad
-          b_\nu = \sum_k \phi_k\,\big(L_k + \gamma V_\theta(x_{k+1}) - V_\theta(x_k)\big),
-
-which is the least-squares regression of the one-step TD error *of* :math:`V_\theta` on the
-features: :math:`V^\nu(x_k) \approx L_k + \gamma V_\theta(x_{k+1})`. It bootstraps on the MPC
-value :math:`V_\theta` rather than on :math:`V^\nu` itself, so it is one fitted value-iteration
-step from :math:`V_\theta`, not a fixed point of the Bellman equation; when :math:`V_\theta` is far
-from the true value of the policy (the usual case with an imperfect model) the result is biased.
-
-``method="lstd"`` (default) is the LSTD(0) fixed point of the projected Bellman equation for
-:math:`V^\nu`, i.e. :math:`\sum_k \phi_k (L_k + \gamma V^\nu(x_{k+1}) - V^\nu(x_k)) = 0`:
-
-.. math:: A\nu = b,\quad A = \sum_k \phi_k(\phi_k - \gamma\phi_{k+1})^\top,\quad
-          b = \sum_k \phi_k\,\delta_k,\quad
-          \delta_k = L_k + \gamma V_\theta(x_{k+1}) - V_\theta(x_k).
-
-If the Bellman equation holds exactly for some :math:`V^\nu`, the LSTD rule recovers that
-:math:`\nu` while the paper's rule in general does not (it does only if :math:`\gamma = 0` or
-:math:`\nabla V_\theta(x_{k+1})^\top\nu = 0`); see the tests. This is why it is the default.
-
-The LSTDQ target (eq. lstdq_update) is :math:`\delta^V_k = L_k + \gamma V(x_{k+1}) - V^\nu(x_k)`
-with :math:`V(x_{k+1})` either :math:`V_\theta(x_{k+1})` as printed in the paper
-(``q_target="V_theta"``) or :math:`V^\nu(x_{k+1})` (``q_target="V_nu"``), which is what the
-paper's own derivation (substituting :math:`Q^w = A^w + V^\nu` into eq. LSTDQ_eq) gives. The
-difference :math:`-\gamma\nabla V_\theta(x_{k+1})^\top\nu` depends on the explored input through
-:math:`x_{k+1}` and therefore correlates with :math:`\Psi_k`, biasing :math:`w`. By default the
-target follows the method: ``"V_theta"`` for ``method="paper"``, ``"V_nu"`` for ``"lstd"``.
-
-Numerics
---------
-Features are scaled per column to unit root-mean-square (the CSTR's sensitivities span many
-orders of magnitude) and the scaling is undone in the result. The regressions are solved with
-``scipy.linalg.lstsq`` on the stacked, ridge-augmented feature matrix
-:math:`[\Phi_s; \sqrt{\rho n} I]` (never by forming normal equations); the LSTD system
-:math:`A_s z = b_s` (n_theta x n_theta) by ``lstsq`` on :math:`[A_s; \sqrt{\rho} n I]`. With
-columns of unit RMS, ``ridge`` (:math:`\rho`) is relative to the per-sample second moment of the
-features and dimensionless; ``ridge=0`` gives the minimum-norm least-squares solution.
-
-Robustness
-----------
-Transition k (from x_k to x_{k+1}) is used only if both solves succeeded and every quantity it
-touches is finite. If fewer than ``min_valid_steps`` transitions remain, or a system is degenerate
-(all features zero, non-finite solution), the corresponding part returns zeros and ``ok`` is
-False: ``w``, ``grad`` and ``advantage`` are then zeros, never NaN.
+The policy *minimises* the cost, so ``grad`` is the gradient of the closed-loop cost J, which
+the actor descends. The fits are scaled ridge least squares (:func:`ridge_lstsq`,
+:func:`lstd_solve`) on the usable transitions (:func:`transition_mask`); a failed fit gives
+zeros and ``ok=False``, never NaN. :class:`CompatibleCritic` documents the options.
 """
 
 from __future__ import annotations
@@ -208,21 +161,62 @@ def _ridge_gelsd(A: np.ndarray, b: np.ndarray, weight: float, s: np.ndarray) -> 
 
 
 class CompatibleCritic:
-    """LSTDV / LSTDQ compatible critic and DPG gradient of one episode (see module docstring).
+    r"""LSTDV / LSTDQ compatible critic and DPG gradient of one episode (see the module docstring).
 
     Parameters
     ----------
     gamma:
         Discount factor; ``None`` takes ``record.gamma``.
     ridge:
-        Relative ridge regularisation (dimensionless, features scaled to unit RMS).
+        Relative ridge regularisation :math:`\rho`. Features are scaled per column to unit
+        root-mean-square (the CSTR's sensitivities span many orders of magnitude) and the
+        scaling is undone in the result, so :math:`\rho` is relative to the per-sample second
+        moment of the features and dimensionless; ``ridge=0`` gives the minimum-norm
+        least-squares solution. The regressions are solved with ``scipy.linalg.lstsq`` on the
+        stacked, ridge-augmented feature matrix :math:`[\Phi_s; \sqrt{\rho n} I]` (never by
+        forming normal equations); the LSTD system :math:`A_s z = b_s` (n_theta x n_theta) by
+        ``lstsq`` on :math:`[A_s; \sqrt{\rho} n I]`.
     method:
-        ``"lstd"`` (LSTD(0) fixed point, default) or ``"paper"`` (eq. lstdv_update as printed).
+        The LSTDV rule. ``"paper"`` is eq. lstdv_update as printed,
+
+        .. math:: \nu = \Xi_\nu^{-1} b_\nu,\quad \Xi_\nu = \sum_k \phi_k\phi_k^\top,\quad
+                  b_\nu = \sum_k \phi_k\,\big(L_k + \gamma V_\theta(x_{k+1}) - V_\theta(x_k)\big),
+
+        the least-squares regression of the one-step TD error *of* :math:`V_\theta` on the
+        features: :math:`V^\nu(x_k) \approx L_k + \gamma V_\theta(x_{k+1})`. It bootstraps on
+        the MPC value :math:`V_\theta` rather than on :math:`V^\nu` itself, so it is one fitted
+        value-iteration step from :math:`V_\theta`, not a fixed point of the Bellman equation;
+        when :math:`V_\theta` is far from the true value of the policy (the usual case with an
+        imperfect model) the result is biased.
+
+        ``"lstd"`` (the default) is the LSTD(0) fixed point of the projected Bellman equation
+        for :math:`V^\nu`, i.e. :math:`\sum_k \phi_k (L_k + \gamma V^\nu(x_{k+1}) -
+        V^\nu(x_k)) = 0`:
+
+        .. math:: A\nu = b,\quad A = \sum_k \phi_k(\phi_k - \gamma\phi_{k+1})^\top,\quad
+                  b = \sum_k \phi_k\,\delta_k,\quad
+                  \delta_k = L_k + \gamma V_\theta(x_{k+1}) - V_\theta(x_k).
+
+        If the Bellman equation holds exactly for some :math:`V^\nu`, the LSTD rule recovers
+        that :math:`\nu` while the paper's rule in general does not (it does only if
+        :math:`\gamma = 0` or :math:`\nabla V_\theta(x_{k+1})^\top\nu = 0`); see the tests.
+        This is why it is the default.
     q_target:
-        Value of x_{k+1} in the LSTDQ target: ``"V_theta"`` (as printed in the paper) or
-        ``"V_nu"``; ``None`` follows the method (paper -> V_theta, lstd -> V_nu).
+        The value of x_{k+1} in the LSTDQ target (eq. lstdq_update)
+        :math:`\delta^V_k = L_k + \gamma V(x_{k+1}) - V^\nu(x_k)`: ``"V_theta"``,
+        :math:`V_\theta(x_{k+1})` as printed in the paper, or ``"V_nu"``,
+        :math:`V^\nu(x_{k+1})`, which is what the paper's own derivation (substituting
+        :math:`Q^w = A^w + V^\nu` into eq. LSTDQ_eq) gives. The difference
+        :math:`-\gamma\nabla V_\theta(x_{k+1})^\top\nu` depends on the explored input through
+        :math:`x_{k+1}` and therefore correlates with :math:`\Psi_k`, biasing :math:`w`.
+        ``None`` (the default) follows the method: ``"V_theta"`` for ``method="paper"``,
+        ``"V_nu"`` for ``"lstd"``.
     min_valid_steps:
         Fewer usable transitions than this makes the fit fail (``ok=False``).
+    weighting:
+        How the DPG averages the steps: ``"uniform"`` (the paper's mean over the steps) or
+        ``"discounted"`` (weights gamma^k: the gradient of the discounted closed-loop cost from
+        the episode's start).
     """
 
     def __init__(
@@ -252,7 +246,14 @@ class CompatibleCritic:
         self.min_valid_steps = max(1, int(min_valid_steps))
 
     def fit(self, record: EpisodeRecord) -> CriticResult:
-        """Fit nu (eq. lstdv_update), w (eq. lstdq_update) and the DPG gradient (eq. DPG)."""
+        """Fit nu (eq. lstdv_update), w (eq. lstdq_update) and the DPG gradient (eq. DPG).
+
+        Transition k (from x_k to x_{k+1}) is used only if both solves succeeded and every
+        quantity it touches is finite (:func:`transition_mask`). If fewer than
+        ``min_valid_steps`` transitions remain, or a system is degenerate (all features zero,
+        non-finite solution), the corresponding part returns zeros and ``ok`` is False: ``w``,
+        ``grad`` and ``advantage`` are then zeros, never NaN.
+        """
         gamma = float(record.gamma) if self.gamma is None else self.gamma
         ep = _Episode.from_record(record)
         mask = transition_mask(record)

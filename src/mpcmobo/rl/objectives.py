@@ -4,9 +4,7 @@ r"""The four per-episode objectives of MPC-CDPG-MOBO (paper, section 4), all to 
 * f2, optimality condition (eq. f2 with eq. DPG):
   :math:`\frac1T\sum_k \|\nabla_\theta\pi_k\nabla_\theta\pi_k^\top w\|`
 * f3, critic drift (eq. f3): :math:`\max(0, V^c_\ell - V^c_{\ell-1})`,
-  :math:`V^c = \sum_k V^\nu(x_k)` (eq. nu); or, like for like (``f3="same_states"``), the two
-  critics on the same states: :math:`\max(0, \sum_k \nabla_\theta V_\theta(x_k)^\top
-  (\nu_\ell - \nu_{\ell-1}))`
+  :math:`V^c = \sum_k V^\nu(x_k)` (eq. nu)
 * f4, Lyapunov decrease (eq. f4): :math:`\beta\sum_k \max(0, V_\theta(x_{k+1}) - V_\theta(x_k))`
 
 Index conventions (the paper's are loose: it sums k = 0..T_f in eq. cl_perf but divides by T_f,
@@ -74,41 +72,6 @@ def f3_critic_drift(Vc: float, previous_Vc: float | None) -> float:
     return max(0.0, Vc - prev)  # eq. f3
 
 
-def f3_critic_drift_same_states(
-    record: EpisodeRecord, nu: np.ndarray, previous_nu: np.ndarray | None
-) -> float:
-    r"""f3 like for like (issue 11, item 4): this episode's critic against the previous one on
-    the same states, under the same MPC.
-
-    .. math:: f_3 = \max\Big(0, \sum_{k=0}^{T} \big(V^{\nu_\ell}(x_k) - V^{\nu_{\ell-1}}(x_k)\big)
-              \Big) = \max\Big(0, \sum_k \nabla_\theta V_\theta(x_k)^\top(\nu_\ell -
-              \nu_{\ell-1})\Big)
-
-    (eq. f3 with both V^nu of eq. nu taken at this episode's states x_k and theta). The paper's
-    f3 compares sums over two different trajectories: the V_theta part of V^c then moves with
-    the two episodes' initial states (and thetas) far more than the critic's weights do, so it
-    measures the start. Here V_theta(x_k) cancels and only the drift of the critic's weights
-    nu, the "distortion in the updating rules of the critic parameters" the paper's f3 is
-    meant to penalise, remains. Missing states are handled as in V^c: the sum over the states
-    with a finite value and sensitivity, scaled to T+1 states. 0 for the first episode, when
-    either critic fit failed (``previous_nu`` None or non-finite) or no state is usable.
-    """
-    if previous_nu is None:
-        return 0.0
-    nu, prev = np.asarray(nu, float).reshape(-1), np.asarray(previous_nu, float).reshape(-1)
-    if nu.shape != prev.shape or not (np.all(np.isfinite(nu)) and np.all(np.isfinite(prev))):
-        return 0.0
-    dV = np.asarray(record.dV, dtype=float).reshape(-1, nu.shape[0])
-    ok = np.all(np.isfinite(dV), axis=1) & np.isfinite(np.asarray(record.V, float).reshape(-1))
-    if not np.any(ok):
-        return 0.0
-    drift = float(np.sum(dV[ok] @ (nu - prev)) * dV.shape[0] / np.count_nonzero(ok))
-    return max(0.0, drift)  # eq. f3, same states
-
-
-F3_MODES = ("paper", "same_states")
-
-
 def f4_lyapunov(record: EpisodeRecord, beta: float = 1.0) -> float:
     r"""f4 = beta sum_{k=0}^{T-1} max(0, V_theta(x_{k+1}) - V_theta(x_k))  (eq. f4), beta > 0.
 
@@ -129,24 +92,13 @@ def objectives(
     critic_result: CriticResult,
     previous_Vc: float | None,
     beta: float = 1.0,
-    *,
-    f3: str = "paper",
-    previous_nu: np.ndarray | None = None,
 ) -> np.ndarray:
     """[f1, f2, f3, f4] of one episode (eq. cl_perf, f2, f3, f4), all to be minimised.
 
     ``previous_Vc`` is ``Vc`` of the previous episode's critic (``None`` for the first episode);
     the caller keeps it, e.g. ``previous_Vc = result.Vc if np.isfinite(result.Vc) else previous``.
-    ``f3``: ``"paper"`` (eq. f3 on the two episodes' own trajectories) or ``"same_states"``
-    (:func:`f3_critic_drift_same_states`, which takes the previous critic's ``previous_nu``).
     """
-    if f3 not in F3_MODES:
-        raise ValueError(f"f3 must be one of {F3_MODES}, got '{f3}'")
-    if f3 == "same_states":
-        nu_ok = critic_result.nu_ok and critic_result.ok
-        drift = f3_critic_drift_same_states(record, critic_result.nu, previous_nu) if nu_ok else 0.0
-    else:
-        drift = f3_critic_drift(critic_result.Vc, previous_Vc)
+    drift = f3_critic_drift(critic_result.Vc, previous_Vc)
     return np.array(
         [
             f1_closed_loop_cost(record),

@@ -1,7 +1,7 @@
 """Plants, models, costs and constraints; the CSTR of the paper; finding a user's system."""
 
 from mpcmobo.systems.base import System, SystemDefinitionError, rk4_step
-from mpcmobo.systems.cstr import make_cstr
+from mpcmobo.systems.cstr import make_cstr, make_cstr_structural
 from mpcmobo.systems.lq import make_lq
 from mpcmobo.systems.parameterization import MPCSpec, Parameterization
 from mpcmobo.systems.registry import (
@@ -15,6 +15,7 @@ from mpcmobo.systems.registry import (
 from mpcmobo.systems.space import SearchSpace
 
 register_system("cstr", make_cstr)
+register_system("cstr-structural", make_cstr_structural)
 register_system("lq", make_lq)
 
 __all__ = [
@@ -29,6 +30,7 @@ __all__ = [
     "get_system",
     "make_plant",
     "make_cstr",
+    "make_cstr_structural",
     "make_lq",
     "register_system",
     "rk4_step",

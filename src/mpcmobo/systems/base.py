@@ -146,6 +146,10 @@ class System:
     path_constraints:
         Optional ``h(x, u) -> (nh,)`` CasADi expression, constraints ``h(x, u) <= 0`` besides
         the bounds (relaxed with l1 slacks in the MPC, penalised with ``Gamma_h`` in L).
+    identifiable:
+        The model parameters identification fits (``[system] identify = true``); default all
+        of ``param_names``. The others are structure the identification keeps at the MPC's
+        model values.
     constraint_names, Gamma_h, h_scale:
         Names (default ``h0, h1, ...``), RL penalty (default the largest ``Gamma``) and MPC
         slack scale (default 1) of each path constraint.
@@ -181,6 +185,7 @@ class System:
     constraint_names: Sequence[str] = ()
     Gamma_h: np.ndarray | None = None
     h_scale: np.ndarray | None = None
+    identifiable: Sequence[str] | None = None
 
     # derived, not an argument: F(x, u, p) -> x_{k+1}, built once (``_step_function``)
     discrete_step: ca.Function = field(init=False, repr=False, compare=False)
@@ -197,6 +202,15 @@ class System:
         for key in ("state_names", "input_names"):
             set_(self, key, _names(getattr(self, key), f"{nm}.{key}"))
         set_(self, "param_names", _names(self.param_names, f"{nm}.param_names", allow_empty=True))
+        ident = self.param_names if self.identifiable is None else self.identifiable
+        ident = _names(ident, f"{nm}.identifiable", allow_empty=True)
+        unknown = [n for n in ident if n not in self.param_names]
+        if unknown:
+            raise SystemDefinitionError(
+                f"{nm}.identifiable names unknown model parameters {unknown}; the system has "
+                f"{list(self.param_names)}"
+            )
+        set_(self, "identifiable", ident)
         nx, nu, npar = len(self.state_names), len(self.input_names), len(self.param_names)
         finite = ("x_ref", "u_ref", "Q", "R", "Gamma", "x0_lb", "x0_ub")
         for key in ("x_ref", "x_lb", "x_ub", "Q", "Gamma", "x0_lb", "x0_ub"):

@@ -23,8 +23,10 @@ class MPCSpec:
 
     ``theta_c`` (1), ``T_<x>`` terminal weights (nx), ``G_<x>``, ``G_<u>`` linear terms (nx+nu),
     ``Q_<x>`` stage state weights (nx), ``R_<u>`` stage input weights (nu), then the model
-    parameters listed in ``learn_model`` (``model_<name>``) and, if ``learn_backoff``, state
-    constraint back-offs ``b_lb_<x>``, ``b_ub_<x>`` (2 nx).
+    parameters listed in ``learn_model`` and then those of ``identify`` not among them
+    (``model_<name>``; the identified ones are fixed for the learners' search: identification
+    sets them) and, if ``learn_backoff``, state constraint back-offs ``b_lb_<x>``,
+    ``b_ub_<x>`` (2 nx).
 
     With ``full_weights``, the blocks ``T``, ``Q`` and ``R`` hold instead the lower-triangular
     Cholesky factor ``L`` of a full weight matrix ``W = L L^T`` (entries ``LT_<a>_<b>``,
@@ -45,6 +47,7 @@ class MPCSpec:
     theta_c_bound: float = 1e4
     learn_theta_c: bool = False  # theta_c never changes the policy; searched only if True
     learn_model: tuple[str, ...] = ()  # names of model parameters made learnable
+    identify: tuple[str, ...] = ()  # model parameters in theta that identification sets
     model_log_range: float = 0.7
     learn_backoff: bool = False
     backoff_max: np.ndarray | None = None  # upper bound of each back-off (nx,)
@@ -96,7 +99,7 @@ class Parameterization:
         b.add("G", [f"G_{s}" for s in (*xs, *us)], G0, -G_bound, G_bound, False, False)
         _add_weights(b, "Q", xs, Q0, r, spec.full_weights)
         _add_weights(b, "R", us, R0, r, spec.full_weights)
-        idx = _add_model_block(b, system, spec) if spec.learn_model else []
+        idx = _add_model_block(b, system, spec) if spec.learn_model or spec.identify else []
         if spec.learn_backoff:
             _add_backoff_block(b, system, spec)
         space = SearchSpace(
@@ -208,11 +211,13 @@ def _initial_weights(
 
 
 def _add_model_block(b: _Blocks, system: System, spec: MPCSpec) -> list[int]:
-    """The learnable model parameters ``model_<name>`` around the imperfect model's values
-    (log scale where positive); returns their indices in ``system.param_names``."""
+    """The model parameters in theta, ``model_<name>``, around the imperfect model's values (log
+    scale where positive): the learnable ones, then the identified ones not among them (fixed
+    for the search); returns their indices in ``system.param_names``."""
     pnames = list(system.param_names)
+    names = [*spec.learn_model, *(n for n in spec.identify if n not in spec.learn_model)]
     idx = []
-    for n in spec.learn_model:
+    for n in names:
         if n not in pnames:
             raise ValueError(f"unknown model parameter '{n}'; known: {pnames}")
         idx.append(pnames.index(n))
@@ -221,7 +226,8 @@ def _add_model_block(b: _Blocks, system: System, spec: MPCSpec) -> list[int]:
     pos = p0 > 0
     lo_m = np.where(pos, p0 * np.exp(-m), p0 - m * np.abs(p0) - 1)
     hi_m = np.where(pos, p0 * np.exp(m), p0 + m * np.abs(p0) + 1)
-    b.add("model", [f"model_{n}" for n in spec.learn_model], p0, lo_m, hi_m, False, False)
+    fixed = np.array([n not in spec.learn_model for n in names])
+    b.add("model", [f"model_{n}" for n in names], p0, lo_m, hi_m, False, fixed)
     b.log[-1] = pos.copy()
     return idx
 

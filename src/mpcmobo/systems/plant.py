@@ -33,11 +33,23 @@ class SystemPlant(gymnasium.Env):
     initial-state box with the environment's generator). The reward is ``-L(x_k, u_k)``; the
     episode never terminates (a study decides its length; ``gymnasium.make`` adds the system's
     ``episode_steps`` as ``max_episode_steps``).
+
+    ``process_noise`` and ``measurement_noise`` (standard deviations per state, default none):
+    Gaussian noise added to the next state by every step, and to what the plant reports (the
+    observation; the stage cost and the violation are those of the true state). Both are drawn
+    from the environment's generator, so a ``reset`` seed makes an episode reproducible.
     """
 
     metadata: dict[str, Any] = {"render_modes": []}
 
-    def __init__(self, system: System | str = "cstr", **options: Any) -> None:
+    def __init__(
+        self,
+        system: System | str = "cstr",
+        *,
+        process_noise: ArrayLike | None = None,
+        measurement_noise: ArrayLike | None = None,
+        **options: Any,
+    ) -> None:
         if isinstance(system, str):
             from mpcmobo.systems.registry import get_system
 
@@ -50,7 +62,16 @@ class SystemPlant(gymnasium.Env):
         self.system = system
         self.observation_space = spaces.Box(-np.inf, np.inf, (system.nx,), np.float64)
         self.action_space = spaces.Box(system.u_lb, system.u_ub, (system.nu,), np.float64)
+        self.process_noise = _noise(process_noise, system, "process_noise")
+        self.measurement_noise = _noise(measurement_noise, system, "measurement_noise")
         self._x: np.ndarray | None = None
+
+    def _observe(self) -> np.ndarray:
+        """The measured state: the true state plus measurement noise."""
+        assert self._x is not None
+        if self.measurement_noise is None:
+            return self._x.copy()
+        return self._x + self.measurement_noise * self.np_random.standard_normal(len(self._x))
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -61,7 +82,7 @@ class SystemPlant(gymnasium.Env):
         if x0 is None:
             x0 = self.system.sample_initial_state(self.np_random)
         self._x = self.system.check_state(x0).copy()
-        return self._x.copy(), {}
+        return self._observe(), {}
 
     def step(self, action: ArrayLike) -> tuple[np.ndarray, float, bool, bool, dict]:
         """One period of the true plant; ``info`` carries ``stage_cost`` and ``violation``."""
@@ -71,8 +92,23 @@ class SystemPlant(gymnasium.Env):
         L = self.system.stage_cost(x, u)
         violation = self.system.constraint_violation(x, u)
         self._x = self.system.plant_step(x, u)
+        if self.process_noise is not None:
+            self._x = self._x + self.process_noise * self.np_random.standard_normal(len(self._x))
         terminated = not bool(np.all(np.isfinite(self._x)))
-        return self._x.copy(), -L, terminated, False, {"stage_cost": L, "violation": violation}
+        return self._observe(), -L, terminated, False, {"stage_cost": L, "violation": violation}
+
+
+def _noise(std: ArrayLike | None, system: System, label: str) -> np.ndarray | None:
+    """A noise level per state (None: no noise; all zeros counts as none)."""
+    if std is None:
+        return None
+    v = np.asarray(std, float).reshape(-1)
+    if v.shape != (system.nx,) or not np.all(np.isfinite(v)) or np.any(v < 0):
+        raise SystemDefinitionError(
+            f"{label} must be {system.nx} standard deviations >= 0, one per state "
+            f"({', '.join(system.state_names)}), got {np.asarray(std).tolist()}"
+        )
+    return None if not np.any(v > 0) else v
 
 
 def check_plant(env: gymnasium.Env, system: System, label: str = "plant") -> None:

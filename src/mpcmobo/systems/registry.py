@@ -31,7 +31,7 @@ from typing import Any
 from mpcmobo.systems.base import System, SystemDefinitionError
 
 ENTRY_POINT_GROUP = "mpcmobo.systems"
-BUILTIN_SYSTEMS = ("cstr", "lq")
+BUILTIN_SYSTEMS = ("cstr", "cstr-structural", "lq")
 
 _REGISTRY: dict[str, Callable[..., System]] = {}
 
@@ -208,16 +208,28 @@ def get_system(spec: str, **options: Any) -> System:
     return system
 
 
-def make_plant(spec: str | None, system: System) -> Any:
+def make_plant(
+    spec: str | None,
+    system: System,
+    *,
+    process_noise: Any = None,
+    measurement_noise: Any = None,
+) -> Any:
     """The plant of a study: ``spec`` a gymnasium id (``"mpcmobo/CSTR-v0"``) or a factory
     path returning a ``gymnasium.Env``; None: the system's own equations
-    (:class:`~mpcmobo.systems.plant.SystemPlant`). Its spaces must match the model's sizes."""
+    (:class:`~mpcmobo.systems.plant.SystemPlant`, with the given noise levels, which only it
+    takes). Its spaces must match the model's sizes."""
     import gymnasium
 
     from mpcmobo.systems.plant import SystemPlant, check_plant
 
     if spec is None:
-        return SystemPlant(system)
+        return SystemPlant(system, process_noise=process_noise, measurement_noise=measurement_noise)
+    if process_noise is not None or measurement_noise is not None:
+        raise SystemSpecError(
+            f"plant '{spec}': process_noise and measurement_noise apply to the system's own "
+            "plant; a plant of your own adds its own noise"
+        )
     if is_factory_path(spec):
         make = load_object(spec, what="plant factory")
         try:

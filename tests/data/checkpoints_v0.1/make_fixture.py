@@ -1,5 +1,8 @@
 """How the fixture was made, with mpcmobo at commit 9ff9153 (0.1.0): python make_fixture.py OUT,
-then OUT/partial (without its rebuilt records) is ``run/`` and OUT/full's records are ``expected_*``."""
+then OUT/partial (without its rebuilt records) is ``run/`` and OUT/full's records are ``expected_*``.
+
+It runs with that version only: mpcmobo 1.0 refuses to resume ``run/`` and reads its records
+(tests/test_old_checkpoints.py)."""
 
 import sys
 from pathlib import Path

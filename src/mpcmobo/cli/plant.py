@@ -1,0 +1,212 @@
+# ruff: noqa: B008 - typer declares options as argument defaults
+"""The command line of a real plant: ``mpcmobo ask``, ``tell``, ``status``, ``export``.
+
+``ask DIR`` starts a tuner in DIR the first time (from ``--config`` / ``--system``), prints the
+next trial as JSON and writes its controller next to it (``DIR/trials/<id>/``); ``tell DIR
+TRIAL FILE`` takes the logged episode (CSV or Parquet, the system's state and input names as
+columns); ``status DIR`` shows what is deployed; ``export DIR`` writes the tuned MPC as a CasADi
+function or as C code. A bad trial or log exits with code 2 and a message; nothing recorded is
+changed.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from mpcmobo import cli
+from mpcmobo.cli.progress import fmt
+from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError
+from mpcmobo.experiment.settings import SettingsError
+
+__all__ = ["ask", "export", "status", "tell"]
+
+app: typer.Typer = cli.app
+
+
+def _errors(fn: Any) -> Any:
+    """Run ``fn`` with the tuner's and the settings' errors as exit code 2, a run's files that
+    cannot be read as exit code 1."""
+    from mpcmobo.experiment.tuner import TunerError
+
+    try:
+        return fn()
+    except (TunerError, SettingsError, OlderRunError) as err:
+        cli._fail(str(err), 2)
+    except StudyError as err:
+        cli._fail(str(err), 1)
+
+
+def _tuner(directory: Path, **create: Any) -> Any:
+    """The tuner of ``directory``: loaded, or made there from ``create`` the first time."""
+    from mpcmobo.experiment.tuner import Tuner
+
+    if RunDirectory(directory).holds_run():
+        return Tuner.load(directory)
+    return Tuner(out=directory, **create)
+
+
+@app.command()
+def ask(
+    directory: Path = typer.Argument(..., help="the tuner's directory (made the first time)"),
+    config: Path | None = typer.Option(None, "--config", "-c", help="settings file (TOML)"),
+    system: str | None = typer.Option(None, "--system", help="system: a name or a factory"),
+    learner: str = typer.Option("mobo", "--learner", "-l", help="the learner"),
+    seed: int = typer.Option(0, "--seed", help="the tuner's seed"),
+    episodes: int | None = typer.Option(None, "--episodes", "-n", help="the budget of trials"),
+) -> None:
+    """Print the next trial as JSON and write it, with its controller, to DIR/trials/<id>/."""
+    from mpcmobo.mpc.export import export_casadi
+
+    create = {"system": system, "learner": learner, "seed": seed, "config": config}
+    if episodes is not None:
+        create["episodes"] = episodes
+
+    def go() -> dict:
+        tuner = _tuner(directory, **create)
+        trial = tuner.ask()
+        where = directory / "trials" / str(trial.id)
+        where.mkdir(parents=True, exist_ok=True)
+        data = trial.to_json()
+        (where / "trial.json").write_text(json.dumps(data, indent=1) + "\n")
+        export_casadi(trial.mpc, trial.theta, where / "controller.casadi")
+        return data
+
+    data = _errors(go)
+    cli.console.print_json(json.dumps(data))
+
+
+@app.command()
+def tell(
+    directory: Path = typer.Argument(..., help="the tuner's directory"),
+    trial: int = typer.Argument(..., help="the trial's id"),
+    log: Path = typer.Argument(..., help="the episode: a CSV or Parquet file"),
+) -> None:
+    """Take a trial's logged episode: a row per step, the state and input names as columns."""
+    import pandas as pd
+
+    from mpcmobo.experiment.tuner import Tuner, TunerError
+
+    def go() -> Any:
+        tuner = Tuner.load(directory)
+        if not log.exists():
+            raise TunerError(f"the log {log} does not exist")
+        try:
+            df = pd.read_parquet(log) if log.suffix == ".parquet" else pd.read_csv(log)
+        except Exception as err:  # noqa: BLE001 - any unreadable file is reported the same way
+            raise TunerError(f"the log {log} cannot be read: {type(err).__name__}: {err}") from None
+        row = tuner.tell(trial, df)
+        return tuner, row
+
+    tuner, row = _errors(go)
+    rows = tuner.job.rows
+    moved = len(rows) > 1 and rows[-1].incumbent != rows[-2].incumbent
+    changed = " (the deployed theta changed)" if moved else ""
+    cli.console.print(
+        f"trial {row.episode} told: f1 {fmt(row.f1)}, {tuner.episodes} of "
+        f"{tuner.settings.episodes} trials{changed}",
+        highlight=False,
+    )
+
+
+@app.command()
+def status(directory: Path = typer.Argument(..., help="the tuner's directory")) -> None:
+    """Show the deployed theta, its evidence and the trials so far."""
+    from mpcmobo.experiment.tuner import Tuner
+
+    st = _errors(lambda: Tuner.load(directory).status())
+    cli.console.print(
+        f"{st['learner']}: {st['trials']} of {st['budget']} trials told"
+        + (f", trial {st['pending']} pending" if st["pending"] is not None else "")
+        + f"; the deployed theta ran {st['deployed_episodes']} of them and changed "
+        f"{st['changes_of_deployed']} times",
+        highlight=False,
+    )
+    if st["J_eval"] is not None:
+        cli.console.print(
+            f"J_eval {fmt(st['J_eval'])}, J(theta0) {fmt(st['J_initial'])}, J* {fmt(st['J_star'])}",
+            highlight=False,
+        )
+    table = Table(title="deployed theta")
+    table.add_column("parameter")
+    table.add_column("value", justify="right")
+    for name, value in st["deployed"].items():
+        table.add_row(name, fmt(value, 6))
+    cli.console.print(table)
+
+
+def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int | None) -> Any:
+    """The theta ``which`` ("deployed", "final" or a trial's id) of the job of ``run_dir``, and
+    the settings."""
+    from mpcmobo.experiment.tuner import TunerError
+
+    settings = run_dir.saved_settings()
+    jobs = [(n, s) for n in settings.learners for s in settings.seeds
+            if (learner is None or n == learner) and (seed is None or s == seed)]  # fmt: skip
+    if len(jobs) != 1:
+        listed = ", ".join(f"--learner {n} --seed {s}" for n, s in jobs) or "none"
+        raise TunerError(f"choose one job of {run_dir.path}: {listed}")
+    ((name, s),) = jobs
+    ckpt = run_dir.checkpoint(name, s)
+    if ckpt is None or not ckpt.rows:
+        raise TunerError(f"the job {name} s{s} has no episode yet: nothing to export")
+    if which == "deployed":
+        return settings, name, np.asarray(ckpt.rows[-1].incumbent, float)
+    if which == "final":
+        if not ckpt.done:
+            raise TunerError(
+                f"the job {name} s{s} has run {len(ckpt.rows)} of {ckpt.episodes} episodes: "
+                "it has no final theta yet (--theta deployed exports the one deployed now)"
+            )
+        return settings, name, np.asarray(ckpt.rows[-1].incumbent, float)
+    try:
+        k = int(which)
+    except ValueError:
+        raise TunerError(
+            f"--theta must be deployed, final or a trial's id, got {which!r}"
+        ) from None
+    if not 0 <= k < len(ckpt.rows):
+        raise TunerError(f"no trial {k}: the job has trials 0 to {len(ckpt.rows) - 1}")
+    return settings, name, np.asarray(ckpt.rows[k].theta, float)
+
+
+@app.command()
+def export(
+    directory: Path = typer.Argument(..., help="a tuner's or a study's directory"),
+    theta: str = typer.Option("deployed", "--theta", help="deployed | final | a trial's id"),
+    fmt_: str = typer.Option("casadi", "--format", help="casadi | c"),
+    out: Path = typer.Option(..., "--out", "-o", help="the file (casadi) or directory (c)"),
+    learner: str | None = typer.Option(None, "--learner", help="the job's learner (a study)"),
+    seed: int | None = typer.Option(None, "--seed", help="the job's seed (a study)"),
+    compile_c: bool = typer.Option(False, "--compile", help="c: also build the example"),
+) -> None:
+    """Write the tuned MPC as a CasADi function or as C code with a header and a main.c."""
+    from mpcmobo.experiment.settings import build_system
+    from mpcmobo.experiment.tuner import TunerError
+    from mpcmobo.mpc import ParametricMPC
+    from mpcmobo.mpc.export import c_compile_command, export_c, export_casadi
+
+    if fmt_ not in ("casadi", "c"):
+        cli._fail(f"--format must be casadi or c, got {fmt_!r}", 2)
+
+    def go() -> str:
+        run_dir = cli._require_run(directory)
+        settings, name, th = _theta_of(run_dir, theta, learner, seed)
+        mpc = ParametricMPC(build_system(settings, name), "imperfect", **settings.mpc.options())
+        if fmt_ == "casadi":
+            return f"wrote {export_casadi(mpc, th, out)}"
+        export_c(mpc, th, out)
+        cmd = c_compile_command(out)
+        if compile_c:
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise TunerError(f"compiling failed: {proc.stderr.strip()[-1500:]}")
+        return f"wrote {out}/controller.c, controller.h, main.c; build with:\n" + " ".join(cmd)
+
+    cli.console.print(_errors(go), highlight=False, markup=False)

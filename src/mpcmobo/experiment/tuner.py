@@ -1,0 +1,349 @@
+"""Ask and tell: tune a plant whose episodes run outside mpcmobo (a DCS, a PLC, a simulator).
+
+A :class:`Tuner` is one job of a study (one learner, one seed) in its own run directory,
+driven by the user's loop instead of ``mpcmobo run``: :meth:`Tuner.ask` gives the next
+:class:`Trial` (its theta, its controller ``trial.policy(x)``, the exploration noise to add at
+every step, and where a simulated study would start it), the episode runs on the plant, and
+:meth:`Tuner.tell` takes the logged episode: the MPC is solved again on the logged states
+(it is deterministic given x and theta), so its actions, values and sensitivities, the critic
+and f1..f4 are what a simulated episode would have had; the stage cost and violation are the
+system's where the log has none. Each tell is recorded as ``mpcmobo run`` records an episode
+(``episodes.parquet``, ``trajectories.parquet``, ``summary.json``, a checkpoint after every ask
+and tell), so :meth:`Tuner.load` continues after a crash, also between ask and tell. Where the
+system's plant can be simulated (its true parameters, or a plant of the settings), the
+deployed theta is evaluated as in a study (J_eval); on a real plant it is not.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mpcmobo.experiment import storage
+from mpcmobo.experiment.job import Job
+from mpcmobo.experiment.loop import EpisodePlan
+from mpcmobo.experiment.records import EpisodeRow, Reference
+from mpcmobo.experiment.rundir import RunDirectory, open_run
+from mpcmobo.experiment.settings import Settings, build_system, load_settings, needs_plant
+from mpcmobo.experiment.study import compute_reference, system_info, write_records
+from mpcmobo.mpc import ParametricMPC, replay
+from mpcmobo.systems.registry import is_factory_path
+
+__all__ = ["Trial", "Tuner", "TunerError"]
+
+# a logged state further than this many widths of its bounds outside them is not a state
+STATE_RANGE = 10.0
+
+
+class TunerError(ValueError):
+    """A trial or a log the tuner cannot take; the message says what is wrong. Nothing
+    recorded is changed."""
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One episode to run on the plant: its ``id`` (the episode's index), ``theta``, the
+    ``noise`` (T, nu) to add to the controller's input at step k (zero where the learner wants a
+    noise-free episode), ``steps`` T, and ``x0``, where a simulated study would start it (on a
+    real plant, start where the plant is and log it). ``policy(x)`` is the MPC's first input
+    with theta at the measured state x, warm-started from the previous call: call it at every
+    step, in order."""
+
+    id: int
+    theta: np.ndarray
+    noise: np.ndarray
+    steps: int
+    x0: np.ndarray
+    theta_names: tuple[str, ...]
+    mpc: ParametricMPC = field(repr=False, compare=False)
+
+    def policy(self, x: np.ndarray) -> np.ndarray:
+        """The input to apply at ``x`` before the noise: ``pi_theta(x)`` (eq. Policy), or the
+        MPC's safe fallback where its solve fails."""
+        return self.mpc.solve(x, self.theta, sensitivities=False).action
+
+    def restart(self) -> None:
+        """Forget the controller's warm start (a new episode of the same trial)."""
+        self.mpc.reset()
+
+    def to_json(self) -> dict[str, Any]:
+        """The trial as plain data (what ``mpcmobo ask`` prints)."""
+        return {
+            "id": self.id,
+            "theta": dict(zip(self.theta_names, map(float, self.theta))),
+            "steps": self.steps,
+            "x0": [float(v) for v in self.x0],
+            "noise": np.asarray(self.noise).tolist(),
+        }
+
+
+class Tuner:
+    """One learner tuning a plant by ask and tell, recorded in ``out`` (module docstring).
+
+    ``system``: a system name or factory path (as ``--system``); ``learner``: one of the
+    learners; ``config``: a settings file; ``overrides``: settings as in
+    :func:`~mpcmobo.experiment.settings.load_settings` (``episodes``, ``start_mode``,
+    ``learner_options``, ...). ``out`` must be a new or empty directory; :meth:`load` opens an
+    existing one.
+    """
+
+    def __init__(
+        self,
+        system: str | None = None,
+        learner: str = "mobo",
+        out: str | Path = "tuning",
+        *,
+        config: str | Path | None = None,
+        seed: int = 0,
+        **overrides: Any,
+    ) -> None:
+        sys_table = dict(overrides.pop("system", None) or {})
+        if system is not None:
+            sys_table["factory" if is_factory_path(system) else "name"] = system
+        settings = load_settings(
+            config,
+            system=sys_table or None,
+            learners=[learner],
+            seeds=[seed],
+            workers=1,
+            **overrides,
+        )
+        run_dir, settings = open_run(out, settings, resume=False)
+        self._open(run_dir, settings, new=True)
+
+    @classmethod
+    def load(cls, out: str | Path) -> Tuner:
+        """The tuner recorded in ``out``, where it stopped (also between ask and tell)."""
+        run_dir = RunDirectory(out)
+        if not run_dir.holds_run():
+            raise TunerError(f"{out} holds no tuner (no config.toml)")
+        run_dir.check_schema()
+        settings = run_dir.saved_settings()
+        if len(settings.learners) != 1 or len(settings.seeds) != 1:
+            raise TunerError(
+                f"{out} holds a study of {len(settings.learners)} learners and "
+                f"{len(settings.seeds)} seeds; a tuner has one of each"
+            )
+        tuner = cls.__new__(cls)
+        tuner._open(run_dir, settings, new=False)
+        return tuner
+
+    def _open(self, run_dir: RunDirectory, settings: Settings, new: bool) -> None:
+        self.run_dir, self.settings = run_dir, settings
+        self.learner, self.seed = settings.learners[0], settings.seeds[0]
+        system = build_system(settings)
+        self.evaluates = system.has_true_plant or needs_plant(settings)
+        reference = run_dir.reference()
+        if reference is None:
+            reference = self._reference(settings)
+            run_dir.save_reference(reference)
+        self.reference = reference
+        J0 = reference.J_initial if math.isfinite(reference.J_initial) else None
+        self.job = Job(settings, run_dir, self.learner, self.seed, J0, evaluates=self.evaluates)
+        if not new:
+            self.job.restore()
+        self.system = self.job.run.system
+        self._policy_mpc = ParametricMPC(self.system, model="imperfect", **settings.mpc.options())
+
+    def _reference(self, settings: Settings) -> Reference:
+        """J* and J_eval(theta0) where the plant can be simulated; else neither."""
+        if self.evaluates:
+            return compute_reference(settings)
+        system = build_system(settings)
+        return Reference(
+            J_star=None,
+            J_initial=math.nan,
+            theta0=system.parameterization.theta0.copy(),
+            system=system_info(system),
+            J_star_missing="the plant is not simulated: the tuner runs on a real plant",
+        )
+
+    # ------------------------------------------------------------------ the loop
+    @property
+    def deployed(self) -> np.ndarray:
+        """The theta deployed now (the learner's incumbent)."""
+        return np.asarray(self.job.run.learner.incumbent(), dtype=float)
+
+    @property
+    def episodes(self) -> int:
+        """Trials told so far."""
+        return self.job.run.episode
+
+    def ask(self) -> Trial:
+        """The next trial (the pending one again if it has not been told)."""
+        if self.job.done:
+            raise TunerError(
+                f"the tuner's budget of {self.settings.episodes} episodes is spent; give it a "
+                "larger one to go on (mpcmobo run --resume --out DIR --episodes N extends it)"
+            )
+        if self.job.pending is None:
+            plan = self.job.run.plan()
+            self.job.pending = plan.to_dict()
+            self.job.save()  # the learner's state after the proposal, with the trial
+        return self._trial(EpisodePlan.from_dict(self.job.pending))
+
+    def _trial(self, plan: EpisodePlan) -> Trial:
+        self._policy_mpc.reset()
+        return Trial(
+            id=plan.episode,
+            theta=np.array(plan.theta, float),
+            noise=np.array(plan.noise, float),
+            steps=self.job.run.steps,
+            x0=np.array(plan.x0, float),
+            theta_names=tuple(self._policy_mpc.theta_names),
+            mpc=self._policy_mpc,
+        )
+
+    def tell(
+        self,
+        trial: Trial | int,
+        states: Any,
+        inputs: Any | None = None,
+        stage_costs: Any | None = None,
+        violations: Any | None = None,
+    ) -> EpisodeRow:
+        """Take the logged episode of ``trial``: ``states`` (T+1, nx), the last the state after
+        the last input; ``inputs`` (T, nu), the inputs actually applied; ``stage_costs`` and
+        ``violations`` (T,) if the plant measured them. Arrays, or one DataFrame with the
+        system's state and input names as columns (inputs empty in the last row) and
+        optionally ``stage_cost`` and ``violation``. Returns the episode's row."""
+        tid = trial.id if isinstance(trial, Trial) else int(trial)
+        plan = self._pending(tid)
+        X, U, L, V = self._log(states, inputs, stage_costs, violations)
+        t0 = time.perf_counter()
+        record = replay(self.system, self.job.run.mpc, plan.theta, X, U, L, V)
+        mpc_time = time.perf_counter() - t0
+        self.job.pending = None
+        row = self.job.complete(plan, record, "", mpc_time)
+        self.job.save()
+        write_records(self.run_dir.path, self.settings, self.reference)
+        return row
+
+    def _pending(self, tid: int) -> EpisodePlan:
+        pending = self.job.pending
+        if pending is not None and int(pending["episode"]) == tid:
+            return EpisodePlan.from_dict(pending)
+        if tid < self.job.run.episode:
+            raise TunerError(
+                f"trial {tid} was told already (the tuner is at trial {self.episodes})"
+            )
+        if pending is None:
+            raise TunerError(f"unknown trial {tid}: no trial is pending; ask for one first")
+        raise TunerError(f"unknown trial {tid}: the pending trial is {pending['episode']}")
+
+    def _log(
+        self, states: Any, inputs: Any, stage_costs: Any, violations: Any
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """The log as arrays, checked: shapes, finite values, states in range."""
+        s, T = self.system, self.job.run.steps
+        if hasattr(states, "columns"):  # a DataFrame
+            states, inputs, stage_costs, violations = _frame(states, s)
+        X = np.asarray(states, dtype=float)
+        if inputs is None:
+            raise TunerError("the log needs the inputs applied (inputs, or input columns)")
+        U = np.asarray(inputs, dtype=float)
+        if X.shape != (T + 1, s.nx):
+            raise TunerError(
+                f"states must be ({T + 1}, {s.nx}): the {T + 1} states of the episode "
+                f"({', '.join(s.state_names)}), the last after the last input; got {X.shape}"
+            )
+        if U.shape != (T, s.nu):
+            raise TunerError(
+                f"inputs must be ({T}, {s.nu}): the {T} inputs applied "
+                f"({', '.join(s.input_names)}); got {U.shape}"
+            )
+        for name, arr in (("states", X), ("inputs", U)):
+            if not np.all(np.isfinite(arr)):
+                k = int(np.flatnonzero(~np.all(np.isfinite(arr.reshape(len(arr), -1)), 1))[0])
+                raise TunerError(f"{name} has a value that is not finite at step {k}: {arr[k]}")
+        span = np.where(np.isfinite(s.x_ub - s.x_lb), s.x_ub - s.x_lb, np.inf)
+        far = (X < s.x_lb - STATE_RANGE * span) | (X > s.x_ub + STATE_RANGE * span)
+        if np.any(far):
+            k, j = (int(v[0]) for v in np.nonzero(far))
+            raise TunerError(
+                f"state {s.state_names[j]} = {X[k, j]} at step {k} is far outside its bounds "
+                f"[{s.x_lb[j]}, {s.x_ub[j]}]: check the log's units and columns"
+            )
+        outside = (U < s.u_lb - 1e-9 * np.abs(s.u_lb) - 1e-12) | (
+            U > s.u_ub + 1e-9 * np.abs(s.u_ub) + 1e-12
+        )
+        if np.any(outside):
+            k, j = (int(v[0]) for v in np.nonzero(outside))
+            raise TunerError(
+                f"input {s.input_names[j]} = {U[k, j]} at step {k} is outside its bounds "
+                f"[{s.u_lb[j]}, {s.u_ub[j]}]: log the inputs actually applied"
+            )
+        out: list[np.ndarray | None] = []
+        for name, arr in (("stage_costs", stage_costs), ("violations", violations)):
+            if arr is None:
+                out.append(None)
+                continue
+            a = np.asarray(arr, dtype=float).reshape(-1)
+            if a.shape != (T,) or not np.all(np.isfinite(a)):
+                raise TunerError(f"{name} must be {T} finite numbers, one per input; got {a.shape}")
+            out.append(a)
+        return X, U, out[0], out[1]
+
+    # ------------------------------------------------------------------ status
+    def status(self) -> dict[str, Any]:
+        """What is deployed and on what evidence: the deployed theta, the trials so far and how
+        many ran the deployed theta, the last J_eval (a simulated plant), the pending trial."""
+        rows = self.job.rows
+        deployed = self.deployed
+        ran = sum(1 for r in rows if np.allclose(r.theta, deployed, rtol=0, atol=1e-12))
+        J = [r.J_eval_incumbent for r in rows if math.isfinite(r.J_eval_incumbent)]
+        return {
+            "learner": self.learner,
+            "trials": len(rows),
+            "budget": self.settings.episodes,
+            "pending": None if self.job.pending is None else int(self.job.pending["episode"]),
+            "deployed": dict(zip(self._policy_mpc.theta_names, map(float, deployed))),
+            "deployed_episodes": ran,
+            "changes_of_deployed": sum(
+                1 for a, b in zip(rows, rows[1:]) if not np.array_equal(a.incumbent, b.incumbent)
+            ),
+            "J_eval": J[-1] if J else None,
+            "J_star": self.reference.J_star,
+            "J_initial": None
+            if not math.isfinite(self.reference.J_initial)
+            else self.reference.J_initial,
+        }
+
+
+def _frame(df: Any, system: Any) -> tuple[Any, Any, Any, Any]:
+    """States, inputs, stage costs and violations from a DataFrame with the system's state and
+    input names as columns (the inputs' last row empty)."""
+    missing = [c for c in (*system.state_names, *system.input_names) if c not in df.columns]
+    if missing:
+        raise TunerError(
+            f"the log has no column {missing[0]!r}; it needs the states "
+            f"{list(system.state_names)} and the inputs {list(system.input_names)}"
+        )
+    X = df[list(system.state_names)].to_numpy(float)
+    U = df[list(system.input_names)].to_numpy(float)[:-1]
+    L = df["stage_cost"].to_numpy(float)[:-1] if "stage_cost" in df.columns else None
+    V = df["violation"].to_numpy(float)[:-1] if "violation" in df.columns else None
+    return X, U, L, V
+
+
+def write_log(path: str | Path, states: np.ndarray, inputs: np.ndarray, system: Any) -> Path:
+    """A logged episode as a CSV or Parquet file of the tuner's format (``mpcmobo tell``)."""
+    import pandas as pd
+
+    X, U = np.asarray(states, float), np.asarray(inputs, float)
+    data = {n: X[:, i] for i, n in enumerate(system.state_names)}
+    pad = np.full((len(X), U.shape[1]), np.nan)
+    pad[: len(U)] = U
+    data.update({n: pad[:, i] for i, n in enumerate(system.input_names)})
+    df = pd.DataFrame(data)
+    path = Path(path)
+    if path.suffix == ".parquet":
+        storage.write_parquet(path, df)
+    else:
+        df.to_csv(path, index=False)
+    return path

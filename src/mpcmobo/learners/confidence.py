@@ -1,0 +1,181 @@
+"""How confident the evidence is that a candidate theta is cheaper than the deployed one.
+
+Every deployment decision of the learners rests on the episode costs the two thetas had on the
+plant, never on J_eval and never on the model alone. Each function returns the confidence of a
+one-sided test (a number in [0, 1]; a policy deploys at ``confidence`` 0.9 by default and
+considers a candidate worth running again from 0.5):
+
+* :func:`paired_confidence`: per-start differences (cycled starts: like for like);
+* :func:`unpaired_confidence`: Welch's test (random starts, no covariate);
+* :func:`adjusted_confidence`: the analysis of covariance on each episode's start cost, with a
+  leverage guard (random starts);
+* :func:`relative_screen`: the screen of a candidate with a single episode a side, where the
+  tests have no degrees of freedom.
+
+Costs are compared in their own units (J is a mean of episode costs, and a few costly starts
+can carry it), so a theta cheaper from most starts in log cost can still be judged dearer.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import t as student_t
+from scipy.stats import ttest_ind
+
+__all__ = [
+    "adjusted_confidence",
+    "ancova_confidence",
+    "check_confidence",
+    "paired_confidence",
+    "relative_screen",
+    "unpaired_confidence",
+]
+
+
+def check_confidence(name: str, value: float) -> float:
+    """``value`` as a float if it is a confidence in [0.5, 1), else a ``ValueError`` naming
+    the option ``name``."""
+    if not 0.5 <= float(value) < 1:
+        raise ValueError(f"{name} must be in [0.5, 1), got {value}")
+    return float(value)
+
+
+def paired_confidence(d: np.ndarray) -> float:
+    """The one-sided t-test of ``mean(d) > 0``, ``F_t(n-1)(mean / (sd / sqrt(n)))``: ``d`` (n,)
+    the per-start advantages of the candidate (the deployed theta's cost minus the
+    candidate's). One difference: 0.5 if positive (enough to be run again, never to be
+    deployed), else 0; no spread: 1 or 0 by the sign of the mean."""
+    d = np.asarray(d, float)
+    d = d[np.isfinite(d)]
+    if len(d) == 0:
+        return 0.0
+    if len(d) == 1:
+        return 0.5 if d[0] > 0 else 0.0
+    sd = float(np.std(d, ddof=1))
+    mean = float(np.mean(d))
+    if sd == 0:
+        return 1.0 if mean > 0 else 0.0
+    return float(student_t.cdf(mean / (sd / np.sqrt(len(d))), df=len(d) - 1))
+
+
+def unpaired_confidence(deployed: np.ndarray, candidate: np.ndarray) -> float:
+    """The one-sided Welch t-test of ``mean(deployed) > mean(candidate)`` on the two thetas'
+    episode costs (the spread of the starts is part of the standard error). Fewer than two
+    episodes on a side: 0.5 if the candidate's mean is lower, else 0."""
+    d = np.asarray(deployed, float)
+    c = np.asarray(candidate, float)
+    d, c = d[np.isfinite(d)], c[np.isfinite(c)]
+    if len(c) == 0 or len(d) == 0:
+        return 0.0
+    diff = float(np.mean(d) - np.mean(c))
+    if len(c) < 2 or len(d) < 2:
+        return 0.5 if diff > 0 else 0.0
+    if np.var(d) + np.var(c) == 0:  # no spread on either side: the statistic is undefined
+        return 1.0 if diff > 0 else 0.0
+    return 1.0 - float(ttest_ind(d, c, equal_var=False, alternative="greater").pvalue)
+
+
+def _finite_episodes(
+    deployed: np.ndarray, candidate: np.ndarray, s_deployed: np.ndarray, s_candidate: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The episodes of each side with a finite cost, each with its covariate."""
+    y_d, y_c = np.asarray(deployed, float), np.asarray(candidate, float)
+    s_d, s_c = np.asarray(s_deployed, float), np.asarray(s_candidate, float)
+    keep_d, keep_c = np.isfinite(y_d), np.isfinite(y_c)
+    return y_d[keep_d], y_c[keep_c], s_d[keep_d], s_c[keep_c]
+
+
+def adjusted_confidence(
+    deployed: np.ndarray,
+    candidate: np.ndarray,
+    s_deployed: np.ndarray,
+    s_candidate: np.ndarray,
+) -> float:
+    r"""The unpaired test adjusted for how costly each episode's start was: the analysis of
+    covariance of the costs ``y`` on the start covariate ``s`` with a common slope,
+
+    .. math:: y_i = a + \delta\,[i \text{ is the candidate's}] + b\,s_i + e_i,
+
+    and the one-sided t-test of ``delta < 0`` (:func:`ancova_confidence`). Under random starts
+    the covariate does not depend on which theta runs, so ``delta`` estimates the difference
+    of the expected costs, and the spread the starts explain leaves the test.
+
+    No decision rests on one episode: the result is the smaller of the test on all episodes and
+    the test without the episode of the highest leverage (the largest diagonal element of the
+    hat matrix, ``1/n_g + (s_i - sbar_g)^2 / S_ss``): on the CSTR a single hot-spot start
+    (cost 30 times the others) can set the slope and credit a candidate that never met such a
+    start. Falls back to :func:`unpaired_confidence` where the covariate is missing, a side
+    has fewer than two episodes, or the covariate has no spread within the groups."""
+    y_d, y_c, s_d, s_c = _finite_episodes(deployed, candidate, s_deployed, s_candidate)
+    full = ancova_confidence(y_d, y_c, s_d, s_c)
+    if full is None:
+        return unpaired_confidence(y_d, y_c)
+    S_ss = float(np.sum((s_d - s_d.mean()) ** 2) + np.sum((s_c - s_c.mean()) ** 2))
+    lev = np.concatenate(
+        [
+            1 / len(s_d) + (s_d - s_d.mean()) ** 2 / S_ss,
+            1 / len(s_c) + (s_c - s_c.mean()) ** 2 / S_ss,
+        ]
+    )
+    i = int(np.argmax(lev))
+    if i < len(y_d):
+        y_d, s_d = np.delete(y_d, i), np.delete(s_d, i)
+    else:
+        y_c, s_c = np.delete(y_c, i - len(y_d)), np.delete(s_c, i - len(y_d))
+    without = ancova_confidence(y_d, y_c, s_d, s_c)
+    return min(full, unpaired_confidence(y_d, y_c) if without is None else without)
+
+
+def ancova_confidence(
+    y_d: np.ndarray, y_c: np.ndarray, s_d: np.ndarray, s_c: np.ndarray
+) -> float | None:
+    r"""The one-sided ANCOVA t-test on the given episodes (finite costs): by least squares
+    ``delta = (ybar_c - ybar_d) - b (sbar_c - sbar_d)``, ``b`` the pooled within-group slope,
+    ``se^2 = MSE (1 / n_c + 1 / n_d + (sbar_c - sbar_d)^2 / S_ss)``, ``F_t(n-3)(-delta / se)``.
+    None where it is undefined: a covariate not finite, a side with fewer than two episodes,
+    or no spread of the covariate within the groups."""
+    if len(y_d) < 2 or len(y_c) < 2 or not (np.all(np.isfinite(s_d)) and np.all(np.isfinite(s_c))):
+        return None
+    S_ss = float(np.sum((s_d - s_d.mean()) ** 2) + np.sum((s_c - s_c.mean()) ** 2))
+    if S_ss <= 0:
+        return None
+    S_sy = float(
+        np.sum((s_d - s_d.mean()) * (y_d - y_d.mean()))
+        + np.sum((s_c - s_c.mean()) * (y_c - y_c.mean()))
+    )
+    b = S_sy / S_ss  # the pooled within-group slope
+    delta = (y_c.mean() - y_d.mean()) - b * (s_c.mean() - s_d.mean())
+    r = np.concatenate(
+        [y_d - y_d.mean() - b * (s_d - s_d.mean()), y_c - y_c.mean() - b * (s_c - s_c.mean())]
+    )
+    dof = len(r) - 3
+    se2 = float(r @ r) / dof * (1 / len(y_c) + 1 / len(y_d) + (s_c.mean() - s_d.mean()) ** 2 / S_ss)
+    if se2 <= 0:  # an exact fit: the sign decides
+        return 1.0 if delta < 0 else 0.0
+    return float(student_t.cdf(-delta / np.sqrt(se2), df=dof))
+
+
+def relative_screen(
+    deployed: np.ndarray,
+    candidate: np.ndarray,
+    s_deployed: np.ndarray,
+    s_candidate: np.ndarray,
+) -> float:
+    r"""The screen of a candidate while a side has a single episode (random starts): 0.5 when
+    its cost relative to its starts, the ratio of means :math:`\sum_i y_i / \sum_i s_i`, is
+    below the deployed theta's, else 0 -- enough to be run again, never to be deployed.
+
+    At one episode a side the tests have no degrees of freedom and compare raw costs, which
+    judges the luck of the start. The ratio of means is the cost model of a start that costs in
+    proportion to its covariate (what the covariate is built to be) and, unlike the mean of the
+    ratios, is not carried by a start near the equilibrium. Without a positive covariate on
+    every episode, the raw means."""
+    y_d, y_c, s_d, s_c = _finite_episodes(deployed, candidate, s_deployed, s_candidate)
+    if len(y_d) == 0 or len(y_c) == 0:
+        return 0.0
+    s_ok = np.all(np.isfinite(s_d)) and np.all(np.isfinite(s_c))
+    if s_ok and np.all(s_d > 0) and np.all(s_c > 0):
+        cand, dep = y_c.sum() / s_c.sum(), y_d.sum() / s_d.sum()
+    else:
+        cand, dep = y_c.mean(), y_d.mean()
+    return 0.5 if cand < dep else 0.0

@@ -1,0 +1,104 @@
+"""What a GP learner has seen: one row per episode, as plain arrays.
+
+Each row holds the episode's theta as a point ``z`` of the unit cube of the search space, its
+modelled objectives (f1..f4 or f1 alone; NaN rows are kept and never fitted), its CDPG
+gradient, the index of its start in the study's cycle (-1 under random starts), its start
+cost (theta0's mean stage cost from its initial state on the MPC's own model; NaN where not
+computed) and what kind of proposal it was (``"design"``, ``"search"``, ``"verify"``,
+``"baseline"``, ``"gradient"``). Appending is the only change; the queries answer what the
+deployment policies ask: the rows of a theta, the starts it was run from, how many
+episodes it has.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["Evidence", "theta_key"]
+
+
+def theta_key(z: np.ndarray) -> bytes:
+    """The identity of a unit-cube theta, up to its round trip through theta (1e-9)."""
+    return np.round(np.asarray(z, float), 9).tobytes()
+
+
+class Evidence:
+    """The episodes a learner has observed (see the module docstring)."""
+
+    def __init__(self, dim: int, n_theta: int, n_outputs: int) -> None:
+        self.Z = np.zeros((0, dim))
+        self.Y = np.zeros((0, n_outputs))
+        self.grads = np.zeros((0, n_theta))
+        self.starts = np.zeros(0, dtype=int)
+        self.start_costs = np.zeros(0)
+        self.kinds: list[str] = []
+
+    def __len__(self) -> int:
+        return int(self.Z.shape[0])
+
+    def append(
+        self,
+        z: np.ndarray,
+        y: np.ndarray,
+        grad: np.ndarray,
+        start: int,
+        start_cost: float,
+        kind: str,
+    ) -> None:
+        """One more episode (a non-finite gradient entry is stored as 0)."""
+        g = np.asarray(grad, dtype=float)
+        self.Z = np.vstack([self.Z, np.asarray(z, float)])
+        self.Y = np.vstack([self.Y, np.asarray(y, float)])
+        self.grads = np.vstack([self.grads, np.where(np.isfinite(g), g, 0.0)])
+        self.starts = np.append(self.starts, int(start))
+        self.start_costs = np.append(self.start_costs, float(start_cost))
+        self.kinds.append(str(kind))
+
+    # ------------------------------------------------------------------ queries
+    def finite(self) -> np.ndarray:
+        """Mask of the rows whose modelled objectives are all finite."""
+        return np.all(np.isfinite(self.Y), axis=1)
+
+    def rows_of(self, z: np.ndarray) -> np.ndarray:
+        """The finite rows run with the unit-cube theta ``z``."""
+        key = theta_key(z)
+        return np.array(
+            [i for i in np.flatnonzero(self.finite()) if theta_key(self.Z[i]) == key], dtype=int
+        )
+
+    def runs(self, z: np.ndarray) -> int:
+        """Finite episodes run with ``z``."""
+        return len(self.rows_of(z))
+
+    def starts_of(self, z: np.ndarray) -> set[int]:
+        """The cycled starts ``z`` has finite episodes from."""
+        return set(self.starts[self.rows_of(z)].tolist())
+
+    def ran(self, z: np.ndarray) -> bool:
+        """Whether ``z`` was run before the last episode."""
+        key = theta_key(z)
+        return any(theta_key(zz) == key for zz in self.Z[:-1])
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """The arrays, as copies."""
+        return {
+            "Z": self.Z.copy(),
+            "Y": self.Y.copy(),
+            "grads": self.grads.copy(),
+            "starts": self.starts.copy(),
+            "start_costs": self.start_costs.copy(),
+            "kinds": list(self.kinds),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`."""
+        self.Z = np.array(state["Z"], float).reshape(-1, self.Z.shape[1])
+        self.Y = np.array(state["Y"], float).reshape(-1, self.Y.shape[1])
+        self.grads = np.array(state["grads"], float).reshape(-1, self.grads.shape[1])
+        self.starts = np.array(state["starts"], dtype=int)
+        self.start_costs = np.array(state["start_costs"], float)
+        self.kinds = list(state["kinds"])
+        n = len(self.Z)
+        if not (len(self.Y) == len(self.grads) == len(self.starts) == n == len(self.kinds)):
+            raise ValueError("the learner's evidence arrays have different lengths")

@@ -1,0 +1,388 @@
+"""Identify first, then tune: the MPC's model fitted from the plant's transitions.
+
+:class:`ModelSwitch` decides between the deployed theta and the candidate that puts the model
+identified from every plant transition so far into it (:class:`~mpcmobo.identify.ModelFit`,
+refitted after every episode). A candidate is made once the fit predicts held-out transitions
+better than the nominal model, and it is deployed only on the evidence of its own episodes
+against the deployed theta's, by the evidence rule of the GP learners
+(:func:`~mpcmobo.learners.deploy.evidence_policy`: paired over every start of the cycle, or
+start-adjusted under random starts); a candidate the evidence does not support is dropped.
+
+* :class:`IdentifyLearner` (``identify``): the switch alone, with a new candidate whenever the
+  fit moves away from the deployed model by more than two standard deviations: the
+  certainty-equivalent baseline that a control engineer tries first.
+* :class:`IdentifyFirst`: any other learner after the switch has decided, built with theta0
+  the deployed theta (the identified model, or the nominal one if its candidate was dropped),
+  so that it tunes theta from there.
+
+Under random starts the deployment tests adjust each episode's cost for how costly its start
+is; with a candidate, that covariate is the identified model's prediction of the episode (a
+twin: the candidate's closed loop on the identified model from the episode's initial state),
+for every episode the test compares, recomputed when the candidate is made.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from mpcmobo.identify import Identification, ModelFit, Transitions
+from mpcmobo.learners.base import EpisodeResult, Learner, Starts
+from mpcmobo.learners.deploy import RandomEvidence, evidence_policy
+from mpcmobo.learners.evidence import Evidence, theta_key
+from mpcmobo.learners.options import EvidenceDeploy, IdentifyOptions
+from mpcmobo.systems.space import SearchSpace
+
+__all__ = ["IdentifyFirst", "IdentifyLearner", "ModelSwitch"]
+
+# the loop's covariate service: (starts (n, nx), theta, model parameters) -> (n,) costs
+StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
+
+
+class ModelSwitch:
+    """The deployed theta, the identified candidate and the evidence between them (module
+    docstring). Thetas are kept as they are (the evidence's points are full thetas)."""
+
+    def __init__(
+        self, fit: ModelFit, theta0: np.ndarray, starts: Starts, deploy: EvidenceDeploy
+    ) -> None:
+        self.fit = fit
+        self.policy = evidence_policy(deploy, starts, kappa=0.0)
+        n = len(theta0)
+        self.transitions_ = Transitions.empty(fit.system.nx, fit.system.nu)
+        self.identification_: Identification | None = None
+        self.evidence_ = Evidence(n, n, 1)
+        self.deployed_ = np.array(theta0, float)
+        self.candidate_: np.ndarray | None = None
+        self.tried_: np.ndarray | None = None  # the estimate of the last candidate
+        self.decisions_ = 0  # candidates deployed or dropped
+        self.x0s_: list[np.ndarray] = []  # each evidence row's initial state
+        # the start covariate's controller and model (None: theta0 on the nominal model)
+        self.twin_: tuple[np.ndarray, np.ndarray] | None = None
+        self.deployed_params_: np.ndarray | None = None  # the deployed theta's identified model
+        self.start_costs: StartCosts | None = None  # set by the loop (use_start_costs)
+
+    # ------------------------------------------------------------------ episodes
+    def observe(self, theta: np.ndarray, result: EpisodeResult, kind: str) -> None:
+        """The episode's transitions (a refit) and, if it ran the deployed theta or the
+        candidate, its cost as evidence; then the decision on the candidate."""
+        if result.states is not None and result.inputs is not None:
+            self.transitions_.add_episode(result.states, result.inputs)
+        if theta_key(theta) in {theta_key(self.deployed_), self._candidate_key()}:
+            y = np.array([result.f1])
+            self.evidence_.append(theta, y, np.zeros(len(theta)), result.start_id,
+                                  result.start_cost, kind)  # fmt: skip
+            x0 = np.full(self.fit.system.nx, np.nan) if result.x0 is None else result.x0
+            self.x0s_.append(np.asarray(x0, float).copy())
+        self.refit()
+        self.decide()
+
+    def _candidate_key(self) -> bytes | None:
+        return None if self.candidate_ is None else theta_key(self.candidate_)
+
+    def refit(self) -> None:
+        """Fit the model on every transition so far (warm-started from the last fit)."""
+        if len(self.transitions_) == 0:
+            return
+        start = None if self.identification_ is None else self.identification_.estimate
+        fit = self.fit.fit(self.transitions_, start=start)
+        if fit.success:
+            self.identification_ = fit
+
+    def decide(self) -> None:
+        """Deploy or drop the candidate on its evidence; else make one from the fit."""
+        if self.candidate_ is None:
+            self._propose_candidate()
+            return
+        ev, p, c, d = self.evidence_, self.policy, self.candidate_, self.deployed_
+        runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
+        if runs < p.min_runs or own < p.min_runs:
+            return
+        conf = p.confidence_of(ev, None, c, d)
+        if conf >= p.confidence:
+            self.deployed_, self.candidate_ = c, None
+            self.deployed_params_ = None if self.twin_ is None else self.twin_[1].copy()
+            self.decisions_ += 1
+        elif conf < 0.5 or runs >= p.max_runs:
+            self.candidate_ = None
+            self.decisions_ += 1
+
+    def _propose_candidate(self) -> None:
+        """A candidate with the fitted model when the fit beats the nominal model on held-out
+        transitions and has moved away from the deployed model (and from the last candidate)."""
+        fit = self.identification_
+        if fit is None or not fit.better:
+            return
+        std = np.maximum(fit.std, 1e-12)
+        for ref in (self.fit.estimate_of(self.deployed_), self.tried_):
+            if ref is not None and np.all(np.abs(fit.estimate - ref) <= MOVED * std):
+                return
+        self.candidate_ = self.fit.theta_with(self.deployed_, fit.estimate)
+        self.tried_ = fit.estimate.copy()
+        self._twin(self.candidate_, fit.params)
+
+    def _twin(self, theta: np.ndarray, params: np.ndarray) -> None:
+        """The identified model's prediction as the start covariate of every episode the
+        evidence holds (random starts only: the cycled tests are paired, no covariate)."""
+        self.twin_ = (theta.copy(), np.asarray(params, float).copy())
+        if self.start_costs is None or not isinstance(self.policy, RandomEvidence):
+            return
+        if self.x0s_:
+            costs = self.start_costs(np.array(self.x0s_), *self.twin_)
+            self.evidence_.start_costs = np.asarray(costs, float)
+
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model (None: the learner's theta0 on the MPC's
+        nominal model)."""
+        if self.twin_ is None or not isinstance(self.policy, RandomEvidence):
+            return None
+        return self.twin_[0].copy(), self.twin_[1].copy()
+
+    def next_theta(self) -> tuple[str, np.ndarray]:
+        """The theta of the next episode and its kind: the candidate or the deployed theta as
+        the evidence rule asks, else the deployed theta."""
+        check = self.policy.next_check(self.evidence_, self.deployed_, self.candidate_)
+        if check is not None:
+            return check
+        return "deployed", self.deployed_.copy()
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Transitions, evidence, deployed theta, candidate and the last fit's estimate."""
+        ident = self.identification_
+        return {
+            "transitions": self.transitions_.state_dict(),
+            "evidence": self.evidence_.state_dict(),
+            "deployed": self.deployed_.copy(),
+            "candidate": None if self.candidate_ is None else self.candidate_.copy(),
+            "tried": None if self.tried_ is None else self.tried_.copy(),
+            "decisions": self.decisions_,
+            "estimate": None if ident is None else ident.estimate.copy(),
+            "x0s": [x.copy() for x in self.x0s_],
+            "twin": None if self.twin_ is None else (self.twin_[0].copy(), self.twin_[1].copy()),
+            "deployed_params": self.deployed_params_,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`; the last fit is made again from its estimate."""
+        self.transitions_ = Transitions.from_state_dict(state["transitions"])
+        self.evidence_.load_state_dict(state["evidence"])
+        self.deployed_ = np.array(state["deployed"], float)
+        self.candidate_ = None if state["candidate"] is None else np.array(state["candidate"])
+        self.tried_ = None if state["tried"] is None else np.array(state["tried"], float)
+        self.decisions_ = int(state["decisions"])
+        self.x0s_ = [np.array(x, float) for x in state["x0s"]]
+        twin = state["twin"]
+        self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
+        dp = state["deployed_params"]
+        self.deployed_params_ = None if dp is None else np.array(dp, float)
+        self.identification_ = None
+        if state["estimate"] is not None and len(self.transitions_):
+            self.identification_ = self.fit.fit(self.transitions_, start=state["estimate"])
+
+
+class IdentifyLearner(Learner):
+    """``identify``: the certainty-equivalent baseline (module docstring)."""
+
+    name = "identify"
+    options_class = IdentifyOptions
+
+    def __init__(
+        self,
+        space: SearchSpace,
+        theta0: np.ndarray,
+        seed: int = 0,
+        options: IdentifyOptions | None = None,
+        *,
+        starts: Starts | None = None,
+        model_fit: ModelFit | None = None,
+    ) -> None:
+        super().__init__(space, theta0, seed, starts=starts)
+        if model_fit is None:
+            raise ValueError(
+                "the identify learner needs the model to identify: run it in a study "
+                "(it sets [system] identify) or give model_fit"
+            )
+        self.options = IdentifyOptions() if options is None else options
+        self.switch_ = ModelSwitch(model_fit, self.theta0, self.starts, self.options.deploy)
+        self.pending_: tuple[str, bytes] | None = None
+
+    def propose(self) -> np.ndarray:
+        """The candidate or the deployed theta."""
+        kind, theta = self.switch_.next_theta()
+        self.pending_ = (kind, theta_key(theta))
+        return theta
+
+    def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """Refit on the episode's transitions and judge the candidate."""
+        self.n_observed += 1
+        kind = (
+            self.pending_[0] if self.pending_ and self.pending_[1] == theta_key(theta) else "other"
+        )
+        self.pending_ = None
+        self.switch_.observe(np.asarray(theta, float), result, kind)
+
+    def incumbent(self) -> np.ndarray:
+        """The deployed theta."""
+        return self.switch_.deployed_.copy()
+
+    def uses_start_cost(self) -> bool:
+        """The evidence rule reads the episodes' start costs."""
+        return True
+
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model (:meth:`ModelSwitch.start_model`)."""
+        return self.switch_.start_model()
+
+    def use_start_costs(self, fn: StartCosts) -> None:
+        """The loop's covariate service, for the twin covariate."""
+        self.switch_.start_costs = fn
+
+    def identified(self) -> np.ndarray | None:
+        """The current fit's estimate (None before a fit)."""
+        ident = self.switch_.identification_
+        return None if ident is None else ident.estimate.copy()
+
+    def state_dict(self) -> dict:
+        """The base state and the switch's."""
+        d = super().state_dict()
+        d["switch"] = self.switch_.state_dict()
+        d["pending"] = self.pending_
+        return d
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from a :meth:`state_dict`."""
+        super().load_state_dict(state)
+        self.switch_.load_state_dict(state["switch"])
+        self.pending_ = state["pending"]
+
+
+class IdentifyFirst(Learner):
+    """A learner that runs the model switch first and then tunes from the deployed theta
+    (module docstring). ``make_inner(theta0)`` builds the learner to tune with."""
+
+    def __init__(
+        self,
+        make_inner: Callable[[np.ndarray], Learner],
+        space: SearchSpace,
+        theta0: np.ndarray,
+        seed: int = 0,
+        *,
+        starts: Starts | None = None,
+        model_fit: ModelFit,
+        deploy: EvidenceDeploy | None = None,
+    ) -> None:
+        super().__init__(space, theta0, seed, starts=starts)
+        self.make_inner = make_inner
+        self.switch_ = ModelSwitch(model_fit, self.theta0, self.starts, deploy or EvidenceDeploy())
+        self.inner_: Learner | None = None
+        self.name = make_inner(self.theta0).name
+        self.pending_: tuple[str, bytes] | None = None
+        self.history_: list[tuple[np.ndarray, EpisodeResult]] = []  # the switch's episodes
+        self.start_costs: StartCosts | None = None
+
+    def _tuning(self) -> Learner | None:
+        """The learner that tunes, once the switch has decided: built then, and given the
+        switch's episodes of the deployed theta if it takes them (``seed``)."""
+        if self.inner_ is None and self.switch_.decisions_ > 0:
+            deployed = self.switch_.deployed_.copy()
+            self.inner_ = self.make_inner(deployed)
+            seed = getattr(self.inner_, "seed_with", None)
+            own = [(t, r) for t, r in self.history_ if theta_key(t) == theta_key(deployed)]
+            model = self.start_model()
+            if seed is not None and own:
+                if model is not None and self.start_costs is not None:  # their twin covariate
+                    x0s = np.array([r.x0 for _, r in own])
+                    costs = self.start_costs(x0s, *model)
+                    own = [(t, replace(r, start_cost=float(c))) for (t, r), c in zip(own, costs)]
+                seed(own)
+            self.history_ = []
+        return self.inner_
+
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model: the switch's while it runs, then the
+        deployed theta on its identified model (None: the nominal model)."""
+        if self.switch_.decisions_ == 0:
+            return self.switch_.start_model()
+        params = self.switch_.deployed_params_
+        if params is None or not isinstance(self.switch_.policy, RandomEvidence):
+            return None
+        return self.switch_.deployed_.copy(), params.copy()
+
+    def use_start_costs(self, fn: StartCosts) -> None:
+        """The loop's covariate service, for the twin covariate."""
+        self.start_costs = fn
+        self.switch_.start_costs = fn
+
+    def propose(self) -> np.ndarray:
+        """The switch's theta, then the tuning learner's proposal."""
+        inner = self._tuning()
+        if inner is not None:
+            return inner.propose()
+        kind, theta = self.switch_.next_theta()
+        self.pending_ = (kind, theta_key(theta))
+        return theta
+
+    def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """The switch's evidence and fit, or the tuning learner's observation."""
+        self.n_observed += 1
+        inner = self._tuning()
+        if inner is not None:
+            inner.observe(theta, result)
+            return
+        kind = (
+            self.pending_[0] if self.pending_ and self.pending_[1] == theta_key(theta) else "other"
+        )
+        self.pending_ = None
+        self.switch_.observe(np.asarray(theta, float), result, kind)
+        self.history_.append((np.array(theta, float), result))
+
+    def incumbent(self) -> np.ndarray:
+        """The deployed theta: the switch's, then the tuning learner's."""
+        inner = self._tuning()
+        return self.switch_.deployed_.copy() if inner is None else inner.incumbent()
+
+    def explores(self) -> bool:
+        """The switch's episodes explore; then as the tuning learner says."""
+        inner = self._tuning()
+        return True if inner is None else inner.explores()
+
+    def uses_start_cost(self) -> bool:
+        """The switch reads the start costs; then as the tuning learner says."""
+        inner = self._tuning()
+        return True if inner is None else inner.uses_start_cost()
+
+    def identified(self) -> np.ndarray | None:
+        """The model identified for the deployed theta (the last fit while the switch runs)."""
+        if self.inner_ is not None:
+            return self.switch_.fit.estimate_of(self.switch_.deployed_)
+        ident = self.switch_.identification_
+        return None if ident is None else ident.estimate.copy()
+
+    def state_dict(self) -> dict:
+        """The base state, the switch's and the tuning learner's."""
+        d = super().state_dict()
+        d["switch"] = self.switch_.state_dict()
+        d["inner"] = None if self.inner_ is None else self.inner_.state_dict()
+        d["history"] = list(self.history_)
+        d["pending"] = self.pending_
+        return d
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continue from a :meth:`state_dict`."""
+        name = self.name
+        state = dict(state, name=name)
+        super().load_state_dict(state)
+        self.switch_.load_state_dict(state["switch"])
+        self.inner_ = None
+        self.pending_ = state["pending"]
+        self.history_ = [(np.array(t, float), r) for t, r in state["history"]]
+        if state["inner"] is not None:
+            inner = self._tuning()
+            assert inner is not None  # the switch has decided (it saved a tuning learner)
+            inner.load_state_dict(state["inner"])

@@ -1,0 +1,139 @@
+"""The tuned MPC taken out of mpcmobo: a CasADi function, or generated C with a header.
+
+:func:`controller_function` is the MPC of eq. V0 with theta fixed as one CasADi function,
+
+    controller(x, warm, cold) -> (u, warm_next),
+
+``x`` the measured state, ``u`` the first input of the solution (eq. Policy). ``warm`` is the
+previous call's ``warm_next`` (the solution's decision vector): IPOPT starts from it shifted by
+one stage; with ``cold = 1`` it starts from the cold guess instead, which is what
+:meth:`~mpcmobo.mpc.ParametricMPC.solve` does after a reset (the same solver, options and
+numbers). Where IPOPT does not converge the function fails (a ``RuntimeError`` in Python, a
+non-zero return in C) and the caller applies its own fallback, as the MPC in mpcmobo applies the
+previous plan. :func:`export_casadi` saves it (``Function.save``, loaded by ``casadi.Function.load``
+with the IPOPT of CasADi's wheel); :func:`export_c` generates its C code (CasADi's code
+generator; the solver is IPOPT, linked from the wheel), a header and an example ``main.c`` that
+reads states from the standard input and prints the inputs, and :func:`c_compile_command` is
+the command that builds it.
+"""
+
+from __future__ import annotations
+
+import os
+import sysconfig
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from mpcmobo.mpc.codegen import compiler_command
+from mpcmobo.mpc.parametric import ParametricMPC
+
+__all__ = ["c_compile_command", "controller_function", "export_c", "export_casadi"]
+
+NAME = "controller"
+
+
+def controller_function(mpc: ParametricMPC, theta: np.ndarray | None = None) -> ca.Function:
+    """The MPC with ``theta`` (default theta0) as ``controller(x, warm, cold) -> (u,
+    warm_next)`` (module docstring)."""
+    theta = mpc.check_theta(theta)
+    pr = mpc._problem
+    x = ca.MX.sym("x", mpc.nx)
+    warm = ca.MX.sym("warm", pr.nw)
+    cold = ca.MX.sym("cold")
+    guess = ca.MX.zeros(pr.nw)  # the cold guess: every predicted state at x (scaled)
+    zx = (x - ca.DM(mpc.system.x_ref)) / ca.DM(pr.Sx)
+    for idx in pr.ix:
+        guess[idx] = zx
+    shifted = warm[pr.wshift.tolist()]
+    w0 = ca.if_else(cold > 0.5, guess, shifted)
+    p = ca.vertcat(x, ca.DM(theta))
+    options = {**mpc._paths.cold_options, "error_on_fail": True}
+    solver = ca.nlpsol(f"{NAME}_ipopt", "ipopt", pr.nlp, options)
+    sol = solver(x0=w0, p=p, lbx=pr.lbw, ubx=pr.ubw, lbg=pr.lbg, ubg=pr.ubg)
+    w = sol["x"]
+    u = ca.DM(mpc.system.u_ref) + ca.DM(pr.Su) * w[list(pr.iu[0])]
+    return ca.Function(NAME, [x, warm, cold], [u, w], ["x", "warm", "cold"], ["u", "warm_next"])
+
+
+def export_casadi(mpc: ParametricMPC, theta: np.ndarray | None, path: str | os.PathLike) -> Path:
+    """Save :func:`controller_function` to ``path`` (a ``.casadi`` file)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    controller_function(mpc, theta).save(str(path))
+    return path
+
+
+def _casadi_dir() -> Path:
+    return Path(ca.__file__).resolve().parent
+
+
+MAIN_C = r"""/* Example: the tuned MPC in closed loop with your own code.
+ * Reads one state per line (NX numbers) from stdin, prints the input (NU numbers).
+ * The first call starts cold; each later one warm-starts from the previous solution. */
+#include <stdio.h>
+#include <stdlib.h>
+#include "controller.h"
+
+int main(void) {
+  casadi_int sz_arg, sz_res, sz_iw, sz_w;
+  controller_work(&sz_arg, &sz_res, &sz_iw, &sz_w);
+  const casadi_real** arg = malloc(sz_arg * sizeof(casadi_real*));
+  casadi_real** res = malloc(sz_res * sizeof(casadi_real*));
+  casadi_int* iw = malloc(sz_iw * sizeof(casadi_int));
+  casadi_real* w = malloc(sz_w * sizeof(casadi_real));
+  casadi_real x[NX], warm[NW] = {0}, u[NU], cold = 1;
+  int mem = controller_checkout();
+  while (1) {
+    for (int i = 0; i < NX; i++)
+      if (scanf("%lf", &x[i]) != 1) goto done;
+    arg[0] = x; arg[1] = warm; arg[2] = &cold;
+    res[0] = u; res[1] = warm;  /* the solution becomes the next warm start */
+    if (controller(arg, res, iw, w, mem)) { fprintf(stderr, "solver failed\n"); return 1; }
+    for (int i = 0; i < NU; i++) printf(i ? " %.17g" : "%.17g", u[i]);
+    printf("\n");
+    cold = 0;
+  }
+done:
+  controller_release(mem);
+  return 0;
+}
+"""
+
+
+def export_c(mpc: ParametricMPC, theta: np.ndarray | None, directory: str | os.PathLike) -> Path:
+    """Generate ``controller.c``, ``controller.h`` and ``main.c`` into ``directory`` (made if
+    missing); returns the directory. Build with :func:`c_compile_command`."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    fn = controller_function(mpc, theta)
+    gen = ca.CodeGenerator(f"{NAME}.c", {"with_header": True})
+    gen.add(fn)
+    gen.generate(str(directory) + os.sep)
+    sizes = f"#define NX {mpc.nx}\n#define NU {mpc.nu}\n#define NW {mpc._problem.nw}\n"
+    header = directory / f"{NAME}.h"
+    header.write_text(header.read_text() + "\n" + sizes)
+    (directory / "main.c").write_text(MAIN_C)
+    return directory
+
+
+def c_compile_command(directory: str | os.PathLike, output: str = "controller") -> list[str]:
+    """The command that compiles the generated code of ``directory`` with the example
+    ``main.c`` into the program ``output``, linked to the IPOPT of CasADi's wheel."""
+    d = Path(directory)
+    lib = _casadi_dir()
+    return [
+        *compiler_command(),
+        "-O1",
+        str(d / f"{NAME}.c"),
+        str(d / "main.c"),
+        f"-I{lib / 'include'}",
+        f"-I{sysconfig.get_paths()['include']}",
+        f"-L{lib}",
+        "-lipopt",
+        f"-Wl,-rpath,{lib}",
+        "-lm",
+        "-o",
+        str(d / output),
+    ]

@@ -1,0 +1,88 @@
+"""The tuned MPC exported (mpcmobo.mpc.export, mpcmobo export): the CasADi function gives the
+MPC's inputs, the generated C compiles and gives them too."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import casadi as ca
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mpcmobo.cli import app
+from mpcmobo.mpc import ParametricMPC
+from mpcmobo.mpc.export import c_compile_command, controller_function, export_c, export_casadi
+from mpcmobo.systems import get_system
+
+
+def _box_states(system, n: int, seed: int = 0) -> np.ndarray:
+    """``n`` states drawn uniformly from the system's initial-state box."""
+    rng = np.random.default_rng(seed)
+    return np.array([system.sample_initial_state(rng) for _ in range(n)])
+
+
+def test_the_casadi_function_gives_the_mpcs_input_on_100_states(cstr, cstr_mpc, tmp_path):
+    """Saved, loaded and called cold, the controller's input equals ParametricMPC.solve's after
+    a reset within 1e-6 wherever the MPC's solve succeeds, and it fails where that fails."""
+    theta = cstr_mpc.theta0.copy()
+    theta[cstr_mpc.theta_names.index("Q_Ca")] *= 2.0  # another theta than theta0
+    controller = ca.Function.load(str(export_casadi(cstr_mpc, theta, tmp_path / "c.casadi")))
+    nw = controller.size1_in(1)
+    checked = 0
+    for x in _box_states(cstr, 100):
+        cstr_mpc.reset()
+        sol = cstr_mpc.solve(x, theta, sensitivities=False)
+        if not sol.success:
+            with pytest.raises(RuntimeError):
+                controller(x, np.zeros(nw), 1)
+            continue
+        u = np.asarray(controller(x, np.zeros(nw), 1)[0]).ravel()
+        np.testing.assert_allclose(u, sol.action, rtol=0, atol=1e-6)
+        checked += 1
+    assert checked >= 90
+
+
+def test_the_warm_start_follows_the_closed_loop(tmp_path):
+    """Warm-started from its own previous output along a closed loop, the controller's inputs
+    stay those of the cold solves (the same solution, from a better start)."""
+    lq = get_system("lq")
+    mpc = ParametricMPC(lq)
+    f = controller_function(mpc)
+    x, warm = np.array([0.8, -0.3]), np.zeros(f.size1_in(1))
+    for k in range(5):
+        u, warm = f(x, warm, 1 if k == 0 else 0)
+        u = np.asarray(u).ravel()
+        mpc.reset()
+        np.testing.assert_allclose(u, mpc.solve(x, sensitivities=False).action, atol=1e-6)
+        x = lq.plant_step(x, u)
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_generated_c_compiles_and_gives_the_same_inputs(tmp_path):
+    lq = get_system("lq")
+    mpc = ParametricMPC(lq)
+    d = export_c(mpc, None, tmp_path / "c")
+    assert {p.name for p in d.iterdir()} >= {"controller.c", "controller.h", "main.c"}
+    proc = subprocess.run(c_compile_command(d), capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    states = _box_states(lq, 5)
+    # main.c warm-starts each state from the previous solution: feed one state per run
+    for x in states:
+        out = subprocess.run([str(d / "controller")], input=" ".join(map(str, x)) + "\n",
+                             capture_output=True, text=True, check=True)  # fmt: skip
+        mpc.reset()
+        np.testing.assert_allclose(
+            np.array(out.stdout.split(), float), mpc.solve(x, sensitivities=False).action, atol=1e-9
+        )
+
+
+def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
+    runner = CliRunner()
+    d = tmp_path / "tun"
+    assert runner.invoke(app, ["ask", str(d), "--system", "lq", "-n", "2"]).exit_code == 0
+    res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path / "m.casadi")])
+    assert res.exit_code == 2 and "no episode yet" in res.output  # nothing told yet
+    res = runner.invoke(app, ["export", str(d), "--format", "zip", "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "--format must be casadi or c" in res.output

@@ -1,0 +1,189 @@
+"""Ask and tell (mpcmobo.Tuner, mpcmobo ask / tell / status): the user's own episode loop gives
+the records of mpcmobo run; a crash between ask and tell loses nothing; bad trials and logs are
+refused without changing what is recorded."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+import mpcmobo
+from mpcmobo.cli import app
+from mpcmobo.experiment.settings import load_settings
+from mpcmobo.experiment.study import run_study
+from mpcmobo.experiment.tuner import Tuner, TunerError, write_log
+from mpcmobo.systems.plant import SystemPlant
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+FAST = {"n_init": 2, "search": {"num_restarts": 1, "raw_samples": 16, "maxiter": 10}}
+SETTINGS = {
+    "episodes": 4,
+    "steps": 12,
+    "start_mode": "cycle",
+    "n_cycle_starts": 2,
+    "evaluation": {"n_starts": 2, "eval_every": 2},
+    "learner_options": {"bo": FAST},
+}
+
+
+def _episode(tuner: Tuner, trial) -> tuple[np.ndarray, np.ndarray]:
+    """The user's loop on the simulated plant: start at trial.x0, apply the trial's policy
+    plus its noise, clipped, log states and inputs."""
+    plant = SystemPlant(tuner.system)
+    x, _ = plant.reset(seed=0, options={"x0": trial.x0})
+    states, inputs = [x], []
+    for k in range(trial.steps):
+        u = np.clip(trial.policy(x) + trial.noise[k], tuner.system.u_lb, tuner.system.u_ub)
+        x, *_ = plant.step(u)
+        states.append(x)
+        inputs.append(u)
+    return np.array(states), np.array(inputs)
+
+
+def _same_records(a: Path, b: Path) -> None:
+    """episodes.parquet of two directories, equal in every column but the wall times."""
+    ea, eb = pd.read_parquet(a / "episodes.parquet"), pd.read_parquet(b / "episodes.parquet")
+    assert list(ea.columns) == list(eb.columns) and len(ea) == len(eb)
+    for col in ea.columns:
+        if col.endswith("time_s"):
+            continue
+        for x, y in zip(ea[col], eb[col], strict=True):
+            if isinstance(x, str):
+                assert x == y, col
+            else:
+                assert np.array_equal(np.asarray(x, float), np.asarray(y, float), equal_nan=True), (
+                    col
+                )
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    """mpcmobo run's records of bo on the CSTR with the tuner's settings."""
+    out = tmp_path_factory.mktemp("study") / "run"
+    settings = load_settings(None, learners=["bo"], seeds=[0], workers=1, **SETTINGS)
+    run_study(settings, out)
+    return out
+
+
+def test_ask_and_tell_on_the_simulated_cstr_records_what_mpcmobo_run_records(study, tmp_path):
+    tuner = mpcmobo.Tuner("cstr", "bo", tmp_path / "tuner", **SETTINGS)
+    for _ in range(SETTINGS["episodes"]):
+        trial = tuner.ask()
+        tuner.tell(trial, *_episode(tuner, trial))
+    _same_records(study, tmp_path / "tuner")
+    assert np.array_equal(
+        tuner.deployed, pd.read_parquet(study / "episodes.parquet").incumbent.iloc[-1]
+    )
+    assert tuner.status()["trials"] == SETTINGS["episodes"]
+    with pytest.raises(TunerError, match="budget"):
+        tuner.ask()
+
+
+def test_a_crash_between_ask_and_tell_loses_nothing(study, tmp_path):
+    """The process is killed after its second ask; Tuner.load asks the same trial again and the
+    records end as mpcmobo run's."""
+    out = tmp_path / "tuner"
+    script = textwrap.dedent(f"""
+        import os, numpy as np, mpcmobo, json
+        from mpcmobo.systems.plant import SystemPlant
+        tuner = mpcmobo.Tuner("cstr", "bo", {str(out)!r}, **json.loads({json.dumps(json.dumps(SETTINGS))}))
+        trial = tuner.ask()
+        plant = SystemPlant(tuner.system)
+        x, _ = plant.reset(seed=0, options={{"x0": trial.x0}})
+        X, U = [x], []
+        for k in range(trial.steps):
+            u = np.clip(trial.policy(x) + trial.noise[k], tuner.system.u_lb, tuner.system.u_ub)
+            x, *_ = plant.step(u); X.append(x); U.append(u)
+        tuner.tell(trial, np.array(X), np.array(U))
+        print(json.dumps(tuner.ask().theta.tolist()), flush=True)
+        os.kill(os.getpid(), 9)
+    """)
+    env = {**os.environ, "PYTHONPATH": SRC}
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
+    assert proc.returncode == -9, proc.stderr
+    asked = np.array(json.loads(proc.stdout.splitlines()[-1]))
+    tuner = Tuner.load(out)
+    trial = tuner.ask()
+    assert trial.id == 1 and np.array_equal(trial.theta, asked)
+    tuner.tell(trial, *_episode(tuner, trial))
+    while tuner.episodes < SETTINGS["episodes"]:
+        trial = tuner.ask()
+        tuner.tell(trial, *_episode(tuner, trial))
+    _same_records(study, out)
+
+
+@pytest.fixture
+def lq_tuner(tmp_path):
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=3, steps=6)
+    return tuner, tuner.ask()
+
+
+def test_bad_trials_and_logs_are_refused_and_nothing_recorded_changes(lq_tuner):
+    tuner, trial = lq_tuner
+    X, U = _episode(tuner, trial)
+    ckpt = next((tuner.run_dir.path / "jobs").glob("*/checkpoint.pkl"))
+    before = ckpt.read_bytes()
+    cases = [
+        ((trial.id + 1, X, U), "unknown trial 1: the pending trial is 0"),
+        ((trial, X[:-1], U), r"states must be \(7, 2\)"),
+        ((trial, X, U[:-1]), r"inputs must be \(6, 1\)"),
+        ((trial, np.where(np.arange(7)[:, None] == 3, np.nan, X), U), "not finite at step 3"),
+        ((trial, X + 1e4, U), "far outside its bounds"),
+        ((trial, X, U + 1e3), "outside its bounds"),
+        (
+            (
+                trial,
+                pd.DataFrame({"p": X[:, 0], "v": X[:, 1]}),
+            ),
+            "no column 'f'",
+        ),
+    ]
+    for args, message in cases:
+        with pytest.raises(TunerError, match=message):
+            tuner.tell(*args)
+        assert ckpt.read_bytes() == before  # nothing recorded changed
+    tuner.tell(trial, X, U)
+    with pytest.raises(TunerError, match="trial 0 was told already"):
+        tuner.tell(trial, X, U)
+    with pytest.raises(TunerError, match="no trial is pending"):
+        tuner.tell(1, X, U)
+
+
+def test_a_dataframe_log_with_measured_costs(lq_tuner):
+    """A log as a DataFrame with stage_cost and violation columns: those are what the episode
+    records (the mean stage cost is theirs)."""
+    tuner, trial = lq_tuner
+    X, U = _episode(tuner, trial)
+    df = pd.DataFrame({"p": X[:, 0], "v": X[:, 1], "f": [*U[:, 0], np.nan],
+                       "stage_cost": [2.0] * 7, "violation": [0.5] * 7})  # fmt: skip
+    row = tuner.tell(trial, df)
+    assert row.mean_stage_cost == pytest.approx(2.0) and row.violation == pytest.approx(3.0)
+
+
+def test_the_command_line_asks_tells_and_reports(tmp_path):
+    runner = CliRunner()
+    d = tmp_path / "tun"
+    res = runner.invoke(app, ["ask", str(d), "--system", "lq", "--learner", "bo", "-n", "2"])
+    assert res.exit_code == 0, res.output
+    trial = json.loads(res.output)
+    assert trial["id"] == 0 and set(trial["theta"]) >= {"Q_p", "R_f"}
+    assert (d / "trials" / "0" / "controller.casadi").exists()
+    tuner = Tuner.load(d)
+    X, U = _episode(tuner, tuner.ask())
+    write_log(tmp_path / "ep.csv", X, U, tuner.system)
+    res = runner.invoke(app, ["tell", str(d), "0", str(tmp_path / "ep.csv")])
+    assert res.exit_code == 0 and "trial 0 told" in res.output, res.output
+    res = runner.invoke(app, ["tell", str(d), "0", str(tmp_path / "ep.csv")])
+    assert res.exit_code == 2 and "told already" in res.output
+    res = runner.invoke(app, ["status", str(d)])
+    assert res.exit_code == 0 and "1 of 2 trials told" in res.output and "Q_p" in res.output
+    assert pd.read_parquet(d / "episodes.parquet").shape[0] == 1
