@@ -661,3 +661,20 @@ def test_a_failing_covariate_never_ends_a_run(lq_system, monkeypatch):
     assert np.isnan(other.results[0].start_cost) and np.isnan(row["start_cost"])
     assert row["error"] == "" and np.isfinite(row["f1"])
     assert other.results[0].f1 == bare.results[0].f1  # the same episode as with a covariate
+
+
+def test_a_candidate_with_a_failed_episode_is_never_deployed(lq):
+    """Half theta0's cost from every start of the cycle, but one episode of it failed (a plant
+    that diverged: a cost that is not finite): never the candidate, never deployed."""
+    z0, good = _points(lq)
+    lr = make_learner(
+        "bo", lq[0], lq[1], seed=0, starts=Starts("cycle", 5), trust_region=False, **FAST
+    )
+    for s in range(5):
+        _observe(lr, z0, BASE[s], s)
+    _observe(lr, good, float("nan"), 0)
+    for s in range(5):
+        _observe(lr, good, 0.5 * BASE[s], s)
+    assert theta_key(good) in lr.evidence_.failed()
+    assert lr.policy.confidence_of(lr.evidence_, lr.surrogate, good, z0) >= 0.9
+    assert _same(lr.deployed_z_, z0) and lr.verify_z_ is None

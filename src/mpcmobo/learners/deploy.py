@@ -15,7 +15,9 @@ next to gather evidence (:meth:`DeployPolicy.decide`, :meth:`DeployPolicy.next_c
 
 In both evidence policies the GP names the candidate (:func:`choose_candidate`): the observed
 theta with the lowest ``mean + kappa std`` of its posterior f1 among those the evidence does
-not rule out, which the GP must find more likely better than the deployed theta than not.
+not rule out, which the GP must find more likely better than the deployed theta than not. A
+theta with a failed episode (a cost that is not finite: the plant diverged) is never a
+candidate.
 """
 
 from __future__ import annotations
@@ -150,11 +152,12 @@ class _EvidencePolicy:
         """The candidate (:func:`choose_candidate`) replaces ``deployed`` once it has
         ``min_runs`` of evidence, is cheaper with ``confidence`` and the deployed theta has
         ``min_runs`` too; a promising one (GP probability >= 0.5) with less evidence, or not
-        yet convincing and below ``2 min_runs``, is to be run again."""
-        Zf = ev.Z[ev.finite()]
+        yet convincing and below ``2 min_runs``, is to be run again. A theta with a failed
+        episode is never the candidate."""
+        key_now, failed = theta_key(deployed), ev.failed()
+        Zf = np.array([z for z in ev.Z[ev.finite()] if theta_key(z) not in failed - {key_now}])
         if len(Zf) == 0:
             return Decision(deployed)
-        key_now = theta_key(deployed)
         Z = shortlisted(surrogate, Zf, deployed)
         screen = {
             theta_key(z): self.confidence_of(ev, surrogate, z, deployed)

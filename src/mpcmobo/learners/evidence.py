@@ -74,6 +74,11 @@ class Evidence:
         """The cycled starts ``z`` has finite episodes from."""
         return set(self.starts[self.rows_of(z)].tolist())
 
+    def failed(self) -> set[bytes]:
+        """The thetas (their :func:`theta_key`) with an episode whose cost is not finite: the
+        plant diverged or the episode broke."""
+        return {theta_key(z) for z in self.Z[~np.isfinite(self.Y[:, 0])]}
+
     def ran(self, z: np.ndarray) -> bool:
         """Whether ``z`` was run before the last episode."""
         key = theta_key(z)

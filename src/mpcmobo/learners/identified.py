@@ -2,11 +2,14 @@
 
 :class:`ModelSwitch` decides between the deployed theta and the candidate that puts the model
 identified from every plant transition so far into it (:class:`~mpcmobo.identify.ModelFit`,
-refitted after every episode). A candidate is made once the fit predicts held-out transitions
+refitted after an episode once the transitions have grown by ``REFIT_GROWTH`` since the last
+fit: after every episode for the first ten, then ever more rarely, so that the fits of a long
+run cost about as much as its last one). A candidate is made once the fit predicts held-out transitions
 better than the nominal model, and it is deployed only on the evidence of its own episodes
 against the deployed theta's, by the evidence rule of the GP learners
 (:func:`~mpcmobo.learners.deploy.evidence_policy`: paired over every start of the cycle, or
-start-adjusted under random starts); a candidate the evidence does not support is dropped.
+start-adjusted under random starts); a candidate the evidence does not support, or with a
+failed episode, is dropped.
 
 * :class:`IdentifyLearner` (``identify``): the switch alone, with a new candidate whenever the
   fit moves away from the deployed model by more than two standard deviations: the
@@ -24,7 +27,7 @@ for every episode the test compares, recomputed when the candidate is made.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import asdict, replace
 from typing import Any
 
 import numpy as np
@@ -42,6 +45,7 @@ __all__ = ["IdentifyFirst", "IdentifyLearner", "ModelSwitch"]
 StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
+REFIT_GROWTH = 0.1  # a refit once the transitions have grown by 10% since the last fit
 
 
 class ModelSwitch:
@@ -86,11 +90,12 @@ class ModelSwitch:
         return None if self.candidate_ is None else theta_key(self.candidate_)
 
     def refit(self) -> None:
-        """Fit the model on every transition so far (warm-started from the last fit)."""
-        if len(self.transitions_) == 0:
+        """Fit the model on every transition so far (warm-started from the last fit), once
+        they have grown by ``REFIT_GROWTH`` since the last fit."""
+        n, last = len(self.transitions_), self.identification_
+        if n == 0 or (last is not None and n < (1 + REFIT_GROWTH) * last.n):
             return
-        start = None if self.identification_ is None else self.identification_.estimate
-        fit = self.fit.fit(self.transitions_, start=start)
+        fit = self.fit.fit(self.transitions_, start=None if last is None else last.estimate)
         if fit.success:
             self.identification_ = fit
 
@@ -100,6 +105,10 @@ class ModelSwitch:
             self._propose_candidate()
             return
         ev, p, c, d = self.evidence_, self.policy, self.candidate_, self.deployed_
+        if theta_key(c) in ev.failed():  # an episode of the candidate diverged
+            self.candidate_ = None
+            self.decisions_ += 1
+            return
         runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
         if runs < p.min_runs or own < p.min_runs:
             return
@@ -153,7 +162,7 @@ class ModelSwitch:
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
-        """Transitions, evidence, deployed theta, candidate and the last fit's estimate."""
+        """Transitions, evidence, deployed theta, candidate and the last fit."""
         ident = self.identification_
         return {
             "transitions": self.transitions_.state_dict(),
@@ -162,14 +171,15 @@ class ModelSwitch:
             "candidate": None if self.candidate_ is None else self.candidate_.copy(),
             "tried": None if self.tried_ is None else self.tried_.copy(),
             "decisions": self.decisions_,
-            "estimate": None if ident is None else ident.estimate.copy(),
+            "identification": None if ident is None else asdict(ident),
             "x0s": [x.copy() for x in self.x0s_],
             "twin": None if self.twin_ is None else (self.twin_[0].copy(), self.twin_[1].copy()),
             "deployed_params": self.deployed_params_,
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict`; the last fit is made again from its estimate."""
+        """Restore :meth:`state_dict` (a state of 1.0.0, which holds the last fit's estimate
+        only, makes that fit again from it)."""
         self.transitions_ = Transitions.from_state_dict(state["transitions"])
         self.evidence_.load_state_dict(state["evidence"])
         self.deployed_ = np.array(state["deployed"], float)
@@ -181,8 +191,9 @@ class ModelSwitch:
         self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
         dp = state["deployed_params"]
         self.deployed_params_ = None if dp is None else np.array(dp, float)
-        self.identification_ = None
-        if state["estimate"] is not None and len(self.transitions_):
+        ident = state.get("identification")
+        self.identification_ = None if ident is None else Identification(**ident)
+        if "identification" not in state and state["estimate"] is not None:  # a 1.0.0 state
             self.identification_ = self.fit.fit(self.transitions_, start=state["estimate"])
 
 

@@ -21,6 +21,8 @@ from mpcmobo.mpc.solve import MPCSolution
 from mpcmobo.systems.base import System
 from mpcmobo.systems.plant import SystemPlant
 
+RUNAWAY = 100.0  # a state this many x_scale from x_ref has run away: the episode is stopped
+
 
 class Exploration(Protocol):
     """Exploration noise on the applied inputs (e.g. ``mpcmobo.rl.GaussianExploration``)."""
@@ -52,7 +54,11 @@ def rollout(
     exploration noise (``noise`` (steps, nu) drawn beforehand, else ``exploration`` sampled
     with ``rng`` step by step), clipped to the input bounds, is applied to the plant. The MPC is solved
     once more at the final state so that ``V(x_T)`` exists. A failed solve never ends the
-    episode; a plant that terminates ends it early (the record is shortened).
+    episode; a plant that terminates ends it early (the record is shortened). A plant that
+    diverges (a state that is not finite, or more than ``RUNAWAY`` times ``x_scale`` from
+    ``x_ref`` in some state) is stopped at once with a ``FloatingPointError`` that names the
+    step and the state: the study records the episode as failed, and no learner deploys a theta
+    with a failed episode.
     """
     steps = int(system.episode_steps if steps is None else steps)
     if steps < 1:
@@ -218,4 +224,11 @@ def _apply(
     x = _measured(system, obs, f"step {k}")
     if not np.all(np.isfinite(x)):
         raise FloatingPointError(f"the plant diverged at step {k}: state {x}")
+    far = np.abs(x - system.x_ref) > RUNAWAY * np.asarray(system.x_scale, float)
+    if np.any(far):
+        names = ", ".join(n for n, f in zip(system.state_names, far) if f)
+        raise FloatingPointError(
+            f"the plant ran away at step {k}: state {x} ({names} more than {RUNAWAY:g} x_scale "
+            "from x_ref); the episode is stopped"
+        )
     return x, bool(terminated)

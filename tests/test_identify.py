@@ -1,0 +1,206 @@
+"""Identification (:mod:`mpcmobo.identify`) and the model switch that deploys its model.
+
+The fit is least squares on the scaled one-step prediction error of the system's own model
+structure: on transitions of the CSTR's true plant it recovers the true model parameters from
+the nominal (imperfect) ones, its prior holds the nominal model as firmly as ``prior_std``
+says, its robust loss shrugs off gross outliers, its covariance shrinks with the data, and its
+held-out check tells a better model from the nominal one. The switch refits as the data grow
+(ever more rarely) and resumes with the very fit it had. Last, a plant that runs away is
+stopped, and its episode is a named failure.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mpcmobo.experiment import loop, storage
+from mpcmobo.experiment.settings import load_settings
+from mpcmobo.experiment.study import run_study
+from mpcmobo.identify import ModelFit, Transitions, identify, prediction_error
+from mpcmobo.learners import EpisodeResult, Starts
+from mpcmobo.learners.identified import REFIT_GROWTH, ModelSwitch
+from mpcmobo.learners.options import EvidenceDeploy
+from mpcmobo.mpc import rollout
+from mpcmobo.systems import get_system
+from mpcmobo.systems.plant import SystemPlant
+
+
+def _episode(system, rng, steps=60):
+    """States (steps+1, nx) and inputs (steps, nu) of the true plant under random inputs."""
+    x = np.empty((steps + 1, system.nx))
+    u = rng.uniform(system.u_lb, system.u_ub, size=(steps, system.nu))
+    x[0] = system.sample_initial_state(rng)
+    for k in range(steps):
+        x[k + 1] = system.plant_step(x[k], u[k])
+    return x, u
+
+
+def _data(system, episodes, seed=0):
+    rng = np.random.default_rng(seed)
+    data = Transitions.empty(system.nx, system.nu)
+    for _ in range(episodes):
+        data.add_episode(*_episode(system, rng))
+    return data
+
+
+def test_one_episode_identifies_the_cstr_model(cstr):
+    """One episode's 60 transitions: every multiplier within 0.5% of the true one (the nominal
+    model is 10-20% off), a held-out error far below the nominal model's."""
+    data = _data(cstr, 1)
+    assert len(data) == 60
+    fit = identify(cstr, data)
+    assert fit.success and fit.better and fit.n == 60
+    assert fit.names == cstr.param_names
+    np.testing.assert_allclose(fit.estimate, cstr.true_params, rtol=5e-3)
+    assert fit.holdout_error < 0.1 * fit.nominal_error
+    assert prediction_error(cstr, data, fit.params) < 0.1 * prediction_error(
+        cstr, data, cstr.models["imperfect"]
+    )
+    assert np.all(fit.std > 0) and np.all(np.isfinite(fit.cov))
+
+
+def test_the_prior_holds_the_nominal_model_as_firmly_as_it_says(cstr):
+    """With a prior spread of 1e-6 the estimate stays at the nominal model; with the default
+    spread the data move it to the true one."""
+    data = _data(cstr, 1)
+    nominal = cstr.models["imperfect"]
+    tight = ModelFit(cstr, prior_std=1e-6).fit(data)
+    np.testing.assert_allclose(tight.estimate, nominal, rtol=1e-3)
+    loose = ModelFit(cstr).fit(data)
+    assert np.all(np.abs(loose.estimate - cstr.true_params) < np.abs(nominal - cstr.true_params))
+
+
+def test_gross_outliers_barely_move_the_fit(cstr):
+    """Three of 120 transitions corrupted by 50 x_scale: the soft-L1 loss keeps every estimate
+    within 2% of the true model."""
+    data = _data(cstr, 2, seed=1)
+    data.x_next[[5, 40, 90]] += 50 * cstr.x_scale
+    fit = identify(cstr, data)
+    np.testing.assert_allclose(fit.estimate, cstr.true_params, rtol=2e-2)
+
+
+def test_the_covariance_shrinks_with_the_data_and_a_subset_is_identified_alone(cstr):
+    """Five episodes give smaller standard deviations than one; identifying two parameters
+    leaves the others at the nominal model."""
+    one, five = identify(cstr, _data(cstr, 1)), identify(cstr, _data(cstr, 5))
+    assert np.all(five.std < one.std)
+    sub = identify(cstr, _data(cstr, 1), names=["k0", "k1"])
+    assert sub.names == ("k0", "k1") and sub.estimate.shape == (2,)
+    nominal = cstr.models["imperfect"]
+    np.testing.assert_array_equal(sub.params[[0, 3, 4]], nominal[[0, 3, 4]])
+    with pytest.raises(ValueError, match="unknown model parameter"):
+        ModelFit(cstr, names=["k9"])
+
+
+def test_transitions_leave_out_what_is_not_finite_and_hold_out_each_episodes_last_quarter(cstr):
+    rng = np.random.default_rng(3)
+    x, u = _episode(cstr, rng, steps=8)
+    x[4, 1] = np.nan  # two transitions touch state 4
+    data = Transitions.empty(cstr.nx, cstr.nu)
+    data.add_episode(x, u)
+    data.add_episode(*_episode(cstr, rng, steps=8))
+    assert len(data) == 14 and np.all(np.isfinite(data.x))
+    hold = data.holdout_mask()
+    assert hold.sum() == 3  # floor(6/4) + floor(8/4)
+    assert hold[5] and hold[12] and hold[13] and not hold[:5].any()
+    assert identify(cstr, Transitions.empty(cstr.nx, cstr.nu)).success is False
+
+
+def _switch(cstr, calls):
+    """A model switch on the CSTR (with its model in theta) whose fits are counted."""
+    system = get_system("cstr", identify=cstr.param_names)
+    fit = ModelFit(system)
+    original = fit.fit
+
+    def counted(data, start=None):
+        calls.append(len(data))
+        return original(data, start)
+
+    fit.fit = counted  # type: ignore[method-assign]
+    theta0 = system.parameterization.theta0
+    return ModelSwitch(fit, theta0, Starts("cycle", 3), EvidenceDeploy()), theta0
+
+
+def test_the_switch_refits_as_the_data_grow_ever_more_rarely_and_resumes_its_fit(cstr):
+    """40 episodes: a fit after each of the first ten, then after every 10% growth of the
+    transitions (21 fits in all, not 40); a resumed switch has the very fit, without fitting."""
+    calls: list[int] = []
+    sw, theta0 = _switch(cstr, calls)
+    rng = np.random.default_rng(0)
+    for e in range(40):
+        x, u = _episode(cstr, rng, steps=20)
+        res = EpisodeResult(np.array([1.0, 0, 0, 0]), np.zeros(len(theta0)), True, start_id=e % 3)
+        res.states, res.inputs = x, u
+        sw.observe(sw.next_theta()[1], res, "deployed")
+    assert calls[:10] == [20 * (e + 1) for e in range(10)]
+    assert all(b >= (1 + REFIT_GROWTH) * a for a, b in zip(calls, calls[1:]))
+    assert len(calls) == 21
+    np.testing.assert_allclose(sw.identification_.estimate, cstr.true_params, rtol=5e-3)
+    state = sw.state_dict()
+    calls2: list[int] = []
+    other, _ = _switch(cstr, calls2)
+    other.load_state_dict(state)
+    assert calls2 == []
+    np.testing.assert_array_equal(other.identification_.estimate, sw.identification_.estimate)
+    assert other.identification_.n == sw.identification_.n == calls[-1]
+
+
+def test_a_1_0_0_switch_state_makes_its_last_fit_again(cstr):
+    """A state of 1.0.0 holds the last fit's estimate only: loading it fits again from there."""
+    calls: list[int] = []
+    sw, theta0 = _switch(cstr, calls)
+    x, u = _episode(cstr, np.random.default_rng(0))
+    res = EpisodeResult(np.array([1.0, 0, 0, 0]), np.zeros(len(theta0)), True, start_id=0)
+    res.states, res.inputs = x, u
+    sw.observe(theta0, res, "deployed")
+    state = sw.state_dict()
+    state["estimate"] = state.pop("identification")["estimate"]
+    other, _ = _switch(cstr, calls2 := [])
+    other.load_state_dict(state)
+    assert calls2 == [60]
+    np.testing.assert_allclose(other.identification_.estimate, sw.identification_.estimate)
+
+
+class _RunawayPlant(SystemPlant):
+    """A system's plant whose last state jumps to 1e6 x_scale from x_ref at the fourth step."""
+
+    def step(self, action):
+        obs, r, term, trunc, info = super().step(action)
+        self.k = getattr(self, "k", 0) + 1
+        if self.k == 4:
+            obs = obs.copy()
+            obs[-1] = self.system.x_ref[-1] + 1e6 * self.system.x_scale[-1]
+        return obs, r, term, trunc, info
+
+
+def test_a_plant_that_runs_away_is_stopped_and_named(cstr, cstr_mpc):
+    """A state more than RUNAWAY x_scale from x_ref ends the episode with an error that names
+    the step and the state."""
+    with pytest.raises(FloatingPointError, match=r"ran away at step 3: .*\(T more than 100"):
+        rollout(cstr, cstr_mpc, None, cstr.x_ref, 10, plant=_RunawayPlant(cstr))
+
+
+def test_a_runaway_episode_is_a_recorded_failure_of_the_study(tmp_path, monkeypatch):
+    """In a study the runaway episode's row says why it failed, its objectives are NaN, and
+    the run goes on to the end."""
+    calls = {"n": 0}
+    original = loop.rollout
+
+    def flaky(system, mpc, theta, x0, steps, **kw):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            kw["plant"] = _RunawayPlant(system)
+        return original(system, mpc, theta, x0, steps, **kw)
+
+    monkeypatch.setattr(loop, "rollout", flaky)
+    settings = load_settings(
+        None, system={"name": "lq"}, learners=["mpc-rl"], episodes=3, steps=8, workers=1,
+        evaluation={"n_starts": 2},
+    )  # fmt: skip
+    summary = run_study(settings, tmp_path / "run")
+    assert summary["complete"] is True
+    df = storage.read_episodes(tmp_path / "run")
+    assert len(df) == 3
+    assert "ran away at step 3" in df.loc[1, "error"] and np.isnan(df.loc[1, "f1"])
+    assert (df.loc[[0, 2], "error"] == "").all() and np.isfinite(df.loc[[0, 2], "f1"]).all()
