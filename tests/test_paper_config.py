@@ -28,8 +28,20 @@ def paper():
     return settings, build_system(settings)
 
 
-def test_the_paper_config_is_the_only_benchmark_config():
-    assert sorted(p.name for p in CONFIGS.glob("*.toml")) == ["paper.toml"]
+def test_every_benchmark_config_loads_and_the_benchmark_page_names_only_those():
+    """Each config of benchmarks/configs loads and resolves; every config a command of
+    docs/benchmarks.md names is one of them."""
+    import re
+
+    names = sorted(p.name for p in CONFIGS.glob("*.toml"))
+    for name in names:
+        load_settings(CONFIGS / name).resolved()
+    page = (CONFIGS.parents[1] / "docs" / "benchmarks.md").read_text()
+    named = set(re.findall(r"--config (\S+\.toml)", page))
+    assert named and all(n.startswith("benchmarks/configs/") for n in named - {
+        "examples/cartpole.toml"}), named  # fmt: skip
+    assert {n.removeprefix("benchmarks/configs/") for n in named} - {
+        "examples/cartpole.toml"} <= set(names)  # fmt: skip
 
 
 def test_paper_config_loads_with_the_papers_protocol(paper):

@@ -14,9 +14,12 @@ failed episode, is dropped.
 * :class:`IdentifyLearner` (``identify``): the switch alone, with a new candidate whenever the
   fit moves away from the deployed model by more than two standard deviations: the
   certainty-equivalent baseline that a control engineer tries first.
-* :class:`IdentifyFirst`: any other learner after the switch has decided, built with theta0
-  the deployed theta (the identified model, or the nominal one if its candidate was dropped),
-  so that it tunes theta from there.
+* :class:`IdentifyFirst`: any other learner once the switch has settled, built with theta0
+  the deployed theta, so that it tunes theta from there. The switch has settled when it has
+  deployed an identified model, or when, after a dropped candidate, the fit has brought no new
+  one for as many episodes as a verification takes (or ``MAX_DROPS`` were dropped): then the
+  learner tunes from the nominal model. Like ``identify``, a dropped candidate is followed by
+  a new one as soon as the fit moves.
 
 Under random starts the deployment tests adjust each episode's cost for how costly its start
 is; with a candidate, that covariate is the identified model's prediction of the episode (a
@@ -46,6 +49,7 @@ StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
 REFIT_GROWTH = 0.1  # a refit once the transitions have grown by 10% since the last fit
+MAX_DROPS = 3  # identify-first tuning starts from the nominal model after this many drops
 
 
 class ModelSwitch:
@@ -65,6 +69,8 @@ class ModelSwitch:
         self.candidate_: np.ndarray | None = None
         self.tried_: np.ndarray | None = None  # the estimate of the last candidate
         self.decisions_ = 0  # candidates deployed or dropped
+        self.drops_ = 0  # candidates dropped
+        self.waiting_ = 0  # episodes since the last drop without a new candidate
         self.x0s_: list[np.ndarray] = []  # each evidence row's initial state
         # the start covariate's controller and model (None: theta0 on the nominal model)
         self.twin_: tuple[np.ndarray, np.ndarray] | None = None
@@ -103,11 +109,12 @@ class ModelSwitch:
         """Deploy or drop the candidate on its evidence; else make one from the fit."""
         if self.candidate_ is None:
             self._propose_candidate()
+            if self.candidate_ is None and self.drops_:
+                self.waiting_ += 1
             return
         ev, p, c, d = self.evidence_, self.policy, self.candidate_, self.deployed_
         if theta_key(c) in ev.failed():  # an episode of the candidate diverged
-            self.candidate_ = None
-            self.decisions_ += 1
+            self._drop()
             return
         runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
         if runs < p.min_runs or own < p.min_runs:
@@ -118,8 +125,27 @@ class ModelSwitch:
             self.deployed_params_ = None if self.twin_ is None else self.twin_[1].copy()
             self.decisions_ += 1
         elif conf < 0.5 or runs >= p.max_runs:
-            self.candidate_ = None
-            self.decisions_ += 1
+            self._drop()
+
+    def _drop(self) -> None:
+        self.candidate_ = None
+        self.decisions_ += 1
+        self.drops_ += 1
+        self.waiting_ = 0
+
+    def settled(self) -> bool:
+        """Whether identification is done (module docstring): an identified model deployed,
+        ``MAX_DROPS`` candidates dropped, or none since the last drop for ``min_runs``
+        episodes (cycled starts: a cycle)."""
+        return (
+            self.decisions_ > self.drops_
+            or self.drops_ >= MAX_DROPS
+            or (
+                self.drops_ > 0
+                and self.candidate_ is None
+                and self.waiting_ >= self.policy.min_runs
+            )
+        )
 
     def _propose_candidate(self) -> None:
         """A candidate with the fitted model when the fit beats the nominal model on held-out
@@ -171,6 +197,8 @@ class ModelSwitch:
             "candidate": None if self.candidate_ is None else self.candidate_.copy(),
             "tried": None if self.tried_ is None else self.tried_.copy(),
             "decisions": self.decisions_,
+            "drops": self.drops_,
+            "waiting": self.waiting_,
             "identification": None if ident is None else asdict(ident),
             "x0s": [x.copy() for x in self.x0s_],
             "twin": None if self.twin_ is None else (self.twin_[0].copy(), self.twin_[1].copy()),
@@ -186,6 +214,9 @@ class ModelSwitch:
         self.candidate_ = None if state["candidate"] is None else np.array(state["candidate"])
         self.tried_ = None if state["tried"] is None else np.array(state["tried"], float)
         self.decisions_ = int(state["decisions"])
+        # a 1.0.0 state: every decision counted as settled (its rule)
+        self.drops_ = int(state.get("drops", 0))
+        self.waiting_ = int(state.get("waiting", self.policy.min_runs))
         self.x0s_ = [np.array(x, float) for x in state["x0s"]]
         twin = state["twin"]
         self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
@@ -300,7 +331,7 @@ class IdentifyFirst(Learner):
     def _tuning(self) -> Learner | None:
         """The learner that tunes, once the switch has decided: built then, and given the
         switch's episodes of the deployed theta if it takes them (``seed``)."""
-        if self.inner_ is None and self.switch_.decisions_ > 0:
+        if self.inner_ is None and self.switch_.settled():
             deployed = self.switch_.deployed_.copy()
             self.inner_ = self.make_inner(deployed)
             seed = getattr(self.inner_, "seed_with", None)
@@ -318,7 +349,7 @@ class IdentifyFirst(Learner):
     def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The start covariate's controller and model: the switch's while it runs, then the
         deployed theta on its identified model (None: the nominal model)."""
-        if self.switch_.decisions_ == 0:
+        if self.inner_ is None and not self.switch_.settled():
             return self.switch_.start_model()
         params = self.switch_.deployed_params_
         if params is None or not isinstance(self.switch_.policy, RandomEvidence):
