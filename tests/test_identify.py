@@ -208,14 +208,17 @@ def test_a_runaway_episode_is_a_recorded_failure_of_the_study(tmp_path, monkeypa
 
 
 def test_identify_first_tunes_once_the_switch_has_settled(cstr):
-    """The tuning learner starts once an identified model is deployed, or once, after a dropped
-    candidate, no new one has come for a verification's worth of episodes (a cycle of 3 here),
-    or after MAX_DROPS drops; a dropped candidate alone does not settle it."""
-    from mpcmobo.learners.identified import MAX_DROPS
+    """The tuning learner starts once, after a decision (a deployment or a drop), no new
+    candidate has come for a verification's worth of episodes (a cycle of 3 here), or after
+    MAX_DECISIONS decisions; a decision alone does not settle it."""
+    from mpcmobo.learners.identified import MAX_DECISIONS
 
-    sw, _ = _switch(cstr, [])
+    sw, theta0 = _switch(cstr, [])
+    for _ in range(5):
+        sw.decide()  # no fit, no decision yet: the switch goes on
     assert not sw.settled()
-    sw._drop()
+    sw.candidate_ = theta0.copy()
+    sw._decided()
     assert not sw.settled()
     for _ in range(sw.policy.min_runs - 1):
         sw.decide()  # no fit: no new candidate
@@ -223,23 +226,20 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
     sw.decide()
     assert sw.settled()
     other, _ = _switch(cstr, [])
-    other.decisions_ = 1  # a deployment
+    for _ in range(MAX_DECISIONS):
+        other._decided()
     assert other.settled()
+    state = sw.state_dict()
+    del state["waiting"]  # a 1.0.0 state: any decision had settled the switch
     third, _ = _switch(cstr, [])
-    for _ in range(MAX_DROPS):
-        third._drop()
+    third.load_state_dict(state)
     assert third.settled()
-    state = third.state_dict()
-    del state["drops"], state["waiting"]  # a 1.0.0 state: any decision had settled it
-    fourth, _ = _switch(cstr, [])
-    fourth.load_state_dict(state)
-    assert fourth.settled()
 
 
 def _ident_settings(learners):
     cheap = {"n_init": 3, "search": {"num_restarts": 1, "raw_samples": 16, "maxiter": 10}}
     return load_settings(
-        None, system={"name": "lq", "identify": True}, learners=learners, episodes=16,
+        None, system={"name": "lq", "identify": True}, learners=learners, episodes=22,
         seeds=[0], evaluation={"n_starts": 3, "eval_every": 4},
         learner_options={"bo": cheap}, workers=1,
     )  # fmt: skip
@@ -247,14 +247,18 @@ def _ident_settings(learners):
 
 def test_identify_first_deploys_the_identified_model_and_resumes_exactly(tmp_path):
     """lq with identification, cycled starts: bo's deployed theta takes the identified model
-    (the true one) after one cycle of candidate episodes and bo tunes from there; runs
-    interrupted in the switch's phase and in the tuning phase give the uninterrupted records."""
+    (the true one) after one cycle of candidate episodes, its episodes those of ``identify``
+    until the switch settles a cycle later, and bo tunes from there;
+    runs interrupted before and after the deployment and in the tuning phase give the
+    uninterrupted records."""
     full = tmp_path / "full"
     assert run_study(_ident_settings(["bo", "identify"]), full)["complete"] is True
     df = storage.read_episodes(full)
     lq = get_system("lq", identify=get_system("lq").param_names)
     names = list(lq.parameterization.names)
     idx = [names.index(f"model_{n}") for n in lq.param_names]
+    bo, ident = (df[df.learner == n].sort_values("episode") for n in ("bo", "identify"))
+    assert bo.theta.iloc[:18].map(tuple).tolist() == ident.theta.iloc[:18].map(tuple).tolist()
     for learner in ("bo", "identify"):
         rows = df[df.learner == learner].sort_values("episode")
         final = np.asarray(rows.incumbent.iloc[-1], float)
@@ -262,7 +266,8 @@ def test_identify_first_deploys_the_identified_model_and_resumes_exactly(tmp_pat
         assert len(rows.identified.iloc[-1]) == len(lq.param_names)
     out = tmp_path / "resumed"
     run_study(_ident_settings(["bo", "identify"]), out, max_episodes_this_call=5)
-    run_study(None, out, resume=True, max_episodes_this_call=8)  # at 13: bo tunes
+    run_study(None, out, resume=True, max_episodes_this_call=8)  # at 13: deployed, not settled
+    run_study(None, out, resume=True, max_episodes_this_call=6)  # at 19: bo tunes
     assert run_study(None, out, resume=True)["complete"] is True
     wall = ["mpc_time_s", "learner_time_s", "eval_time_s"]
     pd.testing.assert_frame_equal(

@@ -15,11 +15,13 @@ failed episode, is dropped.
   fit moves away from the deployed model by more than two standard deviations: the
   certainty-equivalent baseline that a control engineer tries first.
 * :class:`IdentifyFirst`: any other learner once the switch has settled, built with theta0
-  the deployed theta, so that it tunes theta from there. The switch has settled when it has
-  deployed an identified model, or when, after a dropped candidate, the fit has brought no new
-  one for as many episodes as a verification takes (or ``MAX_DROPS`` were dropped): then the
-  learner tunes from the nominal model. Like ``identify``, a dropped candidate is followed by
-  a new one as soon as the fit moves.
+  the deployed theta (an identified model, or the nominal one if none was deployed), so that
+  it tunes theta from there. Until then the switch does what ``identify`` does: a new
+  candidate whenever the fit moves, deployed or dropped on its evidence. It has settled when,
+  after a decision, the fit has brought no new candidate for as many episodes as a
+  verification takes (``min_runs``; cycled starts: a cycle), or after ``MAX_DECISIONS``
+  decisions: under structural mismatch the fit moves as data come in, and the learners tune
+  from the model ``identify`` converges to, not from the first.
 
 Under random starts the deployment tests adjust each episode's cost for how costly its start
 is; with a candidate, that covariate is the identified model's prediction of the episode (a
@@ -49,7 +51,7 @@ StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
 REFIT_GROWTH = 0.1  # a refit once the transitions have grown by 10% since the last fit
-MAX_DROPS = 3  # identify-first tuning starts from the nominal model after this many drops
+MAX_DECISIONS = 4  # identify-first tuning starts after this many deployed or dropped candidates
 
 
 class ModelSwitch:
@@ -69,8 +71,7 @@ class ModelSwitch:
         self.candidate_: np.ndarray | None = None
         self.tried_: np.ndarray | None = None  # the estimate of the last candidate
         self.decisions_ = 0  # candidates deployed or dropped
-        self.drops_ = 0  # candidates dropped
-        self.waiting_ = 0  # episodes since the last drop without a new candidate
+        self.waiting_ = 0  # episodes since the last decision without a new candidate
         self.x0s_: list[np.ndarray] = []  # each evidence row's initial state
         # the start covariate's controller and model (None: theta0 on the nominal model)
         self.twin_: tuple[np.ndarray, np.ndarray] | None = None
@@ -109,42 +110,39 @@ class ModelSwitch:
         """Deploy or drop the candidate on its evidence; else make one from the fit."""
         if self.candidate_ is None:
             self._propose_candidate()
-            if self.candidate_ is None and self.drops_:
+            if self.candidate_ is None and self.decisions_:
                 self.waiting_ += 1
             return
         ev, p, c, d = self.evidence_, self.policy, self.candidate_, self.deployed_
         if theta_key(c) in ev.failed():  # an episode of the candidate diverged
-            self._drop()
+            self._decided()
             return
         runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
         if runs < p.min_runs or own < p.min_runs:
             return
         conf = p.confidence_of(ev, None, c, d)
         if conf >= p.confidence:
-            self.deployed_, self.candidate_ = c, None
+            self.deployed_ = c
             self.deployed_params_ = None if self.twin_ is None else self.twin_[1].copy()
-            self.decisions_ += 1
+            self._decided()
         elif conf < 0.5 or runs >= p.max_runs:
-            self._drop()
+            self._decided()
 
-    def _drop(self) -> None:
+    def _decided(self) -> None:
+        """The candidate is deployed or dropped."""
         self.candidate_ = None
         self.decisions_ += 1
-        self.drops_ += 1
         self.waiting_ = 0
 
     def settled(self) -> bool:
-        """Whether identification is done (module docstring): an identified model deployed,
-        ``MAX_DROPS`` candidates dropped, or none since the last drop for ``min_runs``
-        episodes (cycled starts: a cycle)."""
+        """Whether identification is done (module docstring): no new candidate for
+        ``min_runs`` episodes since the last decision, or ``MAX_DECISIONS`` decisions."""
+        if self.decisions_ >= MAX_DECISIONS:
+            return True
         return (
-            self.decisions_ > self.drops_
-            or self.drops_ >= MAX_DROPS
-            or (
-                self.drops_ > 0
-                and self.candidate_ is None
-                and self.waiting_ >= self.policy.min_runs
-            )
+            self.decisions_ > 0
+            and self.candidate_ is None
+            and (self.waiting_ >= self.policy.min_runs)
         )
 
     def _propose_candidate(self) -> None:
@@ -197,7 +195,6 @@ class ModelSwitch:
             "candidate": None if self.candidate_ is None else self.candidate_.copy(),
             "tried": None if self.tried_ is None else self.tried_.copy(),
             "decisions": self.decisions_,
-            "drops": self.drops_,
             "waiting": self.waiting_,
             "identification": None if ident is None else asdict(ident),
             "x0s": [x.copy() for x in self.x0s_],
@@ -214,8 +211,7 @@ class ModelSwitch:
         self.candidate_ = None if state["candidate"] is None else np.array(state["candidate"])
         self.tried_ = None if state["tried"] is None else np.array(state["tried"], float)
         self.decisions_ = int(state["decisions"])
-        # a 1.0.0 state: every decision counted as settled (its rule)
-        self.drops_ = int(state.get("drops", 0))
+        # a 1.0.0 state: any decision had settled the switch (its rule)
         self.waiting_ = int(state.get("waiting", self.policy.min_runs))
         self.x0s_ = [np.array(x, float) for x in state["x0s"]]
         twin = state["twin"]
