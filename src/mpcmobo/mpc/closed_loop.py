@@ -54,11 +54,9 @@ def rollout(
     exploration noise (``noise`` (steps, nu) drawn beforehand, else ``exploration`` sampled
     with ``rng`` step by step), clipped to the input bounds, is applied to the plant. The MPC is solved
     once more at the final state so that ``V(x_T)`` exists. A failed solve never ends the
-    episode; a plant that terminates ends it early (the record is shortened). A plant that
-    diverges (a state that is not finite, or more than ``RUNAWAY`` times ``x_scale`` from
-    ``x_ref`` in some state) is stopped at once with a ``FloatingPointError`` that names the
-    step and the state: the study records the episode as failed, and no learner deploys a theta
-    with a failed episode.
+    episode; a plant that terminates ends it early (the record is shortened); a plant that
+    diverges (a state not finite, or ``RUNAWAY`` x_scale from x_ref) is stopped at once with a
+    ``FloatingPointError`` naming the step and the state (a failed episode for the study).
     """
     steps = int(system.episode_steps if steps is None else steps)
     if steps < 1:
