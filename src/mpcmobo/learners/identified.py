@@ -51,7 +51,7 @@ StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
 REFIT_GROWTH = 0.1  # a refit once the transitions have grown by 10% since the last fit
-MAX_DECISIONS = 4  # identify-first tuning starts after this many deployed or dropped candidates
+MAX_DECISIONS = 2  # identify-first tuning starts after this many deployed or dropped candidates
 
 
 class ModelSwitch:
