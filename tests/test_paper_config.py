@@ -37,11 +37,9 @@ def test_every_benchmark_config_loads_and_the_benchmark_page_names_only_those():
     for name in names:
         load_settings(CONFIGS / name).resolved()
     page = (CONFIGS.parents[1] / "docs" / "benchmarks.md").read_text()
-    named = set(re.findall(r"--config (\S+\.toml)", page))
-    assert named and all(n.startswith("benchmarks/configs/") for n in named - {
-        "examples/cartpole.toml"}), named  # fmt: skip
-    assert {n.removeprefix("benchmarks/configs/") for n in named} - {
-        "examples/cartpole.toml"} <= set(names)  # fmt: skip
+    named = set(re.findall(r"--config (\S+\.toml)", page)) - {"examples/cartpole.toml"}
+    assert named and all(n.startswith("benchmarks/configs/") for n in named), named
+    assert {n.removeprefix("benchmarks/configs/") for n in named} <= set(names)
 
 
 def test_paper_config_loads_with_the_papers_protocol(paper):

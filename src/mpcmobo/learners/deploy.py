@@ -154,8 +154,9 @@ class _EvidencePolicy:
         ``min_runs`` too; a promising one (GP probability >= 0.5) with less evidence, or not
         yet convincing and below ``2 min_runs``, is to be run again. A theta with a failed
         episode is never the candidate."""
-        key_now, failed = theta_key(deployed), ev.failed()
-        Zf = np.array([z for z in ev.Z[ev.finite()] if theta_key(z) not in failed - {key_now}])
+        key_now = theta_key(deployed)
+        ruled_out = ev.failed() - {key_now}
+        Zf = np.array([z for z in ev.Z[ev.finite()] if theta_key(z) not in ruled_out])
         if len(Zf) == 0:
             return Decision(deployed)
         Z = shortlisted(surrogate, Zf, deployed)

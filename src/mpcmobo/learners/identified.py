@@ -4,9 +4,9 @@
 identified from every plant transition so far into it (:class:`~mpcmobo.identify.ModelFit`,
 refitted after an episode once the transitions have grown by ``REFIT_GROWTH`` since the last
 fit: after every episode for the first ten, then ever more rarely, so that the fits of a long
-run cost about as much as its last one). A candidate is made once the fit predicts held-out transitions
-better than the nominal model, and it is deployed only on the evidence of its own episodes
-against the deployed theta's, by the evidence rule of the GP learners
+run cost about as much as its last one). A candidate is made once the fit predicts held-out
+transitions better than the nominal model, and it is deployed only on the evidence of its own
+episodes against the deployed theta's, by the evidence rule of the GP learners
 (:func:`~mpcmobo.learners.deploy.evidence_policy`: paired over every start of the cycle, or
 start-adjusted under random starts); a candidate the evidence does not support, or with a
 failed episode, is dropped.
@@ -139,11 +139,8 @@ class ModelSwitch:
         ``min_runs`` episodes since the last decision, or ``MAX_DECISIONS`` decisions."""
         if self.decisions_ >= MAX_DECISIONS:
             return True
-        return (
-            self.decisions_ > 0
-            and self.candidate_ is None
-            and (self.waiting_ >= self.policy.min_runs)
-        )
+        idle = self.candidate_ is None and self.waiting_ >= self.policy.min_runs
+        return self.decisions_ > 0 and idle
 
     def _propose_candidate(self) -> None:
         """A candidate with the fitted model when the fit beats the nominal model on held-out
@@ -220,7 +217,8 @@ class ModelSwitch:
         self.deployed_params_ = None if dp is None else np.array(dp, float)
         ident = state.get("identification")
         self.identification_ = None if ident is None else Identification(**ident)
-        if "identification" not in state and state["estimate"] is not None:  # a 1.0.0 state
+        old = "identification" not in state and state["estimate"] is not None  # a 1.0.0 state
+        if old and len(self.transitions_):
             self.identification_ = self.fit.fit(self.transitions_, start=state["estimate"])
 
 
@@ -325,7 +323,7 @@ class IdentifyFirst(Learner):
         self.start_costs: StartCosts | None = None
 
     def _tuning(self) -> Learner | None:
-        """The learner that tunes, once the switch has decided: built then, and given the
+        """The learner that tunes, once the switch has settled: built then, and given the
         switch's episodes of the deployed theta if it takes them (``seed``)."""
         if self.inner_ is None and self.switch_.settled():
             deployed = self.switch_.deployed_.copy()
@@ -345,7 +343,7 @@ class IdentifyFirst(Learner):
     def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The start covariate's controller and model: the switch's while it runs, then the
         deployed theta on its identified model (None: the nominal model)."""
-        if self.inner_ is None and not self.switch_.settled():
+        if not self.switch_.settled():  # the switch stops when it settles: it stays so
             return self.switch_.start_model()
         params = self.switch_.deployed_params_
         if params is None or not isinstance(self.switch_.policy, RandomEvidence):
