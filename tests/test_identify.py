@@ -20,6 +20,7 @@ from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 from mpcmobo.identify import ModelFit, Transitions, identify, prediction_error
 from mpcmobo.learners import EpisodeResult, Starts
+from mpcmobo.learners.evidence import theta_key
 from mpcmobo.learners.identified import REFIT_GROWTH, ModelSwitch
 from mpcmobo.learners.options import EvidenceDeploy
 from mpcmobo.mpc import rollout
@@ -208,9 +209,9 @@ def test_a_runaway_episode_is_a_recorded_failure_of_the_study(tmp_path, monkeypa
 
 
 def test_identify_first_tunes_once_the_switch_has_settled(cstr):
-    """The tuning learner starts once, after a decision (a deployment or a drop), no new
-    candidate has come for a verification's worth of episodes (a cycle of 3 here), or after
-    MAX_DECISIONS decisions; a decision alone does not settle it."""
+    """The tuning learner starts at once after a deployment that the fit has not moved away
+    from; after a drop, once no new candidate has come for a verification's worth of episodes
+    (a cycle of 3 here); or after MAX_DECISIONS decisions."""
     from mpcmobo.learners.identified import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
@@ -225,6 +226,12 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
         assert not sw.settled()
     sw.decide()
     assert sw.settled()
+    deployed, _ = _switch(cstr, [])
+    deployed.candidate_ = theta0.copy()
+    deployed.deployed_params_ = np.ones(3)  # a deployment (its identified model)
+    assert not deployed.settled()  # a candidate is being verified
+    deployed._decided()
+    assert deployed.settled()
     other, _ = _switch(cstr, [])
     for _ in range(MAX_DECISIONS):
         other._decided()
@@ -234,6 +241,59 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
     third, _ = _switch(cstr, [])
     third.load_state_dict(state)
     assert third.settled()
+
+
+def test_a_deployment_settles_the_switch_unless_the_fit_has_moved_on(cstr):
+    """The decision that deploys a candidate looks at the fit at once: if it has moved more
+    than MOVED standard deviations from the deployed model, a new candidate runs and the
+    switch is not settled; if not, the switch has settled."""
+    from mpcmobo.identify import Identification
+    from mpcmobo.learners.identified import MOVED
+
+    def fitted(estimate):
+        q = np.asarray(estimate, float)
+        return Identification(("a",) * len(q), q, np.full(len(q), 0.01), np.eye(len(q)),
+                              q, 0.1, 1.0, 100, True)  # fmt: skip
+
+    for shift, settles in ((0.5 * MOVED * 0.01, True), (2 * MOVED * 0.01, False)):
+        sw, theta0 = _switch(cstr, [])
+        sw.policy.runs = lambda *a: 100  # type: ignore[method-assign]
+        sw.policy.confidence_of = lambda *a: 1.0  # type: ignore[method-assign]
+        sw.identification_ = fitted(cstr.true_params)
+        sw.decide()  # the fit beats the nominal model: a candidate
+        assert sw.candidate_ is not None and not sw.settled()
+        y = np.array([1.0])
+        sw.evidence_.append(sw.candidate_, y, np.zeros(len(theta0)), 0, 0.0, "verify")
+        sw.identification_ = fitted(np.asarray(cstr.true_params) + shift)
+        sw.decide()  # the evidence deploys it
+        assert sw.decisions_ == 1 and sw.deployed_params_ is not None
+        assert sw.settled() is settles
+        assert (sw.candidate_ is None) is settles
+
+
+def test_a_candidate_follows_the_fit_until_it_first_runs(cstr):
+    """A candidate that has not run yet is replaced by the fit once the fit moves away from
+    it; once it has run, a moved fit waits for its decision."""
+    from mpcmobo.identify import Identification
+
+    def fitted(estimate):
+        q = np.asarray(estimate, float)
+        return Identification(("a",) * len(q), q, np.full(len(q), 0.01), np.eye(len(q)),
+                              q, 0.1, 1.0, 100, True)  # fmt: skip
+
+    sw, theta0 = _switch(cstr, [])
+    sw.identification_ = fitted(cstr.true_params)
+    sw.decide()
+    first = sw.candidate_.copy()
+    sw.identification_ = fitted(np.asarray(cstr.true_params) * 1.1)
+    sw.decide()
+    assert sw.decisions_ == 0 and theta_key(sw.candidate_) != theta_key(first)
+    np.testing.assert_allclose(sw.tried_, np.asarray(cstr.true_params) * 1.1)
+    moved = sw.candidate_.copy()
+    sw.evidence_.append(moved, np.array([1.0]), np.zeros(len(theta0)), 0, 0.0, "verify")
+    sw.identification_ = fitted(np.asarray(cstr.true_params) * 1.2)
+    sw.decide()
+    assert theta_key(sw.candidate_) == theta_key(moved)
 
 
 def _ident_settings(learners):
@@ -248,7 +308,7 @@ def _ident_settings(learners):
 def test_identify_first_deploys_the_identified_model_and_resumes_exactly(tmp_path):
     """lq with identification, cycled starts: bo's deployed theta takes the identified model
     (the true one) after one cycle of candidate episodes, its episodes those of ``identify``
-    until the switch settles a cycle later, and bo tunes from there;
+    until then, and bo tunes from there at once (the fit has not moved);
     runs interrupted before and after the deployment and in the tuning phase give the
     uninterrupted records."""
     full = tmp_path / "full"
@@ -258,7 +318,8 @@ def test_identify_first_deploys_the_identified_model_and_resumes_exactly(tmp_pat
     names = list(lq.parameterization.names)
     idx = [names.index(f"model_{n}") for n in lq.param_names]
     bo, ident = (df[df.learner == n].sort_values("episode") for n in ("bo", "identify"))
-    assert bo.theta.iloc[:18].map(tuple).tolist() == ident.theta.iloc[:18].map(tuple).tolist()
+    assert bo.theta.iloc[:12].map(tuple).tolist() == ident.theta.iloc[:12].map(tuple).tolist()
+    assert tuple(bo.theta.iloc[12]) != tuple(ident.theta.iloc[12])  # bo tunes
     for learner in ("bo", "identify"):
         rows = df[df.learner == learner].sort_values("episode")
         final = np.asarray(rows.incumbent.iloc[-1], float)
@@ -266,8 +327,8 @@ def test_identify_first_deploys_the_identified_model_and_resumes_exactly(tmp_pat
         assert len(rows.identified.iloc[-1]) == len(lq.param_names)
     out = tmp_path / "resumed"
     run_study(_ident_settings(["bo", "identify"]), out, max_episodes_this_call=5)
-    run_study(None, out, resume=True, max_episodes_this_call=8)  # at 13: deployed, not settled
-    run_study(None, out, resume=True, max_episodes_this_call=6)  # at 19: bo tunes
+    run_study(None, out, resume=True, max_episodes_this_call=6)  # at 11: the candidate runs
+    run_study(None, out, resume=True, max_episodes_this_call=4)  # at 15: bo tunes
     assert run_study(None, out, resume=True)["complete"] is True
     wall = ["mpc_time_s", "learner_time_s", "eval_time_s"]
     pd.testing.assert_frame_equal(

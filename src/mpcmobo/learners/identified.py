@@ -5,23 +5,28 @@ identified from every plant transition so far into it (:class:`~mpcmobo.identify
 refitted after an episode once the transitions have grown by ``REFIT_GROWTH`` since the last
 fit: after every episode for the first ten, then ever more rarely, so that the fits of a long
 run cost about as much as its last one). A candidate is made once the fit predicts held-out
-transitions better than the nominal model, and it is deployed only on the evidence of its own
-episodes against the deployed theta's, by the evidence rule of the GP learners
+transitions better than the nominal model; until its first episode (under cycled starts the
+deployed theta runs from every start of the cycle first) it follows the fit, which has more
+data with every episode. It is deployed only on the evidence of its own episodes against the deployed theta's, by the evidence rule of the GP learners
 (:func:`~mpcmobo.learners.deploy.evidence_policy`: paired over every start of the cycle, or
 start-adjusted under random starts); a candidate the evidence does not support, or with a
 failed episode, is dropped.
 
 * :class:`IdentifyLearner` (``identify``): the switch alone, with a new candidate whenever the
-  fit moves away from the deployed model by more than two standard deviations: the
-  certainty-equivalent baseline that a control engineer tries first.
+  fit moves away from the deployed model by more than two standard deviations (and by more
+  than ``RESOLUTION`` of a parameter's value: on noise-free data the standard deviations are
+  near zero, and a fit that moves by 1e-6 is not a new model): the certainty-equivalent
+  baseline that a control engineer tries first.
 * :class:`IdentifyFirst`: any other learner once the switch has settled, built with theta0
   the deployed theta (an identified model, or the nominal one if none was deployed), so that
   it tunes theta from there. Until then the switch does what ``identify`` does: a new
-  candidate whenever the fit moves, deployed or dropped on its evidence. It has settled when,
-  after a decision, the fit has brought no new candidate for as many episodes as a
-  verification takes (``min_runs``; cycled starts: a cycle), or after ``MAX_DECISIONS``
-  decisions: under structural mismatch the fit moves as data come in, and the learners tune
-  from the model ``identify`` converges to, not from the first.
+  candidate whenever the fit moves, deployed or dropped on its evidence. It has settled when
+  a candidate is deployed and the fit, on every transition its episodes brought, has not
+  moved away from it; when, after a dropped candidate, the fit has brought no new one for as
+  many episodes as a verification takes (``min_runs``; cycled starts: a cycle), so that more
+  data may bring a better fit; or after ``MAX_DECISIONS`` decisions: under structural
+  mismatch the fit moves as data come in, and the learners tune from the model ``identify``
+  converges to, not from the first.
 
 Under random starts the deployment tests adjust each episode's cost for how costly its start
 is; with a candidate, that covariate is the identified model's prediction of the episode (a
@@ -50,6 +55,7 @@ __all__ = ["IdentifyFirst", "IdentifyLearner", "ModelSwitch"]
 StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
+RESOLUTION = 1e-3  # ... and by more than this fraction of a value (noise-free data: std ~ 0)
 REFIT_GROWTH = 0.1  # a refit once the transitions have grown by 10% since the last fit
 MAX_DECISIONS = 2  # identify-first tuning starts after this many deployed or dropped candidates
 
@@ -117,6 +123,9 @@ class ModelSwitch:
         if theta_key(c) in ev.failed():  # an episode of the candidate diverged
             self._decided()
             return
+        if theta_key(c) not in {theta_key(z) for z in ev.Z}:  # not run yet: it follows the fit
+            self._propose_candidate(refresh=True)
+            return
         runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
         if runs < p.min_runs or own < p.min_runs:
             return
@@ -125,6 +134,7 @@ class ModelSwitch:
             self.deployed_ = c
             self.deployed_params_ = None if self.twin_ is None else self.twin_[1].copy()
             self._decided()
+            self._propose_candidate()  # has the fit moved on while the candidate ran?
         elif conf < 0.5 or runs >= p.max_runs:
             self._decided()
 
@@ -135,23 +145,28 @@ class ModelSwitch:
         self.waiting_ = 0
 
     def settled(self) -> bool:
-        """Whether identification is done (module docstring): no new candidate for
-        ``min_runs`` episodes since the last decision, or ``MAX_DECISIONS`` decisions."""
+        """Whether identification is done (module docstring): after a deployment, when the fit
+        brings no new candidate; after a drop, when it has brought none for ``min_runs``
+        episodes; or after ``MAX_DECISIONS`` decisions."""
         if self.decisions_ >= MAX_DECISIONS:
             return True
-        idle = self.candidate_ is None and self.waiting_ >= self.policy.min_runs
-        return self.decisions_ > 0 and idle
+        if self.decisions_ == 0 or self.candidate_ is not None:
+            return False
+        return self.deployed_params_ is not None or self.waiting_ >= self.policy.min_runs
 
-    def _propose_candidate(self) -> None:
+    def _propose_candidate(self, refresh: bool = False) -> None:
         """A candidate with the fitted model when the fit beats the nominal model on held-out
-        transitions and has moved away from the deployed model (and from the last candidate)."""
+        transitions and has moved away from the deployed model (and from the last candidate);
+        ``refresh``: in place of the candidate, which has not run yet."""
         fit = self.identification_
         if fit is None or not fit.better:
             return
-        std = np.maximum(fit.std, 1e-12)
+        std = np.maximum(fit.std, RESOLUTION * np.abs(fit.estimate) + 1e-12)
         for ref in (self.fit.estimate_of(self.deployed_), self.tried_):
             if ref is not None and np.all(np.abs(fit.estimate - ref) <= MOVED * std):
                 return
+        if refresh:  # the evidence holds nothing of the old candidate: it is forgotten
+            self.candidate_ = None
         self.candidate_ = self.fit.theta_with(self.deployed_, fit.estimate)
         self.tried_ = fit.estimate.copy()
         self._twin(self.candidate_, fit.params)
