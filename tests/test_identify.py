@@ -335,3 +335,57 @@ def test_identify_first_deploys_the_identified_model_and_resumes_exactly(tmp_pat
         storage.read_episodes(full).drop(columns=wall),
         storage.read_episodes(out).drop(columns=wall),
     )
+
+
+def test_the_twin_tunes_theta_on_the_model_and_skips_what_fails():
+    """tune_on_twin: the bo learner on a cost of theta alone (here a bowl off theta0 in the
+    unit cube) finds a theta cheaper than the one it started from within its budget; a
+    closed loop that fails (NaN) is never the result."""
+    from mpcmobo.learners.twin import TWIN_EPISODES, tune_on_twin
+
+    lq = get_system("lq", identify=get_system("lq").param_names)
+    space, theta0 = lq.search_space, np.asarray(lq.parameterization.theta0, float)
+    target = np.clip(space.to_unit(theta0) + 0.05, 0, 1)
+    seen = []
+
+    def costs(starts, theta, params):
+        z = space.to_unit(np.asarray(theta, float))
+        seen.append(z)
+        c = 1.0 + float(np.sum((z - target) ** 2))
+        bad = len(seen) % 4 == 0  # every fourth evaluation fails
+        return np.full(len(starts), np.nan if bad else c)
+
+    res = tune_on_twin(space, theta0, lq.true_params, costs, np.zeros((3, lq.nx)), seed=0)
+    assert res.evaluations == TWIN_EPISODES == len(seen)
+    assert res.better and res.cost < res.base_cost
+    assert np.isfinite(res.cost) and res.cost == min(
+        1.0 + float(np.sum((z - target) ** 2)) for i, z in enumerate(seen) if (i + 1) % 4
+    )
+
+
+def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
+    """A candidate offered on the deployed model (the twin's) keeps the switch unsettled,
+    even after MAX_DECISIONS decisions, and a moving fit does not replace it; once decided,
+    the switch has settled. Offering needs a deployed identified model."""
+    from mpcmobo.identify import Identification
+    from mpcmobo.learners.identified import MAX_DECISIONS
+
+    sw, theta0 = _switch(cstr, [])
+    with pytest.raises(ValueError, match="deployed identified model"):
+        sw.offer(theta0)
+    sw.deployed_params_ = np.asarray(cstr.true_params, float)
+    sw.decisions_ = MAX_DECISIONS
+    offered = theta0 * 1.01
+    sw.offer(offered)
+    assert not sw.settled()
+    q = np.asarray(cstr.true_params, float) * 1.3
+    sw.identification_ = Identification(("a",) * len(q), q, np.full(len(q), 0.01),
+                                        np.eye(len(q)), q, 0.1, 1.0, 100, True)  # fmt: skip
+    sw.decide()  # it has not run: an offered candidate does not follow the fit
+    assert theta_key(sw.candidate_) == theta_key(offered) and not sw.settled()
+    state = sw.state_dict()
+    other, _ = _switch(cstr, [])
+    other.load_state_dict(state)
+    assert not other.settled() and not other.follows_fit_
+    sw._decided()
+    assert sw.settled() and sw.follows_fit_

@@ -26,7 +26,10 @@ failed episode, is dropped.
   many episodes as a verification takes (``min_runs``; cycled starts: a cycle), so that more
   data may bring a better fit; or after ``MAX_DECISIONS`` decisions: under structural
   mismatch the fit moves as data come in, and the learners tune from the model ``identify``
-  converges to, not from the first.
+  converges to, not from the first. Once settled on a deployed identified model, theta is
+  tuned on the twin, the closed loop on that model (:mod:`mpcmobo.learners.twin`), and the
+  twin's theta, if cheaper there, is the switch's last candidate, judged on the plant like
+  the others; then the learner tunes from the deployed theta.
 
 Under random starts the deployment tests adjust each episode's cost for how costly its start
 is; with a candidate, that covariate is the identified model's prediction of the episode (a
@@ -47,12 +50,10 @@ from mpcmobo.learners.base import EpisodeResult, Learner, Starts
 from mpcmobo.learners.deploy import RandomEvidence, evidence_policy
 from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import EvidenceDeploy, IdentifyOptions
+from mpcmobo.learners.twin import TWIN_STARTS, StartCosts, TwinResult, tune_on_twin
 from mpcmobo.systems.space import SearchSpace
 
 __all__ = ["IdentifyFirst", "IdentifyLearner", "ModelSwitch"]
-
-# the loop's covariate service: (starts (n, nx), theta, model parameters) -> (n,) costs
-StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
 RESOLUTION = 1e-3  # ... and by more than this fraction of a value (noise-free data: std ~ 0)
@@ -76,6 +77,7 @@ class ModelSwitch:
         self.deployed_ = np.array(theta0, float)
         self.candidate_: np.ndarray | None = None
         self.tried_: np.ndarray | None = None  # the estimate of the last candidate
+        self.follows_fit_ = True  # the candidate is the fit's (not one offered: :meth:`offer`)
         self.decisions_ = 0  # candidates deployed or dropped
         self.waiting_ = 0  # episodes since the last decision without a new candidate
         self.x0s_: list[np.ndarray] = []  # each evidence row's initial state
@@ -123,7 +125,7 @@ class ModelSwitch:
         if theta_key(c) in ev.failed():  # an episode of the candidate diverged
             self._decided()
             return
-        if theta_key(c) not in {theta_key(z) for z in ev.Z}:  # not run yet: it follows the fit
+        if self.follows_fit_ and theta_key(c) not in {theta_key(z) for z in ev.Z}:  # not run yet
             self._propose_candidate(refresh=True)
             return
         runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
@@ -141,13 +143,25 @@ class ModelSwitch:
     def _decided(self) -> None:
         """The candidate is deployed or dropped."""
         self.candidate_ = None
+        self.follows_fit_ = True
         self.decisions_ += 1
         self.waiting_ = 0
+
+    def offer(self, theta: np.ndarray) -> None:
+        """A candidate from elsewhere (the twin's tuning) on the deployed model, judged as a
+        fitted one; the switch is not settled until it is decided."""
+        if self.deployed_params_ is None:
+            raise ValueError("a candidate is offered on a deployed identified model")
+        self.candidate_ = np.array(theta, float)
+        self.follows_fit_ = False
+        self._twin(self.candidate_, self.deployed_params_)
 
     def settled(self) -> bool:
         """Whether identification is done (module docstring): after a deployment, when the fit
         brings no new candidate; after a drop, when it has brought none for ``min_runs``
         episodes; or after ``MAX_DECISIONS`` decisions."""
+        if self.candidate_ is not None and not self.follows_fit_:
+            return False  # an offered candidate is decided first
         if self.decisions_ >= MAX_DECISIONS:
             return True
         if self.decisions_ == 0 or self.candidate_ is not None:
@@ -206,6 +220,7 @@ class ModelSwitch:
             "deployed": self.deployed_.copy(),
             "candidate": None if self.candidate_ is None else self.candidate_.copy(),
             "tried": None if self.tried_ is None else self.tried_.copy(),
+            "follows_fit": self.follows_fit_,
             "decisions": self.decisions_,
             "waiting": self.waiting_,
             "identification": None if ident is None else asdict(ident),
@@ -222,6 +237,7 @@ class ModelSwitch:
         self.deployed_ = np.array(state["deployed"], float)
         self.candidate_ = None if state["candidate"] is None else np.array(state["candidate"])
         self.tried_ = None if state["tried"] is None else np.array(state["tried"], float)
+        self.follows_fit_ = bool(state.get("follows_fit", True))
         self.decisions_ = int(state["decisions"])
         # a 1.0.0 state: any decision had settled the switch (its rule)
         self.waiting_ = int(state.get("waiting", self.policy.min_runs))
@@ -336,10 +352,31 @@ class IdentifyFirst(Learner):
         self.pending_: tuple[str, bytes] | None = None
         self.history_: list[tuple[np.ndarray, EpisodeResult]] = []  # the switch's episodes
         self.start_costs: StartCosts | None = None
+        self.twin_done_ = False  # the twin's tuning has run (or had nothing to tune)
+        self.twin_: TwinResult | None = None
+
+    def _tune_on_twin(self) -> None:
+        """Tune the deployed theta on its identified model (:mod:`mpcmobo.learners.twin`) and
+        offer the result to the switch if the twin finds it cheaper; nothing without a deployed
+        identified model or the loop's closed loops on a model."""
+        self.twin_done_ = True
+        sw = self.switch_
+        if sw.deployed_params_ is None or self.start_costs is None:
+            return
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, 11]))
+        starts = np.array([sw.fit.system.sample_initial_state(rng) for _ in range(TWIN_STARTS)])
+        self.twin_ = tune_on_twin(
+            self.space, sw.deployed_, sw.deployed_params_, self.start_costs, starts, self.seed
+        )
+        if self.twin_.better:
+            sw.offer(self.twin_.theta)
 
     def _tuning(self) -> Learner | None:
-        """The learner that tunes, once the switch has settled: built then, and given the
-        switch's episodes of the deployed theta if it takes them (``seed``)."""
+        """The learner that tunes, once the switch has settled and decided the twin's theta:
+        built then, and given the switch's episodes of the deployed theta if it takes them
+        (``seed``)."""
+        if self.inner_ is None and self.switch_.settled() and not self.twin_done_:
+            self._tune_on_twin()
         if self.inner_ is None and self.switch_.settled():
             deployed = self.switch_.deployed_.copy()
             self.inner_ = self.make_inner(deployed)
@@ -422,6 +459,8 @@ class IdentifyFirst(Learner):
         d["inner"] = None if self.inner_ is None else self.inner_.state_dict()
         d["history"] = list(self.history_)
         d["pending"] = self.pending_
+        d["twin_done"] = self.twin_done_
+        d["twin"] = None if self.twin_ is None else asdict(self.twin_)
         return d
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -433,6 +472,9 @@ class IdentifyFirst(Learner):
         self.inner_ = None
         self.pending_ = state["pending"]
         self.history_ = [(np.array(t, float), r) for t, r in state["history"]]
+        self.twin_done_ = bool(state.get("twin_done", state["inner"] is not None))  # 1.0.0
+        twin = state.get("twin")
+        self.twin_ = None if twin is None else TwinResult(**twin)
         if state["inner"] is not None:
             inner = self._tuning()
             assert inner is not None  # the switch has decided (it saved a tuning learner)
