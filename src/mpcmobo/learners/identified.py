@@ -2,39 +2,31 @@
 
 :class:`ModelSwitch` decides between the deployed theta and the candidate that puts the model
 identified from every plant transition so far into it (:class:`~mpcmobo.identify.ModelFit`,
-refitted after an episode once the transitions have grown by ``REFIT_GROWTH`` since the last
-fit: after every episode for the first ten, then ever more rarely, so that the fits of a long
-run cost about as much as its last one). A candidate is made once the fit predicts held-out
-transitions better than the nominal model; until its first episode (under cycled starts the
-deployed theta runs from every start of the cycle first) it follows the fit, which has more
-data with every episode. It is deployed only on the evidence of its own episodes against the deployed theta's, by the evidence rule of the GP learners
-(:func:`~mpcmobo.learners.deploy.evidence_policy`: paired over every start of the cycle, or
-start-adjusted under random starts); a candidate the evidence does not support, or with a
-failed episode, is dropped.
+refitted once the transitions have grown by ``REFIT_GROWTH``: after every episode for the
+first ten, then ever more rarely). A candidate is made once the fit predicts held-out
+transitions better than the nominal model, and until its first episode it follows the fit. It
+is deployed only on the evidence of its own episodes against the deployed theta's (the GP
+learners' rule, :func:`~mpcmobo.learners.deploy.evidence_policy`); one the evidence does not
+support, or with a failed episode, is dropped. A new candidate comes whenever the fit moves
+away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTION`` of a value
+(noise-free data give standard deviations near zero).
 
-* :class:`IdentifyLearner` (``identify``): the switch alone, with a new candidate whenever the
-  fit moves away from the deployed model by more than two standard deviations (and by more
-  than ``RESOLUTION`` of a parameter's value: on noise-free data the standard deviations are
-  near zero, and a fit that moves by 1e-6 is not a new model): the certainty-equivalent
+* :class:`IdentifyLearner` (``identify``): the switch alone, the certainty-equivalent
   baseline that a control engineer tries first.
-* :class:`IdentifyFirst`: any other learner once the switch has settled, built with theta0
-  the deployed theta (an identified model, or the nominal one if none was deployed), so that
-  it tunes theta from there. Until then the switch does what ``identify`` does: a new
-  candidate whenever the fit moves, deployed or dropped on its evidence. It has settled when
-  a candidate is deployed and the fit, on every transition its episodes brought, has not
-  moved away from it; when, after a dropped candidate, the fit has brought no new one for as
-  many episodes as a verification takes (``min_runs``; cycled starts: a cycle), so that more
-  data may bring a better fit; or after ``MAX_DECISIONS`` decisions: under structural
-  mismatch the fit moves as data come in, and the learners tune from the model ``identify``
-  converges to, not from the first. Once settled on a deployed identified model, theta is
-  tuned on the twin, the closed loop on that model (:mod:`mpcmobo.learners.twin`), and the
-  twin's theta, if cheaper there, is the switch's last candidate, judged on the plant like
-  the others; then the learner tunes from the deployed theta.
+* :class:`IdentifyFirst`: the switch until it has settled, then any other learner built with
+  the deployed theta as its theta0. The switch has settled once a deployed model has not been
+  left behind by the fit; after a dropped candidate, once no new one has come for a
+  verification's worth of episodes (``min_runs``; cycled starts: a cycle); or after
+  ``MAX_DECISIONS`` decisions (under structural mismatch the fit moves as data come in: the
+  learners tune from the model ``identify`` converges to, not from the first). Settled on an
+  identified model, theta is tuned on the twin, the closed loop on that model
+  (:mod:`mpcmobo.learners.twin`), and the twin's theta, if cheaper there, is the switch's last
+  candidate, judged on the plant like the others.
 
 Under random starts the deployment tests adjust each episode's cost for how costly its start
-is; with a candidate, that covariate is the identified model's prediction of the episode (a
-twin: the candidate's closed loop on the identified model from the episode's initial state),
-for every episode the test compares, recomputed when the candidate is made.
+is; with a candidate, that covariate is the identified model's prediction of the episode (the
+candidate's closed loop on the identified model from the episode's initial state), for every
+episode the test compares, recomputed when the candidate is made.
 """
 
 from __future__ import annotations
