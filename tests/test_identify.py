@@ -389,3 +389,30 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     assert not other.settled() and not other.follows_fit_
     sw._decided()
     assert sw.settled() and sw.follows_fit_
+
+
+def test_a_dropped_model_is_tried_again_when_the_fit_moves_a_deployed_one_not():
+    """Noise-free data: standard deviations near zero. A fit 1e-6 away from a dropped model
+    (more than two standard deviations, less than RESOLUTION) is a new candidate; the same
+    move away from the deployed model is not."""
+    from mpcmobo.identify import Identification
+
+    cstr = get_system("cstr")
+    q0 = np.asarray(cstr.true_params, float)
+
+    def fitted(q):
+        return Identification(("a",) * len(q), q, np.full(len(q), 1e-9), np.eye(len(q)),
+                              q, 0.1, 1.0, 100, True)  # fmt: skip
+
+    for deployed in (False, True):
+        sw, _ = _switch(cstr, [])
+        sw.identification_ = fitted(q0)
+        sw.decide()
+        first = sw.candidate_.copy()
+        if deployed:
+            sw.deployed_ = first
+            sw.deployed_params_ = q0
+        sw._decided()
+        sw.identification_ = fitted(q0 + 1e-6)
+        sw.decide()
+        assert (sw.candidate_ is None) is deployed

@@ -9,7 +9,7 @@ is deployed only on the evidence of its own episodes against the deployed theta'
 learners' rule, :func:`~mpcmobo.learners.deploy.evidence_policy`); one the evidence does not
 support, or with a failed episode, is dropped. A new candidate comes whenever the fit moves
 away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTION`` of a value
-(noise-free data give standard deviations near zero).
+(noise-free data give standard deviations near zero), and from a dropped one by ``MOVED``.
 
 * :class:`IdentifyLearner` (``identify``): the switch alone, the certainty-equivalent
   baseline that a control engineer tries first.
@@ -163,12 +163,18 @@ class ModelSwitch:
     def _propose_candidate(self, refresh: bool = False) -> None:
         """A candidate with the fitted model when the fit beats the nominal model on held-out
         transitions and has moved away from the deployed model (and from the last candidate);
-        ``refresh``: in place of the candidate, which has not run yet."""
+        ``refresh``: in place of the candidate, which has not run yet. ``RESOLUTION`` holds for
+        the deployed model and the candidate, not for a dropped one: on noise-free data any
+        refit moves the fit, and a model dropped on unlucky episodes is tried again."""
         fit = self.identification_
         if fit is None or not fit.better:
             return
-        std = np.maximum(fit.std, RESOLUTION * np.abs(fit.estimate) + 1e-12)
-        for ref in (self.fit.estimate_of(self.deployed_), self.tried_):
+        plain = np.maximum(fit.std, 1e-12)
+        live = np.maximum(plain, RESOLUTION * np.abs(fit.estimate))  # the models in use
+        refs = [(self.fit.estimate_of(self.deployed_), live)]
+        if self.tried_ is not None:  # the candidate (refresh), or the last one, dropped or not
+            refs.append((self.tried_, live if refresh else plain))
+        for ref, std in refs:
             if ref is not None and np.all(np.abs(fit.estimate - ref) <= MOVED * std):
                 return
         if refresh:  # the evidence holds nothing of the old candidate: it is forgotten
