@@ -143,7 +143,7 @@ class ModelSwitch:
         """A candidate from elsewhere (the twin's tuning) on the deployed model, judged as a
         fitted one; the switch is not settled until it is decided."""
         if self.deployed_params_ is None:
-            raise ValueError("a candidate is offered on a deployed identified model")
+            raise ValueError("offer needs a deployed identified model to judge the candidate on")
         self.candidate_ = np.array(theta, float)
         self.follows_fit_ = False
         self._twin(self.candidate_, self.deployed_params_)
@@ -177,8 +177,7 @@ class ModelSwitch:
         for ref, std in refs:
             if ref is not None and np.all(np.abs(fit.estimate - ref) <= MOVED * std):
                 return
-        if refresh:  # the evidence holds nothing of the old candidate: it is forgotten
-            self.candidate_ = None
+        # (refresh: the old candidate never ran, so the evidence holds nothing of it)
         self.candidate_ = self.fit.theta_with(self.deployed_, fit.estimate)
         self.tried_ = fit.estimate.copy()
         self._twin(self.candidate_, fit.params)
@@ -470,7 +469,8 @@ class IdentifyFirst(Learner):
         self.inner_ = None
         self.pending_ = state["pending"]
         self.history_ = [(np.array(t, float), r) for t, r in state["history"]]
-        self.twin_done_ = bool(state.get("twin_done", state["inner"] is not None))  # 1.0.0
+        # a state from before the twin: a tuning learner had started without it
+        self.twin_done_ = bool(state.get("twin_done", state["inner"] is not None))
         twin = state.get("twin")
         self.twin_ = None if twin is None else TwinResult(**twin)
         if state["inner"] is not None:

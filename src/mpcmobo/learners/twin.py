@@ -67,11 +67,12 @@ def tune_on_twin(
     zeros = np.zeros(len(theta))
     best, best_cost, base = np.asarray(theta, float).copy(), float("inf"), float("nan")
     for k in range(episodes):
-        z = learner.propose()
-        J = float(np.mean(costs(starts, z, params)))  # NaN if a closed loop failed
-        learner.observe(z, EpisodeResult(np.array([J, 0.0, 0.0, 0.0]), zeros, True, stage_cost=J))
+        proposed = learner.propose()
+        J = float(np.mean(costs(starts, proposed, params)))  # NaN if a closed loop failed
+        result = EpisodeResult(np.array([J, 0.0, 0.0, 0.0]), zeros, True, stage_cost=J)
+        learner.observe(proposed, result)
         if k == 0:
             base = J
         if np.isfinite(J) and J < best_cost:
-            best, best_cost = np.asarray(z, float).copy(), J
+            best, best_cost = np.asarray(proposed, float).copy(), J
     return TwinResult(best, best_cost, base, episodes)
