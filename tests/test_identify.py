@@ -18,7 +18,7 @@ import pytest
 from mpcmobo.experiment import loop, storage
 from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
-from mpcmobo.identify import ModelFit, Transitions, identify, prediction_error
+from mpcmobo.identify import Identification, ModelFit, Transitions, identify, prediction_error
 from mpcmobo.learners import EpisodeResult, Starts
 from mpcmobo.learners.evidence import theta_key
 from mpcmobo.learners.identified import REFIT_GROWTH, ModelSwitch
@@ -243,28 +243,29 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
     assert third.settled()
 
 
+def _fit_of(estimate, std=0.01):
+    """A successful fit at ``estimate`` with standard deviations ``std`` (better than nominal)."""
+    q = np.asarray(estimate, float)
+    return Identification(("a",) * len(q), q, np.full(len(q), std), np.eye(len(q)),
+                          q, 0.1, 1.0, 100, True)  # fmt: skip
+
+
 def test_a_deployment_settles_the_switch_unless_the_fit_has_moved_on(cstr):
     """The decision that deploys a candidate looks at the fit at once: if it has moved more
     than MOVED standard deviations from the deployed model, a new candidate runs and the
     switch is not settled; if not, the switch has settled."""
-    from mpcmobo.identify import Identification
     from mpcmobo.learners.identified import MOVED
-
-    def fitted(estimate):
-        q = np.asarray(estimate, float)
-        return Identification(("a",) * len(q), q, np.full(len(q), 0.01), np.eye(len(q)),
-                              q, 0.1, 1.0, 100, True)  # fmt: skip
 
     for shift, settles in ((0.5 * MOVED * 0.01, True), (2 * MOVED * 0.01, False)):
         sw, theta0 = _switch(cstr, [])
         sw.policy.runs = lambda *a: 100  # type: ignore[method-assign]
         sw.policy.confidence_of = lambda *a: 1.0  # type: ignore[method-assign]
-        sw.identification_ = fitted(cstr.true_params)
+        sw.identification_ = _fit_of(cstr.true_params)
         sw.decide()  # the fit beats the nominal model: a candidate
         assert sw.candidate_ is not None and not sw.settled()
         y = np.array([1.0])
         sw.evidence_.append(sw.candidate_, y, np.zeros(len(theta0)), 0, 0.0, "verify")
-        sw.identification_ = fitted(np.asarray(cstr.true_params) + shift)
+        sw.identification_ = _fit_of(np.asarray(cstr.true_params) + shift)
         sw.decide()  # the evidence deploys it
         assert sw.decisions_ == 1 and sw.deployed_params_ is not None
         assert sw.settled() is settles
@@ -274,24 +275,18 @@ def test_a_deployment_settles_the_switch_unless_the_fit_has_moved_on(cstr):
 def test_a_candidate_follows_the_fit_until_it_first_runs(cstr):
     """A candidate that has not run yet is replaced by the fit once the fit moves away from
     it; once it has run, a moved fit waits for its decision."""
-    from mpcmobo.identify import Identification
-
-    def fitted(estimate):
-        q = np.asarray(estimate, float)
-        return Identification(("a",) * len(q), q, np.full(len(q), 0.01), np.eye(len(q)),
-                              q, 0.1, 1.0, 100, True)  # fmt: skip
 
     sw, theta0 = _switch(cstr, [])
-    sw.identification_ = fitted(cstr.true_params)
+    sw.identification_ = _fit_of(cstr.true_params)
     sw.decide()
     first = sw.candidate_.copy()
-    sw.identification_ = fitted(np.asarray(cstr.true_params) * 1.1)
+    sw.identification_ = _fit_of(np.asarray(cstr.true_params) * 1.1)
     sw.decide()
     assert sw.decisions_ == 0 and theta_key(sw.candidate_) != theta_key(first)
     np.testing.assert_allclose(sw.tried_, np.asarray(cstr.true_params) * 1.1)
     moved = sw.candidate_.copy()
     sw.evidence_.append(moved, np.array([1.0]), np.zeros(len(theta0)), 0, 0.0, "verify")
-    sw.identification_ = fitted(np.asarray(cstr.true_params) * 1.2)
+    sw.identification_ = _fit_of(np.asarray(cstr.true_params) * 1.2)
     sw.decide()
     assert theta_key(sw.candidate_) == theta_key(moved)
 
@@ -367,7 +362,6 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     """A candidate offered on the deployed model (the twin's) keeps the switch unsettled,
     even after MAX_DECISIONS decisions, and a moving fit does not replace it; once decided,
     the switch has settled. Offering needs a deployed identified model."""
-    from mpcmobo.identify import Identification
     from mpcmobo.learners.identified import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
@@ -379,8 +373,7 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     sw.offer(offered)
     assert not sw.settled()
     q = np.asarray(cstr.true_params, float) * 1.3
-    sw.identification_ = Identification(("a",) * len(q), q, np.full(len(q), 0.01),
-                                        np.eye(len(q)), q, 0.1, 1.0, 100, True)  # fmt: skip
+    sw.identification_ = _fit_of(q)
     sw.decide()  # it has not run: an offered candidate does not follow the fit
     assert theta_key(sw.candidate_) == theta_key(offered) and not sw.settled()
     state = sw.state_dict()
@@ -395,24 +388,62 @@ def test_a_dropped_model_is_tried_again_when_the_fit_moves_a_deployed_one_not():
     """Noise-free data: standard deviations near zero. A fit 1e-6 away from a dropped model
     (more than two standard deviations, less than RESOLUTION) is a new candidate; the same
     move away from the deployed model is not."""
-    from mpcmobo.identify import Identification
 
     cstr = get_system("cstr")
     q0 = np.asarray(cstr.true_params, float)
 
-    def fitted(q):
-        return Identification(("a",) * len(q), q, np.full(len(q), 1e-9), np.eye(len(q)),
-                              q, 0.1, 1.0, 100, True)  # fmt: skip
-
     for deployed in (False, True):
         sw, _ = _switch(cstr, [])
-        sw.identification_ = fitted(q0)
+        sw.identification_ = _fit_of(q0, std=1e-9)
         sw.decide()
         first = sw.candidate_.copy()
         if deployed:
             sw.deployed_ = first
             sw.deployed_params_ = q0
         sw._decided()
-        sw.identification_ = fitted(q0 + 1e-6)
+        sw.identification_ = _fit_of(q0 + 1e-6, std=1e-9)
         sw.decide()
         assert (sw.candidate_ is None) is deployed
+
+
+def test_identify_first_offers_the_twins_theta_before_it_tunes():
+    """Settled on a deployed identified model, identify-first tunes on the twin once and
+    offers its theta to the switch; the tuning learner is built only after that candidate is
+    decided. Without the loop's closed loops on a model there is no twin, and it tunes at
+    once."""
+    from mpcmobo.learners.identified import IdentifyFirst
+    from mpcmobo.learners.mpc_rl import MPCRL
+
+    lq = get_system("lq", identify=get_system("lq").param_names)
+    space, theta0 = lq.search_space, np.asarray(lq.parameterization.theta0, float)
+    target = np.clip(space.to_unit(theta0) + 0.05, 0, 1)
+
+    def costs(starts, theta, params):
+        c = 1.0 + float(np.sum((space.to_unit(np.asarray(theta, float)) - target) ** 2))
+        return np.full(len(starts), c)
+
+    for service in (costs, None):
+        built: list[np.ndarray] = []
+
+        def make(th, built=built):
+            built.append(th)
+            return MPCRL(space, th)
+
+        learner = IdentifyFirst(
+            make, space, theta0, starts=Starts("cycle", 3), model_fit=ModelFit(lq)
+        )
+        built.clear()  # the name is read from a learner built at construction
+        learner.start_costs = service
+        sw = learner.switch_
+        sw.deployed_params_ = np.asarray(lq.true_params, float)
+        sw.decisions_ = 1  # a deployed model the fit has not left: settled
+        assert sw.settled()
+        inner = learner._tuning()
+        if service is None:
+            assert inner is not None and learner.twin_ is None and len(built) == 1
+            continue
+        assert inner is None and not built and learner.twin_ is not None
+        assert learner.twin_.better
+        assert theta_key(sw.candidate_) == theta_key(learner.twin_.theta)
+        sw._decided()  # the plant's evidence decides the twin's theta
+        assert learner._tuning() is not None and len(built) == 1

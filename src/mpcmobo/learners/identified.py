@@ -117,7 +117,7 @@ class ModelSwitch:
         if theta_key(c) in ev.failed():  # an episode of the candidate diverged
             self._decided()
             return
-        if self.follows_fit_ and theta_key(c) not in {theta_key(z) for z in ev.Z}:  # not run yet
+        if self.follows_fit_ and ev.runs(c) == 0:  # not run yet (a failed run is ruled out above)
             self._propose_candidate(refresh=True)
             return
         runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
