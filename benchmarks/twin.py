@@ -1,0 +1,126 @@
+"""How far the twin's theta carries beyond the starts it was tuned on.
+
+Identify-first tunes theta on the twin (``mpcmobo.learners.twin.tune_on_twin``): the ``bo``
+learner's evaluations are mean costs of noise-free closed loops on the identified model from
+``TWIN_STARTS`` starts. This benchmark runs that tuning on a system whose identified model is
+the true one (the reference model, ``true_params``: what the identification reaches on the
+noise-free CSTR, within 2e-7) from theta0, for each ``--starts`` count and seed, with the same
+starts the learner draws (seed sequence ``[seed, 11]``), and scores the twin's theta against
+theta0 on the same model, which is J*'s controller, on three sets of starts: the ones it was
+tuned on, ``--fresh`` fresh starts (the seed of ``benchmarks/recheck.py``) and the study's 10
+evaluation starts. So the ratios are J/J* on each set; below 1 is what a better cost buys
+beyond the right model (the paper's Theorem 1). It also gives the tuning's time (one thread).
+
+    .venv/bin/python benchmarks/twin.py --config benchmarks/configs/ident.toml \\
+        --starts 8 32 --seeds 10 --workers 2 --json runs/twin.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from mpcmobo.experiment.evaluation import make_evaluator
+from mpcmobo.experiment.job import single_threaded
+from mpcmobo.experiment.settings import build_system, identified_parameters, load_settings
+from mpcmobo.identify import ModelFit
+from mpcmobo.learners.twin import TWIN_EPISODES, tune_on_twin
+from mpcmobo.mpc import ParametricMPC, model_plant, model_rollout
+from mpcmobo.rl.objectives import mean_stage_cost
+
+RECHECK_SEED = 4242  # benchmarks/recheck.py's fresh starts
+
+
+def _job(config: str, n_starts: int, seed: int, fresh: int, episodes: int) -> dict:
+    """One twin tuning from theta0 on the true model, scored on the three sets of starts."""
+    with single_threaded():
+        settings = load_settings(config)
+        system = build_system(settings, "bo")  # theta with the identified parameters
+        names = identified_parameters(settings, system, "bo")
+        if system.true_params is None:
+            raise SystemExit(f"the system '{system.name}' has no true model to tune the twin on")
+        fit = ModelFit(system, names)
+        mpc = ParametricMPC(system, model="imperfect", **settings.mpc.options())
+        true = np.asarray(system.true_params, float)
+        theta0 = fit.theta_with(mpc.theta0, true[fit.index])
+        plant = model_plant(system, mpc, true)
+        steps = settings.steps
+
+        def costs(starts: np.ndarray, theta: np.ndarray, params: np.ndarray) -> np.ndarray:
+            out = []
+            for x0 in np.atleast_2d(starts):
+                try:
+                    rec = model_rollout(system, mpc, theta, x0, steps, plant=plant)
+                    out.append(mean_stage_cost(rec))
+                except Exception:  # noqa: BLE001 - a failed closed loop fails the evaluation
+                    out.append(float("nan"))
+            return np.array(out)
+
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 11]))  # the learner's starts
+        tuned_on = np.array([system.sample_initial_state(rng) for _ in range(n_starts)])
+        t = time.process_time()
+        res = tune_on_twin(system.search_space, theta0, true, costs, tuned_on, seed, episodes)
+        seconds = time.process_time() - t
+        sets = {
+            "tuned_on": tuned_on,
+            "fresh": np.asarray(
+                make_evaluator(settings, system, n_starts=fresh, seed=RECHECK_SEED).starts
+            ),
+            "eval": np.asarray(make_evaluator(settings, system).starts),
+        }
+        row: dict = {"starts": n_starts, "seed": seed, "seconds": seconds, "better": res.better}
+        for name, S in sets.items():
+            base = costs(S, theta0, true)
+            row[name] = float(np.mean(costs(S, res.theta, true)) / np.mean(base))
+        return row
+
+
+def _table(rows: list[dict]) -> str:
+    """Per starts count: median and worst seed on each set, seeds above J* on fresh starts."""
+    lines = [
+        "| tuned on (starts) | seeds | on its starts (median) | on fresh starts (median, worst) "
+        "| seeds above J* on fresh starts | on the evaluation starts (median) | time per tuning [s] |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for n in sorted({r["starts"] for r in rows}):
+        rs = [r for r in rows if r["starts"] == n]
+        f = np.array([r["fresh"] for r in rs])
+        lines.append(
+            f"| {n} | {len(rs)} | {np.median([r['tuned_on'] for r in rs]):.3f} "
+            f"| {np.median(f):.3f}, {f.max():.3f} | {int(np.sum(f > 1.0 + 1e-9))} "
+            f"| {np.median([r['eval'] for r in rs]):.3f} "
+            f"| {np.median([r['seconds'] for r in rs]):.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default="benchmarks/configs/ident.toml")
+    ap.add_argument("--starts", type=int, nargs="+", default=[8, 32])
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--fresh", type=int, default=100)
+    ap.add_argument("--episodes", type=int, default=TWIN_EPISODES)
+    ap.add_argument("--workers", type=int, default=max(1, (os.cpu_count() or 1)))
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args()
+    tasks = [(a.config, n, s, a.fresh, a.episodes) for n in a.starts for s in range(a.seeds)]
+    tasks.sort(key=lambda t: -t[1])  # the long ones first
+    with ProcessPoolExecutor(a.workers) as pool:
+        rows = list(pool.map(_job, *zip(*tasks)))
+    for r in sorted(rows, key=lambda r: (r["starts"], r["seed"])):
+        print(json.dumps(r))
+    if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        a.json.write_text(json.dumps(rows, indent=1))
+    print(_table(rows))
+
+
+if __name__ == "__main__":
+    main()
