@@ -25,16 +25,15 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from recheck import RECHECK_SEED  # benchmarks/ is on sys.path when run as a script
 
 from mpcmobo.experiment.evaluation import make_evaluator
 from mpcmobo.experiment.job import single_threaded
+from mpcmobo.experiment.loop import model_costs
 from mpcmobo.experiment.settings import build_system, identified_parameters, load_settings
 from mpcmobo.identify import ModelFit
 from mpcmobo.learners.twin import TWIN_EPISODES, tune_on_twin
-from mpcmobo.mpc import ParametricMPC, model_plant, model_rollout
-from mpcmobo.rl.objectives import mean_stage_cost
-
-RECHECK_SEED = 4242  # benchmarks/recheck.py's fresh starts
+from mpcmobo.mpc import ParametricMPC, model_plant
 
 
 def _job(config: str, n_starts: int, seed: int, fresh: int, episodes: int) -> dict:
@@ -53,14 +52,7 @@ def _job(config: str, n_starts: int, seed: int, fresh: int, episodes: int) -> di
         steps = settings.steps
 
         def costs(starts: np.ndarray, theta: np.ndarray, params: np.ndarray) -> np.ndarray:
-            out = []
-            for x0 in np.atleast_2d(starts):
-                try:
-                    rec = model_rollout(system, mpc, theta, x0, steps, plant=plant)
-                    out.append(mean_stage_cost(rec))
-                except Exception:  # noqa: BLE001 - a failed closed loop fails the evaluation
-                    out.append(float("nan"))
-            return np.array(out)
+            return model_costs(system, mpc, theta, starts, steps, plant)  # params: the plant's
 
         rng = np.random.default_rng(np.random.SeedSequence([seed, 11]))  # the learner's starts
         tuned_on = np.array([system.sample_initial_state(rng) for _ in range(n_starts)])

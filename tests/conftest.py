@@ -1,3 +1,6 @@
+import importlib
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -32,3 +35,11 @@ def _one_torch_thread():
     import torch
 
     torch.set_num_threads(1)
+
+
+@pytest.fixture
+def benchmark_script(monkeypatch):
+    """A script of ``benchmarks/`` as a module, imported as it runs: with ``benchmarks/`` on
+    ``sys.path`` (the scripts import each other)."""
+    monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "benchmarks"))
+    return importlib.import_module

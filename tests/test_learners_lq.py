@@ -315,17 +315,16 @@ def test_mpc_rl_keeps_stepping_but_deploys_a_verified_iterate():
     assert not np.allclose(final, learner.propose())  # not the iterate, which walked on
 
 
-def test_optuna_peer_learner_runs_theta0_first_and_deploys_its_best_trial(monkeypatch, request):
+def test_optuna_peer_learner_runs_theta0_first_and_deploys_its_best_trial(
+    request, benchmark_script
+):
     """The benchmark's Optuna peer (benchmarks/optuna_learners.py, optional): theta0 exactly
     as the first trial, the best trial's theta deployed, an exact resume, and a study that
     accepts the learner once it is registered. The registry is restored afterwards: a later
     test of the same process that runs ``--learner all`` must not run the Optuna peers too."""
     pytest.importorskip("optuna")
-    from pathlib import Path
-
     from mpcmobo.learners import registry
 
-    monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "benchmarks"))
     saved = [(table, dict(table)) for table in (registry.LEARNER_SPECS, registry.LEARNERS)]
 
     def restore() -> None:  # in place: other modules imported the dicts by name
@@ -334,7 +333,8 @@ def test_optuna_peer_learner_runs_theta0_first_and_deploys_its_best_trial(monkey
             table.update(old)
 
     request.addfinalizer(restore)
-    from optuna_learners import OptunaTPE, register
+    peers = benchmark_script("optuna_learners")
+    OptunaTPE, register = peers.OptunaTPE, peers.register
 
     s = get_system("lq")
     space, theta0 = s.search_space, s.parameterization.theta0

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -265,16 +264,11 @@ def test_pareto_mask():
     assert pareto_mask(Y).tolist() == [True, True, False, True, False, True]
 
 
-def test_reproduction_tables_match_the_summary(small_run):
+def test_reproduction_tables_match_the_summary(small_run, benchmark_script):
     """benchmarks/reproduction.py (the tables of docs/reproduction.md): per learner, the final
     J_eval/J* of its claim-1 row is the median over seeds of summary.json's J_final / J*, the
     episode counts are summary.json's, and every claim prints a row per learner."""
-    import importlib.util
-
-    path = Path(__file__).parents[1] / "benchmarks" / "reproduction.py"
-    spec = importlib.util.spec_from_file_location("reproduction", path)
-    rep = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(rep)
+    rep = benchmark_script("reproduction")
     ep, tr, summary = rep.load(small_run)
     rows = {r.split(" | ")[0].lstrip("| "): r.split(" | ") for r in rep.claim1("x", ep, summary)}
     for name in LEARNERS:
@@ -289,16 +283,11 @@ def test_reproduction_tables_match_the_summary(small_run):
         assert all(name in body for name in LEARNERS)
 
 
-def test_recheck_on_the_evaluation_starts_reproduces_J_eval(small_run):
+def test_recheck_on_the_evaluation_starts_reproduces_J_eval(small_run, benchmark_script):
     """benchmarks/recheck.py re-evaluates the final and worst deployed thetas on fresh starts;
     given the evaluation's own number of starts and seed, its J/J* of each theta is the run's
     J_eval/J* of it, and theta0 there is J_eval(theta0)/J*."""
-    import importlib.util
-
-    path = Path(__file__).parents[1] / "benchmarks" / "recheck.py"
-    spec = importlib.util.spec_from_file_location("recheck", path)
-    rc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(rc)
+    rc = benchmark_script("recheck")
     summary = json.loads((small_run / "summary.json").read_text())
     rows = rc.recheck(small_run, starts=2, seed=2025, only_seeds=[0])
     assert {(r["learner"], r["theta"]) for r in rows} == {

@@ -44,6 +44,27 @@ class EpisodePlan:
         return cls(**d)
 
 
+def model_costs(
+    system: System,
+    mpc: ParametricMPC,
+    theta: np.ndarray,
+    starts: np.ndarray,
+    steps: int,
+    plant: gymnasium.Env,
+) -> np.ndarray:
+    """The mean stage cost of ``theta``'s noise-free closed loop of ``steps`` steps from each
+    start (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`); NaN where that
+    closed loop fails. What a start covariate and the twin's evaluations are made of."""
+    out = []
+    for x0 in np.atleast_2d(starts):
+        try:
+            rec = model_rollout(system, mpc, theta, x0, steps, plant=plant)
+            out.append(mean_stage_cost(rec))
+        except Exception:  # noqa: BLE001 - a failed closed loop is a NaN cost, never an end
+            out.append(float("nan"))
+    return np.array(out, float)
+
+
 def _as_list(values: np.ndarray | None) -> list[float]:
     """A learner's identified parameters as a record's list (empty: none)."""
     return [] if values is None else [float(v) for v in np.asarray(values).reshape(-1)]
@@ -253,15 +274,12 @@ class LearningRun:
         p = np.asarray(self.mpc.model_params if params is None else params, float)
         key = b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p))
         if key not in self._start_costs:
-            try:
-                plant = self._model_plants.get(p.tobytes())
-                if plant is None:
-                    plant = model_plant(self.system, self.mpc, p)
-                    self._model_plants[p.tobytes()] = plant
-                rec = model_rollout(self.system, self.mpc, theta, x0, self.steps, plant=plant)
-                self._start_costs[key] = mean_stage_cost(rec)
-            except Exception:  # noqa: BLE001 - a covariate never ends a run (the tests fall back)
-                self._start_costs[key] = float("nan")
+            plant = self._model_plants.get(p.tobytes())
+            if plant is None:
+                plant = model_plant(self.system, self.mpc, p)
+                self._model_plants[p.tobytes()] = plant
+            cost = model_costs(self.system, self.mpc, theta, x0, self.steps, plant)
+            self._start_costs[key] = float(cost[0])  # NaN if it failed: the tests fall back
         return self._start_costs[key]
 
     def start_costs(self, starts: np.ndarray, theta: np.ndarray, params: np.ndarray) -> np.ndarray:
