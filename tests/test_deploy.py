@@ -9,8 +9,9 @@ again early. The incumbent rule deploys the GP's best observed point.
 
 Through the learners (``make_learner(..., starts=...)``) fed crafted episodes on the `lq`
 system's search space, and through the policies' own ``decide``, ``next_check``, ``runs`` and
-``confidence_of`` on evidence built by hand where that says more. Last, the covariate the
-evidence policies read, each episode's start cost, as the learning loop computes it.
+``confidence_of`` on evidence built by hand where that says more; the twin's judgement
+(``verdict`` once a twin judges). Last, the covariate the evidence policies read, each
+episode's start cost, as the learning loop computes it.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from mpcmobo.learners.deploy import (
 from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import EvidenceDeploy, IncumbentDeploy
 from mpcmobo.learners.registry import LearnerOptionError
+from mpcmobo.learners.twin import Twin
 from mpcmobo.systems import get_system
 
 FAST = {"n_init": 3, "search": {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}}
@@ -454,6 +456,83 @@ def test_decide_needs_the_gp_to_prefer_the_candidate(slope):
     d, conf = _decide(slope[1], DEPLOYED, [0.5, 0.6, 0.55])
     assert conf > 0.99
     assert _same(d.deployed, HI) and d.verify is None
+
+
+# ============================================================================ judged by a twin
+
+
+def _twin_cost(starts, theta, params):
+    """A model's closed-loop cost of a 1-D theta from each start (n, 1): a start of size
+    exp(x); the candidate (theta 0.8) saves 20% of it where x > -0.5 and costs 30% more where
+    x <= -0.5. ``params`` scales the model's costs of the candidate (1: the plant's)."""
+    x = np.asarray(starts, float)[:, 0]
+    size = np.exp(x)
+    gain = np.where(x > -0.5, 0.2, -0.3) * float(theta[0] > 0.5) * float(params[0])
+    return size * (1.0 - gain)
+
+
+def _twin(params=1.0):
+    rng = np.random.default_rng(0)
+    starts = rng.uniform(-1.0, 1.0, size=(64, 1))  # three quarters where the candidate saves
+    return Twin(np.array([params]), _twin_cost, starts)
+
+
+def _plant_evidence(n_starts, x0s, noise=0.0):
+    """Each theta once from each cycled start, its plant cost the model's (params 1) times
+    ``1 + noise`` drawn per episode; every row with its cost and initial state."""
+    rng = np.random.default_rng(1)
+    ev = Evidence(1, 1, 1)
+    for z in (A, B):
+        for s in range(n_starts):
+            c = float(_twin_cost(x0s[s][None, :], z, [1.0])[0]) * (1 + noise * rng.normal())
+            ev.append(z, [c], [0.0], s, np.nan, "verify", cost=c, x0=x0s[s])
+    return ev
+
+
+def test_a_twin_deploys_what_the_population_gains_though_the_cycle_loses():
+    """The cycle's three starts are where the candidate loses (x <= -0.5): the paired test
+    refuses it; the twin, right at those starts, shows the gain on its 64 simulated starts
+    and deploys it."""
+    policy = CycledEvidence(n_starts=3, confidence=0.9, kappa=1.0)
+    x0s = [np.array([-0.9]), np.array([-0.7]), np.array([-0.6])]
+    ev = _plant_evidence(3, x0s, noise=0.02)
+    assert policy.verdict(ev, None, B, A) == policy.confidence_of(ev, None, B, A) < 0.05
+    policy.twin = _twin()
+    assert policy.verdict(ev, None, B, A) > 0.99
+
+
+def test_a_twin_the_plant_contradicts_does_not_deploy():
+    """A twin that overstates the candidate's gain and loss twofold (params 2) where the plant
+    has the candidate 5% dearer everywhere: the plant's episodes show the twin's predictions of
+    the candidate 55% too low, that correction reaches the simulated starts, and the candidate
+    is not deployed."""
+    policy = CycledEvidence(n_starts=4, confidence=0.9, kappa=1.0)
+    x0s = [np.array([x]) for x in (-0.9, 0.1, 0.4, 0.8)]
+    ev = Evidence(1, 1, 1)
+    for z, factor in ((A, 1.0), (B, 1.05)):  # the plant: the candidate 5% dearer everywhere
+        for s, x0 in enumerate(x0s):
+            c = float(np.exp(x0[0])) * factor
+            ev.append(z, [c], [0.0], s, np.nan, "verify", cost=c, x0=x0)
+    policy.twin = _twin(params=2.0)
+    twin_alone = policy.twin.simulate(A) - policy.twin.simulate(B)
+    assert paired_confidence(twin_alone) > 0.99  # the twin alone would deploy
+    assert policy.verdict(ev, None, B, A) < 0.5
+
+
+def test_a_twin_judges_random_starts_by_each_thetas_episodes():
+    """Random starts: each theta's episodes with the twin's predictions of them; the
+    candidate's come from costly starts, the deployed theta's from cheap ones: dearer raw, cheaper
+    by the twin."""
+    policy = RandomEvidence(confidence=0.9, min_runs=3, kappa=0.0)
+    ev = Evidence(1, 1, 1)
+    for z, xs in ((A, (-0.9, -0.8, -0.6)), (B, (0.6, 0.8, 0.9))):
+        for x in xs:
+            x0 = np.array([x])
+            c = float(_twin_cost(x0[None, :], z, [1.0])[0])
+            ev.append(z, [c], [0.0], -1, np.nan, "verify", cost=c, x0=x0)
+    assert policy.verdict(ev, None, B, A) < 0.5
+    policy.twin = _twin()
+    assert policy.verdict(ev, None, B, A) > 0.99
 
 
 # ============================================================================ the incumbent

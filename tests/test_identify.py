@@ -384,6 +384,34 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     assert sw.settled() and sw.follows_fit_
 
 
+def test_the_switchs_candidate_is_judged_by_its_own_model_and_resumes_so(cstr):
+    """With the loop's closed loops on a model, a fitted candidate's tests are judged by the
+    twin of the model it carries (its simulated starts drawn with the switch's seed); a resumed
+    switch judges by the same twin; without the closed loops, by the plain tests."""
+    sw, _ = _switch(cstr, [])
+    sw.identification_ = _fit_of(np.asarray(cstr.true_params, float))
+    sw.decide()
+    assert sw.candidate_ is not None and sw.policy.twin is None  # no closed loops: plain
+
+    def costs(starts, theta, params):
+        return np.ones(len(starts))
+
+    sw, _ = _switch(cstr, [])
+    sw.seed = 3
+    sw.start_costs = costs
+    q = np.asarray(cstr.true_params, float)
+    sw.identification_ = _fit_of(q)
+    sw.decide()
+    twin = sw.policy.twin
+    assert twin is not None and twin.costs is costs
+    np.testing.assert_array_equal(twin.params, sw.identification_.params)
+    other, _ = _switch(cstr, [])
+    other.seed, other.start_costs = 3, costs
+    other.load_state_dict(sw.state_dict())
+    np.testing.assert_array_equal(other.policy.twin.params, twin.params)
+    np.testing.assert_array_equal(other.policy.twin.starts, twin.starts)
+
+
 def test_a_dropped_model_is_tried_again_when_the_fit_moves_a_deployed_one_not():
     """Noise-free data: standard deviations near zero. A fit 1e-6 away from a dropped model
     (more than two standard deviations, less than RESOLUTION) is a new candidate; the same
@@ -409,8 +437,8 @@ def test_a_dropped_model_is_tried_again_when_the_fit_moves_a_deployed_one_not():
 def test_identify_first_offers_the_twins_theta_before_it_tunes():
     """Settled on a deployed identified model, identify-first tunes on the twin once and
     offers its theta to the switch; the tuning learner is built only after that candidate is
-    decided. Without the loop's closed loops on a model there is no twin, and it tunes at
-    once."""
+    decided, and its deployments are judged by the deployed model's twin. Without the loop's
+    closed loops on a model there is no twin, and it tunes at once."""
     from mpcmobo.learners.identified import IdentifyFirst
     from mpcmobo.learners.mpc_rl import MPCRL
 
@@ -433,7 +461,8 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
             make, space, theta0, starts=Starts("cycle", 3), model_fit=ModelFit(lq)
         )
         built.clear()  # the name is read from a learner built at construction
-        learner.start_costs = service
+        if service is not None:
+            learner.use_start_costs(service)
         sw = learner.switch_
         sw.deployed_params_ = np.asarray(lq.true_params, float)
         sw.decisions_ = 1  # a deployed model the fit has not left: settled
@@ -445,5 +474,9 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
         assert inner is None and not built and learner.twin_ is not None
         assert learner.twin_.better
         assert theta_key(sw.candidate_) == theta_key(learner.twin_.theta)
+        assert sw.policy.twin is not None  # the offered candidate is judged by the twin
         sw._decided()  # the plant's evidence decides the twin's theta
-        assert learner._tuning() is not None and len(built) == 1
+        inner = learner._tuning()
+        assert inner is not None and len(built) == 1
+        assert inner.blocks_.twin is not None
+        np.testing.assert_array_equal(inner.blocks_.twin.params, sw.deployed_params_)

@@ -10,7 +10,10 @@ considers a candidate worth running again from 0.5):
 * :func:`adjusted_confidence`: the analysis of covariance on each episode's start cost, with a
   leverage guard (random starts);
 * :func:`relative_screen`: the screen of a candidate with a single episode a side, where the
-  tests have no degrees of freedom.
+  tests have no degrees of freedom;
+* :func:`twin_confidence`: the prediction-powered test, where the identified model (the twin)
+  predicts every episode and the mean over many simulated starts, and the plant's episodes
+  correct the twin's error.
 
 Costs are compared in their own units (J is a mean of episode costs, and a few costly starts
 can carry it), so a theta cheaper from most starts in log cost can still be judged dearer.
@@ -28,6 +31,7 @@ __all__ = [
     "check_confidence",
     "paired_confidence",
     "relative_screen",
+    "twin_confidence",
     "unpaired_confidence",
 ]
 
@@ -179,3 +183,93 @@ def relative_screen(
     else:
         cand, dep = y_c.mean(), y_d.mean()
     return 0.5 if cand < dep else 0.0
+
+
+def twin_confidence(
+    deployed: tuple[np.ndarray, np.ndarray, np.ndarray],
+    candidate: tuple[np.ndarray, np.ndarray, np.ndarray],
+    paired: bool,
+) -> float:
+    r"""The twin's test that the candidate is cheaper on the distribution of starts: the
+    plant's episodes calibrate the twin's predictions, and the twin's simulated starts carry
+    the calibrated prediction to the distribution (prediction-powered inference, Angelopoulos
+    et al., *Science* 382, 2023, in the form of the ratio estimator, Cochran, *Sampling
+    Techniques*, ch. 6).
+
+    Each side is ``(y, yhat, sim)``: the plant's costs of its episodes, the twin's predictions
+    of the same episodes (noise-free closed loops on the identified model from the same initial
+    states) and the twin's costs on ``M`` simulated starts drawn from the distribution, the
+    same starts for both sides. ``paired``: ``y[i]`` of both sides come from the same start
+    ``i`` (cycled starts). Per side, the twin's mean on the simulated starts is scaled by how
+    far the plant's episodes exceed its predictions of them,
+
+    .. math:: \hat J = \overline{sim}\;\frac{\sum_i y_i}{\sum_i \hat y_i},
+        \qquad \hat\Delta = \hat J_{deployed} - \hat J_{candidate},
+
+    so a twin that is right (ratio 1) lends the test its ``M`` starts, and one that is wrong by
+    a factor is corrected by it. Costs are heavy-tailed (a few hot starts carry the mean), and
+    a model's error grows with how costly the start is: a ratio, unlike the difference of
+    PPI's rectifier, carries what a few cool plant starts say to the hot ones. The variance
+    is the jackknife's over the plant's episodes (starts, when paired; within each side
+    otherwise) plus the simulated starts' ``var / M``; the confidence is
+    ``F_t(nu)(hat Delta / se)`` with Welch-Satterthwaite's ``nu``. Without two usable
+    episodes a side (a finite cost and prediction, a positive sum of predictions) or two
+    finite simulated starts, the test is the plain one (:func:`paired_confidence`,
+    :func:`unpaired_confidence`)."""
+    (y_d, yh_d, m_d), (y_c, yh_c, m_c) = (
+        tuple(np.asarray(a, float) for a in side) for side in (deployed, candidate)
+    )
+    ok_sim = np.isfinite(m_d) & np.isfinite(m_c)
+    if paired:
+        keep = np.isfinite(y_d) & np.isfinite(yh_d) & np.isfinite(y_c) & np.isfinite(yh_c)
+        sides = [(y_d[keep], yh_d[keep]), (y_c[keep], yh_c[keep])]
+    else:
+        sides = [(y[np.isfinite(y) & np.isfinite(yh)], yh[np.isfinite(y) & np.isfinite(yh)])
+                 for y, yh in ((y_d, yh_d), (y_c, yh_c))]  # fmt: skip
+    usable = all(len(y) >= 2 and np.all(yh > 0) for y, yh in sides)
+    if np.count_nonzero(ok_sim) < 2 or not usable:
+        return paired_confidence(y_d - y_c) if paired else unpaired_confidence(y_d, y_c)
+    est, parts = _ratio_estimate(sides, m_d[ok_sim], m_c[ok_sim], paired)
+    var = sum(v for v, _ in parts)
+    if var <= 0:  # no spread anywhere: the sign decides
+        return 1.0 if est > 0 else 0.0
+    dof = var**2 / sum(v**2 / df for v, df in parts if v > 0)
+    return float(student_t.cdf(est / np.sqrt(var), df=dof))
+
+
+Side = tuple[np.ndarray, np.ndarray]
+
+
+def _ratio_estimate(
+    sides: list[Side], m_d: np.ndarray, m_c: np.ndarray, paired: bool
+) -> tuple[float, list[tuple[float, int]]]:
+    """:func:`twin_confidence`'s estimate of the deployed theta's cost minus the candidate's
+    and its variance in parts, each with its degrees of freedom: the simulated starts', then
+    the jackknife's over the plant's starts (paired) or over each side's episodes."""
+    means = (float(np.mean(m_d)), float(np.mean(m_c)))
+
+    def estimate(d: Side, c: Side) -> float:
+        return means[0] * d[0].sum() / d[1].sum() - means[1] * c[0].sum() / c[1].sum()
+
+    def drop(side: Side, i: int) -> Side:
+        return np.delete(side[0], i), np.delete(side[1], i)
+
+    d, c = sides
+    r_d, r_c = d[0].sum() / d[1].sum(), c[0].sum() / c[1].sum()
+    M = len(m_d)
+    parts = [(float(np.var(r_d * m_d - r_c * m_c, ddof=1)) / M, M - 1)]
+    if paired:
+        loo = [estimate(drop(d, i), drop(c, i)) for i in range(len(d[0]))]
+        parts.append((_jackknife(np.array(loo)), len(loo) - 1))
+    else:
+        for k, side in enumerate(sides):
+            loo = [means[k] * drop(side, i)[0].sum() / drop(side, i)[1].sum()
+                   for i in range(len(side[0]))]  # fmt: skip
+            parts.append((_jackknife(np.array(loo)), len(loo) - 1))
+    return estimate(d, c), parts
+
+
+def _jackknife(leave_one_out: np.ndarray) -> float:
+    """The jackknife variance of an estimate from its leave-one-out values."""
+    n = len(leave_one_out)
+    return float((n - 1) / n * np.sum((leave_one_out - leave_one_out.mean()) ** 2))

@@ -17,26 +17,38 @@ In both evidence policies the GP names the candidate (:func:`choose_candidate`):
 theta with the lowest ``mean + kappa std`` of its posterior f1 among those the evidence does
 not rule out, which the GP must find more likely better than the deployed theta than not. A
 theta with a failed episode (a cost that is not finite: the plant diverged) is never a
-candidate.
+candidate. Once a twin judges (``twin``: identify-first, after the identified model is
+deployed), the test that deploys is the prediction-powered one
+(:func:`~mpcmobo.learners.confidence.twin_confidence`): the same plant episodes, each with
+the twin's prediction, and the twin's costs on its simulated starts.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from mpcmobo.bo import GPSurrogate, pareto_mask
 from mpcmobo.learners.base import Starts
-from mpcmobo.learners.confidence import adjusted_confidence, paired_confidence, relative_screen
+from mpcmobo.learners.confidence import (
+    adjusted_confidence,
+    paired_confidence,
+    relative_screen,
+    twin_confidence,
+)
 from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import EvidenceDeploy, IncumbentDeploy
+
+if TYPE_CHECKING:
+    from mpcmobo.learners.twin import Twin
 
 __all__ = [
     "CycledEvidence",
     "Decision",
     "DeployPolicy",
+    "EvidencePolicy",
     "Incumbent",
     "RandomEvidence",
     "choose_candidate",
@@ -116,7 +128,7 @@ def choose_candidate(
     return best.copy(), float(np.mean(J[:, 0] < J[:, 1]))
 
 
-class _EvidencePolicy:
+class EvidencePolicy:
     """The decision both evidence policies share; subclasses say how evidence is counted and
     judged (:meth:`runs`, :meth:`confidence`)."""
 
@@ -129,6 +141,7 @@ class _EvidencePolicy:
         self.min_runs = int(min_runs)
         self.max_runs = 2 * self.min_runs
         self.kappa = float(kappa)
+        self.twin: Twin | None = None  # the twin that judges (module docstring), if any
 
     def runs(self, ev: Evidence, z: np.ndarray, deployed: np.ndarray) -> int:
         """How much evidence ``z`` has (compared with ``min_runs``)."""
@@ -140,6 +153,27 @@ class _EvidencePolicy:
         """The confidence that ``z`` is cheaper than ``deployed``."""
         raise NotImplementedError
 
+    def twin_sides(
+        self, ev: Evidence, twin: Twin, z: np.ndarray, deployed: np.ndarray
+    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """The plant's costs and the twin's predictions of them, the deployed theta's and
+        ``z``'s (:func:`~mpcmobo.learners.confidence.twin_confidence`)."""
+        raise NotImplementedError
+
+    def verdict(
+        self, ev: Evidence, surrogate: GPSurrogate | None, z: np.ndarray, deployed: np.ndarray
+    ) -> float:
+        """The confidence a deployment rests on: the twin's test once a twin judges, else
+        :meth:`confidence_of`."""
+        twin = self.twin
+        if twin is None:
+            return self.confidence_of(ev, surrogate, z, deployed)
+        (y_d, p_d), (y_c, p_c) = self.twin_sides(ev, twin, z, deployed)
+        paired = isinstance(self, CycledEvidence)
+        return twin_confidence(
+            (y_d, p_d, twin.simulate(deployed)), (y_c, p_c, twin.simulate(z)), paired
+        )
+
     def next_check(
         self, ev: Evidence, deployed: np.ndarray, verify: np.ndarray | None
     ) -> tuple[str, np.ndarray] | None:
@@ -150,8 +184,8 @@ class _EvidencePolicy:
         self, ev: Evidence, surrogate: GPSurrogate, deployed: np.ndarray, seed: int
     ) -> Decision:
         """The candidate (:func:`choose_candidate`) replaces ``deployed`` once it has
-        ``min_runs`` of evidence, is cheaper with ``confidence`` and the deployed theta has
-        ``min_runs`` too; a promising one (GP probability >= 0.5) with less evidence, or not
+        ``min_runs`` of evidence, is cheaper with ``confidence`` (:meth:`verdict`) and the
+        deployed theta has ``min_runs`` too; a promising one (GP probability >= 0.5) with less evidence, or not
         yet convincing and below ``2 min_runs``, is to be run again. A theta with a failed
         episode is never the candidate."""
         key_now = theta_key(deployed)
@@ -175,17 +209,18 @@ class _EvidencePolicy:
         if n_runs < self.min_runs:
             return Decision(deployed, promising)
         convinced = (
-            screen[theta_key(best)] >= self.confidence
+            p >= MODEL_CONFIDENCE
             and self.runs(ev, deployed, deployed) >= self.min_runs
+            and self.verdict(ev, surrogate, best, deployed) >= self.confidence
         )
-        if p < MODEL_CONFIDENCE or not convinced:
+        if not convinced:
             if p >= 0.5 and n_runs < self.max_runs:
                 return Decision(deployed, best)
             return Decision(deployed)
         return Decision(best)
 
 
-class CycledEvidence(_EvidencePolicy):
+class CycledEvidence(EvidencePolicy):
     """Paired evidence over every start of a cycle of ``n_starts`` (module docstring)."""
 
     def __init__(self, n_starts: int, confidence: float, kappa: float) -> None:
@@ -222,6 +257,20 @@ class CycledEvidence(_EvidencePolicy):
         mt, _ = surrogate.posterior_model_space(np.repeat(deployed[None, :], len(rows), axis=0))
         return paired_confidence(t_obs - mt[:, 0])
 
+    def twin_sides(
+        self, ev: Evidence, twin: Twin, z: np.ndarray, deployed: np.ndarray
+    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """Per start both thetas ran from, each theta's mean cost there and the twin's
+        prediction from that start (paired)."""
+        rows, own = ev.rows_of(z), ev.rows_of(deployed)
+        common = sorted(set(ev.starts[rows].tolist()) & set(ev.starts[own].tolist()))
+        x0s = [ev.x0s[int(rows[ev.starts[rows] == s][0])] for s in common]
+        sides = []
+        for theta, r in ((deployed, own), (z, rows)):
+            y = [float(np.mean(ev.costs[r[ev.starts[r] == s]])) for s in common]
+            sides.append((np.asarray(y, float), twin.predict(theta, x0s)))
+        return sides[0], sides[1]
+
     def next_check(
         self, ev: Evidence, deployed: np.ndarray, verify: np.ndarray | None
     ) -> tuple[str, np.ndarray] | None:
@@ -235,7 +284,7 @@ class CycledEvidence(_EvidencePolicy):
         return "verify", verify
 
 
-class RandomEvidence(_EvidencePolicy):
+class RandomEvidence(EvidencePolicy):
     """Start-adjusted unpaired evidence under random starts (module docstring)."""
 
     relative = True
@@ -254,6 +303,16 @@ class RandomEvidence(_EvidencePolicy):
         judge = relative_screen if min(len(own), len(rows)) < 2 else adjusted_confidence
         S = ev.start_costs
         return judge(ev.Y[own, 0], ev.Y[rows, 0], S[own], S[rows])
+
+    def twin_sides(
+        self, ev: Evidence, twin: Twin, z: np.ndarray, deployed: np.ndarray
+    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """Each theta's episode costs and the twin's predictions of them."""
+        sides = []
+        for theta in (deployed, z):
+            rows = ev.rows_of(theta)
+            sides.append((ev.costs[rows], twin.predict(theta, [ev.x0s[i] for i in rows])))
+        return sides[0], sides[1]
 
     def next_check(
         self, ev: Evidence, deployed: np.ndarray, verify: np.ndarray | None
@@ -302,7 +361,7 @@ class Incumbent:
         return None
 
 
-def evidence_policy(deploy: EvidenceDeploy, starts: Starts, kappa: float) -> _EvidencePolicy:
+def evidence_policy(deploy: EvidenceDeploy, starts: Starts, kappa: float) -> EvidencePolicy:
     """The evidence policy of the study's start design."""
     if starts.mode == "cycle":
         return CycledEvidence(starts.n_starts, deploy.confidence, kappa)

@@ -15,7 +15,7 @@ loading it replays that fit.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 from scipy.stats import qmc
@@ -24,10 +24,13 @@ from mpcmobo.bo import AcqfSearch, GPSurrogate, propose_ei
 from mpcmobo.bo.acquisition import Box
 from mpcmobo.bo.trust import TrustRegion, TrustState
 from mpcmobo.learners.base import EpisodeResult, Learner, Starts
-from mpcmobo.learners.deploy import DeployPolicy, make_policy
+from mpcmobo.learners.deploy import DeployPolicy, EvidencePolicy, make_policy
 from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import BOOptions
 from mpcmobo.systems.space import SearchSpace
+
+if TYPE_CHECKING:
+    from mpcmobo.learners.twin import Twin
 
 __all__ = ["BOLearner", "GPLearner"]
 
@@ -112,6 +115,13 @@ class GPLearner(Learner):
         self.n_seeded_ = len(episodes) - 1 if episodes else 0  # theta0 is the design's first
         self._fit()
 
+    def use_twin(self, twin: Twin) -> None:
+        """Let ``twin`` judge the deployments (an evidence policy; the incumbent rule has no
+        tests): :meth:`~mpcmobo.learners.deploy.DeployPolicy.decide` then deploys on the
+        prediction-powered test."""
+        if isinstance(self.policy, EvidencePolicy):
+            self.policy.twin = twin.on(self.theta_of)
+
     def propose(self) -> np.ndarray:
         """The design's next point, the policy's check, or the acquisition's point."""
         n = len(self.evidence_) - self.n_seeded_
@@ -144,7 +154,8 @@ class GPLearner(Learner):
     def _append(self, theta: np.ndarray, result: EpisodeResult, kind: str) -> None:
         z = self.space.to_unit(self.space.clip(theta))
         y = np.asarray(result.objectives, dtype=float)[list(self.outputs)]
-        self.evidence_.append(z, y, result.grad, result.start_id, result.start_cost, kind)
+        self.evidence_.append(z, y, result.grad, result.start_id, result.start_cost, kind,
+                              cost=result.stage_cost, x0=result.x0)  # fmt: skip
         self.n_observed += 1
 
     def _model_Y(self) -> np.ndarray:

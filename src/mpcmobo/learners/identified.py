@@ -23,10 +23,9 @@ away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTIO
   (:mod:`mpcmobo.learners.twin`), and the twin's theta, if cheaper there, is the switch's last
   candidate, judged on the plant like the others.
 
-Under random starts the deployment tests adjust each episode's cost for how costly its start
-is; with a candidate, that covariate is the identified model's prediction of the episode (the
-candidate's closed loop on the identified model from the episode's initial state), for every
-episode the test compares, recomputed when the candidate is made.
+The switch's tests are judged by the twin of the candidate's model (a
+:class:`~mpcmobo.learners.twin.Twin`); once an identified model is deployed, its twin judges
+the tuning learner's deployments too.
 """
 
 from __future__ import annotations
@@ -42,7 +41,7 @@ from mpcmobo.learners.base import EpisodeResult, Learner, Starts
 from mpcmobo.learners.deploy import RandomEvidence, evidence_policy
 from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import EvidenceDeploy, IdentifyOptions
-from mpcmobo.learners.twin import TWIN_STARTS, StartCosts, TwinResult, tune_on_twin
+from mpcmobo.learners.twin import TWIN_STARTS, StartCosts, Twin, TwinResult, tune_on_twin
 from mpcmobo.systems.space import SearchSpace
 
 __all__ = ["IdentifyFirst", "IdentifyLearner", "ModelSwitch"]
@@ -58,9 +57,15 @@ class ModelSwitch:
     docstring). Thetas are kept as they are (the evidence's points are full thetas)."""
 
     def __init__(
-        self, fit: ModelFit, theta0: np.ndarray, starts: Starts, deploy: EvidenceDeploy
+        self,
+        fit: ModelFit,
+        theta0: np.ndarray,
+        starts: Starts,
+        deploy: EvidenceDeploy,
+        seed: int = 0,
     ) -> None:
         self.fit = fit
+        self.seed = int(seed)  # the twin's simulated starts
         self.policy = evidence_policy(deploy, starts, kappa=0.0)
         n = len(theta0)
         self.transitions_ = Transitions.empty(fit.system.nx, fit.system.nu)
@@ -72,11 +77,10 @@ class ModelSwitch:
         self.follows_fit_ = True  # the candidate is the fit's (not one offered: :meth:`offer`)
         self.decisions_ = 0  # candidates deployed or dropped
         self.waiting_ = 0  # episodes since the last decision without a new candidate
-        self.x0s_: list[np.ndarray] = []  # each evidence row's initial state
-        # the start covariate's controller and model (None: theta0 on the nominal model)
+        # the candidate's theta and identified model, the twin of its tests (None: no candidate yet)
         self.twin_: tuple[np.ndarray, np.ndarray] | None = None
         self.deployed_params_: np.ndarray | None = None  # the deployed theta's identified model
-        self.start_costs: StartCosts | None = None  # set by the loop (use_start_costs)
+        self.start_costs: StartCosts | None = None  # the loop's closed loops (use_start_costs)
 
     # ------------------------------------------------------------------ episodes
     def observe(self, theta: np.ndarray, result: EpisodeResult, kind: str) -> None:
@@ -87,9 +91,8 @@ class ModelSwitch:
         if theta_key(theta) in {theta_key(self.deployed_), self._candidate_key()}:
             y = np.array([result.f1])
             self.evidence_.append(theta, y, np.zeros(len(theta)), result.start_id,
-                                  result.start_cost, kind)  # fmt: skip
-            x0 = np.full(self.fit.system.nx, np.nan) if result.x0 is None else result.x0
-            self.x0s_.append(np.asarray(x0, float).copy())
+                                  result.start_cost, kind, cost=result.stage_cost,
+                                  x0=result.x0)  # fmt: skip
         self.refit()
         self.decide()
 
@@ -123,7 +126,7 @@ class ModelSwitch:
         runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
         if runs < p.min_runs or own < p.min_runs:
             return
-        conf = p.confidence_of(ev, None, c, d)
+        conf = p.verdict(ev, None, c, d)
         if conf >= p.confidence:
             self.deployed_ = c
             self.deployed_params_ = None if self.twin_ is None else self.twin_[1].copy()
@@ -183,21 +186,19 @@ class ModelSwitch:
         self._twin(self.candidate_, fit.params)
 
     def _twin(self, theta: np.ndarray, params: np.ndarray) -> None:
-        """The identified model's prediction as the start covariate of every episode the
-        evidence holds (random starts only: the cycled tests are paired, no covariate)."""
+        """The candidate ``theta`` with the identified model ``params``: its twin judges the
+        candidate's tests (without the loop's closed loops: the plain tests)."""
         self.twin_ = (theta.copy(), np.asarray(params, float).copy())
-        if self.start_costs is None or not isinstance(self.policy, RandomEvidence):
-            return
-        if self.x0s_:
-            costs = self.start_costs(np.array(self.x0s_), *self.twin_)
-            self.evidence_.start_costs = np.asarray(costs, float)
+        self.policy.twin = self.twin()
 
-    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The start covariate's controller and model (None: the learner's theta0 on the MPC's
-        nominal model)."""
-        if self.twin_ is None or not isinstance(self.policy, RandomEvidence):
+    def twin(self, params: np.ndarray | None = None) -> Twin | None:
+        """The twin of the model ``params`` (default: the candidate's), or None without one or
+        without the loop's closed loops."""
+        if params is None and self.twin_ is not None:
+            params = self.twin_[1]
+        if params is None or self.start_costs is None:
             return None
-        return self.twin_[0].copy(), self.twin_[1].copy()
+        return Twin.make(self.fit.system, params, self.start_costs, self.seed)
 
     def next_theta(self) -> tuple[str, np.ndarray]:
         """The theta of the next episode and its kind: the candidate or the deployed theta as
@@ -221,7 +222,6 @@ class ModelSwitch:
             "decisions": self.decisions_,
             "waiting": self.waiting_,
             "identification": None if ident is None else asdict(ident),
-            "x0s": [x.copy() for x in self.x0s_],
             "twin": None if self.twin_ is None else (self.twin_[0].copy(), self.twin_[1].copy()),
             "deployed_params": self.deployed_params_,
         }
@@ -238,9 +238,11 @@ class ModelSwitch:
         self.decisions_ = int(state["decisions"])
         # a 1.0.0 state: any decision had settled the switch (its rule)
         self.waiting_ = int(state.get("waiting", self.policy.min_runs))
-        self.x0s_ = [np.array(x, float) for x in state["x0s"]]
+        if "x0s" in state:  # a state of 1.0: the initial states were the switch's
+            self.evidence_.x0s = [np.array(x, float) for x in state["x0s"]]
         twin = state["twin"]
         self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
+        self.policy.twin = self.twin()
         dp = state["deployed_params"]
         self.deployed_params_ = None if dp is None else np.array(dp, float)
         ident = state.get("identification")
@@ -273,7 +275,9 @@ class IdentifyLearner(Learner):
                 "(it sets [system] identify) or give model_fit"
             )
         self.options = IdentifyOptions() if options is None else options
-        self.switch_ = ModelSwitch(model_fit, self.theta0, self.starts, self.options.deploy)
+        self.switch_ = ModelSwitch(
+            model_fit, self.theta0, self.starts, self.options.deploy, seed=self.seed
+        )
         self.pending_: tuple[str, bytes] | None = None
 
     def propose(self) -> np.ndarray:
@@ -295,16 +299,8 @@ class IdentifyLearner(Learner):
         """The deployed theta."""
         return self.switch_.deployed_.copy()
 
-    def uses_start_cost(self) -> bool:
-        """The evidence rule reads the episodes' start costs."""
-        return True
-
-    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The start covariate's controller and model (:meth:`ModelSwitch.start_model`)."""
-        return self.switch_.start_model()
-
     def use_start_costs(self, fn: StartCosts) -> None:
-        """The loop's covariate service, for the twin covariate."""
+        """The loop's closed loops on a model, for the twin."""
         self.switch_.start_costs = fn
 
     def identified(self) -> np.ndarray | None:
@@ -343,7 +339,9 @@ class IdentifyFirst(Learner):
     ) -> None:
         super().__init__(space, theta0, seed, starts=starts)
         self.make_inner = make_inner
-        self.switch_ = ModelSwitch(model_fit, self.theta0, self.starts, deploy or EvidenceDeploy())
+        self.switch_ = ModelSwitch(
+            model_fit, self.theta0, self.starts, deploy or EvidenceDeploy(), seed=self.seed
+        )
         self.inner_: Learner | None = None
         self.name = make_inner(self.theta0).name
         self.pending_: tuple[str, bytes] | None = None
@@ -370,8 +368,8 @@ class IdentifyFirst(Learner):
 
     def _tuning(self) -> Learner | None:
         """The learner that tunes, once the switch has settled and decided the twin's theta:
-        built then, and given the switch's episodes of the deployed theta if it takes them
-        (``seed``)."""
+        built then, given the switch's episodes of the deployed theta if it takes them
+        (``seed_with``), and judged by the deployed identified model's twin (``use_twin``)."""
         if self.inner_ is None and self.switch_.settled() and not self.twin_done_:
             self._tune_on_twin()
         if self.inner_ is None and self.switch_.settled():
@@ -387,20 +385,26 @@ class IdentifyFirst(Learner):
                     own = [(t, replace(r, start_cost=float(c))) for (t, r), c in zip(own, costs)]
                 seed(own)
             self.history_ = []
+            params = self.switch_.deployed_params_
+            twin = None if params is None else self.switch_.twin(params)
+            use = getattr(self.inner_, "use_twin", None)
+            if twin is not None and use is not None:
+                use(twin)
         return self.inner_
 
     def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The start covariate's controller and model: the switch's while it runs, then the
-        deployed theta on its identified model (None: the nominal model)."""
+        """The start covariate's controller and model under random starts, once the switch has
+        settled: the deployed theta on its identified model (None: theta0 on the nominal
+        model)."""
         if not self.switch_.settled():  # the switch stops when it settles: it stays so
-            return self.switch_.start_model()
+            return None
         params = self.switch_.deployed_params_
         if params is None or not isinstance(self.switch_.policy, RandomEvidence):
             return None
         return self.switch_.deployed_.copy(), params.copy()
 
     def use_start_costs(self, fn: StartCosts) -> None:
-        """The loop's covariate service, for the twin covariate."""
+        """The loop's closed loops on a model: the twin's tuning, tests and covariate."""
         self.start_costs = fn
         self.switch_.start_costs = fn
 

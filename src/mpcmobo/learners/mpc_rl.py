@@ -10,20 +10,26 @@ What it deploys is a policy of its own:
   when the block's episode costs (the plain mean stage cost, what J_eval averages) are
   cheaper than the deployed theta's own block with ``confidence``: per start under cycled
   starts (:func:`~mpcmobo.learners.confidence.paired_confidence`), adjusted for the starts'
-  cost under random starts (:func:`~mpcmobo.learners.confidence.adjusted_confidence`). The
-  first block measures theta0;
+  cost under random starts (:func:`~mpcmobo.learners.confidence.adjusted_confidence`); once a
+  twin judges (identify-first), the prediction-powered test of the same episodes
+  (:func:`~mpcmobo.learners.confidence.twin_confidence`). The first block measures theta0;
 * ``"iterate"`` (the paper's rule): the iterate itself.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from mpcmobo.learners.base import EpisodeResult, Learner, Starts
-from mpcmobo.learners.confidence import adjusted_confidence, paired_confidence
+from mpcmobo.learners.confidence import adjusted_confidence, paired_confidence, twin_confidence
 from mpcmobo.learners.options import AdamStep, MPCRLOptions, VerifiedDeploy
 from mpcmobo.rl.steps import Adam, PlainGradient, StepRule
 from mpcmobo.systems.space import SearchSpace
+
+if TYPE_CHECKING:
+    from mpcmobo.learners.twin import Twin
 
 __all__ = ["MPCRL", "VerifiedBlocks"]
 
@@ -49,6 +55,8 @@ class VerifiedBlocks:
         self.F_ = np.zeros(0)
         self.S_ = np.zeros(0, dtype=int)
         self.C_ = np.zeros(0)
+        self.X_: list[np.ndarray] = []  # per episode its initial state (empty: unknown)
+        self.twin: Twin | None = None  # the twin that judges, if any (module docstring)
         self.conf_ = np.zeros(0)  # each later block's confidence of being cheaper
         self.deployed_ = 0
         self.G_, self.nG_ = np.zeros(n_theta), 0  # the open block's summed gradient
@@ -85,6 +93,7 @@ class VerifiedBlocks:
         self.F_ = np.append(self.F_, float(f) if np.isfinite(f) else np.inf)
         self.S_ = np.append(self.S_, int(result.start_id))
         self.C_ = np.append(self.C_, float(result.start_cost))
+        self.X_.append(np.zeros(0) if result.x0 is None else np.asarray(result.x0, float).copy())
         if g is not None:
             self.G_, self.nG_ = self.G_ + g, self.nG_ + 1
         if self.is_open():
@@ -111,6 +120,8 @@ class VerifiedBlocks:
         cand, dep = self.id_ == b, self.id_ == self.deployed_
         if not np.all(np.isfinite(self.F_[cand])):
             return 0.0
+        if self.twin is not None:
+            return self._twin_confidence(b)
         S, F = self.S_, self.F_
         if np.all(S[cand] >= 0) and np.all(S[dep] >= 0):  # cycled starts: like for like
             d = [
@@ -122,6 +133,24 @@ class VerifiedBlocks:
                 return paired_confidence(np.asarray(d))
         return adjusted_confidence(F[dep], F[cand], self.C_[dep], self.C_[cand])
 
+    def _twin_confidence(self, b: int) -> float:
+        """:meth:`confidence` judged with the twin: per start under cycled starts, else each
+        block's episodes, with the twin's predictions of them and its simulated starts."""
+        twin, S, F = self.twin, self.S_, self.F_
+        assert twin is not None
+        cand, dep = np.flatnonzero(self.id_ == b), np.flatnonzero(self.id_ == self.deployed_)
+        sides = []
+        paired = bool(np.all(S[cand] >= 0) and np.all(S[dep] >= 0))
+        common = sorted(set(S[cand].tolist()) & set(S[dep].tolist()))
+        for rows, z in ((dep, self.Z_[self.deployed_]), (cand, self.Z_[b])):
+            if paired:
+                y = np.array([np.mean(F[rows[S[rows] == s]]) for s in common])
+                x0s = [self.X_[int(cand[S[cand] == s][0])] for s in common]
+            else:
+                y, x0s = F[rows], [self.X_[int(i)] for i in rows]
+            sides.append((y, twin.predict(z, x0s), twin.simulate(z)))
+        return twin_confidence(sides[0], sides[1], paired)
+
     def state_dict(self) -> dict:
         """The blocks as arrays."""
         return {
@@ -130,6 +159,7 @@ class VerifiedBlocks:
             "F": self.F_.copy(),
             "S": self.S_.copy(),
             "C": self.C_.copy(),
+            "X": [x.copy() for x in self.X_],
             "conf": self.conf_.copy(),
             "deployed": self.deployed_,
             "G": self.G_.copy(),
@@ -145,6 +175,7 @@ class VerifiedBlocks:
         self.F_ = np.array(state["F"], float)
         self.S_ = np.array(state["S"], int)
         self.C_ = np.array(state["C"], float)
+        self.X_ = [np.array(x, float) for x in state.get("X", [np.zeros(0)] * len(self.id_))]
         self.conf_ = np.array(state["conf"], float)
         self.deployed_ = int(state["deployed"])
         self.G_ = np.array(state["G"], float)
@@ -194,6 +225,11 @@ class MPCRL(Learner):
             return self.space.from_unit(self.z_, base=self.theta0)
         b = self.blocks_
         return self.theta_of(b.Z_[b.deployed_] if len(b.Z_) else self.space.to_unit(self.theta0))
+
+    def use_twin(self, twin: Twin) -> None:
+        """Let ``twin`` judge the verification blocks (``deploy = "verified"``)."""
+        if self.blocks_ is not None:
+            self.blocks_.twin = twin.on(self.theta_of)
 
     def uses_start_cost(self) -> bool:
         """Verification reads the episodes' start costs (random starts' covariate)."""

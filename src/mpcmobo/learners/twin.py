@@ -11,27 +11,76 @@ the evaluation's. The cheapest theta seen is the result. The twin knows only the
 model: where the model is right it finds what a better cost can do beyond it (the paper's
 Theorem 1), where its structure is wrong it may not; so its theta goes to the plant as a
 candidate of the model switch, deployed only on the evidence of its own plant episodes.
+
+The twin also judges: a :class:`Twin` predicts any theta's plant episode from its initial
+state, and its mean over ``JUDGE_STARTS`` simulated starts, for the deployment tests'
+prediction-powered confidence (:func:`~mpcmobo.learners.confidence.twin_confidence`): a few
+plant episodes then decide what the twin measures on many starts, as far as the plant
+confirms the twin.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mpcmobo.learners.base import EpisodeResult, Starts
 from mpcmobo.learners.gp import BOLearner
 from mpcmobo.learners.options import BOOptions, IncumbentDeploy
+from mpcmobo.systems.base import System
 from mpcmobo.systems.space import SearchSpace
 
-__all__ = ["TWIN_EPISODES", "TWIN_STARTS", "TwinResult", "tune_on_twin"]
+__all__ = ["JUDGE_STARTS", "TWIN_EPISODES", "TWIN_STARTS", "Twin", "TwinResult", "tune_on_twin"]
 
 TWIN_STARTS = 8  # initial states of a twin evaluation
 TWIN_EPISODES = 30  # twin evaluations (the deployed theta's the first)
+JUDGE_STARTS = 64  # simulated starts of the twin's judgement of a deployment
 
 # the loop's covariate service: (starts (n, nx), theta, model parameters) -> (n,) costs
 StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Twin:
+    """The closed loop on an identified model as a predictor of plant episodes: ``costs`` is
+    the loop's closed-loop service (cached there), ``params`` the model's parameters,
+    ``starts`` the simulated starts (``JUDGE_STARTS`` of them, drawn by :meth:`make`) and
+    ``to_theta`` maps a learner's point (unit cube for the GP learners) to theta."""
+
+    params: np.ndarray
+    costs: StartCosts
+    starts: np.ndarray
+    to_theta: Callable[[np.ndarray], np.ndarray] | None = None
+
+    @classmethod
+    def make(cls, system: System, params: np.ndarray, costs: StartCosts, seed: int) -> Twin:
+        """A twin of the model with ``params`` and its ``JUDGE_STARTS`` simulated starts, drawn
+        from the system's distribution with the job's ``seed`` (a stream of their own)."""
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 13]))
+        starts = np.array([system.sample_initial_state(rng) for _ in range(JUDGE_STARTS)])
+        return cls(np.asarray(params, float).copy(), costs, starts)
+
+    def on(self, to_theta: Callable[[np.ndarray], np.ndarray]) -> Twin:
+        """The same twin judging points that ``to_theta`` maps to theta."""
+        return replace(self, to_theta=to_theta)
+
+    def _theta(self, z: np.ndarray) -> np.ndarray:
+        return np.asarray(z, float) if self.to_theta is None else self.to_theta(z)
+
+    def predict(self, z: np.ndarray, x0s: list[np.ndarray]) -> np.ndarray:
+        """The mean stage cost of ``z``'s noise-free closed loop on the model from each initial
+        state (NaN where one is unknown or the closed loop fails)."""
+        out = np.full(len(x0s), np.nan)
+        known = [i for i, x in enumerate(x0s) if len(x)]
+        if known:
+            out[known] = self.costs(np.array([x0s[i] for i in known]), self._theta(z), self.params)
+        return out
+
+    def simulate(self, z: np.ndarray) -> np.ndarray:
+        """``z``'s costs on the simulated starts (NaN where a closed loop fails)."""
+        return self.costs(self.starts, self._theta(z), self.params)
 
 
 @dataclass(frozen=True)
