@@ -384,32 +384,35 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     assert sw.settled() and sw.follows_fit_
 
 
-def test_the_switchs_candidate_is_judged_by_its_own_model_and_resumes_so(cstr):
-    """With the loop's closed loops on a model, a fitted candidate's tests are judged by the
-    twin of the model it carries (its simulated starts drawn with the switch's seed); a resumed
-    switch judges by the same twin; without the closed loops, by the plain tests."""
-    sw, _ = _switch(cstr, [])
-    sw.identification_ = _fit_of(np.asarray(cstr.true_params, float))
-    sw.decide()
-    assert sw.candidate_ is not None and sw.policy.twin is None  # no closed loops: plain
+def test_the_twins_candidate_is_judged_by_the_deployed_models_twin_and_resumes_so(cstr):
+    """A fitted candidate (a model of its own) is judged by the plain tests; the twin's theta,
+    offered on the deployed identified model, by that model's twin (its simulated starts drawn
+    with the switch's seed), also after a resume; without the loop's closed loops, plainly."""
 
     def costs(starts, theta, params):
         return np.ones(len(starts))
 
-    sw, _ = _switch(cstr, [])
-    sw.seed = 3
-    sw.start_costs = costs
     q = np.asarray(cstr.true_params, float)
-    sw.identification_ = _fit_of(q)
-    sw.decide()
-    twin = sw.policy.twin
-    assert twin is not None and twin.costs is costs
-    np.testing.assert_array_equal(twin.params, sw.identification_.params)
-    other, _ = _switch(cstr, [])
-    other.seed, other.start_costs = 3, costs
-    other.load_state_dict(sw.state_dict())
-    np.testing.assert_array_equal(other.policy.twin.params, twin.params)
-    np.testing.assert_array_equal(other.policy.twin.starts, twin.starts)
+    for service in (None, costs):
+        sw, theta0 = _switch(cstr, [])
+        sw.seed, sw.start_costs = 3, service
+        sw.identification_ = _fit_of(q)
+        sw.decide()
+        assert sw.candidate_ is not None and sw.policy.twin is None  # a model of its own
+        sw.deployed_, sw.deployed_params_ = sw.candidate_, q
+        sw._decided()
+        sw.offer(theta0 * 1.01)
+        if service is None:
+            assert sw.policy.twin is None
+            continue
+        twin = sw.policy.twin
+        assert twin is not None and twin.costs is costs
+        np.testing.assert_array_equal(twin.params, q)
+        other, _ = _switch(cstr, [])
+        other.seed, other.start_costs = 3, costs
+        other.load_state_dict(sw.state_dict())
+        np.testing.assert_array_equal(other.policy.twin.params, q)
+        np.testing.assert_array_equal(other.policy.twin.starts, twin.starts)
 
 
 def test_a_dropped_model_is_tried_again_when_the_fit_moves_a_deployed_one_not():

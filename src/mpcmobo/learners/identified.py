@@ -21,11 +21,11 @@ away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTIO
   learners tune from the model ``identify`` converges to, not from the first). Settled on an
   identified model, theta is tuned on the twin, the closed loop on that model
   (:mod:`mpcmobo.learners.twin`), and the twin's theta, if cheaper there, is the switch's last
-  candidate, judged on the plant like the others.
+  candidate, judged by that model's twin (:class:`~mpcmobo.learners.twin.Twin`), as the
+  tuning learner's candidates are: both thetas' MPC then runs the twin's model.
 
-The switch's tests are judged by the twin of the candidate's model (a
-:class:`~mpcmobo.learners.twin.Twin`); once an identified model is deployed, its twin judges
-the tuning learner's deployments too.
+Under random starts a fitted candidate's tests adjust each episode's cost by the identified
+model's prediction of it (the candidate's closed loop on that model from the episode's start).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ class ModelSwitch:
         self.follows_fit_ = True  # the candidate is the fit's (not one offered: :meth:`offer`)
         self.decisions_ = 0  # candidates deployed or dropped
         self.waiting_ = 0  # episodes since the last decision without a new candidate
-        # the candidate's theta and identified model, the twin of its tests (None: no candidate yet)
+        # the start covariate's controller and model (None: theta0 on the nominal model)
         self.twin_: tuple[np.ndarray, np.ndarray] | None = None
         self.deployed_params_: np.ndarray | None = None  # the deployed theta's identified model
         self.start_costs: StartCosts | None = None  # the loop's closed loops (use_start_costs)
@@ -143,8 +143,8 @@ class ModelSwitch:
         self.waiting_ = 0
 
     def offer(self, theta: np.ndarray) -> None:
-        """A candidate from elsewhere (the twin's tuning) on the deployed model, judged as a
-        fitted one; the switch is not settled until it is decided."""
+        """A candidate from elsewhere (the twin's tuning) on the deployed model, judged by that
+        model's twin; the switch is not settled until it is decided."""
         if self.deployed_params_ is None:
             raise ValueError("offer needs a deployed identified model to judge the candidate on")
         self.candidate_ = np.array(theta, float)
@@ -186,19 +186,30 @@ class ModelSwitch:
         self._twin(self.candidate_, fit.params)
 
     def _twin(self, theta: np.ndarray, params: np.ndarray) -> None:
-        """The candidate ``theta`` with the identified model ``params``: its twin judges the
-        candidate's tests (without the loop's closed loops: the plain tests)."""
+        """The candidate ``theta`` with the identified model ``params``: a fitted candidate's
+        start covariate (random starts: the tests of a cycle are paired), an offered one's
+        twin (module docstring)."""
         self.twin_ = (theta.copy(), np.asarray(params, float).copy())
-        self.policy.twin = self.twin()
+        self.policy.twin = None if self.follows_fit_ else self.twin(params)
+        if self.start_costs is None or not isinstance(self.policy, RandomEvidence):
+            return
+        if len(self.evidence_):
+            nan = np.full(self.fit.system.nx, np.nan)  # an unknown initial state: no covariate
+            x0s = np.array([x if len(x) else nan for x in self.evidence_.x0s])
+            self.evidence_.start_costs = np.asarray(self.start_costs(x0s, *self.twin_), float)
 
-    def twin(self, params: np.ndarray | None = None) -> Twin | None:
-        """The twin of the model ``params`` (default: the candidate's), or None without one or
-        without the loop's closed loops."""
-        if params is None and self.twin_ is not None:
-            params = self.twin_[1]
-        if params is None or self.start_costs is None:
+    def twin(self, params: np.ndarray) -> Twin | None:
+        """The twin of the model ``params``, or None without the loop's closed loops."""
+        if self.start_costs is None:
             return None
         return Twin.make(self.fit.system, params, self.start_costs, self.seed)
+
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model (None: the learner's theta0 on the MPC's
+        nominal model)."""
+        if self.twin_ is None or not isinstance(self.policy, RandomEvidence):
+            return None
+        return self.twin_[0].copy(), self.twin_[1].copy()
 
     def next_theta(self) -> tuple[str, np.ndarray]:
         """The theta of the next episode and its kind: the candidate or the deployed theta as
@@ -242,9 +253,11 @@ class ModelSwitch:
             self.evidence_.x0s = [np.array(x, float) for x in state["x0s"]]
         twin = state["twin"]
         self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
-        self.policy.twin = self.twin()
         dp = state["deployed_params"]
         self.deployed_params_ = None if dp is None else np.array(dp, float)
+        offered = self.candidate_ is not None and not self.follows_fit_
+        dp_now = self.deployed_params_
+        self.policy.twin = self.twin(dp_now) if offered and dp_now is not None else None
         ident = state.get("identification")
         self.identification_ = None if ident is None else Identification(**ident)
         old = "identification" not in state and state["estimate"] is not None  # a 1.0.0 state
@@ -299,8 +312,16 @@ class IdentifyLearner(Learner):
         """The deployed theta."""
         return self.switch_.deployed_.copy()
 
+    def uses_start_cost(self) -> bool:
+        """The evidence rule reads the episodes' start costs."""
+        return True
+
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model (:meth:`ModelSwitch.start_model`)."""
+        return self.switch_.start_model()
+
     def use_start_costs(self, fn: StartCosts) -> None:
-        """The loop's closed loops on a model, for the twin."""
+        """The loop's closed loops on a model: the start covariate and the twin."""
         self.switch_.start_costs = fn
 
     def identified(self) -> np.ndarray | None:
@@ -393,11 +414,10 @@ class IdentifyFirst(Learner):
         return self.inner_
 
     def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The start covariate's controller and model under random starts, once the switch has
-        settled: the deployed theta on its identified model (None: theta0 on the nominal
-        model)."""
+        """The start covariate's controller and model: the switch's while it runs, then the
+        deployed theta on its identified model (None: the nominal model)."""
         if not self.switch_.settled():  # the switch stops when it settles: it stays so
-            return None
+            return self.switch_.start_model()
         params = self.switch_.deployed_params_
         if params is None or not isinstance(self.switch_.policy, RandomEvidence):
             return None
