@@ -109,14 +109,17 @@ def compare(runs: list[tuple[str, Path]]) -> str:
     J*), not pooled, and theta0's: the final J_eval/J* (median, worst seed), the final thetas
     on fresh starts where the directory holds ``recheck.json`` (``benchmarks/recheck.py --thetas
     final --json DIR/recheck.json``), the evaluations above theta0 and the seeds with them, the
-    violation per episode, the episodes to 2% of J* (median)."""
+    violation per episode (the mean over the episodes that ran to the end) and the failed
+    episodes (a plant that diverged or ran away: stopped, their violation not counted), the
+    episodes to 2% of J* (median)."""
     first = json.loads((runs[0][1] / "summary.json").read_text())
     J_star, J0 = first["J_star"], first["J_initial"]
     lines = [
         "| learner | seeds | final J_eval/J* (median, worst) | on 100 fresh starts (median, worst) "
-        "| evaluations above theta0 (seeds) | violation per episode | episodes to 2% |",
-        "|---|---|---|---|---|---|---|",
-        f"| theta0 | | {J0 / J_star:.3f} | | | | |",
+        "| evaluations above theta0 (seeds) | violation per episode | failed episodes "
+        "| episodes to 2% |",
+        "|---|---|---|---|---|---|---|---|",
+        f"| theta0 | | {J0 / J_star:.3f} | | | | | |",
     ]
     for label, out in runs:
         summary = json.loads((out / "summary.json").read_text())
@@ -140,7 +143,7 @@ def compare(runs: list[tuple[str, Path]]) -> str:
             lines.append(
                 f"| {name}{label} | {len(per)} | {np.median(ratio):.3f}, {ratio.max():.3f} "
                 f"| {fresh_col} | {len(above)} ({above['seed'].nunique()}) "
-                f"| {d['violation'].mean():.3g} | {to2} |"
+                f"| {d['violation'].mean():.3g} | {int(d['violation'].isna().sum())} | {to2} |"
             )
     return "\n".join(lines)
 
