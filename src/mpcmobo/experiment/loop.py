@@ -65,6 +65,13 @@ def model_costs(
     return np.array(out, float)
 
 
+def cycle_starts(system: System, seed: int, n: int) -> np.ndarray:
+    """The fixed cycle of ``n`` initial states (n, nx) that ``seed``'s cycled episodes start
+    from (a stream of its own: ``[seed, 7]``'s third child)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]).spawn(3)[2])
+    return np.array([system.sample_initial_state(rng) for _ in range(max(1, int(n)))])
+
+
 def _as_list(values: np.ndarray | None) -> list[float]:
     """A learner's identified parameters as a record's list (empty: none)."""
     return [] if values is None else [float(v) for v in np.asarray(values).reshape(-1)]
@@ -122,14 +129,10 @@ class LearningRun:
         self.beta = float(beta)
         self.start_mode = start_mode
         # separate streams: initial states, exploration noise
-        ss = np.random.SeedSequence([self.seed, 7])
-        s_start, s_noise, s_cycle = ss.spawn(3)
+        s_start, s_noise, _ = np.random.SeedSequence([self.seed, 7]).spawn(3)
         self.rng_start = np.random.default_rng(s_start)
         self.rng_noise = np.random.default_rng(s_noise)
-        crng = np.random.default_rng(s_cycle)
-        self.cycle_starts = np.array(
-            [system.sample_initial_state(crng) for _ in range(max(1, n_cycle_starts))]
-        )
+        self.cycle_starts = cycle_starts(system, self.seed, n_cycle_starts)
         self.episode = 0
         self.previous_Vc: float | None = None
         self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)
