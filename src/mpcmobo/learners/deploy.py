@@ -135,6 +135,7 @@ class EvidencePolicy:
     gathers_evidence = True
     uses_start_cost = True
     relative = False
+    paired = False  # the two thetas' episodes come from the same starts
 
     def __init__(self, confidence: float, min_runs: int, kappa: float) -> None:
         self.confidence = float(confidence)
@@ -169,9 +170,8 @@ class EvidencePolicy:
         if twin is None:
             return self.confidence_of(ev, surrogate, z, deployed)
         (y_d, p_d), (y_c, p_c) = self.twin_sides(ev, twin, z, deployed)
-        paired = isinstance(self, CycledEvidence)
         return twin_confidence(
-            (y_d, p_d, twin.simulate(deployed)), (y_c, p_c, twin.simulate(z)), paired
+            (y_d, p_d, twin.simulate(deployed)), (y_c, p_c, twin.simulate(z)), self.paired
         )
 
     def next_check(
@@ -185,8 +185,8 @@ class EvidencePolicy:
     ) -> Decision:
         """The candidate (:func:`choose_candidate`) replaces ``deployed`` once it has
         ``min_runs`` of evidence, is cheaper with ``confidence`` (:meth:`verdict`) and the
-        deployed theta has ``min_runs`` too; a promising one (GP probability >= 0.5) with less evidence, or not
-        yet convincing and below ``2 min_runs``, is to be run again. A theta with a failed
+        deployed theta has ``min_runs`` too; a promising one (GP probability >= 0.5) with
+        less evidence, or not yet convincing and below ``2 min_runs``, is to be run again. A theta with a failed
         episode is never the candidate."""
         key_now = theta_key(deployed)
         ruled_out = ev.failed() - {key_now}
@@ -222,6 +222,8 @@ class EvidencePolicy:
 
 class CycledEvidence(EvidencePolicy):
     """Paired evidence over every start of a cycle of ``n_starts`` (module docstring)."""
+
+    paired = True
 
     def __init__(self, n_starts: int, confidence: float, kappa: float) -> None:
         super().__init__(confidence, n_starts, kappa)
