@@ -99,7 +99,10 @@ class SystemSettings(_Section):
     """Identify the model first: after every episode the model parameters (``true``: all the
     system declares; a list: those) are fitted to the plant's transitions, and each learner
     tunes from the identified model once its evidence supports it (a few episodes of the
-    study; the fit itself takes a fraction of a second). ``false``: the learners tune the
+    study; the fit itself takes a fraction of a second). On the identified model theta is
+    first tuned on the twin, the model's closed loop in simulation (once per job, about a
+    minute on the CSTR), and every candidate is judged by the twin calibrated on the plant's
+    episodes (64 simulated closed loops per theta judged). ``false``: the learners tune the
     nominal model. The ``identify`` learner identifies these, or all parameters when this is
     ``false``."""
 
