@@ -186,8 +186,8 @@ class EvidencePolicy:
         """The candidate (:func:`choose_candidate`) replaces ``deployed`` once it has
         ``min_runs`` of evidence, is cheaper with ``confidence`` (:meth:`verdict`) and the
         deployed theta has ``min_runs`` too; a promising one (GP probability >= 0.5) with
-        less evidence, or not yet convincing and below ``2 min_runs``, is to be run again. A theta with a failed
-        episode is never the candidate."""
+        less evidence, or not yet convincing and below ``2 min_runs``, is to be run again. A
+        theta with a failed episode is never the candidate."""
         key_now = theta_key(deployed)
         ruled_out = ev.failed() - {key_now}
         Zf = np.array([z for z in ev.Z[ev.finite()] if theta_key(z) not in ruled_out])

@@ -190,13 +190,20 @@ class ModelSwitch:
         start covariate (random starts: the tests of a cycle are paired), an offered one's
         twin (module docstring)."""
         self.twin_ = (theta.copy(), np.asarray(params, float).copy())
-        self.policy.twin = None if self.follows_fit_ else self.twin(params)
+        self._judge()
         if self.start_costs is None or not isinstance(self.policy, RandomEvidence):
             return
         if len(self.evidence_):
             nan = np.full(self.fit.system.nx, np.nan)  # an unknown initial state: no covariate
             x0s = np.array([x if len(x) else nan for x in self.evidence_.x0s])
             self.evidence_.start_costs = np.asarray(self.start_costs(x0s, *self.twin_), float)
+
+    def _judge(self) -> None:
+        """The evidence policy's judge: an offered candidate's the deployed model's twin, a
+        fitted candidate's the plain tests (module docstring)."""
+        offered = self.candidate_ is not None and not self.follows_fit_
+        params = self.deployed_params_
+        self.policy.twin = self.twin(params) if offered and params is not None else None
 
     def twin(self, params: np.ndarray) -> Twin | None:
         """The twin of the model ``params``, or None without the loop's closed loops."""
@@ -255,9 +262,7 @@ class ModelSwitch:
         self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
         dp = state["deployed_params"]
         self.deployed_params_ = None if dp is None else np.array(dp, float)
-        offered = self.candidate_ is not None and not self.follows_fit_
-        dp_now = self.deployed_params_
-        self.policy.twin = self.twin(dp_now) if offered and dp_now is not None else None
+        self._judge()
         ident = state.get("identification")
         self.identification_ = None if ident is None else Identification(**ident)
         old = "identification" not in state and state["estimate"] is not None  # a 1.0.0 state
