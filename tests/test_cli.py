@@ -162,8 +162,15 @@ def test_run_with_progress_bars(tmp_path):
     assert res.exit_code == 0, res.output
     assert "mpc-rl s0" in res.output and "best J_eval" in res.output
     assert "J_final" in res.output
-    # a complete run draws figures 1-4 unless told not to
-    assert len(list((out / "figures").glob("fig*.png"))) == 4
+    # a complete run draws figures 1-4, and 5 of the identified model, unless told not to
+    names = sorted(p.stem for p in (out / "figures").glob("fig*.png"))
+    assert names == [
+        "fig1_performance",
+        "fig2_advantage_pareto",
+        "fig3_states",
+        "fig4_inputs",
+        "fig5_identified",
+    ]
     res = runner.invoke(app, ["run", *SMALL, "--out", str(tmp_path / "np"), "-q", "--no-plot"])
     assert res.exit_code == 0, res.output
     assert not (tmp_path / "np" / "figures").exists()

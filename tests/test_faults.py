@@ -12,6 +12,7 @@ from mpcmobo.experiment import loop, storage
 from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 from mpcmobo.learners.gp import BOLearner
+from mpcmobo.learners.identified import IdentifyFirst
 from mpcmobo.learners.mpc_rl import MPCRL
 from mpcmobo.mpc import ParametricMPC
 
@@ -19,10 +20,11 @@ EPISODES = 8
 FAST_SEARCH = {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}  # a cheap acquisition search
 
 
-def small(learners, **kw):
+def small(learners, identify=False, **kw):
+    """A short study on ``lq``: the learners tune the nominal model unless ``identify``."""
     return load_settings(
         None,
-        system={"name": "lq"},
+        system={"name": "lq", "identify": identify},
         learners=learners,
         episodes=EPISODES,
         steps=8,
@@ -91,8 +93,13 @@ def test_nan_and_inf_objectives_are_recorded_not_fitted(tmp_path, monkeypatch, l
                     assert not np.array_equal(incumbents[j], thetas[k])
 
 
-@pytest.mark.parametrize("learner, cls", [("mpc-rl", MPCRL), ("bo", BOLearner)])
-def test_a_failing_proposal_is_recorded_and_the_incumbent_runs(tmp_path, monkeypatch, learner, cls):
+@pytest.mark.parametrize(
+    "learner, cls, identify",
+    [("mpc-rl", MPCRL, False), ("bo", BOLearner, False), ("bo", IdentifyFirst, True)],
+)
+def test_a_failing_proposal_is_recorded_and_the_incumbent_runs(
+    tmp_path, monkeypatch, learner, cls, identify
+):
     original = cls.propose
     calls = []
 
@@ -103,7 +110,7 @@ def test_a_failing_proposal_is_recorded_and_the_incumbent_runs(tmp_path, monkeyp
         return original(self)
 
     monkeypatch.setattr(cls, "propose", failing)
-    summary = run_study(small([learner]), tmp_path / "run")
+    summary = run_study(small([learner], identify), tmp_path / "run")
     assert summary["complete"] is True
     df = storage.read_episodes(tmp_path / "run")
     assert len(df) == EPISODES

@@ -105,7 +105,7 @@ def test_references_use_the_formula_of_their_curves(small_run):
     refs = []
     for seed in settings.seeds:
         # the curve: a learner's episodes, drawn again, give its recorded J~ = f1(episode)
-        learner_run = _learning_run(settings, system, "mpc-rl", seed)
+        learner_run = _learning_run(settings, build_system(settings, "mpc-rl"), "mpc-rl", seed)
         rows = ep[(ep.learner == "mpc-rl") & (ep.seed == seed)].sort_values("episode")
         for recorded in rows.head(K).itertuples():
             row, record = learner_run.run_episode()
@@ -136,8 +136,9 @@ def test_references_use_the_formula_of_their_curves(small_run):
                         for x0 in evaluator.starts])  # fmt: skip
 
     assert summary["J_star"] == pytest.approx(J(perfect, None))
-    imperfect = ParametricMPC(system, model="imperfect", **settings.mpc.options())
     row = ep[np.isfinite(ep.J_eval_incumbent)].iloc[-1]
+    own = build_system(settings, row.learner)  # with the identified parameters in theta
+    imperfect = ParametricMPC(own, model="imperfect", **settings.mpc.options())
     assert row.J_eval_incumbent == pytest.approx(J(imperfect, np.asarray(row.incumbent)))
 
 

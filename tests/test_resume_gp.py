@@ -9,6 +9,8 @@ hyperparameters (a full refit at 22 observations), and the run is interrupted af
 run's. Random starts: the deployment policy's baseline and verification episodes and its
 start costs are part of what is resumed, and no per-start offsets are fitted (two more
 likelihood fits per refit under cycled starts; their resume is tested in test_learners.py).
+The learners tune the nominal model, so that every episode is the GP's (identify-first's
+resume is tested in test_identify.py).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ CHEAP = {"n_init": 4, "refit_every": 2, "search": SEARCH}  # the resume, not the
 def _settings():
     return load_settings(
         None,
-        system={"name": "lq"},
+        system={"name": "lq", "identify": False},
         learners=["mobo", "hybrid"],
         episodes=EPISODES,
         steps=6,

@@ -53,6 +53,20 @@ class OlderRunError(StudyError):
 # run's settings are read for its records (plot, evaluate), never on resume
 READ_ONLY_DROPS = {"mpc": ("barrier_steps", "barrier_mu0", "barrier_push")}
 
+# settings a run saved before they existed ran without: their value then, where today's default
+# differs (the MPC's Newton steps: IPOPT only; identification: none)
+SAVED_BEFORE = {("mpc", "newton_steps"): 0, ("system", "identify"): False}
+
+
+def _saved_before(saved: dict[str, Any]) -> dict[str, Any]:
+    """The :data:`SAVED_BEFORE` settings ``saved`` (a run's ``config.toml``) lacks, as
+    overrides of :func:`load_settings`."""
+    return {
+        f"{section}__{key}": value
+        for (section, key), value in SAVED_BEFORE.items()
+        if key not in saved.get(section, {})
+    }
+
 
 # what reading a damaged pickle or Parquet file can raise (truncated, empty, garbage, wrong type)
 READ_ERRORS = (
@@ -110,16 +124,15 @@ class RunDirectory:
         if not self.holds_run():
             raise StudyError(f"nothing to resume: {self.config} does not exist")
         try:
+            saved = read_toml(self.config)
+            before = _saved_before(saved)
             if for_records:
-                saved = read_toml(self.config)
                 saved.pop("learner_options", None)
-                mpc = saved.setdefault("mpc", {})
-                mpc.setdefault("newton_steps", 0)  # a run saved before the setting: IPOPT only
                 for section, keys in READ_ONLY_DROPS.items():
                     for key in keys:
                         saved.get(section, {}).pop(key, None)
-                return load_settings(None, **{**saved, **overrides})
-            return load_settings(self.config, **overrides)
+                return load_settings(None, **{**saved, **before, **overrides})
+            return load_settings(self.config, **{**before, **overrides})
         except SettingsError as err:
             if str(err).startswith(str(self.config)):  # the file itself, not an override
                 raise SettingsError(

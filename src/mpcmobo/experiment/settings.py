@@ -95,7 +95,7 @@ class SystemSettings(_Section):
     measurement_noise: list[float] | None = None
     """Standard deviation of Gaussian noise on each state the system's own plant reports to
     the MPC, the learners and the identification; unset: none."""
-    identify: bool | list[str] = False
+    identify: bool | list[str] = True
     """Identify the model first: after every episode the model parameters (``true``: all the
     system declares; a list: those) are fitted to the plant's transitions, and each learner
     tunes from the identified model once its evidence supports it (a few episodes of the
@@ -103,7 +103,9 @@ class SystemSettings(_Section):
     first tuned on the twin, the model's closed loop in simulation (once per job, about a
     minute on the CSTR), and every candidate is judged by the twin calibrated on the plant's
     episodes (64 simulated closed loops per theta judged). ``false``: the learners tune the
-    nominal model. The ``identify`` learner identifies these, or all parameters when this is
+    nominal model (the paper's method).
+    The ``identify`` learner identifies these, or all parameters when this is ``false``. A
+    system that declares no model parameter has nothing to identify and tunes as with
     ``false``."""
 
     @field_validator("factory", "plant")
