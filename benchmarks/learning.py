@@ -11,12 +11,14 @@ the study.
 Peer rows: ``--learners optuna-tpe optuna-gp`` runs Optuna's TPE and GP
 samplers through the same study (``benchmarks/optuna_learners.py``; needs the ``bench`` extra,
 ``pip install -e ".[bench]"``). They are registered in this process only, so a run with them
-uses one worker.
+uses one worker. The study's defaults identify the model first; the peers' published rows
+tune the nominal model (``benchmarks/configs/noident.toml``).
 
     .venv/bin/python benchmarks/learning.py --episodes 50 --seeds 0 1 2 3 4 --out runs/bench-learning
-    .venv/bin/python benchmarks/learning.py --learners optuna-tpe optuna-gp --workers 1 --out runs/bench-optuna
+    .venv/bin/python benchmarks/learning.py --config benchmarks/configs/noident.toml \
+        --learners optuna-tpe optuna-gp --workers 1 --out runs/bench-optuna
     .venv/bin/python benchmarks/learning.py --table-only --out runs/a runs/b   # seeds pooled
-    .venv/bin/python benchmarks/learning.py --compare "=runs/a" " + identification=runs/b"
+    .venv/bin/python benchmarks/learning.py --compare "+id=runs/a" "=runs/b"
 """
 
 from __future__ import annotations
