@@ -103,6 +103,12 @@ def test_damaged_config_and_records_name_the_file(partial):
         assert res.exit_code == 2, res.output
         no_traceback(res)
         assert "config.toml" in res.output and "not valid TOML" in res.output
+    (partial / "config.toml").write_text("episodes = 4\nsystem = 3\n")  # a table that is not
+    for args in (["run", "--resume", "--out", str(partial), "-q"], ["evaluate", str(partial)]):
+        res = runner.invoke(app, args)
+        assert res.exit_code == 2, res.output
+        no_traceback(res)
+        assert "system: Input should be a valid dictionary" in res.output
 
 
 def test_evaluate_without_a_finished_episode_is_an_error(tmp_path):

@@ -25,8 +25,8 @@ from mpcmobo.experiment.records import Checkpoint, Reference
 from mpcmobo.experiment.settings import (
     Settings,
     SettingsError,
-    load_settings,
     read_toml,
+    settings_from,
     settings_to_toml,
 )
 
@@ -60,11 +60,11 @@ SAVED_BEFORE = {("mpc", "newton_steps"): 0, ("system", "identify"): False}
 
 def _saved_before(saved: dict[str, Any]) -> dict[str, Any]:
     """The :data:`SAVED_BEFORE` settings ``saved`` (a run's ``config.toml``) lacks, as
-    overrides of :func:`load_settings`."""
+    overrides of :func:`load_settings` (a section that is not a table is left to validation)."""
     return {
         f"{section}__{key}": value
         for (section, key), value in SAVED_BEFORE.items()
-        if key not in saved.get(section, {})
+        if isinstance(saved.get(section, {}), dict) and key not in saved.get(section, {})
     }
 
 
@@ -131,8 +131,7 @@ class RunDirectory:
                 for section, keys in READ_ONLY_DROPS.items():
                     for key in keys:
                         saved.get(section, {}).pop(key, None)
-                return load_settings(None, **{**saved, **before, **overrides})
-            return load_settings(self.config, **{**before, **overrides})
+            return settings_from(saved, **{**before, **overrides})
         except SettingsError as err:
             if str(err).startswith(str(self.config)):  # the file itself, not an override
                 raise SettingsError(

@@ -577,9 +577,13 @@ def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
     Overrides are top-level keys (``episodes=5``), section tables (``mpc={"horizon": 8}``, merged
     into the file's table) or double-underscore paths (``mpc__horizon=8``).
     """
-    data: dict[str, Any] = read_toml(path) if path is not None else {}
-    data = _merge(data, _nest(overrides))
-    return validate_settings(data)
+    return settings_from(read_toml(path) if path is not None else {}, **overrides)
+
+
+def settings_from(data: dict[str, Any], **overrides: Any) -> Settings:
+    """Settings from a TOML-like table (a file already read) plus overrides, as
+    :func:`load_settings` merges them."""
+    return validate_settings(_merge(data, _nest(overrides)))
 
 
 def settings_to_toml(settings: Settings) -> str:
