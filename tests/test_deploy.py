@@ -461,7 +461,7 @@ def test_decide_needs_the_gp_to_prefer_the_candidate(slope):
 # ============================================================================ judged by a twin
 
 
-def _twin_cost(starts, theta, params):
+def _twin_cost(starts, theta, params, noise=None):
     """A model's closed-loop cost of a 1-D theta from each start (n, 1): a start of size
     exp(x); the candidate (theta 0.8) saves 20% of it where x > -0.5 and costs 30% more where
     x <= -0.5. ``params`` scales the model's costs of the candidate (1: the plant's)."""

@@ -51,6 +51,7 @@ def model_costs(
     starts: np.ndarray,
     steps: int,
     plant: gymnasium.Env,
+    noise: np.ndarray | None = None,
 ) -> np.ndarray:
     """The mean stage cost of ``theta``'s noise-free closed loop of ``steps`` steps from each
     start (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`); NaN where that
@@ -58,7 +59,7 @@ def model_costs(
     out = []
     for x0 in np.atleast_2d(starts):
         try:
-            rec = model_rollout(system, mpc, theta, x0, steps, plant=plant)
+            rec = model_rollout(system, mpc, theta, x0, steps, plant=plant, noise=noise)
             out.append(mean_stage_cost(rec))
         except Exception:  # noqa: BLE001 - a failed closed loop is a NaN cost, never an end
             out.append(float("nan"))
@@ -261,6 +262,7 @@ class LearningRun:
         x0: np.ndarray,
         theta: np.ndarray | None = None,
         params: np.ndarray | None = None,
+        noise: np.ndarray | None = None,
     ) -> float:
         """The start covariate of ``x0``: the mean stage cost of ``theta`` (default the
         learner's ``start_model()``, else its theta0) from ``x0`` in a noise-free closed loop on
@@ -275,20 +277,28 @@ class LearningRun:
                 theta = getattr(self.learner, "theta0", None)  # None: the MPC's own theta0
         theta = self.mpc.check_theta(theta)
         p = np.asarray(self.mpc.model_params if params is None else params, float)
-        key = b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p))
+        e = np.zeros(0) if noise is None else np.asarray(noise, float).ravel()
+        key = b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p, e))
         if key not in self._start_costs:
             plant = self._model_plants.get(p.tobytes())
             if plant is None:
                 plant = model_plant(self.system, self.mpc, p)
                 self._model_plants[p.tobytes()] = plant
-            cost = model_costs(self.system, self.mpc, theta, x0, self.steps, plant)
+            replay = e.reshape(-1, self.system.nu) if len(e) else None
+            cost = model_costs(self.system, self.mpc, theta, x0, self.steps, plant, replay)
             self._start_costs[key] = float(cost[0])  # NaN if it failed: the tests fall back
         return self._start_costs[key]
 
-    def start_costs(self, starts: np.ndarray, theta: np.ndarray, params: np.ndarray) -> np.ndarray:
+    def start_costs(
+        self,
+        starts: np.ndarray,
+        theta: np.ndarray,
+        params: np.ndarray,
+        noise: np.ndarray | None = None,
+    ) -> np.ndarray:
         """:meth:`start_cost` of every start in ``starts`` (n, nx) (what a learner asks for when
-        its covariate's model changes)."""
-        return np.array([self.start_cost(x0, theta, params) for x0 in np.atleast_2d(starts)])
+        its covariate's model changes); ``noise``: one start's exploration, replayed."""
+        return np.array([self.start_cost(x0, theta, params, noise) for x0 in np.atleast_2d(starts)])
 
     def _propose(self) -> tuple[np.ndarray, str]:
         """The learner's proposal; if the learner fails (an exception, or a theta that is not

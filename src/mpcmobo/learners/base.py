@@ -65,6 +65,16 @@ class EpisodeResult:
     start_cost: float = float("nan")
     states: np.ndarray | None = None  # (T+1, nx) the plant's states (None: the episode failed)
     inputs: np.ndarray | None = None  # (T, nu) the inputs applied
+    exploration: np.ndarray | None = None  # (T, nu) the inputs applied minus the MPC's
+
+    @property
+    def replay(self) -> np.ndarray | None:
+        """The episode's initial state followed by its exploration, flattened: what the twin
+        replays to predict the episode."""
+        if self.x0 is None:
+            return None
+        e = np.zeros(0) if self.exploration is None else np.asarray(self.exploration).ravel()
+        return np.concatenate([np.asarray(self.x0, float), e])
 
     @property
     def f1(self) -> float:
@@ -98,6 +108,7 @@ def episode_result(
         stage_cost=mean_stage_cost(record),
         states=np.asarray(record.x, dtype=float),
         inputs=np.asarray(record.u, dtype=float),
+        exploration=np.asarray(record.u, dtype=float) - np.asarray(record.pi, dtype=float),
     )
     return res, cr
 

@@ -266,11 +266,14 @@ class CycledEvidence(EvidencePolicy):
         prediction from that start (paired)."""
         rows, own = ev.rows_of(z), ev.rows_of(deployed)
         common = sorted(set(ev.starts[rows].tolist()) & set(ev.starts[own].tolist()))
-        x0s = [ev.x0s[int(rows[ev.starts[rows] == s][0])] for s in common]
         sides = []
         for theta, r in ((deployed, own), (z, rows)):
-            y = [float(np.mean(ev.costs[r[ev.starts[r] == s]])) for s in common]
-            sides.append((np.asarray(y, float), twin.predict(theta, x0s)))
+            y, p = [], []
+            for s in common:
+                at = r[ev.starts[r] == s]  # this theta's episodes from start s, each replayed
+                y.append(float(np.mean(ev.costs[at])))
+                p.append(float(np.mean(twin.predict(theta, [ev.x0s[int(i)] for i in at]))))
+            sides.append((np.asarray(y, float), np.asarray(p, float)))
         return sides[0], sides[1]
 
     def next_check(

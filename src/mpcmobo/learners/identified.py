@@ -92,7 +92,7 @@ class ModelSwitch:
             y = np.array([result.f1])
             self.evidence_.append(theta, y, np.zeros(len(theta)), result.start_id,
                                   result.start_cost, kind, cost=result.stage_cost,
-                                  x0=result.x0)  # fmt: skip
+                                  x0=result.replay)  # fmt: skip
         self.refit()
         self.decide()
 
@@ -195,7 +195,7 @@ class ModelSwitch:
             return
         if len(self.evidence_):
             nan = np.full(self.fit.system.nx, np.nan)  # an unknown initial state: no covariate
-            x0s = np.array([x if len(x) else nan for x in self.evidence_.x0s])
+            x0s = np.array([x[: len(nan)] if len(x) else nan for x in self.evidence_.x0s])
             self.evidence_.start_costs = np.asarray(self.start_costs(x0s, *self.twin_), float)
 
     def _judge(self) -> None:

@@ -93,7 +93,8 @@ class VerifiedBlocks:
         self.F_ = np.append(self.F_, float(f) if np.isfinite(f) else np.inf)
         self.S_ = np.append(self.S_, int(result.start_id))
         self.C_ = np.append(self.C_, float(result.start_cost))
-        self.X_.append(np.zeros(0) if result.x0 is None else np.asarray(result.x0, float).copy())
+        replay = result.replay
+        self.X_.append(np.zeros(0) if replay is None else replay)
         if g is not None:
             self.G_, self.nG_ = self.G_ + g, self.nG_ + 1
         if self.is_open():
@@ -143,12 +144,17 @@ class VerifiedBlocks:
         paired = bool(np.all(S[cand] >= 0) and np.all(S[dep] >= 0))
         common = sorted(set(S[cand].tolist()) & set(S[dep].tolist()))
         for rows, z in ((dep, self.Z_[self.deployed_]), (cand, self.Z_[b])):
-            if paired:
+            if paired:  # per start: this block's episodes from it, each replayed
                 y = np.array([np.mean(F[rows[S[rows] == s]]) for s in common])
-                x0s = [self.X_[int(cand[S[cand] == s][0])] for s in common]
+                p = np.array(
+                    [
+                        np.mean(twin.predict(z, [self.X_[int(i)] for i in rows[S[rows] == s]]))
+                        for s in common
+                    ]
+                )
             else:
-                y, x0s = F[rows], [self.X_[int(i)] for i in rows]
-            sides.append((y, twin.predict(z, x0s), twin.simulate(z)))
+                y, p = F[rows], twin.predict(z, [self.X_[int(i)] for i in rows])
+            sides.append((y, p, twin.simulate(z)))
         return twin_confidence(sides[0], sides[1], paired)
 
     def state_dict(self) -> dict:

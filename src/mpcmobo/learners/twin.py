@@ -38,8 +38,9 @@ TWIN_STARTS = 8  # initial states of a twin evaluation
 TWIN_EPISODES = 30  # twin evaluations (the deployed theta's the first)
 JUDGE_STARTS = 64  # simulated starts of the twin's judgement of a deployment
 
-# the loop's covariate service: (starts (n, nx), theta, model parameters) -> (n,) costs
-StartCosts = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+# the loop's covariate service: (starts (n, nx), theta, model parameters[, one start's
+# exploration, flat]) -> (n,) costs
+StartCosts = Callable[..., np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -70,12 +71,19 @@ class Twin:
         return np.asarray(z, float) if self.to_theta is None else self.to_theta(z)
 
     def predict(self, z: np.ndarray, x0s: list[np.ndarray]) -> np.ndarray:
-        """The mean stage cost of ``z``'s noise-free closed loop on the model from each initial
-        state (NaN where one is unknown or the closed loop fails)."""
+        """The mean stage cost of ``z``'s closed loop on the model from each episode's initial
+        state, with the episode's exploration replayed where it is known (an entry of
+        ``x0s`` longer than the state: the initial state, then the exploration flattened);
+        NaN where one is unknown or the closed loop fails."""
         out = np.full(len(x0s), np.nan)
-        known = [i for i, x in enumerate(x0s) if len(x)]
-        if known:
-            out[known] = self.costs(np.array([x0s[i] for i in known]), self._theta(z), self.params)
+        nx = self.starts.shape[1]
+        theta = self._theta(z)
+        for i, x in enumerate(x0s):
+            if not len(x):
+                continue
+            x = np.asarray(x, float)
+            noise = x[nx:] if len(x) > nx else None  # flat: the service shapes it
+            out[i] = self.costs(x[None, :nx], theta, self.params, noise)[0]
         return out
 
     def simulate(self, z: np.ndarray) -> np.ndarray:

@@ -110,13 +110,14 @@ def model_rollout(
     x0: np.ndarray,
     steps: int | None = None,
     plant: gymnasium.Env | None = None,
+    noise: np.ndarray | None = None,
 ) -> EpisodeRecord:
     """The closed loop of ``theta`` from ``x0`` on the MPC's own prediction model instead of the
     plant (``plant``: :func:`model_plant`, built here if not given): noise-free, without
     sensitivities. What the model predicts of an episode from ``x0``, at no cost to the plant;
     with theta0 it is the learners' start covariate (``EpisodeResult.start_cost``)."""
     plant = model_plant(system, mpc) if plant is None else plant
-    return rollout(system, mpc, theta, x0, steps, sensitivities=False, plant=plant)
+    return rollout(system, mpc, theta, x0, steps, sensitivities=False, plant=plant, noise=noise)
 
 
 def replay(
