@@ -483,3 +483,26 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
         assert inner is not None and len(built) == 1
         assert inner.blocks_.twin is not None
         np.testing.assert_array_equal(inner.blocks_.twin.params, sw.deployed_params_)
+
+
+def test_the_twin_of_the_right_model_predicts_a_plant_episode_exactly_by_replaying_it():
+    """The twin predicts an episode by replaying its exploration (the inputs applied minus the
+    MPC's) in the closed loop on the model from its start: with the true model that is the
+    plant's episode itself, where the noise-free closed loop from the same start is off by
+    the exploration's share of the cost."""
+    from mpcmobo.experiment.job import _learning_run
+    from mpcmobo.experiment.settings import build_system
+    from mpcmobo.learners.twin import Twin
+    from mpcmobo.rl.objectives import mean_stage_cost
+
+    s = load_settings(
+        None, system={"name": "cstr"}, learners=["bo"], steps=20, exploration={"std": [5.0, 5.0]}
+    )
+    system = build_system(s, "bo")
+    run = _learning_run(s, system, "bo", 0)
+    _, record = run.run_episode()
+    twin = Twin(np.asarray(system.true_params, float), run.start_costs, np.zeros((1, system.nx)))
+    replay = np.concatenate([record.x[0], (record.u - record.pi).ravel()])
+    plant = mean_stage_cost(record)
+    assert twin.predict(record.theta, [replay])[0] == pytest.approx(plant, rel=1e-8)
+    assert abs(twin.predict(record.theta, [record.x[0]])[0] / plant - 1) > 0.01
