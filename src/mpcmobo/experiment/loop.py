@@ -53,9 +53,10 @@ def model_costs(
     plant: gymnasium.Env,
     noise: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The mean stage cost of ``theta``'s noise-free closed loop of ``steps`` steps from each
-    start (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`); NaN where that
-    closed loop fails. What a start covariate and the twin's evaluations are made of."""
+    """The mean stage cost of ``theta``'s closed loop of ``steps`` steps from each start
+    (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`), noise-free or with the
+    exploration ``noise`` (steps, nu) replayed; NaN where that closed loop fails. What a start
+    covariate and the twin's evaluations and predictions are made of."""
     out = []
     for x0 in np.atleast_2d(starts):
         try:
@@ -267,8 +268,9 @@ class LearningRun:
         """The start covariate of ``x0``: the mean stage cost of ``theta`` (default the
         learner's ``start_model()``, else its theta0) from ``x0`` in a noise-free closed loop on
         the model with ``params`` (default the MPC's own model), the episode's length; NaN if
-        that closed loop fails. Cached; a function of its arguments alone, so the random streams
-        and a resumed run are unaffected."""
+        that closed loop fails; with ``noise`` (an episode's exploration, flat), that episode's
+        exploration replayed (the twin's prediction of the episode). Cached; a function of its
+        arguments alone, so the random streams and a resumed run are unaffected."""
         if theta is None:
             model = getattr(self.learner, "start_model", lambda: None)()
             if model is not None:

@@ -197,8 +197,8 @@ def twin_confidence(
     Techniques*, ch. 6).
 
     Each side is ``(y, yhat, sim)``: the plant's costs of its episodes, the twin's predictions
-    of the same episodes (noise-free closed loops on the identified model from the same initial
-    states) and the twin's costs on ``M`` simulated starts drawn from the distribution, the
+    of the same episodes (closed loops on the identified model from the same initial states,
+    each with its episode's exploration replayed) and the twin's costs on ``M`` simulated starts drawn from the distribution, the
     same starts for both sides. ``paired``: ``y[i]`` of both sides come from the same start
     ``i`` (cycled starts). Per side, the twin's mean on the simulated starts is scaled by how
     far the plant's episodes exceed its predictions of them,

@@ -13,7 +13,8 @@ Theorem 1), where its structure is wrong it may not; so its theta goes to the pl
 candidate of the model switch, deployed only on the evidence of its own plant episodes.
 
 The twin also judges: a :class:`Twin` predicts any theta's plant episode from its initial
-state, and its mean over ``JUDGE_STARTS`` simulated starts, for the deployment tests'
+state with the episode's exploration replayed (the plant's own episode, where the model is
+right), and its mean over ``JUDGE_STARTS`` simulated starts, for the deployment tests'
 prediction-powered confidence (:func:`~mpcmobo.learners.confidence.twin_confidence`): a few
 plant episodes then decide what the twin measures on many starts, as far as the plant
 confirms the twin.
