@@ -1,5 +1,6 @@
-"""Fault injection: failed MPC solves at random steps, NaN and inf objectives, and a
-learner whose proposal raises; each is recorded and the run goes on, with no crash."""
+"""Fault injection: failed MPC solves at random steps, NaN and inf objectives, a learner
+whose proposal raises and a deployed theta whose evaluation runs the plant away; each is
+recorded and the run goes on, with no crash."""
 
 from __future__ import annotations
 
@@ -7,14 +8,18 @@ import math
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
-from mpcmobo.experiment import loop, storage
+from mpcmobo.cli import app
+from mpcmobo.experiment import loop, storage, study
+from mpcmobo.experiment.evaluation import Evaluator
 from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 from mpcmobo.learners.gp import BOLearner
 from mpcmobo.learners.identified import IdentifyFirst
 from mpcmobo.learners.mpc_rl import MPCRL
 from mpcmobo.mpc import ParametricMPC
+from mpcmobo.plots import make_figures
 
 EPISODES = 8
 FAST_SEARCH = {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}  # a cheap acquisition search
@@ -119,3 +124,46 @@ def test_a_failing_proposal_is_recorded_and_the_incumbent_runs(
         assert np.array_equal(df.theta[k], df.incumbent[k - 1])  # the incumbent ran
         assert np.isfinite(df.f1[k])
     assert (df.error.drop([2, 5]) == "").all()
+
+
+def test_an_evaluation_that_runs_the_plant_away_is_recorded_and_the_run_goes_on(
+    tmp_path, monkeypatch
+):
+    armed = []
+    compute = study.compute_reference
+
+    def reference_then_arm(settings):
+        ref = compute(settings)
+        armed.append(1)  # the jobs' evaluations run the plant away, not the reference's
+        return ref
+
+    original = Evaluator.episodes
+
+    def runaway(self, theta, model="imperfect"):
+        if armed:
+            raise FloatingPointError("the plant ran away at step 3: state [1e+70]")
+        return original(self, theta, model)
+
+    monkeypatch.setattr(study, "compute_reference", reference_then_arm)
+    monkeypatch.setattr(Evaluator, "episodes", runaway)
+    summary = run_study(small(["bo"]), tmp_path / "run")
+    assert summary["complete"] is True
+    df = storage.read_episodes(tmp_path / "run")
+    assert len(df) == EPISODES
+    last = df.iloc[-1]
+    assert math.isinf(last.J_eval_incumbent) and last.J_eval_incumbent > 0
+    assert last.error.startswith("evaluation: the plant ran away at step 3")
+    assert math.isfinite(df.J_eval_incumbent.iloc[0])  # theta0's, from the reference
+    seed = storage.read_json(tmp_path / "run" / "summary.json")["learners"]["bo"]["per_seed"]["0"]
+    assert seed["J_final"] is None and seed["regressions"] >= 1  # inf: not a number in JSON
+    assert make_figures(tmp_path / "run")  # the figures skip what they cannot draw
+
+    def runaway_J(self, theta, model="imperfect"):
+        if theta is not None:  # the saved incumbents, not J* or theta0's J_eval
+            raise FloatingPointError("the plant ran away at step 3: state [1e+70]")
+        return 1.0
+
+    monkeypatch.setattr(Evaluator, "J_eval", runaway_J)
+    result = CliRunner().invoke(app, ["evaluate", str(tmp_path / "run")], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert "the plant ran away" in result.output

@@ -434,7 +434,11 @@ def evaluate(
     for col in ("learner", "seed", "episodes", "J_eval", gap_title):
         table.add_column(col, justify="right")
     for learner, s, episodes, incumbent in incumbents:
-        J = evaluators[learner].J_eval(incumbent)
+        try:
+            J = evaluators[learner].J_eval(incumbent)
+        except FloatingPointError:  # it runs the plant away from an evaluation start
+            table.add_row(learner, str(s), str(episodes), "inf", "the plant ran away")
+            continue
         if J_star is not None:
             gap = f"{100 * (J - J_star) / abs(J_star):.2f}"
         else:

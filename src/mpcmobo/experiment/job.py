@@ -229,7 +229,11 @@ class Job:
         interrupts.check()
         row = EpisodeRow.from_dict(out)
         t_eval = time.perf_counter()
-        row.J_eval_incumbent = self._evaluate(row.episode, np.asarray(row.incumbent, dtype=float))
+        row.J_eval_incumbent, failure = self._evaluate(
+            row.episode, np.asarray(row.incumbent, dtype=float)
+        )
+        if failure:
+            row.error = f"{row.error}; {failure}" if row.error else failure
         row.eval_time_s = time.perf_counter() - t_eval
         interrupts.check()  # nothing of an interrupted evaluation is kept
         if record is not None and self.schedule.keeps_learning(row.episode):
@@ -238,19 +242,25 @@ class Job:
         self.wall_time_s += time.perf_counter() - t_start
         return row
 
-    def _evaluate(self, episode: int, incumbent: np.ndarray) -> float:
+    def _evaluate(self, episode: int, incumbent: np.ndarray) -> tuple[float, str]:
         """J_eval of the incumbent if the schedule evaluates it, else NaN; at the last episode
-        the final incumbent's evaluation episodes are stored."""
+        the final incumbent's evaluation episodes are stored. An incumbent that runs the plant
+        away from an evaluation start has J_eval = inf, with the error (the run goes on)."""
         if not self.schedule.step(episode, incumbent) or not self.evaluates:
-            return math.nan
-        if episode == self.schedule.last:
-            eps = self.evaluator.episodes(incumbent)
-            if not self.evaluator.is_cached(incumbent):
-                self.evaluator.remember(incumbent, mean_cost(eps))
-            self.trajectories += [
-                Trajectory("final", episode, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
-            ]
-        return self.evaluator.J_eval(incumbent)
+            return math.nan, ""
+        try:
+            if episode == self.schedule.last:
+                eps = self.evaluator.episodes(incumbent)
+                if not self.evaluator.is_cached(incumbent):
+                    self.evaluator.remember(incumbent, mean_cost(eps))
+                self.trajectories += [
+                    Trajectory("final", episode, i, r.x.copy(), r.u.copy())
+                    for i, r in enumerate(eps)
+                ]
+            return self.evaluator.J_eval(incumbent), ""
+        except FloatingPointError as err:
+            self.evaluator.remember(incumbent, math.inf)
+            return math.inf, f"evaluation: {err}"
 
     def episodes(self, max_episodes: int | None = None) -> Iterator[EpisodeRow]:
         """Step until the budget is done (or ``max_episodes`` more episodes), yielding each

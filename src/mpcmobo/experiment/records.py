@@ -19,7 +19,8 @@ class EpisodeRow:
 
     The objectives f1..f4 are those of the paper (eq. cl_perf, f2, f3, f4); ``J_tilde`` is f1;
     ``mean_stage_cost`` is the undiscounted mean of L over the episode; ``J_eval_incumbent`` is
-    NaN where the job's evaluation schedule did not evaluate the incumbent; ``start_cost`` is
+    NaN where the job's evaluation schedule did not evaluate the incumbent and inf where the
+    incumbent ran the plant away from an evaluation start (``error`` says how); ``start_cost`` is
     theta0's cost from the episode's start on the MPC's own model (NaN unless the learner used
     it); ``identified`` the model parameters identified so far (empty without identification).
     """

@@ -160,7 +160,7 @@ def _seed_summary(
     s: pd.DataFrame, settings: Settings, reference: Reference, wall_time_s: float
 ) -> dict[str, Any]:
     """The summary of one job from its rows ``s`` (sorted by episode)."""
-    evaluated = s[np.isfinite(s["J_eval_incumbent"])]
+    evaluated = s[~np.isnan(s["J_eval_incumbent"])]  # inf: the plant ran away
     J = evaluated["J_eval_incumbent"].to_numpy(float)
     violation = s["violation"].to_numpy(float)
     return {
