@@ -9,7 +9,8 @@ system's initial-state distribution with their own seed (never the evaluation st
 fed back to a learner), with the same MPC options and plant as the run. It prints, per theta,
 its mean cost over the fresh starts relative to J* on the same starts, the paired difference
 from theta0's mean with its standard error over the starts, and on how many starts it beats
-theta0; "regression" is a mean above theta0's. ``--thetas final`` rechecks the final thetas
+theta0; "regression" is a mean above theta0's. A theta that runs the plant away from a fresh
+start has an infinite mean there (a regression). ``--thetas final`` rechecks the final thetas
 only; ``--summary`` prints one row per learner instead (the median and the worst seed of the
 final theta on the fresh starts, and the seeds whose final theta is worse than theta0 there).
 
@@ -37,7 +38,7 @@ def _thetas(df: pd.DataFrame, which: tuple[str, ...]) -> dict[str, tuple[np.ndar
     """The final and the worst deployed theta of one job's rows, each with its J_eval."""
     rows = df.sort_values("episode")
     J = rows["J_eval_incumbent"].to_numpy(float)
-    picks = {"final": len(J) - 1, "worst": int(np.argmax(np.where(np.isfinite(J), J, -np.inf)))}
+    picks = {"final": len(J) - 1, "worst": int(np.argmax(np.where(np.isnan(J), -np.inf, J)))}
     return {
         k: (np.asarray(rows["incumbent"].iloc[i], float), float(J[i]))
         for k, i in picks.items()
@@ -67,7 +68,12 @@ def recheck(
                     settings, build_system(settings, learner), n_starts=starts, seed=seed
                 )
             e = evs[learner]  # type: ignore[assignment]
-        return np.array([mean_stage_cost(r) for r in e.episodes(theta, model)])
+        try:
+            return np.array([mean_stage_cost(r) for r in e.episodes(theta, model)])
+        except FloatingPointError:
+            if theta is None:  # J*'s or theta0's MPC: nothing to compare with
+                raise
+            return np.full(starts, np.inf)  # the theta runs the plant away from a start
 
     ref = costs(None, "perfect") if ev.has_J_star else None
     c0 = costs(None)

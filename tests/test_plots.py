@@ -6,6 +6,7 @@ the same formula on the same kind of episodes."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 
 import numpy as np
@@ -17,7 +18,7 @@ from matplotlib.image import imread
 from typer.testing import CliRunner
 
 from mpcmobo.cli import app
-from mpcmobo.experiment.evaluation import make_evaluator
+from mpcmobo.experiment.evaluation import Evaluator, make_evaluator
 from mpcmobo.experiment.job import _learning_run
 from mpcmobo.experiment.rundir import RunDirectory
 from mpcmobo.experiment.settings import build_system, load_settings
@@ -303,3 +304,22 @@ def test_recheck_on_the_evaluation_starts_reproduces_J_eval(small_run, benchmark
         assert r["regression"] == (r["J_fresh_ratio"] > r["J0_fresh_ratio"])
     other = rc.recheck(small_run, starts=2, seed=7, only_seeds=[0])
     assert any(abs(o["J0_fresh_ratio"] - r["J0_fresh_ratio"]) > 1e-6 for o, r in zip(other, rows))
+
+
+def test_recheck_counts_a_theta_that_runs_the_plant_away_as_a_regression(
+    small_run, benchmark_script, monkeypatch
+):
+    rc = benchmark_script("recheck")
+    original = Evaluator.episodes
+
+    def runaway(self, theta, model="imperfect"):
+        if theta is not None:  # the deployed thetas, not J*'s or theta0's MPC
+            raise FloatingPointError("the plant ran away at step 3: state [1e+70]")
+        return original(self, theta, model)
+
+    monkeypatch.setattr(Evaluator, "episodes", runaway)
+    rows = rc.recheck(small_run, starts=2, seed=7, only_seeds=[0], which=("final",))
+    assert len(rows) == len(LEARNERS)
+    for r in rows:
+        assert r["J_fresh_ratio"] == math.inf and r["regression"] and r["wins"] == 0
+        assert math.isfinite(r["J0_fresh_ratio"])
