@@ -198,10 +198,11 @@ def twin_confidence(
 
     Each side is ``(y, yhat, sim)``: the plant's costs of its episodes, the twin's predictions
     of the same episodes (closed loops on the identified model from the same initial states,
-    each with its episode's exploration replayed) and the twin's costs on ``M`` simulated starts drawn from the distribution, the
-    same starts for both sides. ``paired``: ``y[i]`` of both sides come from the same start
-    ``i`` (cycled starts). Per side, the twin's mean on the simulated starts is scaled by how
-    far the plant's episodes exceed its predictions of them,
+    each with its episode's exploration replayed) and the twin's costs on ``M`` simulated
+    starts drawn from the distribution, the same starts for both sides. ``paired``: ``y[i]``
+    of both sides come from the same start ``i`` (cycled starts). Per side, the twin's mean on
+    the simulated starts is scaled by how far the plant's episodes exceed its predictions of
+    them,
 
     .. math:: \hat J = \overline{sim}\;\frac{\sum_i y_i}{\sum_i \hat y_i},
         \qquad \hat\Delta = \hat J_{deployed} - \hat J_{candidate},

@@ -266,15 +266,10 @@ class CycledEvidence(EvidencePolicy):
         prediction from that start (paired)."""
         rows, own = ev.rows_of(z), ev.rows_of(deployed)
         common = sorted(set(ev.starts[rows].tolist()) & set(ev.starts[own].tolist()))
-        sides = []
-        for theta, r in ((deployed, own), (z, rows)):
-            y, p = [], []
-            for s in common:
-                at = r[ev.starts[r] == s]  # this theta's episodes from start s, each replayed
-                y.append(float(np.mean(ev.costs[at])))
-                p.append(float(np.mean(twin.predict(theta, [ev.x0s[int(i)] for i in at]))))
-            sides.append((np.asarray(y, float), np.asarray(p, float)))
-        return sides[0], sides[1]
+        return (
+            twin.per_start(deployed, own, ev.starts, ev.costs, ev.x0s, common),
+            twin.per_start(z, rows, ev.starts, ev.costs, ev.x0s, common),
+        )
 
     def next_check(
         self, ev: Evidence, deployed: np.ndarray, verify: np.ndarray | None

@@ -144,14 +144,8 @@ class VerifiedBlocks:
         paired = bool(np.all(S[cand] >= 0) and np.all(S[dep] >= 0))
         common = sorted(set(S[cand].tolist()) & set(S[dep].tolist()))
         for rows, z in ((dep, self.Z_[self.deployed_]), (cand, self.Z_[b])):
-            if paired:  # per start: this block's episodes from it, each replayed
-                y = np.array([np.mean(F[rows[S[rows] == s]]) for s in common])
-                p = np.array(
-                    [
-                        np.mean(twin.predict(z, [self.X_[int(i)] for i in rows[S[rows] == s]]))
-                        for s in common
-                    ]
-                )
+            if paired:
+                y, p = twin.per_start(z, rows, S, F, self.X_, common)
             else:
                 y, p = F[rows], twin.predict(z, [self.X_[int(i)] for i in rows])
             sides.append((y, p, twin.simulate(z)))

@@ -87,6 +87,25 @@ class Twin:
             out[i] = self.costs(x[None, :nx], theta, self.params, noise)[0]
         return out
 
+    def per_start(
+        self,
+        z: np.ndarray,
+        rows: np.ndarray,
+        starts: np.ndarray,
+        costs: np.ndarray,
+        replays: list[np.ndarray],
+        common: list[int],
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per start of ``common``, over the episodes ``rows`` of ``z`` that ran from it: their
+        mean plant cost (``costs``) and the mean of the twin's predictions of them, each with
+        its own exploration replayed (``replays``); ``starts`` holds each episode's start."""
+        y, p = [], []
+        for s in common:
+            at = rows[starts[rows] == s]
+            y.append(float(np.mean(costs[at])))
+            p.append(float(np.mean(self.predict(z, [replays[int(i)] for i in at]))))
+        return np.asarray(y, float), np.asarray(p, float)
+
     def simulate(self, z: np.ndarray) -> np.ndarray:
         """``z``'s costs on the simulated starts (NaN where a closed loop fails)."""
         return self.costs(self.starts, self._theta(z), self.params)
