@@ -16,13 +16,14 @@ episode's start cost, as the learning loop computes it.
 
 from __future__ import annotations
 
+import pickle
 import warnings
 
 import numpy as np
 import pytest
 
 from mpcmobo.bo import GPSurrogate
-from mpcmobo.learners import EpisodeResult, Starts, make_learner
+from mpcmobo.learners import EpisodeResult, Replay, Starts, make_learner
 from mpcmobo.learners.confidence import (
     adjusted_confidence,
     paired_confidence,
@@ -485,8 +486,31 @@ def _plant_evidence(n_starts, x0s, noise=0.0):
     for z in (A, B):
         for s in range(n_starts):
             c = float(_twin_cost(x0s[s][None, :], z, [1.0])[0]) * (1 + noise * rng.normal())
-            ev.append(z, [c], [0.0], s, np.nan, "verify", cost=c, x0=x0s[s])
+            ev.append(z, [c], [0.0], s, np.nan, "verify", cost=c, replay=Replay(x0s[s]))
     return ev
+
+
+def test_the_evidence_keeps_each_episodes_replay_through_a_checkpoint():
+    """A replay (initial state and exploration) survives the evidence's state as plain arrays;
+    an unknown one stays unknown; an initial state alone (a 1.0 state) is a noise-free replay;
+    a twin refuses an initial state of the wrong size, naming it."""
+    ev = Evidence(1, 1, 1)
+    kept = Replay(np.array([0.3]), np.arange(6.0).reshape(3, 2))
+    ev.append(A, [1.0], [0.0], 0, np.nan, "verify", cost=1.0, replay=kept)
+    ev.append(B, [2.0], [0.0], 1, np.nan, "verify", cost=2.0)
+    state = pickle.loads(pickle.dumps(ev.state_dict()))
+    assert all(isinstance(r, dict | type(None)) for r in state["replays"])
+    back = Evidence(1, 1, 1)
+    back.load_state_dict(state)
+    assert back.replays[1] is None
+    assert back.replays[0] is not None and back.replays[0].exploration is not None
+    np.testing.assert_array_equal(back.replays[0].x0, kept.x0)
+    np.testing.assert_array_equal(back.replays[0].exploration, kept.exploration)
+    old = Replay.from_state(np.array([0.3]))
+    assert old is not None and old.exploration is None
+    assert Replay.from_state(np.zeros(0)) is None
+    with pytest.raises(ValueError, match=r"initial state has shape \(2,\)"):
+        _twin().predict(A, [Replay(np.array([0.1, 0.2]))])
 
 
 def test_a_twin_deploys_what_the_population_gains_though_the_cycle_loses():
@@ -512,7 +536,7 @@ def test_a_twin_the_plant_contradicts_does_not_deploy():
     for z, factor in ((A, 1.0), (B, 1.05)):  # the plant: the candidate 5% dearer everywhere
         for s, x0 in enumerate(x0s):
             c = float(np.exp(x0[0])) * factor
-            ev.append(z, [c], [0.0], s, np.nan, "verify", cost=c, x0=x0)
+            ev.append(z, [c], [0.0], s, np.nan, "verify", cost=c, replay=Replay(x0))
     policy.twin = _twin(params=2.0)
     twin_alone = policy.twin.simulate(A) - policy.twin.simulate(B)
     assert paired_confidence(twin_alone) > 0.99  # the twin alone would deploy
@@ -529,7 +553,7 @@ def test_a_twin_judges_random_starts_by_each_thetas_episodes():
         for x in xs:
             x0 = np.array([x])
             c = float(_twin_cost(x0[None, :], z, [1.0])[0])
-            ev.append(z, [c], [0.0], -1, np.nan, "verify", cost=c, x0=x0)
+            ev.append(z, [c], [0.0], -1, np.nan, "verify", cost=c, replay=Replay(x0))
     assert policy.verdict(ev, None, B, A) < 0.5
     policy.twin = _twin()
     assert policy.verdict(ev, None, B, A) > 0.99

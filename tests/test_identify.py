@@ -19,7 +19,7 @@ from mpcmobo.experiment import loop, storage
 from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 from mpcmobo.identify import Identification, ModelFit, Transitions, identify, prediction_error
-from mpcmobo.learners import EpisodeResult, Starts
+from mpcmobo.learners import EpisodeResult, Replay, Starts
 from mpcmobo.learners.evidence import theta_key
 from mpcmobo.learners.identified import REFIT_GROWTH, ModelSwitch
 from mpcmobo.learners.options import EvidenceDeploy
@@ -502,7 +502,7 @@ def test_the_twin_of_the_right_model_predicts_a_plant_episode_exactly_by_replayi
     run = _learning_run(s, system, "bo", 0)
     _, record = run.run_episode()
     twin = Twin(np.asarray(system.true_params, float), run.start_costs, np.zeros((1, system.nx)))
-    replay = np.concatenate([record.x[0], (record.u - record.pi).ravel()])
+    replay = Replay(record.x[0], record.u - record.pi)
     plant = mean_stage_cost(record)
     assert twin.predict(record.theta, [replay])[0] == pytest.approx(plant, rel=1e-8)
-    assert abs(twin.predict(record.theta, [record.x[0]])[0] / plant - 1) > 0.01
+    assert abs(twin.predict(record.theta, [Replay(record.x[0])])[0] / plant - 1) > 0.01

@@ -268,9 +268,10 @@ class LearningRun:
         """The start covariate of ``x0``: the mean stage cost of ``theta`` (default the
         learner's ``start_model()``, else its theta0) from ``x0`` in a noise-free closed loop on
         the model with ``params`` (default the MPC's own model), the episode's length; NaN if
-        that closed loop fails; with ``noise`` (an episode's exploration, flat), that episode's
-        exploration replayed (the twin's prediction of the episode). Cached; a function of its
-        arguments alone, so the random streams and a resumed run are unaffected."""
+        that closed loop fails; with ``noise`` (an episode's exploration, (steps, nu)), that
+        episode's exploration replayed (the twin's prediction of the episode). Cached; a
+        function of its arguments alone, so the random streams and a resumed run are
+        unaffected."""
         if theta is None:
             model = getattr(self.learner, "start_model", lambda: None)()
             if model is not None:
@@ -279,15 +280,20 @@ class LearningRun:
                 theta = getattr(self.learner, "theta0", None)  # None: the MPC's own theta0
         theta = self.mpc.check_theta(theta)
         p = np.asarray(self.mpc.model_params if params is None else params, float)
-        e = np.zeros(0) if noise is None else np.asarray(noise, float).ravel()
-        key = b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p, e))
+        e = None if noise is None else np.asarray(noise, float)
+        if e is not None and e.shape != (self.steps, self.system.nu):
+            raise ValueError(
+                f"exploration of shape {e.shape}, not ({self.steps}, {self.system.nu})"
+            )
+        key = b"".join(
+            np.asarray(v, float).tobytes() for v in (x0, theta, p, () if e is None else e)
+        )
         if key not in self._start_costs:
             plant = self._model_plants.get(p.tobytes())
             if plant is None:
                 plant = model_plant(self.system, self.mpc, p)
                 self._model_plants[p.tobytes()] = plant
-            replay = e.reshape(-1, self.system.nu) if len(e) else None
-            cost = model_costs(self.system, self.mpc, theta, x0, self.steps, plant, replay)
+            cost = model_costs(self.system, self.mpc, theta, x0, self.steps, plant, e)
             self._start_costs[key] = float(cost[0])  # NaN if it failed: the tests fall back
         return self._start_costs[key]
 

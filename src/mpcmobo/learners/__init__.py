@@ -1,6 +1,6 @@
 """Learners behind one propose/observe interface: identify, MPC-RL, BO, MPC-RL-MOBO and the hybrid."""
 
-from mpcmobo.learners.base import EpisodeResult, Learner, Starts, episode_result
+from mpcmobo.learners.base import EpisodeResult, Learner, Replay, Starts, episode_result
 from mpcmobo.learners.gp import BOLearner
 from mpcmobo.learners.mobo import HybridLearner, MOBOLearner
 from mpcmobo.learners.mpc_rl import MPCRL
@@ -26,6 +26,7 @@ __all__ = [
     "MOBOLearner",
     "MOBOOptions",
     "MPCRLOptions",
+    "Replay",
     "Starts",
     "episode_result",
     "make_learner",

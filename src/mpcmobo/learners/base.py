@@ -46,6 +46,44 @@ class Starts:
             raise ValueError(f"n_starts must be at least 1, got {self.n_starts}")
 
 
+@dataclass(frozen=True)
+class Replay:
+    """What the twin replays to predict a plant episode
+    (:class:`~mpcmobo.learners.twin.Twin`): its initial state ``x0`` (nx,) and its
+    ``exploration`` (T, nu), the inputs applied minus the MPC's (None: a noise-free closed
+    loop)."""
+
+    x0: np.ndarray
+    exploration: np.ndarray | None = None
+
+    def state_dict(self) -> dict:
+        """The arrays, as copies."""
+        e = None if self.exploration is None else np.array(self.exploration, float)
+        return {"x0": np.array(self.x0, float), "exploration": e}
+
+    @classmethod
+    def from_state(cls, state: dict | np.ndarray | None) -> Replay | None:
+        """A :meth:`state_dict` again; an array is an initial state alone (a state of 1.0),
+        an empty array or None no replay."""
+        if state is None:
+            return None
+        if isinstance(state, dict):
+            e = state["exploration"]
+            return cls(np.array(state["x0"], float), None if e is None else np.array(e, float))
+        x0 = np.array(state, float)
+        return cls(x0) if x0.size else None
+
+
+def replays_state(replays: list[Replay | None]) -> list[dict | None]:
+    """A list of replays as plain arrays (a learner's :meth:`Learner.state_dict`)."""
+    return [None if r is None else r.state_dict() for r in replays]
+
+
+def replays_from_state(states: list) -> list[Replay | None]:
+    """:func:`replays_state` read back (see :meth:`Replay.from_state`)."""
+    return [Replay.from_state(s) for s in states]
+
+
 @dataclass
 class EpisodeResult:
     """What a learner observes of one episode: the objectives f1..f4 and the CDPG gradient."""
@@ -68,13 +106,13 @@ class EpisodeResult:
     exploration: np.ndarray | None = None  # (T, nu) the inputs applied minus the MPC's
 
     @property
-    def replay(self) -> np.ndarray | None:
-        """The episode's initial state followed by its exploration, flattened: what the twin
-        replays to predict the episode."""
+    def replay(self) -> Replay | None:
+        """What the twin replays to predict the episode (None: its initial state is
+        unknown)."""
         if self.x0 is None:
             return None
-        e = np.zeros(0) if self.exploration is None else np.asarray(self.exploration).ravel()
-        return np.concatenate([np.asarray(self.x0, float), e])
+        e = None if self.exploration is None else np.asarray(self.exploration, float)
+        return Replay(np.asarray(self.x0, float), e)
 
     @property
     def f1(self) -> float:

@@ -267,8 +267,8 @@ class CycledEvidence(EvidencePolicy):
         rows, own = ev.rows_of(z), ev.rows_of(deployed)
         common = sorted(set(ev.starts[rows].tolist()) & set(ev.starts[own].tolist()))
         return (
-            twin.per_start(deployed, own, ev.starts, ev.costs, ev.x0s, common),
-            twin.per_start(z, rows, ev.starts, ev.costs, ev.x0s, common),
+            twin.per_start(deployed, own, ev.starts, ev.costs, ev.replays, common),
+            twin.per_start(z, rows, ev.starts, ev.costs, ev.replays, common),
         )
 
     def next_check(
@@ -311,7 +311,7 @@ class RandomEvidence(EvidencePolicy):
         sides = []
         for theta in (deployed, z):
             rows = ev.rows_of(theta)
-            sides.append((ev.costs[rows], twin.predict(theta, [ev.x0s[i] for i in rows])))
+            sides.append((ev.costs[rows], twin.predict(theta, [ev.replays[i] for i in rows])))
         return sides[0], sides[1]
 
     def next_check(

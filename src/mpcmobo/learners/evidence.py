@@ -4,7 +4,8 @@ Each row holds the episode's theta as a point ``z`` of the unit cube of the sear
 modelled objectives (f1..f4 or f1 alone; NaN rows are kept and never fitted), its CDPG
 gradient, the index of its start in the study's cycle (-1 under random starts), its start
 cost (theta0's mean stage cost from its initial state on the MPC's own model; NaN where not
-computed), its plain mean stage cost and initial state (what a twin predicts) and what kind
+computed), its plain mean stage cost and its replay (initial state and exploration: what a
+twin predicts the cost from) and what kind
 of proposal it was (``"design"``, ``"search"``, ``"verify"``,
 ``"baseline"``, ``"gradient"``). Appending is the only change; the queries answer what the
 deployment policies ask: the rows of a theta, the starts it was run from, how many
@@ -14,6 +15,8 @@ episodes it has.
 from __future__ import annotations
 
 import numpy as np
+
+from mpcmobo.learners.base import Replay, replays_from_state, replays_state
 
 __all__ = ["Evidence", "theta_key"]
 
@@ -33,7 +36,7 @@ class Evidence:
         self.starts = np.zeros(0, dtype=int)
         self.start_costs = np.zeros(0)
         self.costs = np.zeros(0)  # the plain mean stage cost (J's measure)
-        self.x0s: list[np.ndarray] = []  # the initial states (empty: unknown)
+        self.replays: list[Replay | None] = []  # what a twin replays (None: unknown)
         self.kinds: list[str] = []
 
     def __len__(self) -> int:
@@ -48,10 +51,10 @@ class Evidence:
         start_cost: float,
         kind: str,
         cost: float = float("nan"),
-        x0: np.ndarray | None = None,
+        replay: Replay | None = None,
     ) -> None:
-        """One more episode (a non-finite gradient entry is stored as 0); ``cost`` and ``x0``
-        its plain mean stage cost and initial state, where known."""
+        """One more episode (a non-finite gradient entry is stored as 0); ``cost`` and
+        ``replay`` its plain mean stage cost and what a twin replays, where known."""
         g = np.asarray(grad, dtype=float)
         self.Z = np.vstack([self.Z, np.asarray(z, float)])
         self.Y = np.vstack([self.Y, np.asarray(y, float)])
@@ -59,7 +62,7 @@ class Evidence:
         self.starts = np.append(self.starts, int(start))
         self.start_costs = np.append(self.start_costs, float(start_cost))
         self.costs = np.append(self.costs, float(cost))
-        self.x0s.append(np.zeros(0) if x0 is None else np.asarray(x0, float).copy())
+        self.replays.append(replay)
         self.kinds.append(str(kind))
 
     # ------------------------------------------------------------------ queries
@@ -102,13 +105,13 @@ class Evidence:
             "starts": self.starts.copy(),
             "start_costs": self.start_costs.copy(),
             "costs": self.costs.copy(),
-            "x0s": [x.copy() for x in self.x0s],
+            "replays": replays_state(self.replays),
             "kinds": list(self.kinds),
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict` (a state of 1.0, without costs and initial states: NaN
-        and unknown)."""
+        """Restore :meth:`state_dict` (a state of 1.0, without costs and replays: NaN and
+        unknown)."""
         self.Z = np.array(state["Z"], float).reshape(-1, self.Z.shape[1])
         self.Y = np.array(state["Y"], float).reshape(-1, self.Y.shape[1])
         self.grads = np.array(state["grads"], float).reshape(-1, self.grads.shape[1])
@@ -117,7 +120,7 @@ class Evidence:
         self.kinds = list(state["kinds"])
         n = len(self.Z)
         self.costs = np.array(state.get("costs", np.full(n, np.nan)), float)
-        self.x0s = [np.array(x, float) for x in state.get("x0s", [np.zeros(0)] * n)]
+        self.replays = replays_from_state(state.get("replays", [None] * n))
         lengths = (len(self.Y), len(self.grads), len(self.starts), len(self.kinds), len(self.costs))
-        if any(k != n for k in (*lengths, len(self.x0s))):
+        if any(k != n for k in (*lengths, len(self.replays))):
             raise ValueError("the learner's evidence arrays have different lengths")

@@ -155,7 +155,7 @@ class GPLearner(Learner):
         z = self.space.to_unit(self.space.clip(theta))
         y = np.asarray(result.objectives, dtype=float)[list(self.outputs)]
         self.evidence_.append(z, y, result.grad, result.start_id, result.start_cost, kind,
-                              cost=result.stage_cost, x0=result.replay)  # fmt: skip
+                              cost=result.stage_cost, replay=result.replay)  # fmt: skip
         self.n_observed += 1
 
     def _model_Y(self) -> np.ndarray:

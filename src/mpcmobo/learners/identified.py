@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from mpcmobo.identify import Identification, ModelFit, Transitions
-from mpcmobo.learners.base import EpisodeResult, Learner, Starts
+from mpcmobo.learners.base import EpisodeResult, Learner, Starts, replays_from_state
 from mpcmobo.learners.deploy import RandomEvidence, evidence_policy
 from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import EvidenceDeploy, IdentifyOptions
@@ -92,7 +92,7 @@ class ModelSwitch:
             y = np.array([result.f1])
             self.evidence_.append(theta, y, np.zeros(len(theta)), result.start_id,
                                   result.start_cost, kind, cost=result.stage_cost,
-                                  x0=result.replay)  # fmt: skip
+                                  replay=result.replay)  # fmt: skip
         self.refit()
         self.decide()
 
@@ -195,7 +195,7 @@ class ModelSwitch:
             return
         if len(self.evidence_):
             nan = np.full(self.fit.system.nx, np.nan)  # an unknown initial state: no covariate
-            x0s = np.array([x[: len(nan)] if len(x) else nan for x in self.evidence_.x0s])
+            x0s = np.array([nan if r is None else r.x0 for r in self.evidence_.replays])
             self.evidence_.start_costs = np.asarray(self.start_costs(x0s, *self.twin_), float)
 
     def _judge(self) -> None:
@@ -257,7 +257,7 @@ class ModelSwitch:
         # a 1.0.0 state: any decision had settled the switch (its rule)
         self.waiting_ = int(state.get("waiting", self.policy.min_runs))
         if "x0s" in state:  # a state of 1.0: the initial states were the switch's
-            self.evidence_.x0s = [np.array(x, float) for x in state["x0s"]]
+            self.evidence_.replays = replays_from_state(state["x0s"])
         twin = state["twin"]
         self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
         dp = state["deployed_params"]

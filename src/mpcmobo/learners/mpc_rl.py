@@ -22,7 +22,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mpcmobo.learners.base import EpisodeResult, Learner, Starts
+from mpcmobo.learners.base import (
+    EpisodeResult,
+    Learner,
+    Replay,
+    Starts,
+    replays_from_state,
+    replays_state,
+)
 from mpcmobo.learners.confidence import adjusted_confidence, paired_confidence, twin_confidence
 from mpcmobo.learners.options import AdamStep, MPCRLOptions, VerifiedDeploy
 from mpcmobo.rl.steps import Adam, PlainGradient, StepRule
@@ -55,7 +62,7 @@ class VerifiedBlocks:
         self.F_ = np.zeros(0)
         self.S_ = np.zeros(0, dtype=int)
         self.C_ = np.zeros(0)
-        self.X_: list[np.ndarray] = []  # per episode its initial state (empty: unknown)
+        self.R_: list[Replay | None] = []  # per episode what a twin replays (None: unknown)
         self.twin: Twin | None = None  # the twin that judges, if any (module docstring)
         self.conf_ = np.zeros(0)  # each later block's confidence of being cheaper
         self.deployed_ = 0
@@ -93,8 +100,7 @@ class VerifiedBlocks:
         self.F_ = np.append(self.F_, float(f) if np.isfinite(f) else np.inf)
         self.S_ = np.append(self.S_, int(result.start_id))
         self.C_ = np.append(self.C_, float(result.start_cost))
-        replay = result.replay
-        self.X_.append(np.zeros(0) if replay is None else replay)
+        self.R_.append(result.replay)
         if g is not None:
             self.G_, self.nG_ = self.G_ + g, self.nG_ + 1
         if self.is_open():
@@ -145,9 +151,9 @@ class VerifiedBlocks:
         common = sorted(set(S[cand].tolist()) & set(S[dep].tolist()))
         for rows, z in ((dep, self.Z_[self.deployed_]), (cand, self.Z_[b])):
             if paired:
-                y, p = twin.per_start(z, rows, S, F, self.X_, common)
+                y, p = twin.per_start(z, rows, S, F, self.R_, common)
             else:
-                y, p = F[rows], twin.predict(z, [self.X_[int(i)] for i in rows])
+                y, p = F[rows], twin.predict(z, [self.R_[int(i)] for i in rows])
             sides.append((y, p, twin.simulate(z)))
         return twin_confidence(sides[0], sides[1], paired)
 
@@ -159,7 +165,7 @@ class VerifiedBlocks:
             "F": self.F_.copy(),
             "S": self.S_.copy(),
             "C": self.C_.copy(),
-            "X": [x.copy() for x in self.X_],
+            "replays": replays_state(self.R_),
             "conf": self.conf_.copy(),
             "deployed": self.deployed_,
             "G": self.G_.copy(),
@@ -175,7 +181,7 @@ class VerifiedBlocks:
         self.F_ = np.array(state["F"], float)
         self.S_ = np.array(state["S"], int)
         self.C_ = np.array(state["C"], float)
-        self.X_ = [np.array(x, float) for x in state.get("X", [np.zeros(0)] * len(self.id_))]
+        self.R_ = replays_from_state(state.get("replays", [None] * len(self.id_)))
         self.conf_ = np.array(state["conf"], float)
         self.deployed_ = int(state["deployed"])
         self.G_ = np.array(state["G"], float)

@@ -22,12 +22,12 @@ confirms the twin.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mpcmobo.learners.base import EpisodeResult, Starts
+from mpcmobo.learners.base import EpisodeResult, Replay, Starts
 from mpcmobo.learners.gp import BOLearner
 from mpcmobo.learners.options import BOOptions, IncumbentDeploy
 from mpcmobo.systems.base import System
@@ -40,7 +40,7 @@ TWIN_EPISODES = 30  # twin evaluations (the deployed theta's the first)
 JUDGE_STARTS = 64  # simulated starts of the twin's judgement of a deployment
 
 # the loop's covariate service: (starts (n, nx), theta, model parameters[, one start's
-# exploration, flat]) -> (n,) costs
+# exploration (T, nu)]) -> (n,) costs
 StartCosts = Callable[..., np.ndarray]
 
 
@@ -71,20 +71,20 @@ class Twin:
     def _theta(self, z: np.ndarray) -> np.ndarray:
         return np.asarray(z, float) if self.to_theta is None else self.to_theta(z)
 
-    def predict(self, z: np.ndarray, x0s: list[np.ndarray]) -> np.ndarray:
-        """The mean stage cost of ``z``'s closed loop on the model from each episode's initial
-        state, with the episode's exploration replayed where it is known (an entry of
-        ``x0s`` longer than the state: the initial state, then the exploration flattened);
-        NaN where one is unknown or the closed loop fails."""
-        out = np.full(len(x0s), np.nan)
+    def predict(self, z: np.ndarray, replays: Sequence[Replay | None]) -> np.ndarray:
+        """The mean stage cost of ``z``'s closed loop on the model for each plant episode: from
+        its initial state, with its exploration replayed; NaN where the replay is unknown or
+        the closed loop fails."""
+        out = np.full(len(replays), np.nan)
         nx = self.starts.shape[1]
         theta = self._theta(z)
-        for i, x in enumerate(x0s):
-            if not len(x):
+        for i, r in enumerate(replays):
+            if r is None:
                 continue
-            x = np.asarray(x, float)
-            noise = x[nx:] if len(x) > nx else None  # flat: the service shapes it
-            out[i] = self.costs(x[None, :nx], theta, self.params, noise)[0]
+            x0 = np.asarray(r.x0, float)
+            if x0.shape != (nx,):
+                raise ValueError(f"a replay's initial state has shape {x0.shape}, not ({nx},)")
+            out[i] = self.costs(x0[None, :], theta, self.params, r.exploration)[0]
         return out
 
     def per_start(
@@ -93,12 +93,12 @@ class Twin:
         rows: np.ndarray,
         starts: np.ndarray,
         costs: np.ndarray,
-        replays: list[np.ndarray],
+        replays: Sequence[Replay | None],
         common: list[int],
     ) -> tuple[np.ndarray, np.ndarray]:
         """Per start of ``common``, over the episodes ``rows`` of ``z`` that ran from it: their
-        mean plant cost (``costs``) and the mean of the twin's predictions of them, each with
-        its own exploration replayed (``replays``); ``starts`` holds each episode's start."""
+        mean plant cost (``costs``) and the mean of the twin's predictions of them (their
+        ``replays``); ``starts`` holds each episode's start."""
         y, p = [], []
         for s in common:
             at = rows[starts[rows] == s]
