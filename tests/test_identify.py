@@ -23,7 +23,7 @@ from mpcmobo.learners import EpisodeResult, Replay, Starts
 from mpcmobo.learners.evidence import theta_key
 from mpcmobo.learners.identified import REFIT_GROWTH, ModelSwitch
 from mpcmobo.learners.options import EvidenceDeploy
-from mpcmobo.mpc import rollout
+from mpcmobo.mpc import PlantDiverged, rollout
 from mpcmobo.systems import get_system
 from mpcmobo.systems.plant import SystemPlant
 
@@ -178,9 +178,14 @@ class _RunawayPlant(SystemPlant):
 
 def test_a_plant_that_runs_away_is_stopped_and_named(cstr, cstr_mpc):
     """A state more than RUNAWAY x_scale from x_ref ends the episode with an error that names
-    the step and the state."""
-    with pytest.raises(FloatingPointError, match=r"ran away at step 3: .*\(T more than 100"):
-        rollout(cstr, cstr_mpc, None, cstr.x_ref, 10, plant=_RunawayPlant(cstr))
+    the step and the state, and carries the violation of the steps the plant ran."""
+    x0 = cstr.x_ref + np.array([7.0, 0.0, 0.0])  # V above its limit: a violation
+    with pytest.raises(FloatingPointError, match=r"ran away at step 3: .*\(T more than 100") as e:
+        rollout(cstr, cstr_mpc, None, x0, 10, plant=_RunawayPlant(cstr))
+    assert isinstance(e.value, PlantDiverged) and e.value.step == 3
+    full = rollout(cstr, cstr_mpc, None, x0, 10)  # the same four steps, then on
+    assert float(np.sum(full.violation[:4])) > 0
+    assert e.value.violation == pytest.approx(float(np.sum(full.violation[:4])))
 
 
 def test_a_runaway_episode_is_a_recorded_failure_of_the_study(tmp_path, monkeypatch):
@@ -205,6 +210,7 @@ def test_a_runaway_episode_is_a_recorded_failure_of_the_study(tmp_path, monkeypa
     df = storage.read_episodes(tmp_path / "run")
     assert len(df) == 3
     assert "ran away at step 3" in df.loc[1, "error"] and np.isnan(df.loc[1, "f1"])
+    assert np.isfinite(df.loc[1, "violation"])  # the violation of the steps the plant ran
     assert (df.loc[[0, 2], "error"] == "").all() and np.isfinite(df.loc[[0, 2], "f1"]).all()
 
 

@@ -10,7 +10,14 @@ import gymnasium
 import numpy as np
 
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
-from mpcmobo.mpc import EpisodeRecord, ParametricMPC, model_plant, model_rollout, rollout
+from mpcmobo.mpc import (
+    EpisodeRecord,
+    ParametricMPC,
+    PlantDiverged,
+    model_plant,
+    model_rollout,
+    rollout,
+)
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
@@ -197,10 +204,13 @@ class LearningRun:
                 plant=self.plant,
                 plant_seed=plan.plant_seed,
             )
-            error = ""
+            error, stopped_violation = "", np.nan
         except (FloatingPointError, ValueError, RuntimeError) as err:
             record, error = None, f"{type(err).__name__}: {err}"
-        return self.finish(plan, record, error, time.perf_counter() - t1)
+            stopped_violation = err.violation if isinstance(err, PlantDiverged) else np.nan
+        return self.finish(
+            plan, record, error, time.perf_counter() - t1, violation=stopped_violation
+        )
 
     def finish(
         self,
@@ -208,9 +218,11 @@ class LearningRun:
         record: EpisodeRecord | None,
         error: str = "",
         mpc_time: float = 0.0,
+        violation: float = np.nan,
     ) -> tuple[dict, EpisodeRecord | None]:
         """Complete the episode of ``plan`` from its ``record`` (None: it failed, ``error``
-        says why): the critic and the objectives, the learner's observation, the row."""
+        says why; ``violation``: the violation of the steps a stopped plant ran, else NaN):
+        the critic and the objectives, the learner's observation, the row."""
         if plan.episode != self.episode:
             raise ValueError(f"the plan is of episode {plan.episode}, the run is at {self.episode}")
         t1 = time.perf_counter()
@@ -245,7 +257,7 @@ class LearningRun:
             "mean_stage_cost": mean_stage_cost(record) if record is not None else np.nan,
             "mean_abs_A": float(result.mean_abs_advantage),
             "critic_ok": bool(result.critic_ok),
-            "violation": float(np.sum(record.violation)) if record is not None else np.nan,
+            "violation": float(np.sum(record.violation)) if record is not None else violation,
             "solver_failures": int(result.failures) if record is not None else self.steps + 1,
             "x0": x0.tolist(),
             "mpc_time_s": t_mpc,

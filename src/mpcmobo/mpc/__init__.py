@@ -1,6 +1,6 @@
 """The parametric MPC of eq. (V0), its sensitivities and closed-loop episodes."""
 
-from mpcmobo.mpc.closed_loop import model_plant, model_rollout, replay, rollout
+from mpcmobo.mpc.closed_loop import PlantDiverged, model_plant, model_rollout, replay, rollout
 from mpcmobo.mpc.parametric import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
 from mpcmobo.mpc.solve import MPCSolution
@@ -9,6 +9,7 @@ __all__ = [
     "EpisodeRecord",
     "MPCSolution",
     "ParametricMPC",
+    "PlantDiverged",
     "model_plant",
     "model_rollout",
     "replay",

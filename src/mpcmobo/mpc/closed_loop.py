@@ -24,6 +24,17 @@ from mpcmobo.systems.plant import SystemPlant
 RUNAWAY = 100.0  # a state this many x_scale from x_ref has run away: the episode is stopped
 
 
+class PlantDiverged(FloatingPointError):
+    """The plant diverged or ran away (``RUNAWAY``) at ``step``: the episode is stopped there.
+    ``violation`` is the plant's summed constraint violation over the steps it ran, up to and
+    including ``step``, what the plant went through before it was stopped."""
+
+    def __init__(self, message: str, step: int, violation: float) -> None:
+        super().__init__(message)
+        self.step = int(step)
+        self.violation = float(violation)
+
+
 class Exploration(Protocol):
     """Exploration noise on the applied inputs (e.g. ``mpcmobo.rl.GaussianExploration``)."""
 
@@ -56,7 +67,8 @@ def rollout(
     once more at the final state so that ``V(x_T)`` exists. A failed solve never ends the
     episode; a plant that terminates ends it early (the record is shortened); a plant that
     diverges (a state not finite, or ``RUNAWAY`` x_scale from x_ref) is stopped at once with a
-    ``FloatingPointError`` naming the step and the state (a failed episode for the study).
+    :class:`PlantDiverged` (a ``FloatingPointError``) naming the step and the state and
+    carrying the violation so far (a failed episode for the study).
     """
     steps = int(system.episode_steps if steps is None else steps)
     if steps < 1:
@@ -221,13 +233,16 @@ def _apply(
     rec.L[k] = system.stage_cost(x, u) if L is None else float(L)
     rec.violation[k] = system.constraint_violation(x, u) if violation is None else float(violation)
     x = _measured(system, obs, f"step {k}")
+    violation_so_far = float(np.sum(rec.violation[: k + 1]))
     if not np.all(np.isfinite(x)):
-        raise FloatingPointError(f"the plant diverged at step {k}: state {x}")
+        raise PlantDiverged(f"the plant diverged at step {k}: state {x}", k, violation_so_far)
     far = np.abs(x - system.x_ref) > RUNAWAY * np.asarray(system.x_scale, float)
     if np.any(far):
         names = ", ".join(n for n, f in zip(system.state_names, far) if f)
-        raise FloatingPointError(
+        raise PlantDiverged(
             f"the plant ran away at step {k}: state {x} ({names} more than {RUNAWAY:g} x_scale "
-            "from x_ref); the episode is stopped"
+            "from x_ref); the episode is stopped",
+            k,
+            violation_so_far,
         )
     return x, bool(terminated)
