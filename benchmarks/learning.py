@@ -111,9 +111,9 @@ def compare(runs: list[tuple[str, Path]]) -> str:
     J*), not pooled, and theta0's: the final J_eval/J* (median, worst seed), the final thetas
     on fresh starts where the directory holds ``recheck.json`` (``benchmarks/recheck.py --thetas
     final --json DIR/recheck.json``), the evaluations above theta0 and the seeds with them, the
-    violation per episode (the mean over the episodes that ran to the end) and the failed
-    episodes (a plant that diverged or ran away: stopped, their violation not counted), the
-    episodes to 2% of J* (median)."""
+    violation per episode (a plant that diverged or ran away was stopped: the steps it ran)
+    and the failed episodes (those without a result: f1 NaN), the episodes to 2% of J*
+    (median)."""
     first = json.loads((runs[0][1] / "summary.json").read_text())
     J_star, J0 = first["J_star"], first["J_initial"]
     lines = [
@@ -145,7 +145,7 @@ def compare(runs: list[tuple[str, Path]]) -> str:
             lines.append(
                 f"| {name}{label} | {len(per)} | {np.median(ratio):.3f}, {ratio.max():.3f} "
                 f"| {fresh_col} | {len(above)} ({above['seed'].nunique()}) "
-                f"| {d['violation'].mean():.3g} | {int(d['violation'].isna().sum())} | {to2} |"
+                f"| {d['violation'].mean():.3g} | {int(d['f1'].isna().sum())} | {to2} |"
             )
     return "\n".join(lines)
 
