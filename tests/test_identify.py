@@ -217,7 +217,8 @@ def test_a_runaway_episode_is_a_recorded_failure_of_the_study(tmp_path, monkeypa
 def test_identify_first_tunes_once_the_switch_has_settled(cstr):
     """The tuning learner starts at once after a deployment that the fit has not moved away
     from; after a drop, once no new candidate has come for a verification's worth of episodes
-    (a cycle of 3 here); or after MAX_DECISIONS decisions."""
+    (a cycle of 3 here); or after MAX_DECISIONS decisions once a model is deployed, never on
+    drops alone while candidates come."""
     from mpcmobo.learners.identified import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
@@ -239,8 +240,13 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
     deployed._decided()
     assert deployed.settled()
     other, _ = _switch(cstr, [])
-    for _ in range(MAX_DECISIONS):
+    for _ in range(MAX_DECISIONS + 2):
+        other.candidate_ = theta0.copy()  # a candidate from the fit, dropped
         other._decided()
+        other.candidate_ = theta0.copy()  # and the fit has brought a new one
+        assert not other.settled()  # the nominal model: identification goes on
+    other._decided()
+    other.deployed_params_ = np.ones(3)  # a model deployed at some decision
     assert other.settled()
     state = sw.state_dict()
     del state["waiting"]  # a 1.0.0 state: any decision had settled the switch

@@ -16,9 +16,11 @@ away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTIO
 * :class:`IdentifyFirst`: the switch until it has settled, then any other learner built with
   the deployed theta as its theta0. The switch has settled once a deployed model has not been
   left behind by the fit; after a dropped candidate, once no new one has come for a
-  verification's worth of episodes (``min_runs``; cycled starts: a cycle); or after
-  ``MAX_DECISIONS`` decisions (under structural mismatch the fit moves as data come in: the
-  learners tune from the model ``identify`` converges to, not from the first). Settled on an
+  verification's worth of episodes (``min_runs``; cycled starts: a cycle); or, once an
+  identified model is deployed, after ``MAX_DECISIONS`` decisions (under structural mismatch
+  the fit moves as data come in: the learners tune from the model ``identify`` converges to,
+  not from the first). Dropped candidates alone never settle it while the fit brings new
+  ones: the learner would tune the nominal model while ``identify`` goes on to deploy one. Settled on an
   identified model, theta is tuned on the twin, the closed loop on that model
   (:mod:`mpcmobo.learners.twin`), and the twin's theta, if cheaper there, is the switch's last
   candidate, judged by that model's twin (:class:`~mpcmobo.learners.twin.Twin`), as the
@@ -49,7 +51,7 @@ __all__ = ["IdentifyFirst", "IdentifyLearner", "ModelSwitch"]
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
 RESOLUTION = 1e-3  # ... and by more than this fraction of a value (noise-free data: std ~ 0)
 REFIT_GROWTH = 0.1  # a refit once the transitions have grown by 10% since the last fit
-MAX_DECISIONS = 2  # identify-first tuning starts after this many deployed or dropped candidates
+MAX_DECISIONS = 2  # identify-first tuning starts after this many decisions (a model deployed)
 
 
 class ModelSwitch:
@@ -154,10 +156,11 @@ class ModelSwitch:
     def settled(self) -> bool:
         """Whether identification is done (module docstring): after a deployment, when the fit
         brings no new candidate; after a drop, when it has brought none for ``min_runs``
-        episodes; or after ``MAX_DECISIONS`` decisions."""
+        episodes; or, once an identified model is deployed, after ``MAX_DECISIONS``
+        decisions."""
         if self.candidate_ is not None and not self.follows_fit_:
             return False  # an offered candidate is decided first
-        if self.decisions_ >= MAX_DECISIONS:
+        if self.decisions_ >= MAX_DECISIONS and self.deployed_params_ is not None:
             return True
         if self.decisions_ == 0 or self.candidate_ is not None:
             return False
