@@ -3,9 +3,9 @@
 J_eval is the mean cost over ``evaluation.n_starts`` (10) fixed starts, and on the CSTR a few
 starts dominate that mean: a theta can win on most starts and still lose in J_eval because of
 one, or the other way round. This script re-evaluates, for every learner and seed of one or
-more run directories, theta0, the final deployed theta and the worst deployed theta (the one
-with the largest J_eval over the run) on ``--starts`` fresh initial states drawn from the
-system's initial-state distribution with their own seed (never the evaluation starts, never
+more run directories, theta0 (on each job's own MPC), the final deployed theta and the worst
+deployed theta (the one with the largest J_eval over the run) on ``--starts`` fresh initial
+states drawn from the system's initial-state distribution with their own seed (never the evaluation starts, never
 fed back to a learner), with the same MPC options and plant as the run. It prints, per theta,
 its mean cost over the fresh starts relative to J* on the same starts, the paired difference
 from theta0's mean with its standard error over the starts, and on how many starts it beats
@@ -76,15 +76,19 @@ def recheck(
             return np.full(starts, np.inf)  # the theta runs the plant away from a start
 
     ref = costs(None, "perfect") if ev.has_J_star else None
-    c0 = costs(None)
-    J_star = float(ref.mean()) if ref is not None else float(c0.mean())
+    J_star = float(ref.mean()) if ref is not None else float(costs(None).mean())
     rows: list[dict] = []
-    cache: dict[bytes, np.ndarray] = {}
+    cache: dict[tuple[str, bytes], np.ndarray] = {}
+    theta0_costs: dict[str, np.ndarray] = {}
     for (learner, s), job in df.groupby(["learner", "seed"], sort=True):
         if only_seeds is not None and int(s) not in only_seeds:
             continue
+        if learner not in theta0_costs:  # theta0 on the job's own MPC (identified parameters
+            # in theta make another problem of the same MPC: a hot start tells them apart)
+            theta0_costs[learner] = costs(None, learner=learner)
+        c0 = theta0_costs[learner]
         for name, (theta, J_eval) in _thetas(job, which).items():
-            key = theta.tobytes()
+            key = (learner, theta.tobytes())
             if key not in cache:
                 cache[key] = costs(theta, learner=learner)
             c = cache[key]
