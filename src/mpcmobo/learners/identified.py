@@ -19,8 +19,7 @@ away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTIO
   verification's worth of episodes (``min_runs``; cycled starts: a cycle); or, once an
   identified model is deployed, after ``MAX_DECISIONS`` decisions (under structural mismatch
   the fit moves as data come in: the learners tune from the model ``identify`` converges to,
-  not from the first). Dropped candidates alone never settle it while the fit brings new
-  ones: the learner would tune the nominal model while ``identify`` goes on to deploy one. Settled on an
+  not from the first; drops alone would leave them tuning the nominal model). Settled on an
   identified model, theta is tuned on the twin, the closed loop on that model
   (:mod:`mpcmobo.learners.twin`), and the twin's theta, if cheaper there, is the switch's last
   candidate, judged by that model's twin (:class:`~mpcmobo.learners.twin.Twin`), as the
