@@ -5,8 +5,9 @@ starts dominate that mean: a theta can win on most starts and still lose in J_ev
 one, or the other way round. This script re-evaluates, for every learner and seed of one or
 more run directories, theta0 (on each job's own MPC), the final deployed theta and the worst
 deployed theta (the one with the largest J_eval over the run) on ``--starts`` fresh initial
-states drawn from the system's initial-state distribution with their own seed (never the evaluation starts, never
-fed back to a learner), with the same MPC options and plant as the run. It prints, per theta,
+states drawn from the system's initial-state distribution with their own seed (never the
+evaluation starts, never fed back to a learner), with the same MPC options and plant as the
+run. It prints, per theta,
 its mean cost over the fresh starts relative to J* on the same starts, the paired difference
 from theta0's mean with its standard error over the starts, and on how many starts it beats
 theta0; "regression" is a mean above theta0's. A theta that runs the plant away from a fresh
@@ -27,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from mpcmobo.experiment.evaluation import make_evaluator
-from mpcmobo.experiment.settings import build_system, load_settings
+from mpcmobo.experiment.evaluation import Evaluator, make_evaluator
+from mpcmobo.experiment.settings import build_system, identified_parameters, load_settings
 from mpcmobo.rl.objectives import mean_stage_cost
 
 RECHECK_SEED = 4242  # the fresh starts' seed: apart from the evaluation's (2025)
@@ -55,42 +56,55 @@ def recheck(
 ) -> list[dict]:
     """The recheck rows of one run directory (one per learner, seed and theta)."""
     settings = load_settings(out / "config.toml")
-    ev = make_evaluator(settings, build_system(settings), n_starts=starts, seed=seed)
-    evs: dict[str, object] = {}  # a job with identification: its own MPC (theta is longer)
+    system = build_system(settings)
+    # a job's MPC is the study's with the parameters it identifies in theta: one evaluator,
+    # one theta0 and one cache per set of identified parameters (() is the study's own)
+    evs: dict[tuple[str, ...], Evaluator] = {
+        (): make_evaluator(settings, system, n_starts=starts, seed=seed)
+    }
     summary = json.loads((out / "summary.json").read_text())
     df = pd.read_parquet(out / "episodes.parquet")
 
-    def costs(theta: np.ndarray | None, model: str = "imperfect", learner: str = "") -> np.ndarray:
-        e = ev
-        if learner:
-            if learner not in evs:
-                evs[learner] = make_evaluator(
-                    settings, build_system(settings, learner), n_starts=starts, seed=seed
-                )
-            e = evs[learner]  # type: ignore[assignment]
+    def mpc_of(learner: str | None) -> tuple[str, ...]:
+        key = identified_parameters(settings, system, learner)
+        if key not in evs:
+            evs[key] = make_evaluator(
+                settings, build_system(settings, learner), n_starts=starts, seed=seed
+            )
+        return key
+
+    def costs(
+        theta: np.ndarray | None, mpc: tuple[str, ...] = (), model: str = "imperfect"
+    ) -> np.ndarray:
         try:
-            return np.array([mean_stage_cost(r) for r in e.episodes(theta, model)])
+            return np.array([mean_stage_cost(r) for r in evs[mpc].episodes(theta, model)])
         except FloatingPointError:
             if theta is None:  # J*'s or theta0's MPC: nothing to compare with
                 raise
             return np.full(starts, np.inf)  # the theta runs the plant away from a start
 
-    ref = costs(None, "perfect") if ev.has_J_star else None
-    J_star = float(ref.mean()) if ref is not None else float(costs(None).mean())
+    # theta0 on each job's own MPC: identified parameters in theta make another problem of
+    # the same MPC, and a hot start tells the two apart
+    theta0_costs: dict[tuple[str, ...], np.ndarray] = {}
+
+    def theta0(mpc: tuple[str, ...]) -> np.ndarray:
+        if mpc not in theta0_costs:
+            theta0_costs[mpc] = costs(None, mpc)
+        return theta0_costs[mpc]
+
+    ref = costs(None, model="perfect") if evs[()].has_J_star else None
+    J_star = float(ref.mean()) if ref is not None else float(theta0(()).mean())
     rows: list[dict] = []
-    cache: dict[tuple[str, bytes], np.ndarray] = {}
-    theta0_costs: dict[str, np.ndarray] = {}
+    cache: dict[tuple[tuple[str, ...], bytes], np.ndarray] = {}
     for (learner, s), job in df.groupby(["learner", "seed"], sort=True):
         if only_seeds is not None and int(s) not in only_seeds:
             continue
-        if learner not in theta0_costs:  # theta0 on the job's own MPC (identified parameters
-            # in theta make another problem of the same MPC: a hot start tells them apart)
-            theta0_costs[learner] = costs(None, learner=learner)
-        c0 = theta0_costs[learner]
+        mpc = mpc_of(learner)
+        c0 = theta0(mpc)
         for name, (theta, J_eval) in _thetas(job, which).items():
-            key = (learner, theta.tobytes())
+            key = (mpc, theta.tobytes())
             if key not in cache:
-                cache[key] = costs(theta, learner=learner)
+                cache[key] = costs(theta, mpc)
             c = cache[key]
             rows.append(
                 {
