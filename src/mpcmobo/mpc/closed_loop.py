@@ -233,16 +233,17 @@ def _apply(
     rec.L[k] = system.stage_cost(x, u) if L is None else float(L)
     rec.violation[k] = system.constraint_violation(x, u) if violation is None else float(violation)
     x = _measured(system, obs, f"step {k}")
-    violation_so_far = float(np.sum(rec.violation[: k + 1]))
+    stopped = None
     if not np.all(np.isfinite(x)):
-        raise PlantDiverged(f"the plant diverged at step {k}: state {x}", k, violation_so_far)
-    far = np.abs(x - system.x_ref) > RUNAWAY * np.asarray(system.x_scale, float)
-    if np.any(far):
-        names = ", ".join(n for n, f in zip(system.state_names, far) if f)
-        raise PlantDiverged(
-            f"the plant ran away at step {k}: state {x} ({names} more than {RUNAWAY:g} x_scale "
-            "from x_ref); the episode is stopped",
-            k,
-            violation_so_far,
-        )
+        stopped = f"the plant diverged at step {k}: state {x}"
+    else:
+        far = np.abs(x - system.x_ref) > RUNAWAY * np.asarray(system.x_scale, float)
+        if np.any(far):
+            names = ", ".join(n for n, f in zip(system.state_names, far) if f)
+            stopped = (
+                f"the plant ran away at step {k}: state {x} ({names} more than {RUNAWAY:g} "
+                "x_scale from x_ref); the episode is stopped"
+            )
+    if stopped is not None:
+        raise PlantDiverged(stopped, k, float(np.sum(rec.violation[: k + 1])))
     return x, bool(terminated)
