@@ -21,8 +21,8 @@ from mpcmobo.experiment.study import run_study
 from mpcmobo.identify import Identification, ModelFit, Transitions, identify, prediction_error
 from mpcmobo.learners import EpisodeResult, Replay, Starts
 from mpcmobo.learners.evidence import theta_key
+from mpcmobo.learners.identified import REFIT_GROWTH, ModelSwitch
 from mpcmobo.learners.options import EvidenceDeploy
-from mpcmobo.learners.switch import REFIT_GROWTH, ModelSwitch
 from mpcmobo.mpc import PlantDiverged, rollout
 from mpcmobo.systems import get_system
 from mpcmobo.systems.plant import SystemPlant
@@ -219,7 +219,7 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
     from; after a drop, once no new candidate has come for a verification's worth of episodes
     (a cycle of 3 here); or after MAX_DECISIONS decisions once a model is deployed, never on
     drops alone while candidates come."""
-    from mpcmobo.learners.switch import MAX_DECISIONS
+    from mpcmobo.learners.identified import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
     for _ in range(5):
@@ -266,7 +266,7 @@ def test_a_deployment_settles_the_switch_unless_the_fit_has_moved_on(cstr):
     """The decision that deploys a candidate looks at the fit at once: if it has moved more
     than MOVED standard deviations from the deployed model, a new candidate runs and the
     switch is not settled; if not, the switch has settled."""
-    from mpcmobo.learners.switch import MOVED
+    from mpcmobo.learners.identified import MOVED
 
     for shift, settles in ((0.5 * MOVED * 0.01, True), (2 * MOVED * 0.01, False)):
         sw, theta0 = _switch(cstr, [])
@@ -374,7 +374,7 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     """A candidate offered on the deployed model (the twin's) keeps the switch unsettled,
     even after MAX_DECISIONS decisions, and a moving fit does not replace it; once decided,
     the switch has settled. Offering needs a deployed identified model."""
-    from mpcmobo.learners.switch import MAX_DECISIONS
+    from mpcmobo.learners.identified import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
     with pytest.raises(ValueError, match="deployed identified model"):
@@ -518,92 +518,3 @@ def test_the_twin_of_the_right_model_predicts_a_plant_episode_exactly_by_replayi
     plant = mean_stage_cost(record)
     assert twin.predict(record.theta, [replay])[0] == pytest.approx(plant, rel=1e-8)
     assert abs(twin.predict(record.theta, [Replay(record.x[0])])[0] / plant - 1) > 0.01
-
-
-def test_a_later_refit_is_judged_while_the_tuning_learner_waits():
-    """Once the transitions have doubled since the model was decided, a fit that has moved
-    away from the tuning learner's deployed model is a candidate (that theta with the fitted
-    model), judged by the switch with the learner waiting: deployed, the tuning starts again
-    from it; dropped, the same learner goes on. A state saved during the judgement resumes
-    it."""
-    from mpcmobo.learners.identified import IdentifyFirst
-    from mpcmobo.learners.mpc_rl import MPCRL
-
-    lq = get_system("lq", identify=get_system("lq").param_names)
-    space, theta0 = lq.search_space, np.asarray(lq.parameterization.theta0, float)
-    q_true = np.asarray(lq.true_params, float)
-    rng = np.random.default_rng(0)
-
-    count = iter(range(10**6))
-
-    def episode(theta):  # from the next start of the cycle of 3
-        x, u = _episode(lq, rng, steps=10)
-        result = EpisodeResult(np.ones(4), np.zeros(len(theta)), True, states=x, inputs=u)
-        result.start_id = next(count) % 3
-        return result
-
-    for deploy in (True, False):
-        built: list[np.ndarray] = []
-
-        def make(th, built=built):
-            built.append(np.array(th, float))
-            return MPCRL(space, th)
-
-        learner = IdentifyFirst(
-            make, space, theta0, starts=Starts("cycle", 3), model_fit=ModelFit(lq)
-        )
-        sw = learner.switch_
-        sw.identification_ = _fit_of(q_true)
-        sw.fit.fit = lambda data, start=None, sw=sw: sw.identification_  # type: ignore[method-assign]
-        sw.deployed_params_ = q_true
-        sw.deployed_ = sw.fit.theta_with(theta0, q_true)
-        sw.decisions_ = 1  # a deployed model the fit has not left: settled
-        sw.transitions_.add_episode(*_episode(lq, rng, steps=10))  # the switch's episode
-        sw.model_decided_at_ = len(sw.transitions_)  # the deployment's data
-        inner = learner._tuning()
-        assert inner is not None and len(built) == 2
-        first = learner.refit_at_
-        assert first == 2 * len(sw.transitions_) > 0
-        while len(sw.transitions_) < first:  # the fit has not moved: nothing to judge
-            theta = learner.propose()
-            learner.observe(theta, episode(theta))
-        assert learner.refit_ is None and learner.inner_ is inner
-        assert learner.refit_at_ == 2 * len(sw.transitions_)  # the next look: doubled again
-        sw.identification_ = _fit_of(q_true * 1.5)  # the fit moves
-        for _ in range(100):
-            theta = learner.propose()
-            learner.observe(theta, episode(theta))
-            if learner.refit_ is not None:
-                break
-        assert learner.refit_ is not None and len(sw.transitions_) >= first * 2
-        assert sw.candidate_ is not None
-        deployed = inner.incumbent()
-        np.testing.assert_allclose(sw.fit.estimate_of(sw.candidate_), q_true * 1.5)
-        np.testing.assert_array_equal(
-            np.delete(sw.candidate_, sw.fit.theta_index), np.delete(deployed, sw.fit.theta_index)
-        )
-        seen = inner.n_observed
-        theta = learner.propose()  # the switch's: the candidate or the deployed theta
-        assert theta_key(theta) in {theta_key(sw.candidate_), theta_key(deployed)}
-        resumed = IdentifyFirst(
-            make, space, theta0, starts=Starts("cycle", 3), model_fit=ModelFit(lq)
-        )
-        resumed.load_state_dict(learner.state_dict())
-        assert resumed.refit_ == learner.refit_ and resumed.inner_ is not None
-        np.testing.assert_array_equal(resumed.propose(), theta)
-        sw.policy.runs = lambda *a: 100  # type: ignore[method-assign]
-        sw.policy.verdict = lambda *a, d=deploy: 1.0 if d else 0.0  # type: ignore[method-assign]
-        candidate = sw.candidate_.copy()
-        learner.observe(theta, episode(theta))
-        for _ in range(3):  # the candidate's first episode decides it
-            if learner.refit_ is None:
-                break
-            theta = learner.propose()
-            learner.observe(theta, episode(theta))
-        assert inner.n_observed == seen  # the tuning learner waited
-        assert learner.refit_ is None
-        if deploy:
-            assert learner.inner_ is None and theta_key(sw.deployed_) == theta_key(candidate)
-            assert learner._tuning() is not None and theta_key(built[-1]) == theta_key(candidate)
-        else:
-            assert learner._tuning() is inner and theta_key(sw.deployed_) == theta_key(deployed)

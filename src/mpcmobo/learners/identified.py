@@ -1,20 +1,32 @@
 """Identify first, then tune: the MPC's model fitted from the plant's transitions.
 
-* :class:`IdentifyLearner` (``identify``): the model switch alone
-  (:class:`~mpcmobo.learners.switch.ModelSwitch`), the certainty-equivalent baseline that a
-  control engineer tries first.
+:class:`ModelSwitch` decides between the deployed theta and the candidate that puts the model
+identified from every plant transition so far into it (:class:`~mpcmobo.identify.ModelFit`,
+refitted once the transitions have grown by ``REFIT_GROWTH``: after every episode for the
+first ten, then ever more rarely). A candidate is made once the fit predicts held-out
+transitions better than the nominal model, and until its first episode it follows the fit. It
+is deployed only on the evidence of its own episodes against the deployed theta's (the GP
+learners' rule, :func:`~mpcmobo.learners.deploy.evidence_policy`); one the evidence does not
+support, or with a failed episode, is dropped. A new candidate comes whenever the fit moves
+away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTION`` of a value
+(noise-free data give standard deviations near zero), and from a dropped one by ``MOVED``.
+
+* :class:`IdentifyLearner` (``identify``): the switch alone, the certainty-equivalent
+  baseline that a control engineer tries first.
 * :class:`IdentifyFirst`: the switch until it has settled, then any other learner built with
   the deployed theta as its theta0. The switch has settled once a deployed model has not been
-  left behind by the fit; after a drop, once no new candidate has come for a verification's
-  worth of episodes (``min_runs``; cycled starts: a cycle); or, once an identified model is
-  deployed, after ``MAX_DECISIONS`` decisions (under structural mismatch the fit moves as data
-  come in; drops alone would leave the learners tuning the nominal model). Settled on an
+  left behind by the fit; after a dropped candidate, once no new one has come for a
+  verification's worth of episodes (``min_runs``; cycled starts: a cycle); or, once an
+  identified model is deployed, after ``MAX_DECISIONS`` decisions (under structural mismatch
+  the fit moves as data come in: the learners tune from the model ``identify`` converges to,
+  not from the first; drops alone would leave them tuning the nominal model). Settled on an
   identified model, theta is tuned on the twin, the closed loop on that model
   (:mod:`mpcmobo.learners.twin`), and the twin's theta, if cheaper there, is the switch's last
   candidate, judged by that model's twin (:class:`~mpcmobo.learners.twin.Twin`), as the
-  tuning learner's candidates are. Each time the transitions have doubled while it tunes, a
-  fit that has moved is a candidate again (the learner's deployed theta with that model),
-  judged with the learner waiting: deployed, the tuning starts again from it.
+  tuning learner's candidates are: both thetas' MPC then runs the twin's model.
+
+Under random starts a fitted candidate's tests adjust each episode's cost by the identified
+model's prediction of it (the candidate's closed loop on that model from the episode's start).
 """
 
 from __future__ import annotations
@@ -25,16 +37,239 @@ from typing import Any
 
 import numpy as np
 
-from mpcmobo.identify import ModelFit
-from mpcmobo.learners.base import EpisodeResult, Learner, Starts
-from mpcmobo.learners.deploy import RandomEvidence
-from mpcmobo.learners.evidence import theta_key
+from mpcmobo.identify import Identification, ModelFit, Transitions
+from mpcmobo.learners.base import EpisodeResult, Learner, Starts, replays_from_state
+from mpcmobo.learners.deploy import RandomEvidence, evidence_policy
+from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import EvidenceDeploy, IdentifyOptions
-from mpcmobo.learners.switch import ModelSwitch
-from mpcmobo.learners.twin import TWIN_STARTS, StartCosts, TwinResult, tune_on_twin
+from mpcmobo.learners.twin import TWIN_STARTS, StartCosts, Twin, TwinResult, tune_on_twin
 from mpcmobo.systems.space import SearchSpace
 
-__all__ = ["IdentifyFirst", "IdentifyLearner"]
+__all__ = ["IdentifyFirst", "IdentifyLearner", "ModelSwitch"]
+
+MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
+RESOLUTION = 1e-3  # ... and by more than this fraction of a value (noise-free data: std ~ 0)
+REFIT_GROWTH = 0.1  # a refit once the transitions have grown by 10% since the last fit
+MAX_DECISIONS = 2  # identify-first tuning starts after this many decisions (a model deployed)
+
+
+class ModelSwitch:
+    """The deployed theta, the identified candidate and the evidence between them (module
+    docstring). Thetas are kept as they are (the evidence's points are full thetas)."""
+
+    def __init__(
+        self,
+        fit: ModelFit,
+        theta0: np.ndarray,
+        starts: Starts,
+        deploy: EvidenceDeploy,
+        seed: int = 0,
+    ) -> None:
+        self.fit = fit
+        self.seed = int(seed)  # the twin's simulated starts
+        self.policy = evidence_policy(deploy, starts, kappa=0.0)
+        n = len(theta0)
+        self.transitions_ = Transitions.empty(fit.system.nx, fit.system.nu)
+        self.identification_: Identification | None = None
+        self.evidence_ = Evidence(n, n, 1)
+        self.deployed_ = np.array(theta0, float)
+        self.candidate_: np.ndarray | None = None
+        self.tried_: np.ndarray | None = None  # the estimate of the last candidate
+        self.follows_fit_ = True  # the candidate is the fit's (not one offered: :meth:`offer`)
+        self.decisions_ = 0  # candidates deployed or dropped
+        self.waiting_ = 0  # episodes since the last decision without a new candidate
+        # the start covariate's controller and model (None: theta0 on the nominal model)
+        self.twin_: tuple[np.ndarray, np.ndarray] | None = None
+        self.deployed_params_: np.ndarray | None = None  # the deployed theta's identified model
+        self.start_costs: StartCosts | None = None  # the loop's closed loops (use_start_costs)
+
+    # ------------------------------------------------------------------ episodes
+    def observe(self, theta: np.ndarray, result: EpisodeResult, kind: str) -> None:
+        """The episode's transitions (a refit) and, if it ran the deployed theta or the
+        candidate, its cost as evidence; then the decision on the candidate."""
+        if result.states is not None and result.inputs is not None:
+            self.transitions_.add_episode(result.states, result.inputs)
+        if theta_key(theta) in {theta_key(self.deployed_), self._candidate_key()}:
+            y = np.array([result.f1])
+            self.evidence_.append(theta, y, np.zeros(len(theta)), result.start_id,
+                                  result.start_cost, kind, cost=result.stage_cost,
+                                  replay=result.replay)  # fmt: skip
+        self.refit()
+        self.decide()
+
+    def _candidate_key(self) -> bytes | None:
+        return None if self.candidate_ is None else theta_key(self.candidate_)
+
+    def refit(self) -> None:
+        """Fit the model on every transition so far (warm-started from the last fit), once
+        they have grown by ``REFIT_GROWTH`` since the last fit."""
+        n, last = len(self.transitions_), self.identification_
+        if n == 0 or (last is not None and n < (1 + REFIT_GROWTH) * last.n):
+            return
+        fit = self.fit.fit(self.transitions_, start=None if last is None else last.estimate)
+        if fit.success:
+            self.identification_ = fit
+
+    def decide(self) -> None:
+        """Deploy or drop the candidate on its evidence; else make one from the fit."""
+        if self.candidate_ is None:
+            self._propose_candidate()
+            if self.candidate_ is None and self.decisions_:
+                self.waiting_ += 1
+            return
+        ev, p, c, d = self.evidence_, self.policy, self.candidate_, self.deployed_
+        if theta_key(c) in ev.failed():  # an episode of the candidate diverged
+            self._decided()
+            return
+        if self.follows_fit_ and ev.runs(c) == 0:  # not run yet (a failed run is ruled out above)
+            self._propose_candidate(refresh=True)
+            return
+        runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
+        if runs < p.min_runs or own < p.min_runs:
+            return
+        conf = p.verdict(ev, None, c, d)
+        if conf >= p.confidence:
+            self.deployed_ = c
+            self.deployed_params_ = None if self.twin_ is None else self.twin_[1].copy()
+            self._decided()
+            self._propose_candidate()  # has the fit moved on while the candidate ran?
+        elif conf < 0.5 or runs >= p.max_runs:
+            self._decided()
+
+    def _decided(self) -> None:
+        """The candidate is deployed or dropped."""
+        self.candidate_ = None
+        self.follows_fit_ = True
+        self.decisions_ += 1
+        self.waiting_ = 0
+
+    def offer(self, theta: np.ndarray) -> None:
+        """A candidate from elsewhere (the twin's tuning) on the deployed model, judged by that
+        model's twin; the switch is not settled until it is decided."""
+        if self.deployed_params_ is None:
+            raise ValueError("offer needs a deployed identified model to judge the candidate on")
+        self.candidate_ = np.array(theta, float)
+        self.follows_fit_ = False
+        self._twin(self.candidate_, self.deployed_params_)
+
+    def settled(self) -> bool:
+        """Whether identification is done (module docstring): after a deployment, when the fit
+        brings no new candidate; after a drop, when it has brought none for ``min_runs``
+        episodes; or, once an identified model is deployed, after ``MAX_DECISIONS``
+        decisions."""
+        if self.candidate_ is not None and not self.follows_fit_:
+            return False  # an offered candidate is decided first
+        if self.decisions_ >= MAX_DECISIONS and self.deployed_params_ is not None:
+            return True
+        if self.decisions_ == 0 or self.candidate_ is not None:
+            return False
+        return self.deployed_params_ is not None or self.waiting_ >= self.policy.min_runs
+
+    def _propose_candidate(self, refresh: bool = False) -> None:
+        """A candidate with the fitted model when the fit beats the nominal model on held-out
+        transitions and has moved away from the deployed model (and from the last candidate);
+        ``refresh``: in place of the candidate, which has not run yet. ``RESOLUTION`` holds for
+        the deployed model and the candidate, not for a dropped one: on noise-free data any
+        refit moves the fit, and a model dropped on unlucky episodes is tried again."""
+        fit = self.identification_
+        if fit is None or not fit.better:
+            return
+        plain = np.maximum(fit.std, 1e-12)
+        live = np.maximum(plain, RESOLUTION * np.abs(fit.estimate))  # the models in use
+        refs = [(self.fit.estimate_of(self.deployed_), live)]
+        if self.tried_ is not None:  # the candidate (refresh), or the last one, dropped or not
+            refs.append((self.tried_, live if refresh else plain))
+        for ref, std in refs:
+            if ref is not None and np.all(np.abs(fit.estimate - ref) <= MOVED * std):
+                return
+        # (refresh: the old candidate never ran, so the evidence holds nothing of it)
+        self.candidate_ = self.fit.theta_with(self.deployed_, fit.estimate)
+        self.tried_ = fit.estimate.copy()
+        self._twin(self.candidate_, fit.params)
+
+    def _twin(self, theta: np.ndarray, params: np.ndarray) -> None:
+        """The candidate ``theta`` with the identified model ``params``: a fitted candidate's
+        start covariate (random starts: the tests of a cycle are paired), an offered one's
+        twin (module docstring)."""
+        self.twin_ = (theta.copy(), np.asarray(params, float).copy())
+        self._judge()
+        if self.start_costs is None or not isinstance(self.policy, RandomEvidence):
+            return
+        if len(self.evidence_):
+            nan = np.full(self.fit.system.nx, np.nan)  # an unknown initial state: no covariate
+            x0s = np.array([nan if r is None else r.x0 for r in self.evidence_.replays])
+            self.evidence_.start_costs = np.asarray(self.start_costs(x0s, *self.twin_), float)
+
+    def _judge(self) -> None:
+        """The evidence policy's judge: an offered candidate's the deployed model's twin, a
+        fitted candidate's the plain tests (module docstring)."""
+        offered = self.candidate_ is not None and not self.follows_fit_
+        params = self.deployed_params_
+        self.policy.twin = self.twin(params) if offered and params is not None else None
+
+    def twin(self, params: np.ndarray) -> Twin | None:
+        """The twin of the model ``params``, or None without the loop's closed loops."""
+        if self.start_costs is None:
+            return None
+        return Twin.make(self.fit.system, params, self.start_costs, self.seed)
+
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The start covariate's controller and model (None: the learner's theta0 on the MPC's
+        nominal model)."""
+        if self.twin_ is None or not isinstance(self.policy, RandomEvidence):
+            return None
+        return self.twin_[0].copy(), self.twin_[1].copy()
+
+    def next_theta(self) -> tuple[str, np.ndarray]:
+        """The theta of the next episode and its kind: the candidate or the deployed theta as
+        the evidence rule asks, else the deployed theta."""
+        check = self.policy.next_check(self.evidence_, self.deployed_, self.candidate_)
+        if check is not None:
+            return check
+        return "deployed", self.deployed_.copy()
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Transitions, evidence, deployed theta, candidate and the last fit."""
+        ident = self.identification_
+        return {
+            "transitions": self.transitions_.state_dict(),
+            "evidence": self.evidence_.state_dict(),
+            "deployed": self.deployed_.copy(),
+            "candidate": None if self.candidate_ is None else self.candidate_.copy(),
+            "tried": None if self.tried_ is None else self.tried_.copy(),
+            "follows_fit": self.follows_fit_,
+            "decisions": self.decisions_,
+            "waiting": self.waiting_,
+            "identification": None if ident is None else asdict(ident),
+            "twin": None if self.twin_ is None else (self.twin_[0].copy(), self.twin_[1].copy()),
+            "deployed_params": self.deployed_params_,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` (a state of 1.0.0, which holds the last fit's estimate
+        only, makes that fit again from it)."""
+        self.transitions_ = Transitions.from_state_dict(state["transitions"])
+        self.evidence_.load_state_dict(state["evidence"])
+        self.deployed_ = np.array(state["deployed"], float)
+        self.candidate_ = None if state["candidate"] is None else np.array(state["candidate"])
+        self.tried_ = None if state["tried"] is None else np.array(state["tried"], float)
+        self.follows_fit_ = bool(state.get("follows_fit", True))
+        self.decisions_ = int(state["decisions"])
+        # a 1.0.0 state: any decision had settled the switch (its rule)
+        self.waiting_ = int(state.get("waiting", self.policy.min_runs))
+        if "x0s" in state:  # a state of 1.0: the initial states were the switch's
+            self.evidence_.replays = replays_from_state(state["x0s"])
+        twin = state["twin"]
+        self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
+        dp = state["deployed_params"]
+        self.deployed_params_ = None if dp is None else np.array(dp, float)
+        self._judge()
+        ident = state.get("identification")
+        self.identification_ = None if ident is None else Identification(**ident)
+        old = "identification" not in state and state["estimate"] is not None  # a 1.0.0 state
+        if old and len(self.transitions_):
+            self.identification_ = self.fit.fit(self.transitions_, start=state["estimate"])
 
 
 class IdentifyLearner(Learner):
@@ -142,11 +377,6 @@ class IdentifyFirst(Learner):
         self.start_costs: StartCosts | None = None
         self.twin_done_ = False  # the twin's tuning has run (or had nothing to tune)
         self.twin_: TwinResult | None = None
-        # the tuning learner's start covariate (its deployed theta and model), while it tunes
-        self.tuning_model_: tuple[np.ndarray, np.ndarray] | None = None
-        self.tuning_from_: np.ndarray | None = None  # the tuning learner's theta0
-        self.refit_: int | None = None  # a later refit is judged: the switch's decisions then
-        self.refit_at_ = 0  # the transitions that make a later refit worth judging
 
     def _tune_on_twin(self) -> None:
         """Tune the deployed theta on its identified model (:mod:`mpcmobo.learners.twin`) and
@@ -165,92 +395,40 @@ class IdentifyFirst(Learner):
             sw.offer(self.twin_.theta)
 
     def _tuning(self) -> Learner | None:
-        """The learner that tunes, once the switch has settled and decided the twin's theta
-        (None while the switch judges a later refit)."""
-        if self.refit_ is not None:
-            return None
+        """The learner that tunes, once the switch has settled and decided the twin's theta:
+        built then, given the switch's episodes of the deployed theta if it takes them
+        (``seed_with``), and judged by the deployed identified model's twin (``use_twin``)."""
         if self.inner_ is None and self.switch_.settled() and not self.twin_done_:
             self._tune_on_twin()
         if self.inner_ is None and self.switch_.settled():
-            self._start_tuning(seed=True)
+            deployed = self.switch_.deployed_.copy()
+            self.inner_ = self.make_inner(deployed)
+            seed = getattr(self.inner_, "seed_with", None)
+            own = [(t, r) for t, r in self.history_ if theta_key(t) == theta_key(deployed)]
+            model = self.start_model()
+            if seed is not None and own:
+                if model is not None and self.start_costs is not None:  # their twin covariate
+                    x0s = np.array([r.x0 for _, r in own])
+                    costs = self.start_costs(x0s, *model)
+                    own = [(t, replace(r, start_cost=float(c))) for (t, r), c in zip(own, costs)]
+                seed(own)
+            self.history_ = []
+            params = self.switch_.deployed_params_
+            twin = None if params is None else self.switch_.twin(params)
+            use = getattr(self.inner_, "use_twin", None)
+            if twin is not None and use is not None:
+                use(twin)
         return self.inner_
-
-    def _start_tuning(self, seed: bool, theta0: np.ndarray | None = None) -> None:
-        """Build the tuning learner from the deployed theta (or ``theta0``, a resumed one's):
-        given the switch's episodes of that theta if it takes them (``seed_with``, with
-        ``seed``), and judged by the deployed identified model's twin (``use_twin``)."""
-        sw = self.switch_
-        deployed = sw.deployed_.copy() if theta0 is None else np.array(theta0, float)
-        params = sw.deployed_params_
-        self.inner_ = self.make_inner(deployed)
-        self.tuning_from_ = deployed
-        random = isinstance(sw.policy, RandomEvidence)
-        model = None if params is None or not random else (deployed, params.copy())
-        self.tuning_model_ = model
-        take = getattr(self.inner_, "seed_with", None)
-        own = [(t, r) for t, r in self.history_ if theta_key(t) == theta_key(deployed)]
-        if seed and take is not None and own:
-            if model is not None and self.start_costs is not None:  # their twin covariate
-                x0s = np.array([r.x0 for _, r in own])
-                costs = self.start_costs(x0s, *model)
-                own = [(t, replace(r, start_cost=float(c))) for (t, r), c in zip(own, costs)]
-            take(own)
-        self.history_ = []
-        self.refit_at_ = 2 * sw.model_decided_at_
-        twin = None if params is None else sw.twin(params)
-        use = getattr(self.inner_, "use_twin", None)
-        if twin is not None and use is not None:
-            use(twin)
-
-    def _tuned(self, theta: np.ndarray, result: EpisodeResult, explored: bool) -> None:
-        """While the learner tunes: the episode's transitions for the fit, and the episodes of
-        its deployed theta (and of the theta just run, which may become it) that explored as
-        the switch's do; once the transitions have doubled since the model was decided, a
-        refit that has moved away from the deployed model is judged (:meth:`ModelSwitch.reopen`)
-        with the learner waiting."""
-        assert self.inner_ is not None
-        sw = self.switch_
-        sw.record(result, refit=False)
-        deployed = self.inner_.incumbent()
-        if explored:
-            self.history_.append((np.array(theta, float), result))
-        keep = {theta_key(deployed), theta_key(theta)}
-        self.history_ = [(t, r) for t, r in self.history_ if theta_key(t) in keep]
-        if len(sw.transitions_) < self.refit_at_:
-            return
-        self.refit_at_ = 2 * len(sw.transitions_)
-        sw.refit()
-        own = [(t, r) for t, r in self.history_ if theta_key(t) == theta_key(deployed)]
-        last = [] if own and own[-1][1] is result else [(np.array(theta, float), result)]
-        if sw.reopen(deployed, own + last):
-            self.refit_ = sw.decisions_
-            self.history_ = own
-
-    def _refit_decided(self) -> None:
-        """The later refit is decided: deployed, the tuning starts again from it; dropped, the
-        learner goes on."""
-        assert self.inner_ is not None
-        sw = self.switch_
-        self.refit_ = None
-        self.refit_at_ = 2 * sw.model_decided_at_
-        deployed = self.inner_.incumbent()
-        if theta_key(sw.deployed_) == theta_key(deployed):
-            self.history_ = [
-                (t, r) for t, r in self.history_ if theta_key(t) == theta_key(deployed)
-            ]
-            return
-        self.inner_, self.twin_done_, self.twin_, self.tuning_model_ = None, False, None, None
 
     def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The start covariate's controller and model: the switch's while it runs, then the
         deployed theta on its identified model (None: the nominal model)."""
-        if self.inner_ is None or self.refit_ is not None:
+        if not self.switch_.settled():  # the switch stops when it settles: it stays so
             return self.switch_.start_model()
-        return (
-            None
-            if self.tuning_model_ is None
-            else (self.tuning_model_[0].copy(), self.tuning_model_[1].copy())
-        )
+        params = self.switch_.deployed_params_
+        if params is None or not isinstance(self.switch_.policy, RandomEvidence):
+            return None
+        return self.switch_.deployed_.copy(), params.copy()
 
     def use_start_costs(self, fn: StartCosts) -> None:
         """The loop's closed loops on a model: the twin's tuning, tests and covariate."""
@@ -271,9 +449,7 @@ class IdentifyFirst(Learner):
         self.n_observed += 1
         inner = self._tuning()
         if inner is not None:
-            explored = inner.explores()  # as the episode ran: the proposal's
             inner.observe(theta, result)
-            self._tuned(theta, result, explored)
             return
         kind = (
             self.pending_[0] if self.pending_ and self.pending_[1] == theta_key(theta) else "other"
@@ -281,8 +457,6 @@ class IdentifyFirst(Learner):
         self.pending_ = None
         self.switch_.observe(np.asarray(theta, float), result, kind)
         self.history_.append((np.array(theta, float), result))
-        if self.refit_ is not None and self.switch_.decisions_ > self.refit_:
-            self._refit_decided()
 
     def incumbent(self) -> np.ndarray:
         """The deployed theta: the switch's, then the tuning learner's."""
@@ -301,7 +475,7 @@ class IdentifyFirst(Learner):
 
     def identified(self) -> np.ndarray | None:
         """The model identified for the deployed theta (the last fit while the switch runs)."""
-        if self.inner_ is not None and self.refit_ is None:
+        if self.inner_ is not None:
             return self.switch_.fit.estimate_of(self.switch_.deployed_)
         ident = self.switch_.identification_
         return None if ident is None else ident.estimate.copy()
@@ -315,10 +489,6 @@ class IdentifyFirst(Learner):
         d["pending"] = self.pending_
         d["twin_done"] = self.twin_done_
         d["twin"] = None if self.twin_ is None else asdict(self.twin_)
-        d["tuning_from"] = self.tuning_from_
-        d["tuning_model"] = self.tuning_model_
-        d["refit"] = self.refit_
-        d["refit_at"] = self.refit_at_
         return d
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -327,23 +497,14 @@ class IdentifyFirst(Learner):
         state = dict(state, name=name)
         super().load_state_dict(state)
         self.switch_.load_state_dict(state["switch"])
-        self.inner_, self.refit_, self.tuning_model_, self.tuning_from_ = None, None, None, None
+        self.inner_ = None
         self.pending_ = state["pending"]
+        self.history_ = [(np.array(t, float), r) for t, r in state["history"]]
         # a state from before the twin: a tuning learner had started without it
         self.twin_done_ = bool(state.get("twin_done", state["inner"] is not None))
         twin = state.get("twin")
         self.twin_ = None if twin is None else TwinResult(**twin)
-        if state["inner"] is not None:  # (a state before later refits: the switch's theta)
-            self._start_tuning(seed=False, theta0=state.get("tuning_from"))
-            assert self.inner_ is not None
-            self.inner_.load_state_dict(state["inner"])
-            if "tuning_model" in state:
-                model = state["tuning_model"]
-                self.tuning_model_ = (
-                    None
-                    if model is None
-                    else (np.array(model[0], float), np.array(model[1], float))
-                )
-        self.history_ = [(np.array(t, float), r) for t, r in state["history"]]
-        self.refit_ = state.get("refit")
-        self.refit_at_ = int(state.get("refit_at", 2 * len(self.switch_.transitions_)))
+        if state["inner"] is not None:
+            inner = self._tuning()
+            assert inner is not None  # the switch has decided (it saved a tuning learner)
+            inner.load_state_dict(state["inner"])
