@@ -83,29 +83,26 @@ def recheck(
                 raise
             return np.full(starts, np.inf)  # the theta runs the plant away from a start
 
-    # theta0 on each job's own MPC: identified parameters in theta make another problem of
-    # the same MPC, and a hot start tells the two apart
-    theta0_costs: dict[tuple[str, ...], np.ndarray] = {}
+    # one cache of costs per MPC and theta (None: theta0, on each job's own MPC: identified
+    # parameters in theta make another problem of the same MPC, and a hot start tells them apart)
+    cache: dict[tuple[tuple[str, ...], bytes | None], np.ndarray] = {}
 
-    def theta0(mpc: tuple[str, ...]) -> np.ndarray:
-        if mpc not in theta0_costs:
-            theta0_costs[mpc] = costs(None, mpc)
-        return theta0_costs[mpc]
+    def cached(theta: np.ndarray | None, mpc: tuple[str, ...]) -> np.ndarray:
+        key = (mpc, None if theta is None else theta.tobytes())
+        if key not in cache:
+            cache[key] = costs(theta, mpc)
+        return cache[key]
 
     ref = costs(None, model="perfect") if evs[()].has_J_star else None
-    J_star = float(ref.mean()) if ref is not None else float(theta0(()).mean())
+    J_star = float(ref.mean()) if ref is not None else float(cached(None, ()).mean())
     rows: list[dict] = []
-    cache: dict[tuple[tuple[str, ...], bytes], np.ndarray] = {}
     for (learner, s), job in df.groupby(["learner", "seed"], sort=True):
         if only_seeds is not None and int(s) not in only_seeds:
             continue
         mpc = mpc_of(learner)
-        c0 = theta0(mpc)
+        c0 = cached(None, mpc)
         for name, (theta, J_eval) in _thetas(job, which).items():
-            key = (mpc, theta.tobytes())
-            if key not in cache:
-                cache[key] = costs(theta, mpc)
-            c = cache[key]
+            c = cached(theta, mpc)
             rows.append(
                 {
                     "run": out.name,
