@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from recheck import RECHECK_SEED  # benchmarks/ is on sys.path when run as a script
+from recheck import RECHECK_SEED, _thetas  # benchmarks/ is on sys.path when run as a script
 
 from mpcmobo.experiment.evaluation import make_evaluator
 from mpcmobo.experiment.job import single_threaded
@@ -102,14 +102,13 @@ def _job(
 
 
 def _identify_theta(run: Path, seed: int) -> np.ndarray:
-    """The final deployed theta of the ``identify`` learner's job ``seed`` in ``run``."""
-    df = pd.read_parquet(
-        run / "episodes.parquet", columns=["learner", "seed", "episode", "incumbent"]
-    )
-    rows = df[(df.learner == "identify") & (df.seed == seed)].sort_values("episode")
-    if rows.empty:
+    """The final deployed theta of the ``identify`` learner's job ``seed`` in ``run`` (as
+    ``recheck.py`` picks it)."""
+    df = pd.read_parquet(run / "episodes.parquet")
+    job = df[(df.learner == "identify") & (df.seed == seed)]
+    if job.empty:
         raise SystemExit(f"{run}: no episode of the learner 'identify' with seed {seed}")
-    return np.asarray(rows["incumbent"].iloc[-1], float)
+    return _thetas(job, ("final",))["final"][0]
 
 
 def _table(rows: list[dict], start: str = "J*") -> str:

@@ -52,6 +52,7 @@ def test_from_a_run_it_tunes_identifys_theta_on_the_plant(tmp_path, benchmark_sc
             "seed": [0, 0, 1, 2],
             "episode": [1, 0, 0, 0],
             "incumbent": [list(theta), list(stale), list(theta), list(space.clip(1.5 * theta))],
+            "J_eval_incumbent": [1.0, 2.0, 1.0, 1.0],
         }
     ).to_parquet(run / "episodes.parquet")
     ours = tb._job(str(config), 2, 0, 3, 4, str(run))

@@ -56,14 +56,15 @@ def model_costs(
     mpc: ParametricMPC,
     theta: np.ndarray,
     starts: np.ndarray,
-    steps: int,
+    steps: int | None,
     plant: gymnasium.Env,
     noise: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The mean stage cost of ``theta``'s closed loop of ``steps`` steps from each start
-    (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`), noise-free or with the
-    exploration ``noise`` (steps, nu) replayed; NaN where that closed loop fails. What a start
-    covariate and the twin's evaluations and predictions are made of."""
+    """The mean stage cost of ``theta``'s closed loop of ``steps`` steps (None: the system's)
+    from each start (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`),
+    noise-free or with the exploration ``noise`` (steps, nu) replayed; NaN where that closed
+    loop fails. What a start covariate and the twin's evaluations and predictions are made
+    of."""
     out = []
     for x0 in np.atleast_2d(starts):
         try:
