@@ -285,20 +285,22 @@ def test_one_episode_a_side_is_screened_relative_to_the_start_then_tested(lq):
 
 
 S0 = np.array([1.0, 3.0, 0.5, 2.0, 8.0, 1.5])  # start costs of theta0's six random starts
-S1 = np.array([4.0, 6.0, 3.0, 9.0, 5.0, 7.0])  # the candidate's, costlier starts
+S1 = np.array([4.0, 6.0, 3.0, 9.0, 5.0, 7.0, 5.0, 8.0, 3.5, 6.5, 4.5, 7.5])  # the candidate's
 
 
 @pytest.mark.parametrize("name", ["bo", "mobo"])
 def test_the_start_adjusted_test_deploys_a_gain_the_starts_hide(lq, name):
     """theta0's costs are its start costs, the candidate's 0.8 of theirs from costlier starts:
-    dearer raw (Welch), cheaper from every start; deployed on the adjusted test. The GP sees
-    f1 relative to the start cost, the evidence keeps f1 itself."""
+    dearer raw (Welch), cheaper from every start; deployed on the adjusted test once it has
+    ``2 min_runs`` episodes (no twin), not at ``min_runs``. The GP sees f1 relative to the
+    start cost, the evidence keeps f1 itself."""
     z0, good = _points(lq)
     lr = _random(lq, name)
-    noise = 1 + 0.01 * np.random.default_rng(0).normal(size=12)
+    noise = 1 + 0.01 * np.random.default_rng(0).normal(size=18)
     for f, s in zip(S0 * noise[:6], S0):
         _observe(lr, z0, f, start_cost=s)
-    for f, s in zip(0.8 * S1 * noise[6:], S1):
+    for k, (f, s) in enumerate(zip(0.8 * S1 * noise[6:], S1)):
+        assert not _same(lr.deployed_z_, good), k
         _observe(lr, good, f, start_cost=s)
     ev = lr.evidence_
     f1 = np.r_[S0 * noise[:6], 0.8 * S1 * noise[6:]]
@@ -430,11 +432,33 @@ def test_decide_verifies_until_the_candidate_has_min_runs(slope):
     assert isinstance(d, Decision) and _same(d.deployed, HI) and _same(d.verify, LO)
 
 
-def test_decide_deploys_on_evidence_once_both_sides_have_min_runs(slope):
-    d, _ = _decide(slope[0], DEPLOYED, [0.5, 0.6, 0.55])
+CHEAP = np.array([0.5, 0.6, 0.55, 0.52, 0.58, 0.57])  # the candidate's, 2 min_runs of them
+
+
+def test_decide_deploys_on_evidence_once_both_sides_have_enough(slope):
+    """Without a twin the candidate needs ``2 min_runs`` episodes, the deployed theta
+    ``min_runs``."""
+    d, conf = _decide(slope[0], DEPLOYED, CHEAP[:3])
+    assert conf > 0.99 and _same(d.deployed, HI) and _same(d.verify, LO)  # min_runs: not yet
+    d, _ = _decide(slope[0], DEPLOYED, CHEAP)
     assert _same(d.deployed, LO) and d.verify is None
-    d, _ = _decide(slope[0], DEPLOYED[:2], [0.5, 0.6, 0.55])  # the deployed theta has two
+    d, _ = _decide(slope[0], DEPLOYED[:2], CHEAP)  # the deployed theta has two
     assert _same(d.deployed, HI) and _same(d.verify, LO)
+
+
+def test_without_a_twin_the_candidate_is_judged_once_on_twice_min_runs(slope):
+    """Three lucky episodes, convincing at ``min_runs``, then three no cheaper than the
+    deployed theta's: run again at three, judged once at six and dropped. Once a twin judges,
+    ``min_runs`` episodes are enough."""
+    cand = np.array([0.2, 0.25, 0.22, 2.6, 2.5, 2.7])
+    d, conf = _decide(slope[0], DEPLOYED, cand[:3])
+    assert conf > 0.99 and _same(d.deployed, HI) and _same(d.verify, LO)
+    d, conf = _decide(slope[0], DEPLOYED, cand)
+    assert 0.5 <= conf < 0.9 and _same(d.deployed, HI) and d.verify is None
+    policy = RandomEvidence(confidence=0.9, min_runs=3, kappa=0.0)
+    assert policy.needed() == 6
+    policy.twin = _twin()
+    assert policy.needed() == 3
 
 
 def test_decide_runs_a_promising_candidate_again_up_to_twice_min_runs(slope):

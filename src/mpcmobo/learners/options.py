@@ -135,15 +135,19 @@ class EvidenceDeploy(_Options):
     start is (analysis of covariance on theta0's cost from the start on the MPC's model),
     each side with at least ``min_runs`` episodes; the deployed theta is run again early so
     that it has them. A candidate more likely better than not but not yet convincing is run
-    again, up to twice the evidence needed."""
+    again, up to twice the evidence needed. Without identification's twin to judge, a
+    candidate under random starts is judged once, on ``2 min_runs`` episodes: a few cheap
+    starts in a row, which the GP picks candidates for, are luck the start covariate does
+    not see."""
 
     rule: Literal["evidence"] = "evidence"
     confidence: float = Field(0.9, ge=0.5, lt=1)
     """Confidence of the one-sided test that the candidate is cheaper. Higher: fewer false
     deployments, more episodes before a true one."""
     min_runs: int = Field(6, ge=2, le=10_000)
-    """Random starts only: episodes of each side before a candidate can be deployed (cycled
-    starts need one episode from every start of the cycle). More: safer decisions, later."""
+    """Random starts only: episodes of each side before a candidate can be deployed, twice
+    as many for the candidate without identification's twin (cycled starts need one episode
+    from every start of the cycle). More: safer decisions, later."""
 
 
 class IncumbentDeploy(_Options):
