@@ -106,7 +106,7 @@ class SystemSettings(_Section):
     nominal model (the paper's method), and each deployment rests on the plant's episodes
     alone: slower, and under random starts every candidate needs twice the episodes
     (``min_runs``) so that rare costly starts are not missed (on the CSTR in 50 episodes,
-    mobo at 4.10 x J* in median against 0.84 with identification, ``docs/benchmarks.md``).
+    mobo at 4.10 x J* in median against 0.78 with identification, ``docs/benchmarks.md``).
     The ``identify`` learner identifies these, or all parameters when this is ``false``. A
     system that declares no model parameter has nothing to identify and tunes as with
     ``false``."""
