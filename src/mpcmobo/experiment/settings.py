@@ -104,9 +104,10 @@ class SystemSettings(_Section):
     minute on the CSTR), and every candidate is judged by the twin calibrated on the plant's
     episodes (64 simulated closed loops per theta judged). ``false``: the learners tune the
     nominal model (the paper's method), and each deployment rests on the plant's episodes
-    alone: slower, and under random starts every candidate needs twice the episodes
-    (``min_runs``) so that rare costly starts are not missed (on the CSTR in 50 episodes,
-    mobo at 4.10 x J* in median against 0.78 with identification, ``docs/benchmarks.md``).
+    alone: slower, and under random starts a GP learner's candidate needs twice ``min_runs``
+    episodes, so that a run of cheap starts is less likely to pass for a better theta (on
+    the CSTR in 50 episodes, mobo at 4.10 x J* in median against 0.78 with identification,
+    ``docs/benchmarks.md``).
     The ``identify`` learner identifies these, or all parameters when this is ``false``. A
     system that declares no model parameter has nothing to identify and tunes as with
     ``false``."""
