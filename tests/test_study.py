@@ -262,7 +262,15 @@ def tiny_lq(**options):
     return make_lq(**options)
 
 
-def test_user_registered_system_runs_in_worker_processes(tmp_path):
+@pytest.fixture
+def own_registry(monkeypatch):
+    """The systems a test registers are gone after it (a copy of the registry)."""
+    from mpcmobo.systems import registry
+
+    monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
+
+
+def test_user_registered_system_runs_in_worker_processes(tmp_path, own_registry):
     from mpcmobo.systems import register_system
 
     register_system("tiny-lq", tiny_lq, overwrite=True)
@@ -272,7 +280,7 @@ def test_user_registered_system_runs_in_worker_processes(tmp_path):
     assert len(storage.read_episodes(tmp_path / "tiny")) == 4  # two seeds, two jobs in workers
 
 
-def test_unsendable_system_factory_is_a_study_error(tmp_path):
+def test_unsendable_system_factory_is_a_study_error(tmp_path, own_registry):
     from mpcmobo.systems import make_lq, register_system
 
     register_system("lambda-lq", lambda **o: make_lq(**o), overwrite=True)
