@@ -497,6 +497,47 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
         np.testing.assert_array_equal(inner.blocks_.twin.params, sw.deployed_params_)
 
 
+def test_a_fit_held_by_its_bounds_is_reported_and_drawn(tmp_path):
+    """lq's plant lies outside bounds of e^(+-0.2) around its nominal model: every identified
+    parameter ends on a bound, and the summary, ``mpcmobo run`` and figure 5 say which and
+    where; with the default bounds none does. ``at_bounds`` tells a bound within 1e-3 from
+    one further away, for parameters of either sign."""
+    from typer.testing import CliRunner
+
+    from mpcmobo.cli import app
+    from mpcmobo.identify import at_bounds, identification_bounds
+
+    lq = get_system("lq")
+    lo, hi = identification_bounds(lq)
+    np.testing.assert_allclose(lo, np.asarray(lq.models["imperfect"]) * np.exp(-0.7))
+    on_lo, on_hi = at_bounds(np.array([lo[0] * 1.0005, lo[1] * 1.01, hi[2]]), lo, hi)
+    assert on_lo.tolist() == [True, False, False] and on_hi.tolist() == [False, False, True]
+    on_lo, on_hi = at_bounds(np.array([-2.0, -1.9]), np.array([-2.0, -2.0]), np.array([1.0, 1.0]))
+    assert on_lo.tolist() == [True, False] and not on_hi.any()
+
+    args = ["run", "--system", "lq", "--learner", "identify", "--episodes", "2", "--seeds",
+            "0", "1", "--workers", "1", "-q"]  # fmt: skip
+    cfg = tmp_path / "narrow.toml"
+    cfg.write_text("[system]\nmodel_log_range = 0.2\n[evaluation]\nn_starts = 2\n")
+    res = CliRunner().invoke(app, [*args, "--config", str(cfg), "--out", str(tmp_path / "n")])
+    assert res.exit_code == 0, res.output
+    summary = storage.read_json(tmp_path / "n" / "summary.json")
+    held = summary["learners"]["identify"]["identified_at_bound"]
+    sides = {"stiffness": "lower", "damping": "upper", "gain": "upper"}  # true 1, 0.5, 1
+    assert {b["name"]: b["bound"] for b in held} == sides
+    assert all(b["seeds"] == [0, 1] for b in held)
+    bounds = summary["learners"]["identify"]["identified_bounds"]
+    assert bounds["damping"][1] == pytest.approx(0.3 * np.exp(0.2))
+    for name, side in sides.items():
+        assert f"'{name}' ends on its {side} bound" in res.output
+    assert "model_log_range" in res.output
+    assert (tmp_path / "n" / "figures" / "fig5_identified.png").exists()
+    res = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "d"), "--no-plot"])
+    assert res.exit_code == 0 and "ends on its" not in res.output
+    plain = storage.read_json(tmp_path / "d" / "summary.json")["learners"]["identify"]
+    assert plain["identified_at_bound"] == []
+
+
 def test_the_twin_of_the_right_model_predicts_a_plant_episode_exactly_by_replaying_it():
     """The twin predicts an episode by replaying its exploration (the inputs applied minus the
     MPC's) in the closed loop on the model from its start: with the true model that is the

@@ -354,8 +354,9 @@ def make_figures(
 
 def identified_figure(ep: pd.DataFrame, summary: dict, learners: list[str]) -> Figure | None:
     """The model parameters identified after each episode (median and interquartile band over
-    seeds, per learner that identifies), with the MPC's nominal values and, where known, the
-    plant's true values; None when no learner identifies."""
+    seeds, per learner that identifies), with the MPC's nominal values, where known the
+    plant's true values, and a bound of the identification that a final fit sits on; None when
+    no learner identifies."""
     if "identified" not in ep.columns:
         return None
     who = {n: summary["learners"].get(n, {}).get("identified_names") or [] for n in learners}
@@ -384,6 +385,16 @@ def identified_figure(ep: pd.DataFrame, summary: dict, learners: list[str]) -> F
                 ax.axhline(nominal[i], color="grey", ls=":", lw=1, label="nominal model")
             if true is not None:
                 ax.axhline(true[i], color="k", ls="--", lw=1, label="plant")
+        held = {
+            (b["bound"], b["value"])
+            for n in who
+            for b in summary["learners"][n].get("identified_at_bound") or []
+            if b["name"] == name
+        }
+        for side, value in sorted(held):  # a bound the fit ends on
+            ax.axhline(value, color="tab:red", ls="-.", lw=1, label=f"{side} bound (fit held)")
+        if held and k:
+            ax.legend(fontsize=7)
         ax.set_title(name, fontsize=9)
         ax.set_xlabel("episode")
     for ax in list(axes.flat)[len(names) :]:

@@ -238,6 +238,22 @@ def run(
     _report(summary, out, time.perf_counter() - t0, no_plot)  # type: ignore[arg-type]  # --resume checked --out
 
 
+def bound_warnings(summary: dict) -> list[str]:
+    """One line per identified parameter whose final fit sits on a bound of the
+    identification (``identified_at_bound`` of the summary), with the jobs it does so in."""
+    jobs: dict[tuple[str, str, float], list[str]] = {}
+    for learner, v in summary.get("learners", {}).items():
+        for b in v.get("identified_at_bound") or []:
+            key = (b["name"], b["bound"], b["value"])
+            jobs.setdefault(key, []).extend(f"{learner} seed {s}" for s in b["seeds"])
+    return [
+        f"the identified '{name}' ends on its {side} bound {value:.4g} in {len(who)} job(s) "
+        f"({', '.join(who[:3])}{', ...' if len(who) > 3 else ''}): the plant's value may lie "
+        "beyond it; widen [system] model_log_range, or the model's structure may be wrong"
+        for (name, side, value), who in jobs.items()
+    ]
+
+
 def _system_override(system: str | None) -> dict[str, Any] | None:
     """``--system X``: a name, or a factory path (then it replaces the file's system)."""
     if system is None:
@@ -290,6 +306,8 @@ def _resumed_settings(
 def _report(summary: dict, out: Path, seconds: float, no_plot: bool) -> None:
     """The summary table, where the records are, and the figures of a complete run."""
     console.print(_summary_table(summary))
+    for line in bound_warnings(summary):
+        err_console.print(f"warning: {line}", highlight=False, soft_wrap=True)
     console.print(f"records in [bold]{out}[/] ({seconds:.1f} s)")
     if not summary["complete"]:
         console.print(f"incomplete; continue with: mpcmobo run --resume --out {out}")

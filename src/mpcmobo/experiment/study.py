@@ -38,6 +38,7 @@ from mpcmobo.experiment.settings import (
     identified_parameters,
 )
 from mpcmobo.experiment.training_reference import training_references, training_summary
+from mpcmobo.identify import at_bounds, identification_bounds
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import is_registered, system_factory
@@ -216,11 +217,45 @@ def _learner_summary(
         "theta_final": vals[0]["theta_final"] if vals else None,
         "theta_names": theta_names,
         "identified_names": list(identified),
+        **_bounds_summary(system, identified, per_seed),
         "wall_time_s": float(sum(v["wall_time_s"] for v in vals)) if vals else 0.0,
         "complete": bool(vals)
         and all(v["complete"] for v in vals)
         and len(vals) == len(settings.seeds),
         "per_seed": per_seed,
+    }
+
+
+def _bounds_summary(
+    system: System, names: tuple[str, ...], per_seed: dict[str, Any]
+) -> dict[str, Any]:
+    """The identified parameters' bounds (``identified_bounds``: name -> [lower, upper]) and
+    those the final fit of some seed sits on (``identified_at_bound``: name, "lower" or
+    "upper", the bound and the seeds)."""
+    if not names:
+        return {"identified_bounds": {}, "identified_at_bound": []}
+    lo, hi = identification_bounds(system, names)
+    seeds: dict[tuple[int, str], list[int]] = {}
+    for seed, v in per_seed.items():
+        q = v.get("identified_final")
+        if q is None or len(q) != len(names):
+            continue
+        on_lo, on_hi = at_bounds(np.asarray(q, float), lo, hi)
+        for j in np.flatnonzero(on_lo):
+            seeds.setdefault((int(j), "lower"), []).append(int(seed))
+        for j in np.flatnonzero(on_hi):
+            seeds.setdefault((int(j), "upper"), []).append(int(seed))
+    return {
+        "identified_bounds": {n: [float(lo[j]), float(hi[j])] for j, n in enumerate(names)},
+        "identified_at_bound": [
+            {
+                "name": names[j],
+                "bound": side,
+                "value": float((lo if side == "lower" else hi)[j]),
+                "seeds": sorted(s),
+            }
+            for (j, side), s in sorted(seeds.items())
+        ],
     }
 
 

@@ -34,10 +34,19 @@ from scipy.optimize import least_squares
 from mpcmobo.mpc.codegen import compiled_library
 from mpcmobo.systems.base import System
 
-__all__ = ["Identification", "ModelFit", "Transitions", "identify", "prediction_error"]
+__all__ = [
+    "Identification",
+    "ModelFit",
+    "Transitions",
+    "at_bounds",
+    "identification_bounds",
+    "identify",
+    "prediction_error",
+]
 
 HOLDOUT = 0.25  # the last quarter of each episode's transitions judges the fit
 PRIOR_STD = 0.5  # the prior's spread of log q around the nominal value
+AT_BOUND = 1e-3  # an estimate this close to a bound (relative; log for positive) sits on it
 
 
 @dataclass
@@ -190,6 +199,32 @@ def _bounds(system: System, q0: np.ndarray) -> tuple[np.ndarray, ...]:
     lo = np.where(pos, q0 * np.exp(-m), q0 - m * np.abs(q0) - 1)
     hi = np.where(pos, q0 * np.exp(m), q0 + m * np.abs(q0) + 1)
     return lo, hi, pos
+
+
+def identification_bounds(
+    system: System, names: Sequence[str] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds (lower, upper) of the identified parameters ``names`` (default: all of
+    ``param_names``): the MPC's nominal value times ``e^(+-model_log_range)``."""
+    pnames = list(system.param_names)
+    index = [pnames.index(n) for n in (pnames if names is None else names)]
+    lo, hi, _ = _bounds(system, np.asarray(system.models["imperfect"], float)[index])
+    return lo, hi
+
+
+def at_bounds(
+    estimate: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which entries of ``estimate`` sit on their lower and on their upper bound (within
+    ``AT_BOUND``, relative: in log for positive bounds). A fit that ends on a bound was held by
+    it: the plant's value may lie beyond (a wider ``model_log_range``), or the model's
+    structure may be wrong."""
+    q, lo, hi = (np.asarray(v, float) for v in (estimate, lower, upper))
+    pos = lo > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d_lo = np.where(pos, np.log(q / lo), (q - lo) / np.maximum(np.abs(lo), 1.0))
+        d_hi = np.where(pos, np.log(hi / q), (hi - q) / np.maximum(np.abs(hi), 1.0))
+    return d_lo <= AT_BOUND, d_hi <= AT_BOUND
 
 
 def _fit(
