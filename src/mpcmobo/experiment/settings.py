@@ -88,7 +88,10 @@ class SystemSettings(_Section):
     system's (4 on the CSTR)."""
     model_log_range: float | None = Field(None, gt=0, le=10)
     """Learnable model parameters are searched within their nominal value times
-    ``e^(+-model_log_range)``; unset: the system's. The same bounds hold for identification."""
+    ``e^(+-model_log_range)``; unset: the system's. The same bounds hold for identification: a
+    fit that ends on one is reported (``mpcmobo run`` warns, ``identified_at_bound`` in
+    summary.json), as the plant's value may lie beyond it. Wider bounds cost nothing in the
+    fit; for learnable model parameters they widen the search."""
     process_noise: list[float] | None = None
     """Standard deviation of Gaussian noise added to each state by every step of the system's
     own plant (seeded per episode from the study's seed); unset: none."""
