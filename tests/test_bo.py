@@ -97,6 +97,24 @@ def test_reference_point_rule():
 
 
 # ----------------------------------------------------------------------------- surrogate
+def test_a_constant_output_is_modelled_as_that_constant_without_a_warning():
+    """f3 is 0 over a run's first episodes: the GP predicts 0 for it, and BoTorch's warning
+    that the output is not standardised stays out of the run's log; other warnings do not."""
+    import warnings
+
+    from botorch.exceptions.warnings import InputDataWarning
+
+    X = sobol(6, 2, seed=0)
+    Y = np.column_stack([X.sum(1), np.zeros(6)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputDataWarning)
+        sur = GPSurrogate(2).fit(X, Y)
+    mean, _ = sur.predict(sobol(4, 2, seed=1))
+    np.testing.assert_allclose(mean[:, 1], 0.0, atol=1e-9)
+    with pytest.warns(InputDataWarning, match="not standardized"):  # without the filter
+        SingleTaskGP(torch.as_tensor(X), torch.as_tensor(Y), outcome_transform=Standardize(m=2))
+
+
 def test_surrogate_drops_nan_rows_and_predicts():
     X = sobol(12, 2, seed=0)
     Y = np.column_stack([np.sin(6 * X[:, 0]) + X[:, 1], (X**2).sum(1)])

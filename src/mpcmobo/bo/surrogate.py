@@ -27,12 +27,14 @@ constant mean and a Gaussian likelihood with inferred noise. The ``m`` GPs are o
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterator, Sequence
 from typing import Any
 
 import gpytorch
 import numpy as np
 import torch
+from botorch.exceptions.warnings import InputDataWarning
 from botorch.fit import fit_gpytorch_mll
 from botorch.models import SingleTaskGP
 from botorch.models.transforms.outcome import Standardize
@@ -48,6 +50,8 @@ __all__ = ["GPSurrogate", "fit_gp"]
 # points per block of a posterior evaluation (posterior_model_space): large enough for fast
 # matrix products, small enough that the (m, block, n) temporaries stay in cache
 ROW_BLOCK = 256
+# the InputDataWarning BoTorch gives for an output that Standardize leaves constant
+NOT_STANDARDIZED = r"Data \(outcome observations\) is not standardized"
 
 
 def _as_2d(a: np.ndarray) -> np.ndarray:
@@ -189,8 +193,14 @@ class GPSurrogate:
         return self._hyper is None or n < self.min_refit_n or self._calls_since_refit >= period - 1
 
     def _new_gp(self, tX: torch.Tensor, tY: torch.Tensor) -> SingleTaskGP:
-        """BoTorch's default ``SingleTaskGP`` with standardised outcomes."""
-        return SingleTaskGP(tX, tY, outcome_transform=Standardize(m=self.num_outputs)).to(DTYPE)
+        """BoTorch's default ``SingleTaskGP`` with standardised outcomes. An output constant
+        over the data (f3 is 0 until the value function changes between episodes) stays at
+        zero after ``Standardize``, and is modelled as that constant: BoTorch's warning that
+        it is not standardised is silenced for it (it filled the run's log)."""
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", NOT_STANDARDIZED, InputDataWarning)
+            model = SingleTaskGP(tX, tY, outcome_transform=Standardize(m=self.num_outputs))
+        return model.to(DTYPE)
 
     def _make_model(self, tX: torch.Tensor, tY: torch.Tensor) -> SingleTaskGP:
         """A GP on ``(tX, tY)`` with the current hyperparameters (BoTorch's initial ones if

@@ -258,8 +258,11 @@ def _fit(
             J = J * np.where(pos, to_q(vv), 1.0)[None, :]  # dq/dv = q in log coordinates
             return np.vstack([J, prior_w * np.eye(len(vv)) / prior_std])
 
-        return least_squares(fun, v_start, jac=jac, bounds=(v_lo, v_hi), loss="soft_l1",
-                             f_scale=max(prior_w, 1e-9), x_scale="jac", max_nfev=200)  # fmt: skip
+        # a trial step far out (a model that runs away over one step) overflows the robust
+        # loss: its cost is inf and the step is refused, which is all the warning would say
+        with np.errstate(over="ignore"):
+            return least_squares(fun, v_start, jac=jac, bounds=(v_lo, v_hi), loss="soft_l1",
+                                 f_scale=max(prior_w, 1e-9), x_scale="jac", max_nfev=200)  # fmt: skip
 
     first = run(0.0, v)
     r1, _ = res(data, to_q(first.x))
