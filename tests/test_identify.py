@@ -505,7 +505,7 @@ def test_a_fit_held_by_its_bounds_is_reported_and_drawn(tmp_path):
     from typer.testing import CliRunner
 
     from mpcmobo.cli import app
-    from mpcmobo.identify import at_bounds, identification_bounds
+    from mpcmobo.identify.fit import at_bounds, identification_bounds
 
     lq = get_system("lq")
     lo, hi = identification_bounds(lq)

@@ -38,7 +38,7 @@ from mpcmobo.experiment.settings import (
     identified_parameters,
 )
 from mpcmobo.experiment.training_reference import training_references, training_summary
-from mpcmobo.identify import at_bounds, identification_bounds
+from mpcmobo.identify.fit import at_bounds, identification_bounds
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import is_registered, system_factory
