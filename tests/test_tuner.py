@@ -169,6 +169,21 @@ def test_a_dataframe_log_with_measured_costs(lq_tuner):
     assert row.mean_stage_cost == pytest.approx(2.0) and row.violation == pytest.approx(3.0)
 
 
+def test_status_warns_of_an_identified_parameter_held_by_its_bounds(tmp_path):
+    """The identify learner on lq through ask/tell, with bounds of e^(+-0.2) that do not hold
+    the plant's values: after a told trial, ``mpcmobo status`` names the parameters whose fit
+    sits on a bound."""
+    cfg = tmp_path / "narrow.toml"
+    cfg.write_text('[system]\nname = "lq"\nmodel_log_range = 0.2\n')
+    tuner = Tuner(None, "identify", tmp_path / "t", config=cfg, episodes=2, steps=20)
+    trial = tuner.ask()
+    tuner.tell(trial, *_episode(tuner, trial))
+    res = CliRunner().invoke(app, ["status", str(tmp_path / "t")])
+    assert res.exit_code == 0, res.output
+    assert "'damping' ends on its upper bound" in res.output
+    assert "identify seed 0" in res.output
+
+
 def test_the_command_line_asks_tells_and_reports(tmp_path):
     runner = CliRunner()
     d = tmp_path / "tun"

@@ -22,6 +22,7 @@ from rich.table import Table
 
 from mpcmobo import cli
 from mpcmobo.cli.progress import fmt
+from mpcmobo.experiment import storage
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError
 from mpcmobo.experiment.settings import SettingsError
 
@@ -139,6 +140,10 @@ def status(directory: Path = typer.Argument(..., help="the tuner's directory")) 
     for name, value in st["deployed"].items():
         table.add_row(name, fmt(value, 6))
     cli.console.print(table)
+    summary = directory / "summary.json"
+    if summary.exists():  # an identified parameter held by its bounds
+        for line in cli.bound_warnings(storage.read_json(summary)):
+            cli.err_console.print(f"warning: {line}", highlight=False, soft_wrap=True)
 
 
 def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int | None) -> Any:
