@@ -13,10 +13,13 @@ from theta0's mean with its standard error over the starts, and on how many star
 theta0; "regression" is a mean above theta0's. A theta that runs the plant away from a fresh
 start has an infinite mean there (a regression). ``--thetas final`` rechecks the final thetas
 only; ``--summary`` prints one row per learner instead (the median and the worst seed of the
-final theta on the fresh starts, and the seeds whose final theta is worse than theta0 there).
+final theta on the fresh starts, the seeds whose final theta is worse than theta0 there, and,
+with ``identify`` among the runs, the seeds whose final theta ends above ``identify``'s on
+either set of starts).
 
     .venv/bin/python benchmarks/recheck.py --out runs/a --starts 100 --json runs/a/recheck.json
     .venv/bin/python benchmarks/recheck.py --out runs/a --thetas final --summary
+    .venv/bin/python benchmarks/recheck.py --from-json runs/a/recheck.json runs/b/recheck.json --summary
 """
 
 from __future__ import annotations
@@ -127,7 +130,14 @@ def recheck(
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, nargs="+", required=True, help="run directories")
+    ap.add_argument("--out", type=Path, nargs="+", default=[], help="run directories")
+    ap.add_argument(
+        "--from-json",
+        type=Path,
+        nargs="+",
+        default=[],
+        help="rows written by --json before: summarised with --summary, not evaluated again",
+    )
     ap.add_argument("--starts", type=int, default=100, help="fresh initial states (default 100)")
     ap.add_argument("--seed", type=int, default=RECHECK_SEED, help="their seed")
     ap.add_argument("--only-seeds", type=int, nargs="+", default=None)
@@ -136,7 +146,10 @@ def main() -> None:
     ap.add_argument("--summary", action="store_true", help="one row per learner")
     args = ap.parse_args()
     which = tuple(args.thetas)
-    rows = [
+    if not args.out and not args.from_json:
+        ap.error("give run directories (--out) or rows written before (--from-json)")
+    rows = [r for path in args.from_json for r in json.loads(path.read_text())]
+    rows += [
         r for out in args.out for r in recheck(out, args.starts, args.seed, args.only_seeds, which)
     ]
     if args.json is not None:
@@ -159,12 +172,41 @@ def main() -> None:
         )
 
 
+ABOVE = 5e-4  # "above identify": a final theta's J more than 0.05% above identify's, same seed
+
+
+def above_identify(rows: list[dict]) -> dict[str, str]:
+    """Per learner (not ``identify``), the seeds whose final theta ends above ``identify``'s
+    final theta of the same seed by more than ``ABOVE``, on the evaluation starts ("eval") or
+    on the fresh starts ("fresh"), each with its excess in percent: "none", or "" where no
+    ``identify`` row of that seed is among ``rows``."""
+    finals = [r for r in rows if r["theta"] == "final"]
+    ident = {r["seed"]: r for r in finals if r["learner"] == "identify"}
+    out: dict[str, str] = {}
+    for learner in dict.fromkeys(r["learner"] for r in finals if r["learner"] != "identify"):
+        rs = [r for r in finals if r["learner"] == learner and r["seed"] in ident]
+        if not rs:
+            out[learner] = ""
+            continue
+        cells = []
+        for r in rs:
+            i = ident[r["seed"]]
+            for key, where in (("J_eval_ratio", "eval"), ("J_fresh_ratio", "fresh")):
+                excess = r[key] / i[key] - 1
+                if excess > ABOVE:
+                    cells.append(f"{r['seed']} ({where} +{100 * excess:.1f}%)")
+        out[learner] = ", ".join(cells) or "none"
+    return out
+
+
 def summary_table(rows: list[dict], starts: int) -> str:
-    """One markdown row per learner: its final thetas on the fresh starts."""
+    """One markdown row per learner: its final thetas on the fresh starts, and, with
+    ``identify`` among the rows, the seeds that end above it (:func:`above_identify`)."""
+    above = above_identify(rows)
     lines = [
         f"| learner | seeds | final J/J* on {starts} fresh starts (median, worst) "
-        "| theta0 there | seeds worse than theta0 there |",
-        "|---|---|---|---|---|",
+        "| theta0 there | seeds worse than theta0 there | seeds above `identify` |",
+        "|---|---|---|---|---|---|",
     ]
     finals = [r for r in rows if r["theta"] == "final"]
     for learner in dict.fromkeys(r["learner"] for r in finals):
@@ -173,7 +215,8 @@ def summary_table(rows: list[dict], starts: int) -> str:
         worse = [str(r["seed"]) for r in rs if r["regression"]]
         lines.append(
             f"| {learner} | {len(rs)} | {np.median(v):.3f}, {v.max():.3f} "
-            f"| {rs[0]['J0_fresh_ratio']:.3f} | {', '.join(worse) or 'none'} |"
+            f"| {rs[0]['J0_fresh_ratio']:.3f} | {', '.join(worse) or 'none'} "
+            f"| {above.get(learner, '')} |"
         )
     return "\n".join(lines)
 

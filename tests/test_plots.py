@@ -306,6 +306,30 @@ def test_recheck_on_the_evaluation_starts_reproduces_J_eval(small_run, benchmark
     assert any(abs(o["J0_fresh_ratio"] - r["J0_fresh_ratio"]) > 1e-6 for o, r in zip(other, rows))
 
 
+def test_recheck_summary_names_the_seeds_that_end_above_identify(benchmark_script):
+    """The summary's last column: per learner, the seeds whose final theta is above
+    ``identify``'s of the same seed by more than 0.05%, on either set of starts, with the
+    excess; "none" when no seed is; empty without ``identify``'s rows."""
+    rc = benchmark_script("recheck")
+
+    def row(learner, seed, ev, fresh):
+        return {"learner": learner, "seed": seed, "theta": "final", "J_eval_ratio": ev,
+                "J_fresh_ratio": fresh, "J0_fresh_ratio": 4.0, "regression": False}  # fmt: skip
+
+    rows = [row("identify", 0, 1.0, 1.0), row("identify", 1, 1.0, 1.0),
+            row("mobo", 0, 0.9, 1.0003), row("mobo", 1, 1.02, 0.99),
+            row("bo", 0, 0.9, 0.95), row("bo", 1, 1.0, 1.005)]  # fmt: skip
+    assert rc.above_identify(rows) == {"mobo": "1 (eval +2.0%)", "bo": "1 (fresh +0.5%)"}
+    assert rc.above_identify([r for r in rows if r["seed"] == 0]) == {"mobo": "none", "bo": "none"}
+    assert rc.above_identify([r for r in rows if r["learner"] != "identify"]) == {
+        "mobo": "",
+        "bo": "",
+    }
+    table = rc.summary_table(rows, 100).splitlines()
+    assert table[0].endswith("| seeds above `identify` |")
+    assert table[3].endswith("| none | 1 (eval +2.0%) |")
+
+
 def test_recheck_counts_a_theta_that_runs_the_plant_away_as_a_regression(
     small_run, benchmark_script, monkeypatch
 ):
