@@ -175,16 +175,32 @@ def main() -> None:
 ABOVE = 5e-4  # "above identify": a final theta's J more than 0.05% above identify's, same seed
 
 
-def above_identify(rows: list[dict]) -> dict[str, str]:
-    """Per learner (not ``identify``), the seeds whose final theta ends above ``identify``'s
-    final theta of the same seed by more than ``ABOVE``, on the evaluation starts ("eval") or
-    on the fresh starts ("fresh"), each with its excess in percent: "none", or "" where no
-    ``identify`` row of that seed is among ``rows``."""
+def _finals(rows: list[dict]) -> list[dict]:
+    """The final thetas' rows, each with its ``label``: the learner, and its run's name where
+    the learner is in several runs (with and without identification, say)."""
     finals = [r for r in rows if r["theta"] == "final"]
+    runs: dict[str, set[str]] = {}
+    for r in finals:
+        runs.setdefault(r["learner"], set()).add(r.get("run", ""))
+    return [
+        dict(
+            r,
+            label=r["learner"] if len(runs[r["learner"]]) == 1 else f"{r['learner']} ({r['run']})",
+        )
+        for r in finals
+    ]
+
+
+def above_identify(rows: list[dict]) -> dict[str, str]:
+    """Per learner (not ``identify``; :func:`_finals`' label), the seeds whose final theta ends
+    above ``identify``'s final theta of the same seed by more than ``ABOVE``, on the evaluation
+    starts ("eval") or on the fresh starts ("fresh"), each with its excess in percent: "none",
+    or "" where no ``identify`` row of that seed is among ``rows``."""
+    finals = _finals(rows)
     ident = {r["seed"]: r for r in finals if r["learner"] == "identify"}
     out: dict[str, str] = {}
-    for learner in dict.fromkeys(r["learner"] for r in finals if r["learner"] != "identify"):
-        rs = [r for r in finals if r["learner"] == learner and r["seed"] in ident]
+    for learner in dict.fromkeys(r["label"] for r in finals if r["learner"] != "identify"):
+        rs = [r for r in finals if r["label"] == learner and r["seed"] in ident]
         if not rs:
             out[learner] = ""
             continue
@@ -208,9 +224,9 @@ def summary_table(rows: list[dict], starts: int) -> str:
         "| theta0 there | seeds worse than theta0 there | seeds above `identify` |",
         "|---|---|---|---|---|---|",
     ]
-    finals = [r for r in rows if r["theta"] == "final"]
-    for learner in dict.fromkeys(r["learner"] for r in finals):
-        rs = [r for r in finals if r["learner"] == learner]
+    finals = _finals(rows)
+    for learner in dict.fromkeys(r["label"] for r in finals):
+        rs = [r for r in finals if r["label"] == learner]
         v = np.array([r["J_fresh_ratio"] for r in rs])
         worse = [str(r["seed"]) for r in rs if r["regression"]]
         lines.append(

@@ -309,7 +309,8 @@ def test_recheck_on_the_evaluation_starts_reproduces_J_eval(small_run, benchmark
 def test_recheck_summary_names_the_seeds_that_end_above_identify(benchmark_script):
     """The summary's last column: per learner, the seeds whose final theta is above
     ``identify``'s of the same seed by more than 0.05%, on either set of starts, with the
-    excess; "none" when no seed is; empty without ``identify``'s rows."""
+    excess; "none" when no seed is; empty without ``identify``'s rows. A learner in two runs
+    (with and without identification) is two rows, each named with its run."""
     rc = benchmark_script("recheck")
 
     def row(learner, seed, ev, fresh):
@@ -328,6 +329,9 @@ def test_recheck_summary_names_the_seeds_that_end_above_identify(benchmark_scrip
     table = rc.summary_table(rows, 100).splitlines()
     assert table[0].endswith("| seeds above `identify` |")
     assert table[3].endswith("| none | 1 (eval +2.0%) |")
+    two = [dict(r, run="id") for r in rows] + [dict(row("mobo", 0, 2.0, 2.0), run="noid")]
+    assert rc.above_identify(two) == {"mobo (id)": "1 (eval +2.0%)", "bo": "1 (fresh +0.5%)",
+                                      "mobo (noid)": "0 (eval +100.0%), 0 (fresh +100.0%)"}  # fmt: skip
 
 
 def test_recheck_counts_a_theta_that_runs_the_plant_away_as_a_regression(
