@@ -254,6 +254,12 @@ def bound_warnings(summary: dict) -> list[str]:
     ]
 
 
+def warn_bounds(summary: dict) -> None:
+    """Print :func:`bound_warnings` of ``summary`` to standard error."""
+    for line in bound_warnings(summary):
+        err_console.print(f"warning: {line}", highlight=False, soft_wrap=True)
+
+
 def _system_override(system: str | None) -> dict[str, Any] | None:
     """``--system X``: a name, or a factory path (then it replaces the file's system)."""
     if system is None:
@@ -306,8 +312,7 @@ def _resumed_settings(
 def _report(summary: dict, out: Path, seconds: float, no_plot: bool) -> None:
     """The summary table, where the records are, and the figures of a complete run."""
     console.print(_summary_table(summary))
-    for line in bound_warnings(summary):
-        err_console.print(f"warning: {line}", highlight=False, soft_wrap=True)
+    warn_bounds(summary)
     console.print(f"records in [bold]{out}[/] ({seconds:.1f} s)")
     if not summary["complete"]:
         console.print(f"incomplete; continue with: mpcmobo run --resume --out {out}")

@@ -142,8 +142,7 @@ def status(directory: Path = typer.Argument(..., help="the tuner's directory")) 
     cli.console.print(table)
     summary = directory / "summary.json"
     if summary.exists():  # an identified parameter held by its bounds
-        for line in cli.bound_warnings(storage.read_json(summary)):
-            cli.err_console.print(f"warning: {line}", highlight=False, soft_wrap=True)
+        cli.warn_bounds(storage.read_json(summary))
 
 
 def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int | None) -> Any:
