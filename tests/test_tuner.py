@@ -184,6 +184,38 @@ def test_status_warns_of_an_identified_parameter_held_by_its_bounds(tmp_path):
     assert "identify seed 0" in res.output
 
 
+def test_status_reports_the_identified_model(tmp_path):
+    """With identification, ``status`` reports the last fit: per parameter the nominal value,
+    the estimate (lq's plant values after one episode) and its standard deviation, and the
+    fit's one-step error on held-out transitions far below the nominal model's; without it,
+    none."""
+    tuner = Tuner("lq", "bo", tmp_path / "t", episodes=3, steps=20)
+    assert tuner.status()["identification"] is None  # no fit before a told trial
+    trial = tuner.ask()
+    tuner.tell(trial, *_episode(tuner, trial))
+    ident = tuner.status()["identification"]
+    system = tuner.system
+    assert list(ident["parameters"]) == list(system.param_names)
+    assert ident["transitions"] == 20
+    for name, true, nominal in zip(system.param_names, system.true_params,
+                                   system.models["imperfect"]):  # fmt: skip
+        p = ident["parameters"][name]
+        assert p["nominal"] == pytest.approx(nominal)
+        assert p["estimate"] == pytest.approx(true, rel=0.02), name  # the prior pulls a little
+        assert 0 < p["std"] < 0.01 * abs(true)
+    assert ident["holdout_error"] < 0.1 * ident["nominal_error"]
+    res = CliRunner().invoke(app, ["status", str(tmp_path / "t")])
+    assert res.exit_code == 0, res.output
+    assert "identified model (the last fit)" in res.output
+    assert "fitted on 20 transitions" in res.output
+    off = Tuner({"name": "lq", "identify": False}, "bo", tmp_path / "off", episodes=2, steps=20)
+    trial = off.ask()
+    off.tell(trial, *_episode(off, trial))
+    assert off.status()["identification"] is None
+    res = CliRunner().invoke(app, ["status", str(tmp_path / "off")])
+    assert res.exit_code == 0 and "identified model" not in res.output, res.output
+
+
 def test_the_command_line_asks_tells_and_reports(tmp_path):
     runner = CliRunner()
     d = tmp_path / "tun"

@@ -140,9 +140,28 @@ def status(directory: Path = typer.Argument(..., help="the tuner's directory")) 
     for name, value in st["deployed"].items():
         table.add_row(name, fmt(value, 6))
     cli.console.print(table)
+    if st["identification"] is not None:
+        _print_identification(st["identification"])
     summary = directory / "summary.json"
     if summary.exists():  # an identified parameter held by its bounds
         cli.warn_bounds(storage.read_json(summary))
+
+
+def _print_identification(ident: dict[str, Any]) -> None:
+    """The last fit of the model (``Tuner.status``'s ``identification``) as a table and a line
+    on how it predicts the held-out transitions."""
+    table = Table(title="identified model (the last fit)")
+    for col in ("parameter", "nominal", "estimate", "std"):
+        table.add_column(col, justify="left" if col == "parameter" else "right")
+    for name, p in ident["parameters"].items():
+        table.add_row(name, fmt(p["nominal"], 6), fmt(p["estimate"], 6), fmt(p["std"], 2))
+    cli.console.print(table)
+    cli.console.print(
+        f"fitted on {ident['transitions']} transitions; one-step error on held-out ones (RMS, "
+        f"scaled by x_scale) {fmt(ident['holdout_error'], 3)}, the nominal model's "
+        f"{fmt(ident['nominal_error'], 3)}",
+        highlight=False,
+    )
 
 
 def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int | None) -> Any:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,7 +86,8 @@ class Trial:
 class Tuner:
     """One learner tuning a plant by ask and tell, recorded in ``out`` (module docstring).
 
-    ``system``: a system name or factory path (as ``--system``); ``learner``: one of the
+    ``system``: a system name or factory path (as ``--system``), or the settings' ``[system]``
+    table as a mapping (``{"name": "cstr", "identify": False}``); ``learner``: one of the
     learners; ``config``: a settings file; ``overrides``: settings as in
     :func:`~mpcmobo.experiment.settings.load_settings` (``episodes``, ``start_mode``,
     ``learner_options``, ...). ``out`` must be a new or empty directory; :meth:`load` opens an
@@ -94,7 +96,7 @@ class Tuner:
 
     def __init__(
         self,
-        system: str | None = None,
+        system: str | Mapping[str, Any] | None = None,
         learner: str = "mobo",
         out: str | Path = "tuning",
         *,
@@ -102,9 +104,12 @@ class Tuner:
         seed: int = 0,
         **overrides: Any,
     ) -> None:
-        sys_table = dict(overrides.pop("system", None) or {})
-        if system is not None:
-            sys_table["factory" if is_factory_path(system) else "name"] = system
+        if isinstance(system, Mapping):
+            sys_table = dict(system)
+        else:
+            sys_table = (
+                {} if system is None else {"factory" if is_factory_path(system) else "name": system}
+            )
         settings = load_settings(
             config,
             system=sys_table or None,
@@ -292,7 +297,10 @@ class Tuner:
     # ------------------------------------------------------------------ status
     def status(self) -> dict[str, Any]:
         """What is deployed and on what evidence: the deployed theta, the trials so far and how
-        many ran the deployed theta, the last J_eval (a simulated plant), the pending trial."""
+        many ran the deployed theta, the last J_eval (a simulated plant), the pending trial,
+        and with identification the last fit (``identification``: per parameter its nominal
+        value, estimate and standard deviation; the RMS scaled one-step errors on held-out
+        transitions of the fit and of the nominal model; the transitions fitted)."""
         rows = self.job.rows
         deployed = self.deployed
         ran = sum(1 for r in rows if np.allclose(r.theta, deployed, rtol=0, atol=1e-12))
@@ -312,6 +320,23 @@ class Tuner:
             "J_initial": None
             if not math.isfinite(self.reference.J_initial)
             else self.reference.J_initial,
+            "identification": self._identification(),
+        }
+
+    def _identification(self) -> dict[str, Any] | None:
+        """The learner's last fit of the model, as :meth:`status` reports it (None without)."""
+        fit = self.job.run.learner.identification()
+        if fit is None:
+            return None
+        nominal = dict(zip(self.system.param_names, self.system.models["imperfect"]))
+        return {
+            "parameters": {
+                name: {"nominal": float(nominal[name]), "estimate": float(q), "std": float(sd)}
+                for name, q, sd in zip(fit.names, fit.estimate, fit.std)
+            },
+            "holdout_error": fit.holdout_error,
+            "nominal_error": fit.nominal_error,
+            "transitions": fit.n,
         }
 
 

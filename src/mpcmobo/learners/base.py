@@ -15,6 +15,7 @@ from typing import Literal
 
 import numpy as np
 
+from mpcmobo.identify import Identification
 from mpcmobo.mpc.records import EpisodeRecord
 from mpcmobo.rl import CompatibleCritic, CriticResult, mean_stage_cost, objectives
 from mpcmobo.systems.space import SearchSpace
@@ -202,6 +203,12 @@ class Learner(ABC):
     def identified(self) -> np.ndarray | None:
         """The model parameters the learner has identified from the plant (None: it does not
         identify, or has no fit yet)."""
+        return None
+
+    def identification(self) -> Identification | None:
+        """The last fit of the model to the plant's transitions, with the parameters' standard
+        deviations and the held-out one-step errors (None: the learner does not identify, or
+        has no fit yet)."""
         return None
 
     def uses_start_cost(self) -> bool:

@@ -336,6 +336,10 @@ class IdentifyLearner(Learner):
         ident = self.switch_.identification_
         return None if ident is None else ident.estimate.copy()
 
+    def identification(self) -> Identification | None:
+        """The switch's last fit (None before a fit)."""
+        return self.switch_.identification_
+
     def state_dict(self) -> dict:
         """The base state and the switch's."""
         d = super().state_dict()
@@ -479,6 +483,11 @@ class IdentifyFirst(Learner):
             return self.switch_.fit.estimate_of(self.switch_.deployed_)
         ident = self.switch_.identification_
         return None if ident is None else ident.estimate.copy()
+
+    def identification(self) -> Identification | None:
+        """The switch's last fit, the one the deployed model came from once it has settled
+        (None before a fit)."""
+        return self.switch_.identification_
 
     def state_dict(self) -> dict:
         """The base state, the switch's and the tuning learner's."""
