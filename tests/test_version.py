@@ -1,5 +1,5 @@
 """``mpcmobo.__version__`` and ``mpcmobo --version`` come from the installed package metadata,
-and this release is 1.0.0."""
+and this release is 1.1.0."""
 
 from __future__ import annotations
 
@@ -19,17 +19,17 @@ def test_version_is_the_package_metadata():
     assert mpcmobo.__version__ == version("mpcmobo")
 
 
-def test_the_release_is_1_0_0():
-    """The source declares 1.0.0, and the installed metadata (what ``--version`` reads) is
+def test_the_release_is_1_1_0():
+    """The source declares 1.1.0, and the installed metadata (what ``--version`` reads) is
     that of this source: a stale install would report another version."""
-    assert tomllib.loads(PYPROJECT.read_text())["project"]["version"] == "1.0.0"
-    assert mpcmobo.__version__ == "1.0.0"
+    assert tomllib.loads(PYPROJECT.read_text())["project"]["version"] == "1.1.0"
+    assert mpcmobo.__version__ == "1.1.0"
 
 
 def test_cli_version_flag_prints_it_and_exits_0():
     result = CliRunner().invoke(app, ["--version"])
     assert result.exit_code == 0, result.output
-    assert result.output.strip() == "mpcmobo 1.0.0"
+    assert result.output.strip() == "mpcmobo 1.1.0"
     assert result.output.strip() == f"mpcmobo {version('mpcmobo')}"
     # the flag does not get in the way of the commands
     assert CliRunner().invoke(app, ["systems"]).exit_code == 0
