@@ -86,3 +86,8 @@ def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     assert res.exit_code == 2 and "no episode yet" in res.output  # nothing told yet
     res = runner.invoke(app, ["export", str(d), "--format", "zip", "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "--format must be casadi or c" in res.output
+    (tmp_path / "file").write_text("")
+    res = runner.invoke(app, ["export", str(d), "--format", "c", "--out", str(tmp_path / "file")])
+    assert res.exit_code == 2 and "is a file; C code goes into a directory" in res.output
+    res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "is a directory; the CasADi function is one file" in res.output

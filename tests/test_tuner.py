@@ -139,6 +139,14 @@ def test_bad_trials_and_logs_are_refused_and_nothing_recorded_changes(lq_tuner):
         ((trial, np.where(np.arange(7)[:, None] == 3, np.nan, X), U), "not finite at step 3"),
         ((trial, X + 1e4, U), "far outside its bounds"),
         ((trial, X, U + 1e3), "outside its bounds"),
+        ((0.7, X, U), "a Trial or its integer id"),
+        ((trial, [*X[:2].tolist(), ["x", 0.0], *X[3:].tolist()], U), "states holds a value that"),
+        ((trial, X, U, None, -np.ones(6)), "violations cannot be negative; step 0"),
+        ((trial, X, U, np.where(np.arange(6) == 4, np.nan, 1.0)), "stage_costs .* at step 4"),
+        (
+            (trial, pd.DataFrame({"p": [*X[:6, 0], "abc"], "v": X[:, 1], "f": [*U[:, 0], np.nan]})),
+            "column 'p' holds a value that is not a number",
+        ),
         (
             (
                 trial,
@@ -156,6 +164,122 @@ def test_bad_trials_and_logs_are_refused_and_nothing_recorded_changes(lq_tuner):
         tuner.tell(trial, X, U)
     with pytest.raises(TunerError, match="no trial is pending"):
         tuner.tell(1, X, U)
+
+
+def test_an_interrupted_tell_leaves_the_trial_pending(lq_tuner, monkeypatch):
+    """An interrupt (or an error) inside tell, after the learner has seen the episode: the
+    tuner is back where it was after the ask, the trial can be told again, and what is
+    recorded is what an uninterrupted tell records."""
+    tuner, trial = lq_tuner
+    X, U = _episode(tuner, trial)
+    from mpcmobo.experiment.job import Job
+
+    original = Job._evaluate
+
+    def interrupted(self, *args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Job, "_evaluate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        tuner.tell(trial, X, U)
+    monkeypatch.setattr(Job, "_evaluate", original)
+    assert tuner.episodes == 0 and tuner.status()["pending"] == 0
+    row = tuner.tell(trial, X, U)
+    assert row.episode == 0 and tuner.ask().id == 1
+    reloaded = Tuner.load(tuner.run_dir.path)
+    assert reloaded.episodes == 1 and reloaded.ask().id == 1
+
+
+def test_the_episode_starts_where_the_log_does(tmp_path):
+    """Random starts: a log that starts away from the trial's x0 is recorded from its own
+    first state (x0, and the start covariate of the learners' tests, are that state's); one
+    within START_TOLERANCE of x0 keeps x0. Cycled starts compare thetas from the same starts:
+    a log that starts elsewhere is refused."""
+    for mode in ("random", "cycle"):
+        tuner = Tuner("lq", "bo", tmp_path / mode, episodes=3, steps=6, start_mode=mode)
+        trial = tuner.ask()
+        X, U = _episode(tuner, trial)
+        near = X.copy()
+        near[0] += 0.01 * tuner.system.x_scale
+        elsewhere = X.copy()
+        elsewhere[0] = trial.x0 + 0.5 * tuner.system.x_scale
+        if mode == "cycle":
+            with pytest.raises(TunerError, match="must start at its trial's x0"):
+                tuner.tell(trial, elsewhere, U)
+            row = tuner.tell(trial, near, U)
+            np.testing.assert_array_equal(row.x0, trial.x0)
+            continue
+        row = tuner.tell(trial, elsewhere, U)
+        np.testing.assert_array_equal(row.x0, elsewhere[0])
+        trial = tuner.ask()
+        X, U = _episode(tuner, trial)
+        near = X.copy()
+        near[0] += 0.01 * tuner.system.x_scale
+        row = tuner.tell(trial, near, U)
+        np.testing.assert_array_equal(row.x0, trial.x0)
+        rows = pd.read_parquet(tmp_path / mode / "episodes.parquet")
+        assert rows.start_cost.nunique() == 2
+
+
+def test_a_tuner_is_extended_not_shortened_and_not_run_by_mpcmobo_run(tmp_path):
+    """A spent budget says how to extend it; Tuner.load(out, episodes=N) and mpcmobo ask
+    --episodes N extend it, a smaller one is refused; the flags that make a tuner are refused
+    on an existing one; mpcmobo run --resume refuses a tuner's directory (its trials run on the
+    plant); a new Tuner refuses a directory that holds one, and per-study settings."""
+    out = tmp_path / "t"
+    tuner = Tuner("lq", "bo", out, episodes=1, steps=6)
+    trial = tuner.ask()
+    tuner.tell(trial, *_episode(tuner, trial))
+    with pytest.raises(TunerError, match=r"budget of 1 trials is spent.*episodes=N"):
+        tuner.ask()
+    with pytest.raises(TunerError, match="extended, not shortened"):
+        Tuner.load(out, episodes=0)
+    assert Tuner.load(out, episodes=2).ask().id == 1
+    assert Tuner.load(out).settings.episodes == 2  # saved
+    runner = CliRunner()
+    res = runner.invoke(app, ["ask", str(out), "--learner", "mpc-rl"])
+    assert res.exit_code == 2 and "--learner apply only when one is made" in res.output
+    res = runner.invoke(app, ["ask", str(out), "--episodes", "3"])
+    assert res.exit_code == 0 and json.loads(res.output)["id"] == 1, res.output
+    assert Tuner.load(out).settings.episodes == 3
+    res = runner.invoke(app, ["run", "--resume", "--out", str(out), "-q"])
+    assert res.exit_code != 0 and "holds a tuner" in " ".join(res.output.split()), res.output
+    assert pd.read_parquet(out / "episodes.parquet").shape[0] == 1  # nothing run
+    with pytest.raises(TunerError, match="holds a run already: continue it with Tuner.load"):
+        Tuner("lq", "bo", out)
+    with pytest.raises(TunerError, match="give learner= and seed=, not seeds"):
+        Tuner("lq", "bo", tmp_path / "s", seeds=[1, 2])
+
+
+def test_a_tuner_that_cannot_be_built_leaves_nothing(tmp_path):
+    """A system the settings cannot build (an unknown identified parameter) fails before a
+    tuner exists: the directory is left as it was, in Python and on the command line."""
+    with pytest.raises(Exception, match="nosuch"):
+        Tuner({"name": "lq", "identify": ["nosuch"]}, "bo", tmp_path / "t", episodes=2)
+    assert not (tmp_path / "t").exists()
+    (tmp_path / "empty").mkdir()
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text('[system]\nname = "lq"\nidentify = ["nosuch"]\n')
+    res = CliRunner().invoke(app, ["ask", str(tmp_path / "empty"), "-c", str(cfg)])
+    assert res.exit_code == 2 and "nosuch" in res.output, res.output
+    assert list((tmp_path / "empty").iterdir()) == []
+
+
+def test_status_counts_every_change_and_evaluates_only_the_deployed_theta(tmp_path):
+    """mpc-rl deploying its iterate (the deployed theta changes at every tell, the first from
+    theta0): status counts both changes, and with the second tell not evaluated (every 2nd
+    episode is) it gives no J_eval rather than the previous theta's."""
+    out = tmp_path / "t"
+    tuner = Tuner({"name": "lq", "identify": False}, "mpc-rl", out, episodes=3, steps=6,
+                  learner_options={"mpc-rl": {"deploy": "iterate"}},
+                  evaluation={"n_starts": 2, "eval_every": 2})  # fmt: skip
+    for _ in range(2):
+        trial = tuner.ask()
+        tuner.tell(trial, *_episode(tuner, trial))
+    st = tuner.status()
+    assert st["changes_of_deployed"] == 2 and st["J_eval"] is None
+    res = CliRunner().invoke(app, ["status", str(out)])
+    assert "changed 2 times" in res.output and "deployed theta not evaluated yet" in res.output
 
 
 def test_a_dataframe_log_with_measured_costs(lq_tuner):

@@ -44,13 +44,23 @@ def _errors(fn: Any) -> Any:
         cli._fail(str(err), 1)
 
 
-def _tuner(directory: Path, **create: Any) -> Any:
-    """The tuner of ``directory``: loaded, or made there from ``create`` the first time."""
-    from mpcmobo.experiment.tuner import Tuner
+def _tuner(directory: Path, episodes: int | None, **create: Any) -> Any:
+    """The tuner of ``directory``: loaded (``episodes``: a larger budget), or made there from
+    ``create`` the first time (None: the default)."""
+    from mpcmobo.experiment.tuner import Tuner, TunerError
 
     if RunDirectory(directory).holds_run():
-        return Tuner.load(directory)
-    return Tuner(out=directory, **create)
+        given = [f"--{k}" for k, v in create.items() if v is not None]
+        if given:
+            raise TunerError(
+                f"{directory} holds a tuner already; {', '.join(given)} apply only when one "
+                "is made (--episodes extends its budget)"
+            )
+        return Tuner.load(directory, episodes=episodes)
+    made = {k: v for k, v in create.items() if v is not None}
+    if episodes is not None:
+        made["episodes"] = episodes
+    return Tuner(out=directory, **made)
 
 
 @app.command()
@@ -58,19 +68,19 @@ def ask(
     directory: Path = typer.Argument(..., help="the tuner's directory (made the first time)"),
     config: Path | None = typer.Option(None, "--config", "-c", help="settings file (TOML)"),
     system: str | None = typer.Option(None, "--system", help="system: a name or a factory"),
-    learner: str = typer.Option("mobo", "--learner", "-l", help="the learner"),
-    seed: int = typer.Option(0, "--seed", help="the tuner's seed"),
-    episodes: int | None = typer.Option(None, "--episodes", "-n", help="the budget of trials"),
+    learner: str | None = typer.Option(None, "--learner", "-l", help="the learner (mobo)"),
+    seed: int | None = typer.Option(None, "--seed", help="the tuner's seed (0)"),
+    episodes: int | None = typer.Option(
+        None, "--episodes", "-n", help="the budget of trials; on a tuner, a larger one"
+    ),
 ) -> None:
     """Print the next trial as JSON and write it, with its controller, to DIR/trials/<id>/."""
     from mpcmobo.mpc.export import export_casadi
 
     create = {"system": system, "learner": learner, "seed": seed, "config": config}
-    if episodes is not None:
-        create["episodes"] = episodes
 
     def go() -> dict:
-        tuner = _tuner(directory, **create)
+        tuner = _tuner(directory, episodes, **create)
         trial = tuner.ask()
         where = directory / "trials" / str(trial.id)
         where.mkdir(parents=True, exist_ok=True)
@@ -107,7 +117,8 @@ def tell(
 
     tuner, row = _errors(go)
     rows = tuner.job.rows
-    moved = len(rows) > 1 and rows[-1].incumbent != rows[-2].incumbent
+    before = rows[-2].incumbent if len(rows) > 1 else tuner.job.run.learner.theta0
+    moved = not np.array_equal(rows[-1].incumbent, before)
     changed = " (the deployed theta changed)" if moved else ""
     cli.console.print(
         f"trial {row.episode} told: f1 {fmt(row.f1)}, {tuner.episodes} of "
@@ -129,9 +140,11 @@ def status(directory: Path = typer.Argument(..., help="the tuner's directory")) 
         f"{st['changes_of_deployed']} times",
         highlight=False,
     )
-    if st["J_eval"] is not None:
+    if st["J_initial"] is not None:  # a simulated plant
+        J = "not evaluated yet" if st["J_eval"] is None else fmt(st["J_eval"])
         cli.console.print(
-            f"J_eval {fmt(st['J_eval'])}, J(theta0) {fmt(st['J_initial'])}, J* {fmt(st['J_star'])}",
+            f"J_eval of the deployed theta {J}, J(theta0) {fmt(st['J_initial'])}, "
+            f"J* {fmt(st['J_star'])}",
             highlight=False,
         )
     table = Table(title="deployed theta")
@@ -220,6 +233,10 @@ def export(
 
     def go() -> str:
         run_dir = cli._require_run(directory)
+        if fmt_ == "c" and out.exists() and not out.is_dir():
+            raise TunerError(f"--out {out} is a file; C code goes into a directory")
+        if fmt_ == "casadi" and out.is_dir():
+            raise TunerError(f"--out {out} is a directory; the CasADi function is one file")
         settings, name, th = _theta_of(run_dir, theta, learner, seed)
         mpc = ParametricMPC(build_system(settings, name), "imperfect", **settings.mpc.options())
         if fmt_ == "casadi":
@@ -232,4 +249,4 @@ def export(
                 raise TunerError(f"compiling failed: {proc.stderr.strip()[-1500:]}")
         return f"wrote {out}/controller.c, controller.h, main.c; build with:\n" + " ".join(cmd)
 
-    cli.console.print(_errors(go), highlight=False, markup=False)
+    cli.console.print(_errors(go), highlight=False, markup=False, soft_wrap=True)

@@ -107,10 +107,16 @@ class RunDirectory:
         self.path = Path(path)
         self.config = self.path / "config.toml"
         self.reference_path = self.path / "reference.pkl"
+        self.tuner_mark = self.path / "tuner.json"  # written by a Tuner (ask and tell)
 
     def holds_run(self) -> bool:
         """Whether the directory holds a run (its ``config.toml`` exists)."""
         return self.config.exists()
+
+    def is_tuner(self) -> bool:
+        """Whether the run is a tuner's (ask and tell): its episodes run on a plant outside
+        mpcmobo, so ``mpcmobo run --resume`` must not run them."""
+        return self.tuner_mark.exists()
 
     def saved_settings(self, *, for_records: bool = False, **overrides: Any) -> Settings:
         """The run's saved settings (with ``overrides``, see :func:`load_settings`).
@@ -236,8 +242,14 @@ class RunDirectory:
         return read_run_file(
             self.reference_path,
             lambda p: Reference.from_dict(storage.read_pickle(p)),
-            f"delete it and continue with `mpcmobo run --resume --out {self.path}`, which "
-            "computes it again (J* and J_eval(theta0); the jobs' records are not affected)",
+            (
+                f"delete it: the tuner computes it again when it is loaded (`mpcmobo status "
+                f"{self.path}`)"
+                if self.is_tuner()
+                else f"delete it and continue with `mpcmobo run --resume --out {self.path}`, "
+                "which computes it again"
+            )
+            + " (J* and J_eval(theta0); the jobs' records are not affected)",
         )
 
     def save_reference(self, reference: Reference) -> None:

@@ -339,6 +339,12 @@ def run_study(
     with interrupts.catching():
         if settings is not None and not resume:
             check_learners(settings)  # a bad learner option fails before anything is written
+        if resume and RunDirectory(out_dir).is_tuner():
+            raise StudyError(
+                f"{out_dir} holds a tuner (ask and tell): its trials run on the plant, not in "
+                f"mpcmobo run. Go on with `mpcmobo ask {out_dir}`; `mpcmobo ask {out_dir} "
+                "--episodes N` extends its budget"
+            )
         run_dir, settings = open_run(out_dir, settings, resume)
         with run_log(run_dir.path, "study"):
             return _run_study(run_dir, settings, resume, progress, max_episodes_this_call)

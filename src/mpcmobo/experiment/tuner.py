@@ -16,10 +16,12 @@ deployed theta is evaluated as in a study (J_eval); on a real plant it is not.
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +41,8 @@ __all__ = ["Trial", "Tuner", "TunerError"]
 
 # a logged state further than this many widths of its bounds outside them is not a state
 STATE_RANGE = 10.0
+# a logged first state within this fraction of x_scale of the trial's x0 started there
+START_TOLERANCE = 0.05
 
 
 class TunerError(ValueError):
@@ -104,6 +108,17 @@ class Tuner:
         seed: int = 0,
         **overrides: Any,
     ) -> None:
+        per_job = sorted(k for k in ("learners", "seeds", "workers") if k in overrides)
+        if per_job:
+            raise TunerError(
+                f"a tuner runs one learner with one seed in one process: give learner= and "
+                f"seed=, not {', '.join(per_job)}"
+            )
+        if RunDirectory(out).holds_run():
+            raise TunerError(
+                f"{out} holds a run already: continue it with Tuner.load({str(out)!r}) "
+                f"(mpcmobo ask {out}), or give a new directory"
+            )
         if isinstance(system, Mapping):
             sys_table = dict(system)
         else:
@@ -118,12 +133,25 @@ class Tuner:
             workers=1,
             **overrides,
         )
+        existed = Path(out).exists()
         run_dir, settings = open_run(out, settings, resume=False)
-        self._open(run_dir, settings, new=True)
+        try:
+            self._open(run_dir, settings, new=True)
+            storage.atomic_write_text(
+                run_dir.tuner_mark, json.dumps({"learner": learner, "seed": seed}) + "\n"
+            )
+        except BaseException:  # a system or learner that cannot be built: leave no tuner
+            for path in [*run_dir.path.iterdir()] if existed else [run_dir.path]:
+                if path.is_dir():
+                    shutil.rmtree(path, ignore_errors=True)
+                else:
+                    path.unlink(missing_ok=True)
+            raise
 
     @classmethod
-    def load(cls, out: str | Path) -> Tuner:
-        """The tuner recorded in ``out``, where it stopped (also between ask and tell)."""
+    def load(cls, out: str | Path, episodes: int | None = None) -> Tuner:
+        """The tuner recorded in ``out``, where it stopped (also between ask and tell);
+        ``episodes``: a larger budget of trials from now on (saved with its settings)."""
         run_dir = RunDirectory(out)
         if not run_dir.holds_run():
             raise TunerError(f"{out} holds no tuner (no config.toml)")
@@ -134,6 +162,13 @@ class Tuner:
                 f"{out} holds a study of {len(settings.learners)} learners and "
                 f"{len(settings.seeds)} seeds; a tuner has one of each"
             )
+        if episodes is not None and episodes != settings.episodes:
+            if episodes < settings.episodes:
+                raise TunerError(
+                    f"episodes: the tuner in {out} has a budget of {settings.episodes} trials; "
+                    f"it can be extended, not shortened (got {episodes})"
+                )
+            settings = run_dir.reopen(settings.model_copy(update={"episodes": int(episodes)}))
         tuner = cls.__new__(cls)
         tuner._open(run_dir, settings, new=False)
         return tuner
@@ -141,7 +176,7 @@ class Tuner:
     def _open(self, run_dir: RunDirectory, settings: Settings, new: bool) -> None:
         self.run_dir, self.settings = run_dir, settings
         self.learner, self.seed = settings.learners[0], settings.seeds[0]
-        system = build_system(settings)
+        system = build_system(settings, self.learner)  # the learner's: its identify checked
         self.evaluates = system.has_true_plant or needs_plant(settings)
         reference = run_dir.reference()
         if reference is None:
@@ -183,8 +218,9 @@ class Tuner:
         """The next trial (the pending one again if it has not been told)."""
         if self.job.done:
             raise TunerError(
-                f"the tuner's budget of {self.settings.episodes} episodes is spent; give it a "
-                "larger one to go on (mpcmobo run --resume --out DIR --episodes N extends it)"
+                f"the tuner's budget of {self.settings.episodes} trials is spent; give it a "
+                f"larger one to go on: Tuner.load(out, episodes=N), or mpcmobo ask "
+                f"{self.run_dir.path} --episodes N"
             )
         if self.job.pending is None:
             plan = self.job.run.plan()
@@ -217,19 +253,44 @@ class Tuner:
         ``violations`` (T,) if the plant measured them. Arrays, or one DataFrame with the
         system's state and input names as columns (inputs empty in the last row) and
         optionally ``stage_cost`` and ``violation``. Returns the episode's row."""
-        tid = trial.id if isinstance(trial, Trial) else int(trial)
-        plan = self._pending(tid)
+        plan = self._pending(_trial_id(trial))
         X, U, L, V = self._log(states, inputs, stage_costs, violations)
+        plan = self._started(plan, X[0])
         t0 = time.perf_counter()
         record = replay(self.system, self.job.run.mpc, plan.theta, X, U, L, V)
         mpc_time = time.perf_counter() - t0
+        try:
+            row = self.job.complete(plan, record, "", mpc_time)
+        except BaseException:
+            # the learner may have observed the episode in part (an interrupt, an error):
+            # back to the last checkpoint, where the trial is pending, so it can be told again
+            self._open(self.run_dir, self.settings, new=False)
+            raise
         self.job.pending = None
-        row = self.job.complete(plan, record, "", mpc_time)
         self.job.save()
         write_records(self.run_dir.path, self.settings, self.reference)
         return row
 
+    def _started(self, plan: EpisodePlan, x_first: np.ndarray) -> EpisodePlan:
+        """The plan with the episode's logged initial state: the trial's ``x0`` if the log
+        starts within ``START_TOLERANCE`` x_scale of it (a measurement of that start), else
+        the logged state; under cycled starts an episode must start at its trial's ``x0``."""
+        scale = np.asarray(self.system.x_scale, float)
+        if np.all(np.abs(x_first - plan.x0) <= START_TOLERANCE * scale):
+            return plan
+        if self.settings.start_mode == "cycle":
+            j = int(np.argmax(np.abs(x_first - plan.x0) / scale))
+            raise TunerError(
+                f"the log starts at {self.system.state_names[j]} = {x_first[j]:.6g}, the trial "
+                f"at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared from the "
+                "same starts, so an episode must start at its trial's x0 (within "
+                f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "
+                "start_mode = 'random'"
+            )
+        return replace(plan, x0=np.array(x_first, float))
+
     def _pending(self, tid: int) -> EpisodePlan:
+        """The pending trial's plan, if ``tid`` is its id."""
         pending = self.job.pending
         if pending is not None and int(pending["episode"]) == tid:
             return EpisodePlan.from_dict(pending)
@@ -248,10 +309,10 @@ class Tuner:
         s, T = self.system, self.job.run.steps
         if hasattr(states, "columns"):  # a DataFrame
             states, inputs, stage_costs, violations = _frame(states, s)
-        X = np.asarray(states, dtype=float)
+        X = _numbers(states, "states")
         if inputs is None:
             raise TunerError("the log needs the inputs applied (inputs, or input columns)")
-        U = np.asarray(inputs, dtype=float)
+        U = _numbers(inputs, "inputs")
         if X.shape != (T + 1, s.nx):
             raise TunerError(
                 f"states must be ({T + 1}, {s.nx}): the {T + 1} states of the episode "
@@ -288,23 +349,35 @@ class Tuner:
             if arr is None:
                 out.append(None)
                 continue
-            a = np.asarray(arr, dtype=float).reshape(-1)
-            if a.shape != (T,) or not np.all(np.isfinite(a)):
-                raise TunerError(f"{name} must be {T} finite numbers, one per input; got {a.shape}")
+            a = _numbers(arr, name).reshape(-1)
+            if a.shape != (T,):
+                raise TunerError(f"{name} must be {T} numbers, one per input; got {a.shape}")
+            if not np.all(np.isfinite(a)):
+                k = int(np.flatnonzero(~np.isfinite(a))[0])
+                raise TunerError(f"{name} has a value that is not finite at step {k}: {a[k]}")
+            if name == "violations" and np.any(a < 0):
+                k = int(np.flatnonzero(a < 0)[0])
+                raise TunerError(f"violations cannot be negative; step {k} has {a[k]}")
             out.append(a)
         return X, U, out[0], out[1]
 
     # ------------------------------------------------------------------ status
     def status(self) -> dict[str, Any]:
         """What is deployed and on what evidence: the deployed theta, the trials so far and how
-        many ran the deployed theta, the last J_eval (a simulated plant), the pending trial,
+        many ran the deployed theta and how often it changed from theta0, the deployed theta's
+        last J_eval (a simulated plant; None until it is evaluated), the pending trial,
         and with identification the last fit (``identification``: per parameter its nominal
         value, estimate and standard deviation; the RMS scaled one-step errors on held-out
         transitions of the fit and of the nominal model; the transitions fitted)."""
         rows = self.job.rows
         deployed = self.deployed
         ran = sum(1 for r in rows if np.allclose(r.theta, deployed, rtol=0, atol=1e-12))
-        J = [r.J_eval_incumbent for r in rows if math.isfinite(r.J_eval_incumbent)]
+        J = [  # the deployed theta's own evaluations
+            r.J_eval_incumbent
+            for r in rows
+            if math.isfinite(r.J_eval_incumbent) and np.array_equal(r.incumbent, deployed)
+        ]
+        incumbents = [self.job.run.learner.theta0, *(np.asarray(r.incumbent) for r in rows)]
         return {
             "learner": self.learner,
             "trials": len(rows),
@@ -313,7 +386,7 @@ class Tuner:
             "deployed": dict(zip(self._policy_mpc.theta_names, map(float, deployed))),
             "deployed_episodes": ran,
             "changes_of_deployed": sum(
-                1 for a, b in zip(rows, rows[1:]) if not np.array_equal(a.incumbent, b.incumbent)
+                1 for a, b in zip(incumbents, incumbents[1:]) if not np.array_equal(a, b)
             ),
             "J_eval": J[-1] if J else None,
             "J_star": self.reference.J_star,
@@ -340,15 +413,42 @@ class Tuner:
         }
 
 
+def _trial_id(trial: Any) -> int:
+    """A trial's id: a :class:`Trial`'s, or an integer."""
+    if isinstance(trial, Trial):
+        return trial.id
+    if isinstance(trial, (int, np.integer)) and not isinstance(trial, bool):
+        return int(trial)
+    raise TunerError(f"a trial is a Trial or its integer id, not {trial!r}")
+
+
+def _numbers(values: Any, name: str) -> np.ndarray:
+    """``values`` as an array of floats, or a :class:`TunerError` naming what is not a
+    number."""
+    try:
+        return np.asarray(values, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise TunerError(f"{name} holds a value that is not a number: {err}") from None
+
+
 def _frame(df: Any, system: Any) -> tuple[Any, Any, Any, Any]:
     """States, inputs, stage costs and violations from a DataFrame with the system's state and
     input names as columns (the inputs' last row empty)."""
+    import pandas as pd
+
     missing = [c for c in (*system.state_names, *system.input_names) if c not in df.columns]
     if missing:
         raise TunerError(
             f"the log has no column {missing[0]!r}; it needs the states "
             f"{list(system.state_names)} and the inputs {list(system.input_names)}"
         )
+    optional = [c for c in ("stage_cost", "violation") if c in df.columns]
+    for c in (*system.state_names, *system.input_names, *optional):
+        try:
+            pd.to_numeric(df[c])
+        except (TypeError, ValueError) as err:
+            msg = f"the log's column {c!r} holds a value that is not a number: {err}"
+            raise TunerError(msg) from None
     X = df[list(system.state_names)].to_numpy(float)
     U = df[list(system.input_names)].to_numpy(float)[:-1]
     L = df["stage_cost"].to_numpy(float)[:-1] if "stage_cost" in df.columns else None
