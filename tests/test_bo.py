@@ -358,3 +358,33 @@ def test_ehvi_with_a_pruned_baseline_proposes_in_cube():
         sur, X, Y, reference_point(Y), seed=0, options=options, search=AcqfSearch(2, 32)
     )
     assert x.shape == (2,) and np.all((x >= 0) & (x <= 1))
+
+
+def test_a_killed_builds_lock_is_cleared_and_a_live_build_is_waited_for(tmp_path):
+    """BoTorch builds its fused EHVI kernel under a lock that torch waits for without end: a
+    lock as old as STALE_BUILD_LOCK (a killed build's) is removed with a warning; a younger one
+    is waited for until its build removes it, or until it is that old."""
+    import os
+    import threading
+    import time
+    import warnings
+
+    from mpcmobo.bo.acquisition import clear_dead_build_lock
+
+    lock = tmp_path / "lock"
+    assert clear_dead_build_lock(lock) is False  # none
+    lock.write_text("")
+    os.utime(lock, (time.time() - 200, time.time() - 200))
+    with pytest.warns(RuntimeWarning, match="never finished"):
+        assert clear_dead_build_lock(lock, stale=120) is True
+    assert not lock.exists()
+    lock.write_text("")  # a live build, done in 0.2 s
+    threading.Timer(0.2, lock.unlink).start()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert clear_dead_build_lock(lock, stale=30, poll=0.05) is False
+    lock.write_text("")  # a build killed just now: removed once it is 0.3 s old
+    t0 = time.time()
+    with pytest.warns(RuntimeWarning, match="never finished"):
+        assert clear_dead_build_lock(lock, stale=0.3, poll=0.05) is True
+    assert 0.25 <= time.time() - t0 < 5 and not lock.exists()

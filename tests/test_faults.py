@@ -126,9 +126,19 @@ def test_a_failing_proposal_is_recorded_and_the_incumbent_runs(
     assert (df.error.drop([2, 5]) == "").all()
 
 
+@pytest.mark.parametrize(
+    ("error", "recorded"),
+    [
+        (FloatingPointError("the plant ran away at step 3: state [1e+70]"),
+         "evaluation: the plant ran away at step 3"),
+        (RuntimeError("plant step failure"), "evaluation: RuntimeError: plant step failure"),
+    ],
+)  # fmt: skip
 def test_an_evaluation_that_runs_the_plant_away_is_recorded_and_the_run_goes_on(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, error, recorded
 ):
+    """A plant that runs away, or raises, from an evaluation start: J_eval is inf with the
+    error, the run goes on."""
     armed = []
     compute = study.compute_reference
 
@@ -141,7 +151,7 @@ def test_an_evaluation_that_runs_the_plant_away_is_recorded_and_the_run_goes_on(
 
     def runaway(self, theta, model="imperfect"):
         if armed:
-            raise FloatingPointError("the plant ran away at step 3: state [1e+70]")
+            raise error
         return original(self, theta, model)
 
     monkeypatch.setattr(study, "compute_reference", reference_then_arm)
@@ -152,11 +162,13 @@ def test_an_evaluation_that_runs_the_plant_away_is_recorded_and_the_run_goes_on(
     assert len(df) == EPISODES
     last = df.iloc[-1]
     assert math.isinf(last.J_eval_incumbent) and last.J_eval_incumbent > 0
-    assert last.error.startswith("evaluation: the plant ran away at step 3")
+    assert last.error.startswith(recorded)
     assert math.isfinite(df.J_eval_incumbent.iloc[0])  # theta0's, from the reference
     seed = storage.read_json(tmp_path / "run" / "summary.json")["learners"]["bo"]["per_seed"]["0"]
     assert seed["J_final"] is None and seed["regressions"] >= 1  # inf: not a number in JSON
     assert make_figures(tmp_path / "run")  # the figures skip what they cannot draw
+    if isinstance(error, RuntimeError):
+        return
 
     def runaway_J(self, theta, model="imperfect"):
         if theta is not None:  # the saved incumbents, not J* or theta0's J_eval
@@ -167,3 +179,27 @@ def test_an_evaluation_that_runs_the_plant_away_is_recorded_and_the_run_goes_on(
     result = CliRunner().invoke(app, ["evaluate", str(tmp_path / "run")], env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     assert "the plant ran away" in result.output
+
+
+def test_a_plant_that_fails_while_the_reference_is_computed_ends_the_run_with_a_message(
+    tmp_path, monkeypatch
+):
+    """J* and J(theta0) are what every J_eval is measured against: a plant that raises while
+    they are computed ends the run with a message that says so, not a traceback."""
+
+    def failing(self, theta, model="imperfect"):
+        raise RuntimeError("plant step failure")
+
+    monkeypatch.setattr(Evaluator, "episodes", failing)
+    settings = small(["bo"])
+    from mpcmobo.experiment.settings import settings_to_toml
+
+    (tmp_path / "s.toml").write_text(settings_to_toml(settings))
+    res = CliRunner().invoke(app, ["run", "-c", str(tmp_path / "s.toml"), "--out",
+                                   str(tmp_path / "run"), "-q"])  # fmt: skip
+    text = " ".join(res.output.split())
+    assert res.exit_code == 1 and "Traceback" not in text, text
+    assert (
+        "computing J(theta0), theta0's MPC on the plant from the evaluation starts failed: "
+        "RuntimeError: plant step failure" in text
+    )

@@ -136,6 +136,9 @@ def test_overrides_merge_into_file(tmp_path):
             "learner_options.mpc-rl.deploy:",
             "max_runs (6) must be at least runs (8)",
         ),
+        ({"system": {"learn_model": ["k0", "k0"]}}, "system.learn_model:", "only once"),
+        ({"system": {"identify": ["k0", "k0"]}}, "system.identify:", "only once"),
+        ({"beta": -1.0}, "beta:", "positive"),
     ],
 )
 def test_invalid_values_name_the_key(data, key, allowed):
@@ -143,6 +146,11 @@ def test_invalid_values_name_the_key(data, key, allowed):
         validate_settings(data)
     msg = str(exc.value)
     assert key in msg and allowed in msg, msg
+
+
+def test_an_unknown_learnable_model_parameter_names_its_key():
+    with pytest.raises(SettingsError, match=r"system.learn_model: unknown model parameter"):
+        load_settings(None, system={"name": "lq", "learn_model": ["mass"]})
 
 
 def test_bad_files(tmp_path):

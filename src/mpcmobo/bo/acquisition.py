@@ -17,7 +17,10 @@ samples of ``optimize_acqf`` and the quasi-MC sampler is ``SobolQMCNormalSampler
 
 from __future__ import annotations
 
+import time
+import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import gpytorch
 import moocore
@@ -40,6 +43,11 @@ from mpcmobo.bo.pareto import pareto_mask
 from mpcmobo.bo.surrogate import GPSurrogate
 
 __all__ = ["AcqfSearch", "EHVIOptions", "posterior_front", "propose_ehvi", "propose_ei"]
+
+# BoTorch compiles its fused qLogEHVI kernel on first use, under a lock file that torch waits
+# for without end; a build killed (kill -9) leaves the lock behind. A build takes 20-30 s: a
+# lock older than this is a dead build's.
+STALE_BUILD_LOCK = 120.0
 
 
 @dataclass(frozen=True)
@@ -201,6 +209,46 @@ class _SingleLogEHVI(qLogExpectedHypervolumeImprovement):
         return logmeanexp(logsumexp(log_areas[..., 0], dim=-1), dim=0)
 
 
+def clear_dead_build_lock(lock: Path, stale: float = STALE_BUILD_LOCK, poll: float = 1.0) -> bool:
+    """Wait while another process builds under ``lock``; remove the lock once it is ``stale``
+    seconds old (a killed build's, which torch would wait for forever), with a warning. Returns
+    whether it removed one."""
+    while True:
+        try:
+            age = time.time() - lock.stat().st_mtime
+        except FileNotFoundError:
+            return False
+        if age >= stale:
+            lock.unlink(missing_ok=True)
+            warnings.warn(
+                f"removed {lock}, the lock of a build of BoTorch's fused EHVI kernel started "
+                f"{age:.0f} s ago and never finished (a killed process); building it again",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+            return True
+        time.sleep(min(poll, stale - age))
+
+
+_build_lock_checked = False
+
+
+def _fused_kernel_lock() -> None:
+    """Once per process, before BoTorch first loads its fused kernel: clear a dead build's
+    lock (:func:`clear_dead_build_lock`)."""
+    global _build_lock_checked
+    if _build_lock_checked or _logei._load_attempted:
+        return
+    _build_lock_checked = True
+    try:
+        from torch.utils.cpp_extension import _get_build_directory
+
+        lock = Path(_get_build_directory("logei_fused_ext", verbose=False)) / "lock"
+    except Exception:  # noqa: BLE001 - no build directory: nothing to clear  # pragma: no cover
+        return
+    clear_dead_build_lock(lock)
+
+
 def _logehvi(
     surrogate: GPSurrogate,
     Xf: np.ndarray,
@@ -217,6 +265,7 @@ def _logehvi(
     else:  # no posterior mean beats the reference point yet: the whole box is improvement
         front = torch.empty((0, m), dtype=DTYPE)
     part = FastNondominatedPartitioning(ref_point=tref, Y=front)
+    _fused_kernel_lock()
     return _SingleLogEHVI(  # eq. EHVI (log, MC)
         surrogate.fast_model,  # same posterior, faster
         ref_point=tref,

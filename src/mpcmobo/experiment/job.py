@@ -244,8 +244,9 @@ class Job:
 
     def _evaluate(self, episode: int, incumbent: np.ndarray) -> tuple[float, str]:
         """J_eval of the incumbent if the schedule evaluates it, else NaN; at the last episode
-        the final incumbent's evaluation episodes are stored. An incumbent that runs the plant
-        away from an evaluation start has J_eval = inf, with the error (the run goes on)."""
+        the final incumbent's evaluation episodes are stored. An incumbent whose evaluation
+        fails (the plant runs away or diverges from a start, or raises) has J_eval = inf, with
+        the error (the run goes on), as a training episode that fails is recorded."""
         if not self.schedule.step(episode, incumbent) or not self.evaluates:
             return math.nan, ""
         try:
@@ -258,9 +259,12 @@ class Job:
                     for i, r in enumerate(eps)
                 ]
             return self.evaluator.J_eval(incumbent), ""
-        except FloatingPointError as err:
+        except (FloatingPointError, ValueError, RuntimeError) as err:
             self.evaluator.remember(incumbent, math.inf)
-            return math.inf, f"evaluation: {err}"
+            what = (
+                str(err) if isinstance(err, FloatingPointError) else f"{type(err).__name__}: {err}"
+            )
+            return math.inf, f"evaluation: {what}"
 
     def episodes(self, max_episodes: int | None = None) -> Iterator[EpisodeRow]:
         """Step until the budget is done (or ``max_episodes`` more episodes), yielding each

@@ -115,6 +115,13 @@ class SystemSettings(_Section):
     system that declares no model parameter has nothing to identify and tunes as with
     ``false``."""
 
+    @field_validator("learn_model", "identify")
+    @classmethod
+    def _once_each(cls, v: bool | list[str]) -> bool | list[str]:
+        if isinstance(v, list) and len(set(v)) != len(v):
+            raise ValueError("each model parameter may appear only once")
+        return v
+
     @field_validator("factory", "plant")
     @classmethod
     def _factory_path(cls, v: str | None) -> str | None:
@@ -282,7 +289,7 @@ class Settings(_Section):
     critic: CriticSettings = Field(default_factory=CriticSettings)
     """The compatible critic."""
     beta: float = 1.0
-    """The weight beta of f4 (the Lyapunov decrease)."""
+    """The weight beta > 0 of f4 (the Lyapunov decrease)."""
     learners: list[str] = Field(default_factory=lambda: list(DEFAULT_LEARNERS), min_length=1)
     """The learners of the study (``mpc-rl``, ``bo``, ``mobo``, ``hybrid``, ``identify``): by
     default the paper's three and ``identify``, the identification baseline (left out on a
@@ -339,8 +346,8 @@ class Settings(_Section):
     @field_validator("beta")
     @classmethod
     def _beta(cls, v: float) -> float:
-        if not math.isfinite(v):
-            raise ValueError("must be a finite number")
+        if not math.isfinite(v) or v <= 0:
+            raise ValueError("must be a positive finite number (the paper's beta > 0)")
         return v
 
     @model_validator(mode="after")
@@ -421,12 +428,20 @@ def build_system(settings: Settings, learner: str | None = None) -> System:
     key = "system.factory" if settings.system.factory is not None else "system.name"
     try:
         system = get_system(settings.system.spec, **settings.system.spec_overrides())
+        unknown = [n for n in settings.system.learn_model if n not in system.param_names]
+        if unknown:
+            raise SettingsError(
+                f"system.learn_model: unknown model parameter(s) {unknown}; the system has "
+                f"{list(system.param_names)}"
+            )
         names = identified_parameters(settings, system, learner)
         if not names:
             return system
         return get_system(
             settings.system.spec, **settings.system.spec_overrides(), identify=tuple(names)
         )
+    except SettingsError:
+        raise
     except (SystemSpecError, SystemDefinitionError) as err:
         raise SettingsError(f"{key}: {err}") from None
     except ValueError as err:  # an MPC setting the system refuses

@@ -106,7 +106,15 @@ def compute_reference(settings: Settings) -> Reference:
     trajectories = []
     values = {}
     for phase, model, theta in phases:
-        eps = evaluator.episodes(theta, model)
+        try:
+            eps = evaluator.episodes(theta, model)
+        except (FloatingPointError, ValueError, RuntimeError) as err:
+            what = "J(theta0), theta0's MPC" if phase == "initial" else "J*, the perfect MPC"
+            raise StudyError(
+                f"computing {what} on the plant from the evaluation starts failed: "
+                f"{type(err).__name__}: {err}. Every J_eval is measured against these; check the "
+                "plant (docs/user-systems.md) and run again"
+            ) from None
         values[phase] = mean_cost(eps)
         trajectories += [
             Trajectory(phase, -1, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
