@@ -138,7 +138,7 @@ def test_overrides_merge_into_file(tmp_path):
         ),
         ({"system": {"learn_model": ["k0", "k0"]}}, "system.learn_model:", "only once"),
         ({"system": {"identify": ["k0", "k0"]}}, "system.identify:", "only once"),
-        ({"beta": -1.0}, "beta:", "positive"),
+        ({"beta": -1.0}, "beta:", "greater than 0"),
     ],
 )
 def test_invalid_values_name_the_key(data, key, allowed):

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -165,15 +165,10 @@ class SystemSettings(_Section):
 
     def spec_overrides(self) -> dict[str, Any]:
         """The overrides of the system's ``MPCSpec`` that these settings ask for."""
-        out: dict[str, Any] = {}
-        if self.learn_model:
-            out["learn_model"] = tuple(self.learn_model)
-        if self.learn_backoff:
-            out["learn_backoff"] = True
-        if self.learn_theta_c:
-            out["learn_theta_c"] = True
-        if self.full_weights:
-            out["full_weights"] = True
+        out: dict[str, Any] = {"learn_model": tuple(self.learn_model)} if self.learn_model else {}
+        out |= {
+            k: True for k in ("learn_backoff", "learn_theta_c", "full_weights") if getattr(self, k)
+        }
         for k in ("weight_log_range", "model_log_range"):
             if getattr(self, k) is not None:
                 out[k] = getattr(self, k)
@@ -288,7 +283,7 @@ class Settings(_Section):
     """Starts of the cycle (``start_mode = "cycle"``)."""
     critic: CriticSettings = Field(default_factory=CriticSettings)
     """The compatible critic."""
-    beta: float = 1.0
+    beta: float = Field(1.0, gt=0, allow_inf_nan=False)
     """The weight beta > 0 of f4 (the Lyapunov decrease)."""
     learners: list[str] = Field(default_factory=lambda: list(DEFAULT_LEARNERS), min_length=1)
     """The learners of the study (``mpc-rl``, ``bo``, ``mobo``, ``hybrid``, ``identify``): by
@@ -341,13 +336,6 @@ class Settings(_Section):
             raise ValueError("seeds must be integers in [0, 2**63)")
         if len(set(v)) != len(v):
             raise ValueError("each seed may appear only once")
-        return v
-
-    @field_validator("beta")
-    @classmethod
-    def _beta(cls, v: float) -> float:
-        if not math.isfinite(v) or v <= 0:
-            raise ValueError("must be a positive finite number (the paper's beta > 0)")
         return v
 
     @model_validator(mode="after")
@@ -428,24 +416,24 @@ def build_system(settings: Settings, learner: str | None = None) -> System:
     key = "system.factory" if settings.system.factory is not None else "system.name"
     try:
         system = get_system(settings.system.spec, **settings.system.spec_overrides())
-        unknown = [n for n in settings.system.learn_model if n not in system.param_names]
-        if unknown:
-            raise SettingsError(
-                f"system.learn_model: unknown model parameter(s) {unknown}; the system has "
-                f"{list(system.param_names)}"
-            )
+        _known_parameters(settings.system.learn_model, system, "system.learn_model")
         names = identified_parameters(settings, system, learner)
         if not names:
             return system
         return get_system(
             settings.system.spec, **settings.system.spec_overrides(), identify=tuple(names)
         )
-    except SettingsError:
-        raise
     except (SystemSpecError, SystemDefinitionError) as err:
         raise SettingsError(f"{key}: {err}") from None
-    except ValueError as err:  # an MPC setting the system refuses
-        raise SettingsError(f"system: {err}") from None
+    except ValueError as err:  # an MPC setting the system refuses (or a key named above)
+        raise err if isinstance(err, SettingsError) else SettingsError(f"system: {err}") from None
+
+
+def _known_parameters(names: Sequence[str], system: System, key: str) -> None:
+    """A :class:`SettingsError` at ``key`` if ``names`` has a parameter the system lacks."""
+    known = list(system.param_names)
+    if unknown := [n for n in names if n not in known]:
+        raise SettingsError(f"{key}: unknown model parameter(s) {unknown}; the system has {known}")
 
 
 def identified_parameters(
@@ -458,12 +446,7 @@ def identified_parameters(
     if learner is None:
         return ()
     if isinstance(ident, list) and ident:
-        unknown = [n for n in ident if n not in system.param_names]
-        if unknown:
-            raise ValueError(
-                f"identify: unknown model parameter(s) {unknown}; the system has "
-                f"{list(system.param_names)}"
-            )
+        _known_parameters(ident, system, "system.identify")
         return tuple(ident)
     if ident is True or learner == "identify":
         return tuple(system.identifiable or ())
