@@ -20,6 +20,7 @@ from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 from mpcmobo.identify import Identification, ModelFit, Transitions, identify, prediction_error
 from mpcmobo.learners import EpisodeResult, Replay, Starts
+from mpcmobo.learners.confidence import adjusted_confidence
 from mpcmobo.learners.evidence import theta_key
 from mpcmobo.learners.identified import REFIT_GROWTH, ModelSwitch
 from mpcmobo.learners.options import EvidenceDeploy
@@ -447,6 +448,60 @@ def test_a_dropped_model_is_tried_again_when_the_fit_moves_a_deployed_one_not():
         sw.identification_ = _fit_of(q0 + 1e-6, std=1e-9)
         sw.decide()
         assert (sw.candidate_ is None) is deployed
+
+
+def test_unsure_model_candidates_pool_their_evidence_until_one_is_decided():
+    """Random starts: a fitted candidate the test leaves unsure after ``2 min_runs`` episodes
+    is dropped into the pool, and the next fitted candidate is judged on its own episodes and
+    the pool's. Here neither candidate's episodes alone are sure, both together are: the
+    second is deployed after its ``min_runs`` episodes. A pooled test that finds the candidate
+    more likely worse empties the pool; the pool survives a state round trip."""
+    cstr = get_system("cstr")
+    system = get_system("cstr", identify=cstr.param_names)
+    theta0 = system.parameterization.theta0
+    q0 = np.asarray(cstr.true_params, float)
+    zeros = np.zeros(len(theta0))
+    base = np.array([1.0, 1.3, 0.8, 1.2, 0.9, 1.1])
+    c1 = np.array([0.71, 1.05, 0.75, 0.72, 1.03, 1.18])
+    c2 = np.array([0.73, 1.08, 0.81])
+    nan = np.full(9, np.nan)
+
+    def conf(y):
+        return adjusted_confidence(base, y, nan[: len(base)], nan[: len(y)])
+
+    assert conf(c1) < 0.9 and conf(c2) < 0.9 <= conf(np.r_[c1, c2])
+
+    def switch():
+        sw = ModelSwitch(ModelFit(system), theta0, Starts("random"), EvidenceDeploy(min_runs=3))
+        for y in base:
+            sw.evidence_.append(theta0, np.array([y]), zeros, -1, np.nan, "baseline")
+        sw.identification_ = _fit_of(q0)
+        sw.decide()
+        first = sw.candidate_.copy()
+        for y in c1:
+            sw.evidence_.append(first, np.array([y]), zeros, -1, np.nan, "verify")
+        sw.decide()  # unsure after 2 min_runs episodes: dropped into the pool
+        assert sw.candidate_ is None and sw.decisions_ == 1 and len(sw.pool_) == 1
+        sw.identification_ = _fit_of(q0 * 1.05)
+        sw.decide()  # the fit has moved: a new candidate
+        assert sw.candidate_ is not None and theta_key(sw.candidate_) != theta_key(first)
+        return sw
+
+    sw = switch()
+    restored = ModelSwitch(ModelFit(system), theta0, Starts("random"), EvidenceDeploy(min_runs=3))
+    restored.load_state_dict(sw.state_dict())
+    for s in (sw, restored):
+        second = s.candidate_.copy()
+        for y in c2:
+            s.evidence_.append(second, np.array([y]), zeros, -1, np.nan, "verify")
+        s.decide()
+        assert theta_key(s.deployed_) == theta_key(second) and s.pool_ == []
+
+    sw = switch()
+    for y in (1.5, 1.6, 1.4):  # the new candidate is dearer: the pooled test says worse
+        sw.evidence_.append(sw.candidate_, np.array([y]), zeros, -1, np.nan, "verify")
+    sw.decide()
+    assert theta_key(sw.deployed_) == theta_key(theta0) and sw.pool_ == []
 
 
 def test_identify_first_offers_the_twins_theta_before_it_tunes():

@@ -7,9 +7,10 @@ first ten, then ever more rarely). A candidate is made once the fit predicts hel
 transitions better than the nominal model, and until its first episode it follows the fit. It
 is deployed only on the evidence of its own episodes against the deployed theta's (the GP
 learners' rule, :func:`~mpcmobo.learners.deploy.evidence_policy`); one the evidence does not
-support, or with a failed episode, is dropped. A new candidate comes whenever the fit moves
-away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTION`` of a value
-(noise-free data give standard deviations near zero), and from a dropped one by ``MOVED``.
+support, or with a failed episode, is dropped (one left unsure lends its episodes to the next:
+``ModelSwitch._judged``). A new candidate comes whenever the fit moves away from the deployed
+model by ``MOVED`` standard deviations and by ``RESOLUTION`` of a value (noise-free data give
+standard deviations near zero), and from a dropped one by ``MOVED``.
 
 * :class:`IdentifyLearner` (``identify``): the switch alone, the certainty-equivalent
   baseline that a control engineer tries first.
@@ -26,8 +27,7 @@ away from the deployed model by ``MOVED`` standard deviations and by ``RESOLUTIO
   tuning learner's candidates are: both thetas' MPC then runs the twin's model.
 
 Under random starts a fitted candidate's tests adjust each episode's cost by the identified
-model's prediction of it (the candidate's closed loop on that model from the episode's start).
-"""
+model's prediction of it (the candidate's closed loop on that model from the episode's start)."""
 
 from __future__ import annotations
 
@@ -78,6 +78,9 @@ class ModelSwitch:
         self.follows_fit_ = True  # the candidate is the fit's (not one offered: :meth:`offer`)
         self.decisions_ = 0  # candidates deployed or dropped
         self.waiting_ = 0  # episodes since the last decision without a new candidate
+        # fitted candidates the test left unsure since the last deployment (their episodes
+        # count as the candidate's: :meth:`_judged`)
+        self.pool_: list[np.ndarray] = []
         # the start covariate's controller and model (None: theta0 on the nominal model)
         self.twin_: tuple[np.ndarray, np.ndarray] | None = None
         self.deployed_params_: np.ndarray | None = None  # the deployed theta's identified model
@@ -127,14 +130,37 @@ class ModelSwitch:
         runs, own = p.runs(ev, c, d), p.runs(ev, d, d)
         if runs < p.min_runs or own < p.min_runs:
             return
-        conf = p.verdict(ev, None, c, d)
+        conf = p.verdict(self._judged(), None, c, d)
         if conf >= p.confidence:
             self.deployed_ = c
             self.deployed_params_ = None if self.twin_ is None else self.twin_[1].copy()
+            self.pool_ = []
             self._decided()
             self._propose_candidate()  # has the fit moved on while the candidate ran?
-        elif conf < 0.5 or runs >= p.max_runs:
+        elif conf < 0.5:
+            self.pool_ = []
             self._decided()
+        elif runs >= p.max_runs:
+            if self.follows_fit_:
+                self.pool_.append(c.copy())
+            self._decided()
+
+    def _judged(self) -> Evidence:
+        """The evidence a candidate is judged on: for a fitted candidate, its own episodes and
+        those of the fitted candidates since the last deployment that the test left unsure
+        (``pool_``), counted as its own. Each refit moves the model a little, and a candidate
+        met by a few costly starts would otherwise start from nothing each time; a candidate
+        the pooled test finds more likely worse than not empties the pool."""
+        if not self.pool_ or not self.follows_fit_ or self.candidate_ is None:
+            return self.evidence_
+        n = len(self.deployed_)
+        ev = Evidence(n, n, 1)
+        ev.load_state_dict(self.evidence_.state_dict())
+        pooled = {theta_key(t) for t in self.pool_}
+        for i, z in enumerate(ev.Z):
+            if theta_key(z) in pooled:
+                ev.Z[i] = self.candidate_
+        return ev
 
     def _decided(self) -> None:
         """The candidate is deployed or dropped."""
@@ -241,6 +267,7 @@ class ModelSwitch:
             "follows_fit": self.follows_fit_,
             "decisions": self.decisions_,
             "waiting": self.waiting_,
+            "pool": [t.copy() for t in self.pool_],
             "identification": None if ident is None else asdict(ident),
             "twin": None if self.twin_ is None else (self.twin_[0].copy(), self.twin_[1].copy()),
             "deployed_params": self.deployed_params_,
@@ -258,6 +285,7 @@ class ModelSwitch:
         self.decisions_ = int(state["decisions"])
         # a 1.0.0 state: any decision had settled the switch (its rule)
         self.waiting_ = int(state.get("waiting", self.policy.min_runs))
+        self.pool_ = [np.array(t, float) for t in state.get("pool", [])]
         if "x0s" in state:  # a state of 1.0: the initial states were the switch's
             self.evidence_.replays = replays_from_state(state["x0s"])
         twin = state["twin"]
