@@ -311,6 +311,24 @@ def test_a_gymnasium_plant_with_a_separate_model_and_no_J_star(files, tmp_path):
     assert all(p.exists() for p in make_figures(out))
 
 
+def test_a_plant_that_ignores_its_start_is_refused_before_anything_is_written(files, tmp_path):
+    """A gymnasium plant whose reset ignores options['x0'] (it starts at the origin): every
+    comparison of thetas would be meaningless, so the study stops before it starts."""
+    settings = load_settings(
+        None,
+        system={
+            "factory": f"{files}/usersys.py:make_model",
+            "plant": f"{files}/userplant.py:make_stubborn_env",
+        },  # fmt: skip
+        learners=["bo"],
+        episodes=2,
+        workers=1,
+    )
+    with pytest.raises(SettingsError, match=r"did not start the plant at x0 \(asked"):
+        run_study(settings, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
 def test_an_unknown_plant_is_a_settings_error(files):
     settings = load_settings(None, system={"name": "lq", "plant": "mpcmobo/Nope-v0"})
     from mpcmobo.experiment.settings import build_plant, build_system

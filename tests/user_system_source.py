@@ -98,6 +98,17 @@ def make_env():
 
 def make_env_3():
     return Integrator(n_obs=3)
+
+
+class Stubborn(Integrator):
+    """Starts at the origin whatever options['x0'] says."""
+
+    def reset(self, *, seed=None, options=None):
+        return super().reset(seed=seed, options={"x0": [0.0, 0.0]})
+
+
+def make_stubborn_env():
+    return Stubborn()
 '''
 
 
