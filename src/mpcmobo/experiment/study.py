@@ -40,7 +40,8 @@ from mpcmobo.experiment.settings import (
 from mpcmobo.experiment.training_reference import training_references, training_summary
 from mpcmobo.identify.fit import at_bounds, identification_bounds
 from mpcmobo.learners.registry import LEARNER_SPECS
-from mpcmobo.systems.base import System
+from mpcmobo.systems.base import System, SystemDefinitionError
+from mpcmobo.systems.plant import check_reset
 from mpcmobo.systems.registry import is_registered, system_factory
 
 if TYPE_CHECKING:
@@ -82,7 +83,9 @@ def check_learners(settings: Settings) -> None:
     system = build_system(settings)
     plant = build_plant(settings, system)
     try:
-        _check_reset(plant, system, settings.system.measurement_noise)
+        check_reset(plant, system, settings.system.measurement_noise)
+    except SystemDefinitionError as err:
+        raise SettingsError(f"system.plant: {err}") from None
     finally:
         plant.close()
     for name in settings.learners:
@@ -92,32 +95,6 @@ def check_learners(settings: Settings) -> None:
             make_study_learner(settings, job_system, name, theta0, seed=0)
         except (TypeError, ValueError) as err:
             raise SettingsError(f"learner_options.{name}: {err}") from None
-
-
-def _check_reset(plant: Any, system: System, noise: list[float] | None) -> None:
-    """That the plant starts where it is told (``reset(options={"x0": x0})``): on at least
-    three of five draws of the initial states, within a quarter of their range (at least 5%
-    and at most half of the state scale, and at least four standard deviations of the
-    settings' measurement ``noise``). Thetas are compared from their episodes' starts, so a
-    plant that ignores them makes every comparison meaningless."""
-    scale = np.asarray(system.x_scale, float)
-    spread = 0.25 * (np.asarray(system.x0_ub, float) - np.asarray(system.x0_lb, float))
-    tol = np.minimum(0.5 * scale, np.maximum(spread, 0.05 * scale))
-    tol = np.maximum(tol, 4 * np.asarray(noise if noise is not None else 0.0, float))
-    rng = np.random.default_rng(0)
-    off = []
-    for _ in range(5):
-        x0 = system.sample_initial_state(rng)
-        obs = np.asarray(plant.reset(seed=0, options={"x0": x0})[0], float).reshape(-1)
-        if obs.shape == x0.shape and np.any(np.abs(obs - x0) > tol):
-            off.append((x0, obs))
-    if len(off) >= 3:
-        x0, obs = off[0]
-        raise SettingsError(
-            f"system.plant: reset(options={{'x0': x0}}) did not start the plant at x0 "
-            f"(asked {np.round(x0, 6).tolist()}, got {np.round(obs, 6).tolist()}; {len(off)} "
-            "of 5 starts); a plant must start where options['x0'] says (docs/user-systems.md)"
-        )
 
 
 def compute_reference(settings: Settings) -> Reference:

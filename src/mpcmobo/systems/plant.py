@@ -125,3 +125,29 @@ def check_plant(env: gymnasium.Env, system: System, label: str = "plant") -> Non
                 f"{label}: the {kind} space has shape {space.shape}, but the model "
                 f"'{system.name}' has {n} {what} ({', '.join(getattr(system, what[:-1] + '_names'))})"
             )
+
+
+def check_reset(plant: gymnasium.Env, system: System, noise: ArrayLike | None = None) -> None:
+    """That the plant starts where it is told (``reset(options={"x0": x0})``): on at least
+    three of five draws of the initial states, within a quarter of their range (at least 5%
+    and at most half of the state scale, and at least four standard deviations of the
+    measurement ``noise``, per state). Thetas are compared from their episodes' starts, so a
+    plant that ignores them makes every comparison meaningless."""
+    scale = np.asarray(system.x_scale, float)
+    spread = 0.25 * (np.asarray(system.x0_ub, float) - np.asarray(system.x0_lb, float))
+    tol = np.minimum(0.5 * scale, np.maximum(spread, 0.05 * scale))
+    tol = np.maximum(tol, 4 * np.asarray(noise if noise is not None else 0.0, float))
+    rng = np.random.default_rng(0)
+    off = []
+    for _ in range(5):
+        x0 = system.sample_initial_state(rng)
+        obs = np.asarray(plant.reset(seed=0, options={"x0": x0})[0], float).reshape(-1)
+        if obs.shape == x0.shape and np.any(np.abs(obs - x0) > tol):
+            off.append((x0, obs))
+    if len(off) >= 3:
+        x0, obs = off[0]
+        raise SystemDefinitionError(
+            f"reset(options={{'x0': x0}}) did not start the plant at x0 "
+            f"(asked {np.round(x0, 6).tolist()}, got {np.round(obs, 6).tolist()}; {len(off)} "
+            "of 5 starts); a plant must start where options['x0'] says (docs/user-systems.md)"
+        )
