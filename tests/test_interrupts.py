@@ -211,6 +211,25 @@ def test_ctrl_c_stops_the_workers_too(reference, config, tmp_path):
     pd.testing.assert_frame_equal(rows(out), reference)
 
 
+def test_sigterm_stops_a_ray_study_and_its_cluster(reference, tmp_path):
+    """With backend = "ray" the study's SIGTERM handler survives ray.init: SIGTERM to the
+    study's process stops it with 143 and the resume hint, and the records are a prefix of the
+    uninterrupted run's."""
+    pytest.importorskip("ray")
+    config = tmp_path / "ray.toml"
+    config.write_text(CONFIG + 'backend = "ray"\n')
+    out = tmp_path / "run"
+    proc = cli(str(config), ["--seeds", "0", "1", "--workers", "2", "--out", str(out)])
+    wait_until(lambda: episodes_done(out) >= 2 or proc.poll() is not None, "two episodes")
+    os.kill(proc.pid, signal.SIGTERM)
+    _, err = proc.communicate(timeout=GUARD_S)
+    assert proc.returncode == 143, err
+    assert "--resume --out" in err and "Traceback" not in err and "SIGTERM received" not in err
+    for seed in (0, 1):
+        if episodes_done(out, seed):
+            assert_prefix(rows(out, seed), reference)
+
+
 def test_busy_workers_exit_when_the_study_is_killed(reference, config, tmp_path):
     out = tmp_path / "run"
     proc = cli(config, ["--seeds", "0", "1", "--workers", "2", "--out", str(out), "-q"])

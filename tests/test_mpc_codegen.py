@@ -105,9 +105,18 @@ def test_concurrent_builds_share_one_library(tmp_path):
 
 
 def test_codegen_errors(lq, tmp_path, monkeypatch):
+    """Without the compiler: the MPC says what to do, and a study with [mpc] codegen = true
+    stops before anything is written, naming the setting."""
+    from mpcmobo.experiment.settings import SettingsError, load_settings
+    from mpcmobo.experiment.study import run_study
+
     monkeypatch.setenv("CC", "no-such-compiler-xyz")
-    with pytest.raises(RuntimeError, match="needs a C compiler: 'no-such-compiler-xyz'"):
+    with pytest.raises(RuntimeError, match="needs a C compiler, and 'no-such-compiler-xyz'"):
         ParametricMPC(lq, horizon=4, codegen=True, cache_dir=tmp_path)
+    settings = load_settings(None, system={"name": "lq"}, mpc={"codegen": True}, episodes=1)
+    with pytest.raises(SettingsError, match=r"mpc.codegen: .*\[mpc\] codegen = false"):
+        run_study(settings, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
 
 
 def test_cache_directory_follows_the_environment(monkeypatch, tmp_path):

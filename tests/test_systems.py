@@ -160,6 +160,9 @@ def test_register_user_system():
     assert sol.success and sol.action[0] > 1.0  # pushes the level up towards 1
     with pytest.raises(ValueError, match="already registered"):
         register_system("tank-test", factory)
+    # a factory without keyword arguments takes the study's MPC settings as a file's does
+    tank = get_system("tank-test", identify=("a",), horizon=7)
+    assert tank.mpc_spec.horizon == 7 and "model_a" in tank.parameterization.names
 
 
 def test_dtheta_dz_matches_finite_differences(cstr):

@@ -275,20 +275,17 @@ def test_settings_take_a_factory_path_and_store_it_absolute(files, monkeypatch):
 
 
 # ---------------------------------------------------------------------- J* absent
+def _model_on_plant(files, plant, **settings):
+    """Settings of the model without true parameters on the gymnasium plant ``plant``."""
+    system = {"factory": f"{files}/usersys.py:make_model", "plant": f"{files}/userplant.py:{plant}"}
+    return load_settings(None, system=system, workers=1, **settings)
+
+
 def test_a_gymnasium_plant_with_a_separate_model_and_no_J_star(files, tmp_path):
     """Acceptance: a gymnasium environment that is not a mpcmobo system is the plant of a
     study; the model has no true parameters, so J* is absent and every summary says so."""
-    settings = load_settings(
-        None,
-        system={
-            "factory": f"{files}/usersys.py:make_model",
-            "plant": f"{files}/userplant.py:make_env",
-        },  # fmt: skip
-        learners=["mpc-rl", "bo"],
-        episodes=3,
-        workers=1,
-        evaluation={"n_starts": 2, "eval_every": 1},
-    )
+    settings = _model_on_plant(files, "make_env", learners=["mpc-rl", "bo"], episodes=3,
+                               evaluation={"n_starts": 2, "eval_every": 1})  # fmt: skip
     out = tmp_path / "run"
     summary = run_study(settings, out)
     assert summary["J_star"] is None and "no reference model" in summary["J_star_missing"]
@@ -314,16 +311,7 @@ def test_a_gymnasium_plant_with_a_separate_model_and_no_J_star(files, tmp_path):
 def test_a_plant_that_ignores_its_start_is_refused_before_anything_is_written(files, tmp_path):
     """A gymnasium plant whose reset ignores options['x0'] (it starts at the origin): every
     comparison of thetas would be meaningless, so the study stops before it starts."""
-    settings = load_settings(
-        None,
-        system={
-            "factory": f"{files}/usersys.py:make_model",
-            "plant": f"{files}/userplant.py:make_stubborn_env",
-        },  # fmt: skip
-        learners=["bo"],
-        episodes=2,
-        workers=1,
-    )
+    settings = _model_on_plant(files, "make_stubborn_env", learners=["bo"], episodes=2)
     with pytest.raises(SettingsError, match=r"did not start the plant at x0 \(asked"):
         run_study(settings, tmp_path / "run")
     assert not (tmp_path / "run").exists()

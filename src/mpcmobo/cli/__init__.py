@@ -102,7 +102,7 @@ def _options_epilog() -> str:
 
 
 RUN_HELP = (
-    "Run a study (learners x seeds): records, summary and, once complete, figures 1-4.\n\n"
+    "Run a study (learners x seeds): records, summary and, once complete, the figures.\n\n"
     "Ctrl-C (SIGINT) or SIGTERM stops the run at the end of the current MPC step (exit code "
     "130 or 143) with every finished episode recorded; --resume continues it. Library "
     "warnings go to DIR/run.log; with its output redirected, the run prints a progress line "
@@ -160,7 +160,7 @@ _Out = Annotated[
     typer.Option(
         "--out",
         "-o",
-        help="output directory, new or empty (its parent must exist)",
+        help="output directory, new or empty (a missing parent is made, not a longer path)",
         show_default="runs/<timestamp>",
     ),
 ]
@@ -178,7 +178,7 @@ _Workers = Annotated[
     ),
 ]
 _Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="no progress output")]
-_NoPlot = Annotated[bool, typer.Option("--no-plot", help="do not draw figures 1-4 at the end")]
+_NoPlot = Annotated[bool, typer.Option("--no-plot", help="do not draw the figures at the end")]
 
 
 @app.command(context_settings={"allow_extra_args": True}, help=RUN_HELP, epilog=_options_epilog())
@@ -196,7 +196,7 @@ def run(
     quiet: _Quiet = False,
     no_plot: _NoPlot = False,
 ) -> None:
-    """Run a study (learners x seeds): records, summary and, once complete, figures 1-4."""
+    """Run a study (learners x seeds): records, summary and, once complete, the figures."""
     from mpcmobo.experiment.study import run_study
 
     seed_list = _parse_seeds(seeds, list(ctx.args))
@@ -217,8 +217,9 @@ def run(
             )
             given = out is not None
             out = out or Path("runs") / time.strftime("%Y%m%d-%H%M%S")
-            # a given --out needs an existing parent; the default creates runs/
-            RunDirectory(out).check_new(parents=not given)
+            # a given --out may create its parent (runs/ of --out runs/mobo), not a longer
+            # missing path (a typo in it); the default creates runs/
+            RunDirectory(out).check_new(parents=not given or out.parent.parent.exists())
         t0 = time.perf_counter()
         if quiet:
             summary = run_study(settings, out, resume=resume)  # type: ignore[arg-type]  # --resume checked --out
@@ -378,7 +379,7 @@ def plot(
     directory: Path = typer.Argument(..., help="a run directory"),
     learner: str | None = typer.Option(None, help="learner shown in figures 3 and 4"),
 ) -> None:
-    """Draw figures 1-4 (PNG and PDF) into DIR/figures from the records."""
+    """Draw the figures (PNG and PDF) into DIR/figures from the records."""
     from mpcmobo.plots import make_figures
 
     run_dir = _require_run(directory)
@@ -481,7 +482,7 @@ ADD_SYSTEM_HELP = (
 
 
 @app.command(help="List the systems that can be run: built-in, registered and plug-ins.\n\n"
-             + ADD_SYSTEM_HELP)  # fmt: skip
+             + escape(ADD_SYSTEM_HELP))  # fmt: skip  # the help is Rich markup: keep [..]
 def systems() -> None:
     """List the systems that can be run: built-in, registered and plug-ins."""
     from mpcmobo.systems import SystemDefinitionError, SystemSpecError, get_system

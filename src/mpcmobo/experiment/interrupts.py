@@ -157,6 +157,15 @@ def catching() -> Iterator[None]:
         _state.signum, _state.depth = None, 0
 
 
+def reclaim() -> None:
+    """Install the study's handlers again where a library replaced them (``ray.init`` installs
+    its own for SIGTERM, which would kill the study with no word): only while :func:`catching`
+    is in force, in the main thread."""
+    if _state.active and threading.current_thread() is threading.main_thread():
+        for s in SIGNALS:
+            signal.signal(s, _handler)
+
+
 # ---------------------------------------------------------------------- worker processes
 class _Worker:
     busy = threading.Event()  # a job runs in this worker

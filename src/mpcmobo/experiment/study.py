@@ -40,6 +40,7 @@ from mpcmobo.experiment.settings import (
 from mpcmobo.experiment.training_reference import training_references, training_summary
 from mpcmobo.identify.fit import at_bounds, identification_bounds
 from mpcmobo.learners.registry import LEARNER_SPECS
+from mpcmobo.mpc.codegen import require_compiler
 from mpcmobo.systems.base import System, SystemDefinitionError
 from mpcmobo.systems.plant import check_reset
 from mpcmobo.systems.registry import is_registered, system_factory
@@ -88,6 +89,10 @@ def check_learners(settings: Settings) -> None:
         raise SettingsError(f"system.plant: {err}") from None
     finally:
         plant.close()
+    try:
+        require_compiler() if settings.mpc.codegen else None
+    except RuntimeError as err:
+        raise SettingsError(f"mpc.codegen: {err}") from None
     for name in settings.learners:
         job_system = build_system(settings, name)
         try:
@@ -572,8 +577,10 @@ def _run_ray(
             "backend: 'ray' needs the optional dependency ray (pip install 'mpcmobo[ray]'); "
             "allowed without it: 'process'"
         ) from None
-    if not ray.is_initialized():
+    started = not ray.is_initialized()  # a cluster of the study's own, shut down after it
+    if started:
         ray.init(num_cpus=workers, include_dashboard=False, ignore_reinit_error=True)
+        interrupts.reclaim()  # Ray's SIGTERM handler would end the study without a word
     remote = ray.remote(num_cpus=1)(run_job)
     refs = [remote.remote(learner_name=n, seed=s, **args) for n, s in jobs]
     try:
@@ -587,3 +594,7 @@ def _run_ray(
             for r in refs:  # checkpoints are atomic: a killed task loses its episode only
                 ray.cancel(r, force=True)
         raise
+    finally:
+        if started:  # its processes stop now, not after an interrupted CLI has exited
+            with interrupts.deferred():
+                ray.shutdown()

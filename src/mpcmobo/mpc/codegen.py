@@ -46,6 +46,17 @@ def compiler_command() -> list[str]:
     return shlex.split(os.environ.get("CC", "cc"))
 
 
+def require_compiler() -> None:
+    """A ``RuntimeError`` saying what to do if the C compiler (:func:`compiler_command`) is
+    not on the path."""
+    cc = compiler_command()
+    if not cc or shutil.which(cc[0]) is None:
+        raise RuntimeError(
+            f"codegen needs a C compiler, and {cc[0] if cc else '$CC'!r} was not found: set $CC, "
+            "or turn codegen off ([mpc] codegen = false; ParametricMPC(..., codegen=False))"
+        )
+
+
 def library_key(functions: list[ca.Function], flags: tuple[str, ...] = DEFAULT_FLAGS) -> str:
     """Hash of what the compiled library depends on: the functions, CasADi, compiler, flags."""
     h = hashlib.sha256()
@@ -78,12 +89,8 @@ def compiled_library(
     if path.exists():
         return path
     directory.mkdir(parents=True, exist_ok=True)
+    require_compiler()
     cc = compiler_command()
-    if shutil.which(cc[0]) is None:
-        raise RuntimeError(
-            f"codegen needs a C compiler: '{cc[0]}' was not found (set $CC, or build the MPC "
-            "with codegen=False)"
-        )
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=directory, prefix=".build-") as tmp:
         name = f"codegen_{key}"

@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import importlib.util
+import inspect
 import sys
 from collections.abc import Callable
 from dataclasses import replace
@@ -177,14 +178,28 @@ def system_factory(spec: str) -> Callable[..., System]:
     )
 
 
+def _takes_options(factory: Any, options: dict[str, Any]) -> bool:
+    """Whether ``factory`` accepts the keyword arguments ``options`` (``**kwargs`` or each by
+    name)."""
+    try:
+        params = inspect.signature(factory).parameters
+    except (TypeError, ValueError):  # a callable without a signature: as registered
+        return True
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return True
+    return all(k in params for k in options)
+
+
 def get_system(spec: str, **options: Any) -> System:
     """Build the system named by ``spec`` with the MPC settings ``options`` (``MPCSpec``
-    overrides). A registered factory receives them as keywords; a factory path or plug-in is
-    called without arguments and the settings are applied with :meth:`System.with_spec`."""
+    overrides). A registered factory that takes them receives them as keywords; any other
+    factory (one without keyword arguments, a factory path, a plug-in) is called without
+    arguments and the settings are applied to the ``MPCSpec`` it returns."""
     factory = system_factory(spec)
     registered = spec in _REGISTRY
+    takes = registered and _takes_options(factory, options)  # else: overrides applied after
     try:
-        system = factory(**options) if registered else factory()
+        system = factory(**options) if takes else factory()
     except SystemDefinitionError as err:
         raise SystemDefinitionError(f"system '{spec}': {err}") from None
     except Exception as err:  # noqa: BLE001 - user code: any failure is reported
@@ -198,7 +213,7 @@ def get_system(spec: str, **options: Any) -> System:
             f"the system factory '{spec}' returned {type(system).__name__}, expected a "
             "mpcmobo.systems.System"
         )
-    if options and not registered:
+    if options and not takes:
         try:
             system = replace(
                 system, mpc_spec=system.mpc_spec.with_overrides(system.name, **options)
