@@ -26,6 +26,10 @@ def test_systems_is_a_narrow_table_and_one_description_line_per_system(monkeypat
     import mpcmobo.cli as cli
     from mpcmobo.systems import get_system
 
+    help_text = " ".join(runner.invoke(app, ["systems", "--help"]).output.split())
+    assert (
+        "[system] factory" in help_text and '[project.entry-points."mpcmobo.systems"]' in help_text
+    )
     monkeypatch.setattr(cli, "console", Console(width=80))
     res = runner.invoke(app, ["systems"])
     assert res.exit_code == 0, res.output
@@ -131,7 +135,9 @@ def test_run_seeds_forms_resume_and_evaluate(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["settings"]["seeds"] == [0, 1]
     assert summary["learners"]["mpc-rl"]["complete"] is True
-    out2 = tmp_path / "run2"
+    out2 = tmp_path / "runs" / "run2"  # --out makes a missing parent, not a longer path
+    res = runner.invoke(app, ["run", *SMALL, "--out", str(tmp_path / "a" / "b" / "run"), "-q"])
+    assert res.exit_code != 0 and "does not exist" in res.output and not (tmp_path / "a").exists()
     res = runner.invoke(app, ["run", *SMALL, "--seeds", "3,4", "--out", str(out2), "-q"])
     assert res.exit_code == 0, res.output
     assert json.loads((out2 / "summary.json").read_text())["settings"]["seeds"] == [3, 4]
