@@ -125,7 +125,7 @@ def test_bad_out_paths_are_clear_errors_and_create_nothing(tmp_path):
     cases = {
         str(a_file): "is a file",
         str(a_file / "run"): "is a file",
-        str(tmp_path / "missing" / "run"): "does not exist",
+        str(tmp_path / "missing" / "deeper" / "run"): "does not exist",  # one level is made
         "/proc/mpcmobo-cannot-write-here": "cannot",
     }
     for out, message in cases.items():
