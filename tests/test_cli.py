@@ -180,3 +180,14 @@ def test_run_with_progress_bars(tmp_path):
     res = runner.invoke(app, ["run", *SMALL, "--out", str(tmp_path / "np"), "-q", "--no-plot"])
     assert res.exit_code == 0, res.output
     assert not (tmp_path / "np" / "figures").exists()
+
+
+def test_learner_may_be_repeated_or_a_comma_list():
+    """``--learner mobo --learner identify`` runs both (it kept the last one), as does
+    ``--learner mobo,identify``; ``all`` is every learner; not given, the settings decide."""
+    from mpcmobo.cli import _learners
+    from mpcmobo.learners.registry import LEARNER_SPECS
+
+    assert _learners(["mobo", "identify"]) == _learners(["mobo,identify"]) == ["mobo", "identify"]
+    assert _learners(["all"]) == list(LEARNER_SPECS)
+    assert _learners(None) is None and _learners([]) is None

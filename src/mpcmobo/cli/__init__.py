@@ -78,12 +78,12 @@ def _parse_seeds(values: list[str] | None, extra: list[str]) -> list[int] | None
     return seeds
 
 
-def _learners(option: str | None) -> list[str] | None:
-    if option is None:
+def _learners(option: list[str] | None) -> list[str] | None:
+    """The learners of ``--learner`` (given once or more, each a name or a comma list)."""
+    if not option:
         return None
-    if option == "all":
-        return list(LEARNER_SPECS)
-    return [p for p in option.replace(",", " ").split() if p]
+    names = [p for o in option for p in o.replace(",", " ").split() if p]
+    return list(LEARNER_SPECS) if names == ["all"] else names
 
 
 def _default(key: str) -> Any:
@@ -126,11 +126,11 @@ _System = Annotated[
     ),
 ]
 _Learner = Annotated[
-    str | None,
+    list[str] | None,
     typer.Option(
         "--learner",
         "-l",
-        help=f"{' | '.join([*LEARNER_SPECS, 'all'])} (or a comma list)",
+        help=f"{' | '.join([*LEARNER_SPECS, 'all'])} (or a comma list; may repeat)",
         show_default=",".join(DEFAULT_LEARNERS),
     ),
 ]
@@ -202,7 +202,7 @@ def run(
     seed_list = _parse_seeds(seeds, list(ctx.args))
     try:
         if resume:
-            fixed = {"--config": config, "--system": system, "--learner": learner,
+            fixed = {"--config": config, "--system": system, "--learner": learner or None,
                      "--steps": steps, "--seeds": seed_list}  # fmt: skip
             settings = _resumed_settings(out, fixed, workers=workers, episodes=episodes)
         else:
