@@ -24,7 +24,7 @@ from threadpoolctl import threadpool_limits
 from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.logs import run_log
-from mpcmobo.experiment.loop import EpisodePlan, LearningRun
+from mpcmobo.experiment.loop import EPISODE_FAILURES, EpisodePlan, LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
 from mpcmobo.experiment.settings import (
@@ -259,7 +259,7 @@ class Job:
                     for i, r in enumerate(eps)
                 ]
             return self.evaluator.J_eval(incumbent), ""
-        except (FloatingPointError, ValueError, RuntimeError) as err:
+        except EPISODE_FAILURES as err:
             self.evaluator.remember(incumbent, math.inf)
             what = (
                 str(err) if isinstance(err, FloatingPointError) else f"{type(err).__name__}: {err}"

@@ -23,6 +23,9 @@ from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
 
 START_MODES = ("random", "cycle")
+# what a closed loop that fails raises (a plant that runs away or raises, a broken episode):
+# recorded as a failed episode or evaluation, never the end of a run
+EPISODE_FAILURES = (FloatingPointError, ValueError, RuntimeError)
 
 
 @dataclass
@@ -206,7 +209,7 @@ class LearningRun:
                 plant_seed=plan.plant_seed,
             )
             error, stopped_violation = "", np.nan
-        except (FloatingPointError, ValueError, RuntimeError) as err:
+        except EPISODE_FAILURES as err:
             record, error = None, f"{type(err).__name__}: {err}"
             stopped_violation = err.violation if isinstance(err, PlantDiverged) else np.nan
         return self.finish(
@@ -340,7 +343,7 @@ class LearningRun:
             try:
                 result, _ = episode_result(record, self.critic, self.previous_Vc, self.beta)
                 return result, ""
-            except (FloatingPointError, ValueError, RuntimeError) as err:
+            except EPISODE_FAILURES as err:
                 error = f"{type(err).__name__}: {err}"
         else:
             error = ""

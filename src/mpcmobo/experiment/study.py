@@ -28,6 +28,7 @@ from mpcmobo.experiment import interrupts, storage
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost, no_J_star_reason
 from mpcmobo.experiment.job import Progress, make_study_learner, progress_event, run_job
 from mpcmobo.experiment.logs import count_warnings, run_log
+from mpcmobo.experiment.loop import EPISODE_FAILURES
 from mpcmobo.experiment.records import Reference, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
 from mpcmobo.experiment.settings import (
@@ -90,7 +91,8 @@ def check_learners(settings: Settings) -> None:
     finally:
         plant.close()
     try:
-        require_compiler() if settings.mpc.codegen else None
+        if settings.mpc.codegen:
+            require_compiler()
     except RuntimeError as err:
         raise SettingsError(f"mpc.codegen: {err}") from None
     for name in settings.learners:
@@ -120,7 +122,7 @@ def compute_reference(settings: Settings) -> Reference:
     for phase, model, theta in phases:
         try:
             eps = evaluator.episodes(theta, model)
-        except (FloatingPointError, ValueError, RuntimeError) as err:
+        except EPISODE_FAILURES as err:
             what = "J(theta0), theta0's MPC" if phase == "initial" else "J*, the perfect MPC"
             raise StudyError(
                 f"computing {what} on the plant from the evaluation starts failed: "
@@ -260,11 +262,9 @@ def _bounds_summary(
         q = v.get("identified_final")
         if q is None or len(q) != len(names):
             continue
-        on_lo, on_hi = at_bounds(np.asarray(q, float), lo, hi)
-        for j in np.flatnonzero(on_lo):
-            seeds.setdefault((int(j), "lower"), []).append(int(seed))
-        for j in np.flatnonzero(on_hi):
-            seeds.setdefault((int(j), "upper"), []).append(int(seed))
+        for side, on in zip(("lower", "upper"), at_bounds(np.asarray(q, float), lo, hi)):
+            for j in np.flatnonzero(on):
+                seeds.setdefault((int(j), side), []).append(int(seed))
     return {
         "identified_bounds": {n: [float(lo[j]), float(hi[j])] for j, n in enumerate(names)},
         "identified_at_bound": [

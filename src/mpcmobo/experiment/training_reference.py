@@ -22,6 +22,7 @@ import numpy as np
 
 from mpcmobo.experiment import interrupts
 from mpcmobo.experiment.job import _learning_run
+from mpcmobo.experiment.loop import EPISODE_FAILURES
 from mpcmobo.experiment.records import Reference, TrainingReference
 from mpcmobo.experiment.settings import Settings, build_plant, needs_plant
 from mpcmobo.mpc import ParametricMPC, rollout
@@ -57,7 +58,7 @@ def training_reference(
                              exploration=run.exploration, sensitivities=False,
                              plant=plant, plant_seed=run.plant_seed())  # fmt: skip
             values.append(f1_closed_loop_cost(record))
-        except (FloatingPointError, ValueError, RuntimeError):
+        except EPISODE_FAILURES:
             values.append(math.nan)
         starts.append([float(v) for v in x0])
         run.episode += 1

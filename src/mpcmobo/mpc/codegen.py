@@ -46,15 +46,16 @@ def compiler_command() -> list[str]:
     return shlex.split(os.environ.get("CC", "cc"))
 
 
-def require_compiler() -> None:
-    """A ``RuntimeError`` saying what to do if the C compiler (:func:`compiler_command`) is
-    not on the path."""
+def require_compiler() -> list[str]:
+    """The C compiler's command (:func:`compiler_command`), or a ``RuntimeError`` saying what
+    to do if it is not on the path."""
     cc = compiler_command()
     if not cc or shutil.which(cc[0]) is None:
         raise RuntimeError(
             f"codegen needs a C compiler, and {cc[0] if cc else '$CC'!r} was not found: set $CC, "
             "or turn codegen off ([mpc] codegen = false; ParametricMPC(..., codegen=False))"
         )
+    return cc
 
 
 def library_key(functions: list[ca.Function], flags: tuple[str, ...] = DEFAULT_FLAGS) -> str:
@@ -89,8 +90,7 @@ def compiled_library(
     if path.exists():
         return path
     directory.mkdir(parents=True, exist_ok=True)
-    require_compiler()
-    cc = compiler_command()
+    cc = require_compiler()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(dir=directory, prefix=".build-") as tmp:
         name = f"codegen_{key}"

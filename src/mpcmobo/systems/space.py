@@ -16,8 +16,9 @@ class SearchSpace:
     Learners search the unit cube ``[0, 1]^d`` of the ``d`` free coordinates. For a log-scaled
     coordinate ``z = (log theta - log lo) / (log hi - log lo)``, for a linear one
     ``z = (theta - lo) / (hi - lo)``. Fixed coordinates keep the value of the base vector that
-    :meth:`from_unit` is given (the learners give their theta0): the constant ``theta_c`` of the CSTR cost, for instance, changes
-    ``V_theta`` but never the policy, so searching it wastes evaluations.
+    :meth:`from_unit` is given (the learners give their theta0): the constant ``theta_c`` of
+    the CSTR cost, for instance, changes ``V_theta`` but never the policy, so searching it
+    wastes evaluations.
     """
 
     names: tuple[str, ...]
