@@ -54,8 +54,9 @@ def _edges() -> list[tuple[str, str, int, str]]:
 def test_every_import_points_down_the_pipeline():
     edges = _edges()
     assert edges, "no mpcmobo imports found: the test reads the wrong files"
-    upward = [f"{f}:{line} ({src} imports {dst})" for src, dst, line, f in edges
-              if RANK[dst] >= RANK[src]]  # fmt: skip
+    upward = [
+        f"{f}:{line} ({src} imports {dst})" for src, dst, line, f in edges if RANK[dst] >= RANK[src]
+    ]
     assert not upward, "imports against the layer order:\n" + "\n".join(upward)
 
 

@@ -606,8 +606,8 @@ def test_the_twin_of_the_right_model_predicts_a_plant_episode_exactly_by_replayi
     MPC's) in the closed loop on the model from its start: with the true model that is the
     plant's episode itself, where the noise-free closed loop from the same start is off by
     the exploration's share of the cost."""
+    from mpcmobo.experiment.build import build_system
     from mpcmobo.experiment.job import _learning_run
-    from mpcmobo.experiment.settings import build_system
     from mpcmobo.learners.twin import Twin
     from mpcmobo.rl.objectives import mean_stage_cost
 

@@ -22,19 +22,13 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from mpcmobo.experiment import interrupts, storage
+from mpcmobo.experiment.build import build_plant, build_system, identified_parameters, needs_plant
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.loop import EPISODE_FAILURES, EpisodePlan, LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
-from mpcmobo.experiment.settings import (
-    Settings,
-    build_plant,
-    build_system,
-    identified_parameters,
-    needs_plant,
-    validate_settings,
-)
+from mpcmobo.experiment.settings import Settings, validate_settings
 from mpcmobo.identify import ModelFit
 from mpcmobo.learners import Learner, Starts, make_learner
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC
@@ -291,7 +285,7 @@ def make_study_learner(
 ) -> Learner:
     """The learner ``name`` with the study's options for it, built by the registry for the
     study's start design (cycled or random starts); with identification (``system`` built for
-    the job by :func:`~mpcmobo.experiment.settings.build_system`, theta holding the identified
+    the job by :func:`~mpcmobo.experiment.build.build_system`, theta holding the identified
     parameters), given the model to identify (the registry then builds identify-first)."""
     options = settings.learner_options.get(name, {})
     starts = Starts(settings.start_mode, settings.n_cycle_starts)
