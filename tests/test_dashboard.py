@@ -12,7 +12,7 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
-from dashboard_helpers import chromium, make_small_run, needs_chromium, serving
+from dashboard_helpers import chromium, needs_chromium, serving
 
 from mpcmobo.experiment import storage
 
@@ -22,20 +22,15 @@ ROWS = "rows => rows.slice(1).map(r => [...r.cells].map(c => c.textContent))"
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    return make_small_run(tmp_path_factory.mktemp("dash") / "run")
-
-
-@pytest.fixture(scope="module")
 def browser():
     with chromium() as b:
         yield b
 
 
 @pytest.fixture
-def copy(run, tmp_path):
+def copy(dashboard_run, tmp_path):
     out = tmp_path / "run"
-    shutil.copytree(run, out)
+    shutil.copytree(dashboard_run, out)
     return out
 
 
@@ -52,10 +47,10 @@ def _jobs(page):
     return page.eval_on_selector_all("#jobs tr", ROWS)
 
 
-def test_the_page_of_a_finished_run_shows_its_numbers(run, browser):
-    ep = pd.read_parquet(run / "episodes.parquet")
-    ref = storage.read_pickle(run / "reference.pkl")
-    with serving(run) as url:
+def test_the_page_of_a_finished_run_shows_its_numbers(dashboard_run, browser):
+    ep = pd.read_parquet(dashboard_run / "episodes.parquet")
+    ref = storage.read_pickle(dashboard_run / "reference.pkl")
+    with serving(dashboard_run) as url:
         page, requests = _open(browser, url)
         rows = _jobs(page)
         assert [(r[1], r[2], r[3]) for r in rows] == [
@@ -79,7 +74,7 @@ def test_the_page_of_a_finished_run_shows_its_numbers(run, browser):
         # one episode's states against their limits: the stored trajectory's numbers
         key = page.input_value("#trajectory")
         _, learner, seed, phase, episode, start = key.split("|")
-        tr = pd.read_parquet(run / "trajectories.parquet")
+        tr = pd.read_parquet(dashboard_run / "trajectories.parquet")
         tr = tr.set_index(["learner", "seed", "phase", "episode", "start"])
         tr = tr.loc[(learner, int(seed), phase, int(episode), int(start))]
         y = page.evaluate("() => document.getElementById('episode-x_p').data[0].y")
