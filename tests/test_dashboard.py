@@ -77,11 +77,13 @@ def test_the_page_of_a_finished_run_shows_its_numbers(dashboard_run, browser):
         tr = pd.read_parquet(dashboard_run / "trajectories.parquet")
         tr = tr.set_index(["learner", "seed", "phase", "episode", "start"])
         tr = tr.loc[(learner, int(seed), phase, int(episode), int(start))]
-        y = page.evaluate("() => document.getElementById('episode-x_p').data[0].y")
-        assert y == pytest.approx(tr.sort_values("k").x_p.tolist())
-        bounds = page.evaluate(
-            "() => document.getElementById('episode-x_p').layout.shapes.map(s => s.y0)"
+        fig = page.evaluate(
+            "() => { const d = document.getElementById('episode'); "
+            "return [d.data.map(t => [t.name, t.y]), d.layout.shapes]; }"
         )
+        (y,) = [y for name, y in fig[0] if name == "p"]
+        assert y == pytest.approx(tr.sort_values("k").x_p.tolist())
+        bounds = [s["y0"] for s in fig[1] if s["yref"] == "y"]
         assert bounds[:2] == [ref["system"]["x_lb"][0], ref["system"]["x_ub"][0]]
         assert page.is_visible("#identified-section") and page.is_visible("#objectives-section")
         assert page.inner_text("#messages") == ""

@@ -46,6 +46,8 @@ def dashboard(
         server = make_server(directories, host=host, port=port)
     except OSError as err:
         cli._fail(f"cannot serve on {host}:{port} ({err.strerror or err})", 2)
+    typer.echo(f"reading {len(directories)} run(s) ...")
+    server.warm()
     typer.echo(f"mpcmobo dashboard on http://{host}:{server.server_port}/  (Ctrl-C stops it)")
     try:
         server.serve_forever()

@@ -119,6 +119,7 @@ def run_payload(source: RunSource, index: int) -> dict[str, Any]:
         job = job_series(rows.sort_values("episode"), start, names)
         head = {"learner": str(learner), "seed": int(seed), "live": (learner, seed) in live}
         jobs.append({**head, "deploy": _deploy_options(raw, str(learner)), **job})
+    jobs.sort(key=lambda j: (learners.index(j["learner"]), j["seed"]))
     groups = {
         lr: group_series([j for j in jobs if j["learner"] == lr])
         for lr in learners

@@ -25,7 +25,7 @@ from mpcmobo.dashboard.files import FileCache, describe
 from mpcmobo.dashboard.payload import run_payload
 from mpcmobo.dashboard.runs import RunSource
 
-__all__ = ["Dashboard", "make_server"]
+__all__ = ["Dashboard", "DashboardServer", "make_server"]
 
 STATIC = {
     "index.html": "text/html; charset=utf-8",
@@ -100,7 +100,7 @@ def _broken(index: int, source: RunSource, message: str) -> dict[str, Any]:
 class Handler(BaseHTTPRequestHandler):
     """GET and HEAD of the routes in the module docstring; anything else is a 405."""
 
-    dashboard: Dashboard
+    server: DashboardServer
     server_version = "mpcmobo-dashboard"
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base's name
@@ -131,7 +131,7 @@ class Handler(BaseHTTPRequestHandler):
     do_HEAD = do_GET
 
     def _route(self, path: str, query: dict[str, str]) -> None:
-        d = self.dashboard
+        d = self.server.dashboard
         if path in ("/", "/index.html"):
             self._send(200, d.asset("index.html"), STATIC["index.html"])
         elif path == "/static/plotly.min.js":
@@ -156,12 +156,25 @@ class Handler(BaseHTTPRequestHandler):
     do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse
 
 
+class DashboardServer(ThreadingHTTPServer):
+    """A threading HTTP server holding the :class:`Dashboard` its handlers serve."""
+
+    daemon_threads = True
+
+    def __init__(self, address: tuple[str, int], dashboard: Dashboard) -> None:
+        super().__init__(address, Handler)
+        self.dashboard = dashboard
+
+    def warm(self) -> None:
+        """Read the runs and load plotly.js once, so that the first page is as fast as the
+        next ones."""
+        self.dashboard.state()
+        self.dashboard.asset("plotly.min.js")
+
+
 def make_server(
     directories: Sequence[str | Path], host: str = "127.0.0.1", port: int = 8050
-) -> ThreadingHTTPServer:
+) -> DashboardServer:
     """The dashboard's server for ``directories`` (``port`` 0: any free port); call its
     ``serve_forever()``."""
-    handler = type("BoundHandler", (Handler,), {"dashboard": Dashboard(directories)})
-    server = ThreadingHTTPServer((host, port), handler)
-    server.daemon_threads = True
-    return server
+    return DashboardServer((host, port), Dashboard(directories))

@@ -139,17 +139,16 @@ function statusOf(runs) {
   return t ? t.tuner.status : null;
 }
 
+// Each part of the page, timed (window.renderTimes: milliseconds by part, last drawing).
 async function render() {
-  const runs = state.runs;
-  drawMessages(runs);
-  drawJobs(runs);
-  drawTuner(runs);
-  drawPerformance(runs, document.getElementById("per-seed").checked);
-  drawChanges(runs);
-  trajectoryOptions(runs);
-  drawIdentified(runs, statusOf(runs));
-  objectiveJobs(runs);
-  await loadEpisode();
+  const runs = state.runs, times = {};
+  const timed = async (name, fn) => { const t = performance.now(); await fn(); times[name] = Math.round(performance.now() - t); };
+  await timed("tables", () => { drawMessages(runs); drawJobs(runs); drawTuner(runs); drawChanges(runs); });
+  await timed("performance", () => drawPerformance(runs, document.getElementById("per-seed").checked));
+  await timed("identified", () => drawIdentified(runs, statusOf(runs)));
+  await timed("objectives", () => objectiveJobs(runs));
+  await timed("episode", async () => { trajectoryOptions(runs); await loadEpisode(); });
+  window.renderTimes = times;
   document.body.dataset.version = state.version;
   document.getElementById("updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
 }

@@ -111,41 +111,50 @@ function drawPerformance(runs, perSeed) {
     legend: { font: { size: 10 } } }, CONFIG);
 }
 
-function smallPlot(parent, id) {
-  let div = document.getElementById(id);
-  if (!div) { div = document.createElement("div"); div.id = id; parent.appendChild(div); }
-  return div;
+// Panels of one figure (one plotly figure is much cheaper to draw than several): a grid of
+// `columns`, each panel {traces, title, levels: [[y, dash]], xtitle}.
+function panels(id, list, columns, height) {
+  const rows = Math.max(1, Math.ceil(list.length / columns));
+  const traces = [], shapes = [], annotations = [];
+  const layout = { grid: { rows, columns, pattern: "independent", ygap: 0.35 }, showlegend: false,
+    margin: { t: 30, r: 10, b: 30, l: 60 }, height: rows * height };
+  list.forEach((p, i) => {
+    const n = i ? String(i + 1) : "";
+    p.traces.forEach((t) => traces.push({ ...t, xaxis: `x${n}`, yaxis: `y${n}` }));
+    (p.levels || []).forEach(([y, dash, color]) => {
+      if (y !== null && y !== undefined) shapes.push({ type: "line", xref: `x${n} domain`, x0: 0, x1: 1,
+        yref: `y${n}`, y0: y, y1: y, line: { color: color || "rgb(68,68,68)", width: 1, dash } });
+    });
+    annotations.push({ text: p.title, xref: `x${n} domain`, yref: `y${n} domain`, x: 0.5, y: 1.02,
+      xanchor: "center", yanchor: "bottom", showarrow: false, font: { size: 12 } });
+    layout[`xaxis${n}`] = { title: { text: p.xtitle, standoff: 2 } };
+  });
+  layout.shapes = shapes;
+  layout.annotations = annotations;
+  const div = document.getElementById(id);
+  div.style.height = `${layout.height}px`;
+  Plotly.react(div, traces, layout, CONFIG);
 }
 
 function drawEpisode(run, traj) {
-  const parent = document.getElementById("episode");
+  const div = document.getElementById("episode");
   const sys = run && run.system;
-  if (!sys || !traj) { parent.textContent = traj === null ? "no stored trajectory" : ""; return; }
-  if (!parent.querySelector("div")) parent.textContent = "";
-  const dt = sys.dt || 1;
-  const panels = [];
-  sys.state_names.forEach((n, i) => panels.push([`x_${n}`, n, traj.x[i], sys.x_lb[i], sys.x_ub[i], sys.x_ref[i]]));
-  sys.input_names.forEach((n, i) => panels.push([`u_${n}`, n, traj.u[i], sys.u_lb[i], sys.u_ub[i], sys.u_ref[i]]));
-  panels.forEach(([id, name, y, lb, ub, ref]) => {
-    const t = y.map((_, k) => k * dt);
-    const shapes = [];
-    [[lb, "rgb(204,0,0)"], [ub, "rgb(204,0,0)"], [ref, "rgb(136,136,136)"]].forEach(([v, color]) => {
-      if (v !== null && v !== undefined) shapes.push({ type: "line", xref: "paper", x0: 0, x1: 1,
-        y0: v, y1: v, line: { color, width: 1, dash: color === "rgb(136,136,136)" ? "dot" : "dash" } });
-    });
-    const kind = id.startsWith("x_") ? "lines" : "lines";
-    Plotly.react(smallPlot(parent, `episode-${id}`), [{ x: t, y, name, type: "scatter", mode: kind,
-      line: { shape: id.startsWith("u_") ? "hv" : "linear" } }],
-    { title: { text: `${name} (limits dashed)`, font: { size: 12 } }, margin: { t: 30, r: 10, b: 30, l: 50 },
-      shapes, xaxis: { title: { text: "t" } } }, CONFIG);
-  });
+  if (!sys || !traj) { Plotly.purge(div); div.textContent = traj === null ? "no stored trajectory" : ""; return; }
+  const dt = sys.dt || 1, list = [];
+  const add = (name, y, lb, ub, ref, step) => list.push({ title: `${name} (limits dashed red)`, xtitle: "t",
+    traces: [{ x: y.map((_, k) => k * dt), y, name, type: "scatter", mode: "lines",
+      line: { shape: step ? "hv" : "linear", color: PALETTE[0] } }],
+    levels: [[lb, "dash", "rgb(204,0,0)"], [ub, "dash", "rgb(204,0,0)"], [ref, "dot", "rgb(136,136,136)"]] });
+  sys.state_names.forEach((n, i) => add(n, traj.x[i], sys.x_lb[i], sys.x_ub[i], sys.x_ref[i], false));
+  sys.input_names.forEach((n, i) => add(n, traj.u[i], sys.u_lb[i], sys.u_ub[i], sys.u_ref[i], true));
+  panels("episode", list, 3, 240);
 }
 
 function drawIdentified(runs, status) {
-  const parent = document.getElementById("identified");
   const shown = runs.filter((r) => r.identified);
   document.getElementById("identified-section").hidden = !shown.length;
-  let k = 0;
+  if (!shown.length) return;
+  const list = [];
   shown.forEach((run) => {
     run.identified.names.forEach((name, p) => {
       const traces = [];
@@ -161,16 +170,12 @@ function drawIdentified(runs, status) {
         traces.push({ x: [last], y: [fit.estimate], type: "scatter", mode: "markers",
           name: "last fit +- 2 std", error_y: { type: "data", array: [2 * fit.std], visible: true } });
       }
-      const shapes = [];
-      [[run.identified.nominal[p], "dash", "nominal"], [run.identified.true[p], "dot", "true"]]
-        .forEach(([v, dash]) => { if (v !== null) shapes.push({ type: "line", xref: "paper",
-          x0: 0, x1: 1, y0: v, y1: v, line: { color: "rgb(68,68,68)", width: 1, dash } }); });
-      Plotly.react(smallPlot(parent, `identified-${k++}`), traces,
-        { title: { text: `${name} (nominal dashed, true dotted)`, font: { size: 12 } },
-          margin: { t: 30, r: 10, b: 30, l: 60 }, shapes, showlegend: false,
-          xaxis: { title: { text: "episode" } } }, CONFIG);
+      list.push({ title: `${name}${runs.length > 1 ? " (" + run.name + ")" : ""}: nominal dashed, true dotted`,
+        xtitle: "episode", traces,
+        levels: [[run.identified.nominal[p], "dash"], [run.identified.true[p], "dot"]] });
     });
   });
+  panels("identified", list, 3, 240);
 }
 
 // f2, f3 and f4 against f1 (SVG scatter: no WebGL), the Pareto front's episodes in red.
