@@ -36,12 +36,11 @@ def dashboard(
         if not d.exists():
             cli._fail(f"{d} does not exist", 2)
     try:
-        from mpcmobo.dashboard import make_server
-    except ImportError as err:
-        cli._fail(
-            f"the dashboard needs the 'dashboard' extra ({err}): pip install 'mpcmobo[dashboard]'",
-            2,
-        )
+        import plotly  # noqa: F401 - the page's plotting library
+    except ImportError:
+        cli._fail("the dashboard needs plotly: pip install 'mpcmobo[dashboard]'", 2)
+    from mpcmobo.dashboard import make_server
+
     try:
         server = make_server(directories, host=host, port=port)
     except OSError as err:

@@ -62,7 +62,7 @@ function describeChange(c) {
 function fmt(v, digits = 4) {
   if (v === null || v === undefined) return "";
   if (typeof v !== "number") return String(v);
-  return Math.abs(v) >= 1e5 || (Math.abs(v) < 1e-3 && v !== 0) ? v.toExponential(3)
+  return Math.abs(v) >= 1e7 || (Math.abs(v) < 1e-3 && v !== 0) ? v.toExponential(3)
     : Number(v.toPrecision(digits)).toString();
 }
 
