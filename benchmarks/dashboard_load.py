@@ -148,6 +148,7 @@ def measure(browser, directory: Path | None, repeats: int) -> dict[str, float]:
     page = context.new_page()
     ready_ms(page, url)
     warm = ready_ms(page, url)
+    drawing = page.evaluate("window.renderTimes || {}")
     latency = [episode_latency(page, directory) for _ in range(3)] if directory else []
     context.close()
     server.shutdown()
@@ -156,6 +157,7 @@ def measure(browser, directory: Path | None, repeats: int) -> dict[str, float]:
         "cold_max": max(cold),
         "warm": warm,
         "latency": max(latency) if latency else float("nan"),
+        "drawing": drawing,
     }
 
 
@@ -183,6 +185,8 @@ def main() -> None:
     )
     print("|---|---|---|---|---|")
     for name, r in results.items():
+        if r["drawing"]:
+            print(f"{name}: drawing (ms, cached load) {r['drawing']}", file=sys.stderr)
         lat = "" if np.isnan(r["latency"]) else f"{r['latency']:.2f} s"
         print(
             f"| {name} | {r['cold'] / 1000:.2f} s | {r['cold_max'] / 1000:.2f} s | "

@@ -144,8 +144,8 @@ async function render() {
   const runs = state.runs, times = {};
   const timed = async (name, fn) => { const t = performance.now(); await fn(); times[name] = Math.round(performance.now() - t); };
   await timed("tables", () => { drawMessages(runs); drawJobs(runs); drawTuner(runs); drawChanges(runs); });
-  await timed("performance", () => drawPerformance(runs, document.getElementById("per-seed").checked));
-  await timed("identified", () => drawIdentified(runs, statusOf(runs)));
+  await timed("performance", () => drawPerformance(runs, perSeed()));
+  await timed("identified", () => drawIdentified(runs, statusOf(runs), perSeed()));
   await timed("objectives", () => objectiveJobs(runs));
   await timed("episode", async () => { trajectoryOptions(runs); await loadEpisode(); });
   window.renderTimes = times;
@@ -168,7 +168,12 @@ async function poll() {
   setTimeout(poll, POLL_MS);
 }
 
-document.getElementById("per-seed").addEventListener("change", () => drawPerformance(state.runs, document.getElementById("per-seed").checked));
+function perSeed() { return document.getElementById("per-seed").checked; }
+
+document.getElementById("per-seed").addEventListener("change", () => {
+  drawPerformance(state.runs, perSeed());
+  drawIdentified(state.runs, statusOf(state.runs), perSeed());
+});
 document.getElementById("trajectory").addEventListener("change", (e) => { episodeKey = e.target.value; loadEpisode(); });
 document.getElementById("objective-job").addEventListener("change", (e) => { objectiveKey = e.target.value; objectiveJobs(state.runs); });
 poll();

@@ -150,7 +150,21 @@ function drawEpisode(run, traj) {
   panels("episode", list, 3, 240);
 }
 
-function drawIdentified(runs, status) {
+// The median and min-max of several series by index (null where no series has a value).
+function medianBand(series) {
+  const n = Math.max(...series.map((s) => s.length));
+  const out = { x: [], median: [], min: [], max: [] };
+  for (let i = 0; i < n; i++) {
+    const v = series.map((s) => s[i]).filter((y) => y !== null && y !== undefined).sort((a, b) => a - b);
+    out.x.push(i);
+    out.median.push(v.length ? (v[(v.length - 1) >> 1] + v[v.length >> 1]) / 2 : null);
+    out.min.push(v.length ? v[0] : null);
+    out.max.push(v.length ? v[v.length - 1] : null);
+  }
+  return out;
+}
+
+function drawIdentified(runs, status, perSeed) {
   const shown = runs.filter((r) => r.identified);
   document.getElementById("identified-section").hidden = !shown.length;
   if (!shown.length) return;
@@ -158,10 +172,15 @@ function drawIdentified(runs, status) {
   shown.forEach((run) => {
     run.identified.names.forEach((name, p) => {
       const traces = [];
-      run.jobs.forEach((job, j) => {
-        if (!job.identified.length) return;
-        traces.push({ x: job.episode, y: job.identified[p], type: "scatter", mode: "lines",
-          name: `${job.learner} s${job.seed}`, line: { color: seriesColor(j) } });
+      run.learners.forEach((learner, l) => {
+        const jobs = run.jobs.filter((j) => j.learner === learner && j.identified.length);
+        if (perSeed || jobs.length === 1) {
+          jobs.forEach((job) => traces.push({ x: job.episode, y: job.identified[p], type: "scatter",
+            mode: "lines", name: `${learner} s${job.seed}`, line: { color: seriesColor(l) } }));
+        } else if (jobs.length) {
+          const m = medianBand(jobs.map((j) => j.identified[p]));
+          traces.push(...band(m.x, m, `${learner} (median, ${jobs.length} seeds)`, seriesColor(l), "solid", learner));
+        }
       });
       const fit = status && status.identification && status.identification.parameters
         && status.identification.parameters[name];
