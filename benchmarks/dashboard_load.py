@@ -8,9 +8,12 @@ deployed theta every 50 episodes, J_eval every 10 episodes, and the real run's s
 trajectories. Layouts: the default study (4 learners x 600 episodes, 1 seed) and 10 seeds x
 5 learners x 50 episodes. For each, the server is started (it reads the runs once, as
 ``mpcmobo dashboard`` does), then Chromium opens the page ``--repeats`` times in a new
-context (no cache) and once more in the same context (plotly.js from the browser's cache);
-"ready" is the page's own clock (navigation start to the first complete drawing). The
-baseline row is a page that only loads plotly.min.js from the same server.
+context (no cache) and once more in the same context (scripts from the browser's cache);
+"ready" is the page's own clock (navigation start to the first complete drawing), "CPU" the
+CPU seconds the browser's processes and the server used meanwhile (what the load of a shared
+machine does not change). The baseline rows are pages that only load a plotting library from
+the same server: uPlot (the page's) and, where the ``plotly`` package is installed, plotly.js
+(the alternative it was chosen against).
 
     .venv/bin/python benchmarks/dashboard_load.py [--source DIR] [--repeats 5]
 """
@@ -18,6 +21,8 @@ baseline row is a page that only loads plotly.min.js from the same server.
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import os
 import shutil
 import statistics
 import subprocess
@@ -32,6 +37,7 @@ import pandas as pd
 import tomli_w
 
 from mpcmobo.dashboard import make_server
+from mpcmobo.dashboard import server as dashboard_server
 from mpcmobo.experiment import storage
 from mpcmobo.experiment.settings import read_toml
 
@@ -47,7 +53,7 @@ LAYOUTS = {
     "default study: 4 learners x 600 episodes": (["identify", "mpc-rl", "bo", "mobo"], 1, 600),
     "10 seeds x 5 learners x 50 episodes": (["identify", "mpc-rl", "bo", "mobo", "hybrid"], 10, 50),
 }
-BASELINE = b"""<!doctype html><html><body><script src="/static/plotly.min.js"></script>
+BASELINE = """<!doctype html><html><body><script src="/static/{}"></script>
 <script>document.body.dataset.readyMs = performance.now().toFixed(0);
 document.body.dataset.ready = "1";</script></body></html>"""
 
@@ -106,19 +112,51 @@ def generate(source: Path, out: Path, learners: list[str], seeds: int, episodes:
     return out
 
 
-def serve(directory: Path | None) -> tuple[str, object]:
+def serve(directory: Path | None, library: str = "") -> tuple[str, object]:
     server = make_server([directory] if directory else [], port=0)
     server.warm()  # as mpcmobo dashboard does before it prints its address
-    if directory is None:
-        server.dashboard._assets["index.html"] = BASELINE
+    if directory is None:  # a page with the library alone
+        server.dashboard._assets["index.html"] = BASELINE.format(library).encode()
+        if library == "plotly.min.js":
+            from plotly.offline import get_plotlyjs
+
+            dashboard_server.STATIC[library] = dashboard_server.JS
+            server.dashboard._assets[library] = get_plotlyjs().encode()
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return f"http://127.0.0.1:{server.server_port}/", server
 
 
-def ready_ms(page, url: str) -> float:
+def browser_cpu_seconds() -> float:
+    """CPU seconds (user + system) of every Chromium process under this one."""
+    parent, cpu = {}, {}
+    tick = os.sysconf("SC_CLK_TCK")
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue
+        comm, rest = text[text.index("(") + 1 : text.rindex(")")], text[text.rindex(")") + 2 :]
+        fields = rest.split()
+        pid = int(stat.parent.name)
+        parent[pid] = int(fields[1])
+        if "chrom" in comm:
+            cpu[pid] = (int(fields[11]) + int(fields[12])) / tick
+    me, total = os.getpid(), 0.0
+    for pid, seconds in cpu.items():
+        p = pid
+        while p > 1 and p != me:
+            p = parent.get(p, 1)
+        total += seconds if p == me else 0.0
+    return total
+
+
+def ready_ms(page, url: str) -> tuple[float, float]:
+    """The page's own time to ready [ms], and the CPU seconds it took (browser and server)."""
+    cpu = browser_cpu_seconds() + time.process_time()
     page.goto(url)
     page.wait_for_selector("body[data-ready='1']", state="attached", timeout=60_000)
-    return float(page.evaluate("document.body.dataset.readyMs"))
+    used = browser_cpu_seconds() + time.process_time() - cpu
+    return float(page.evaluate("document.body.dataset.readyMs")), used
 
 
 def episode_latency(page, run: Path) -> float:
@@ -137,17 +175,20 @@ def episode_latency(page, run: Path) -> float:
     return time.perf_counter() - t
 
 
-def measure(browser, directory: Path | None, repeats: int) -> dict[str, float]:
-    url, server = serve(directory)
-    cold = []
+def measure(browser, directory: Path | None, repeats: int, library: str = "") -> dict[str, float]:
+    url, server = serve(directory, library)
+    cold, cold_cpu = [], []
     for _ in range(repeats):
         context = browser.new_context(viewport={"width": 1400, "height": 900})
-        cold.append(ready_ms(context.new_page(), url))
+        page = context.new_page()
+        ms, cpu = ready_ms(page, url)
+        cold.append(ms)
+        cold_cpu.append(cpu)
         context.close()
     context = browser.new_context(viewport={"width": 1400, "height": 900})
     page = context.new_page()
     ready_ms(page, url)
-    warm = ready_ms(page, url)
+    warm, warm_cpu = ready_ms(page, url)
     drawing = page.evaluate("window.renderTimes || {}")
     latency = [episode_latency(page, directory) for _ in range(3)] if directory else []
     context.close()
@@ -155,6 +196,8 @@ def measure(browser, directory: Path | None, repeats: int) -> dict[str, float]:
     return {
         "cold": statistics.median(cold),
         "cold_max": max(cold),
+        "cold_cpu": statistics.median(cold_cpu),
+        "warm_cpu": warm_cpu,
         "warm": warm,
         "latency": max(latency) if latency else float("nan"),
         "drawing": drawing,
@@ -172,7 +215,11 @@ def main() -> None:
         source = args.source or make_source(Path(tmp))
         chromium = shutil.which("chromium") or shutil.which("chromium-browser")
         browser = pw.chromium.launch(executable_path=chromium, args=CHROMIUM_ARGS)
-        results = {"baseline: plotly.min.js alone": measure(browser, None, args.repeats)}
+        results = {
+            "baseline: uPlot alone": measure(browser, None, args.repeats, "uPlot.iife.min.js")
+        }
+        if importlib.util.find_spec("plotly"):
+            results["plotly.js alone"] = measure(browser, None, args.repeats, "plotly.min.js")
         for name, (learners, seeds, episodes) in LAYOUTS.items():
             run = generate(
                 source, Path(tmp) / name.split(":")[0].replace(" ", "_"), learners, seeds, episodes
@@ -180,17 +227,18 @@ def main() -> None:
             results[name] = measure(browser, run, args.repeats)
         browser.close()
     print(
-        f"| page | ready, new context (median of {args.repeats}) | worst | ready, cached "
-        "plotly.js | new episode shown (worst of 3) |"
+        f"| page | ready, new context (median of {args.repeats}) | its CPU | worst | ready, "
+        "cached scripts | its CPU | new episode shown (worst of 3) |"
     )
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for name, r in results.items():
         if r["drawing"]:
             print(f"{name}: drawing (ms, cached load) {r['drawing']}", file=sys.stderr)
         lat = "" if np.isnan(r["latency"]) else f"{r['latency']:.2f} s"
         print(
-            f"| {name} | {r['cold'] / 1000:.2f} s | {r['cold_max'] / 1000:.2f} s | "
-            f"{r['warm'] / 1000:.2f} s | {lat} |"
+            f"| {name} | {r['cold'] / 1000:.2f} s | {r['cold_cpu']:.2f} s | "
+            f"{r['cold_max'] / 1000:.2f} s | {r['warm'] / 1000:.2f} s | {r['warm_cpu']:.2f} s | "
+            f"{lat} |"
         )
 
 

@@ -61,29 +61,27 @@ def test_the_page_of_a_finished_run_shows_its_numbers(dashboard_run, browser):
             assert float(r[6]) == pytest.approx(job.mean_stage_cost.sum(), rel=1e-3)
             assert float(r[9]) == pytest.approx(ref["J_star"], rel=1e-3)
         page.check("#per-seed")
-        traces = page.evaluate(
-            "() => document.getElementById('perf').data.filter(t => t.meta)"
-            ".map(t => [t.meta.learner, t.meta.seed, t.meta.kind, t.y])"
+        perf = page.evaluate(
+            "() => { const u = window.charts.perf; "
+            "return [u.series.map(s => s.label), u.data, u.levels.map(l => l.y)]; }"
         )
         job = ep[(ep.learner == "mobo") & (ep.seed == 1)].sort_values("episode")
-        (J,) = [y for lr, s, kind, y in traces if (lr, s, kind) == ("mobo", 1, "J_eval")]
-        want = [None if not math.isfinite(v) else v for v in job.J_eval_incumbent]
-        assert J == pytest.approx(want)
-        levels = page.evaluate("() => document.getElementById('perf').layout.shapes.map(s => s.y0)")
-        assert levels == pytest.approx([ref["J_star"], ref["J_initial"]])
+        J = perf[1][perf[0].index("mobo s1: J_eval deployed")]
+        assert J == pytest.approx(
+            [None if not math.isfinite(v) else v for v in job.J_eval_incumbent]
+        )
+        assert perf[2] == pytest.approx([ref["J_star"], ref["J_initial"]])
         # one episode's states against their limits: the stored trajectory's numbers
         key = page.input_value("#trajectory")
         _, learner, seed, phase, episode, start = key.split("|")
         tr = pd.read_parquet(dashboard_run / "trajectories.parquet")
         tr = tr.set_index(["learner", "seed", "phase", "episode", "start"])
         tr = tr.loc[(learner, int(seed), phase, int(episode), int(start))]
-        fig = page.evaluate(
-            "() => { const d = document.getElementById('episode'); "
-            "return [d.data.map(t => [t.name, t.y]), d.layout.shapes]; }"
+        y, bounds = page.evaluate(
+            "() => { const u = window.charts['episode-x_p']; "
+            "return [u.data[1], u.levels.map(l => l.y)]; }"
         )
-        (y,) = [y for name, y in fig[0] if name == "p"]
         assert y == pytest.approx(tr.sort_values("k").x_p.tolist())
-        bounds = [s["y0"] for s in fig[1] if s["yref"] == "y"]
         assert bounds[:2] == [ref["system"]["x_lb"][0], ref["system"]["x_ub"][0]]
         assert page.is_visible("#identified-section") and page.is_visible("#objectives-section")
         assert page.inner_text("#messages") == ""

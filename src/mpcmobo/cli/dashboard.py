@@ -35,10 +35,6 @@ def dashboard(
             cli._fail(f"{d} is a file, not a run directory", 2)
         if not d.exists():
             cli._fail(f"{d} does not exist", 2)
-    try:
-        import plotly  # noqa: F401 - the page's plotting library
-    except ImportError:
-        cli._fail("the dashboard needs plotly: pip install 'mpcmobo[dashboard]'", 2)
     from mpcmobo.dashboard import make_server
 
     try:

@@ -3,8 +3,8 @@
 :func:`make_server` serves the page (:mod:`~mpcmobo.dashboard.server`); the page polls the
 runs' data, which :mod:`~mpcmobo.dashboard.payload` builds from the files that
 :mod:`~mpcmobo.dashboard.runs` reads through a cache that never raises
-(:mod:`~mpcmobo.dashboard.files`). The plotting library, plotly.js, comes from the ``plotly``
-package (the ``dashboard`` extra); no asset is fetched from the network.
+(:mod:`~mpcmobo.dashboard.files`). The plotting library, uPlot (MIT), ships with the package
+(``static/vendor/``); no asset is fetched from the network.
 """
 
 from mpcmobo.dashboard.server import Dashboard, make_server

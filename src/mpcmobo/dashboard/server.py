@@ -1,8 +1,8 @@
 """The dashboard's HTTP server: GET only, every asset from the package, on 127.0.0.1 unless
 told otherwise.
 
-Routes: ``/`` the page; ``/static/<file>`` its script and style sheet; ``/static/plotly.min.js``
-the plotting library, from the ``plotly`` package's wheel; ``/api/state?since=V`` the runs' data
+Routes: ``/`` the page; ``/static/<file>`` its scripts and style sheets; ``/static/uPlot.iife.min.js``
+the plotting library (uPlot, stored gzipped in the package); ``/api/state?since=V`` the runs' data
 as JSON (``{"version": V}`` alone while no file of the runs changed since version ``V``);
 ``/api/episode?run=I&learner=L&seed=S&phase=P&episode=E&start=K`` one stored trajectory. Any
 other method is refused (405): nothing on the page writes or runs anything.
@@ -10,6 +10,7 @@ other method is refused (405): nothing on the page writes or runs anything.
 
 from __future__ import annotations
 
+import gzip
 import hashlib
 import json
 import threading
@@ -27,19 +28,16 @@ from mpcmobo.dashboard.runs import RunSource
 
 __all__ = ["Dashboard", "DashboardServer", "make_server"]
 
+JS, CSS = "text/javascript; charset=utf-8", "text/css; charset=utf-8"
 STATIC = {
     "index.html": "text/html; charset=utf-8",
-    "app.js": "text/javascript; charset=utf-8",
-    "plots.js": "text/javascript; charset=utf-8",
-    "style.css": "text/css; charset=utf-8",
+    "app.js": JS,
+    "plots.js": JS,
+    "style.css": CSS,
+    "uPlot.iife.min.js": JS,  # uPlot 1.6.32 (MIT, static/vendor/uPlot.LICENSE)
+    "uPlot.min.css": CSS,
 }
-
-
-def plotly_js() -> bytes:
-    """plotly.js as the ``plotly`` Python package ships it (no network)."""
-    from plotly.offline import get_plotlyjs
-
-    return get_plotlyjs().encode("utf-8")
+VENDOR = ("uPlot.iife.min.js", "uPlot.min.css")  # stored as static/vendor/<name>.gz
 
 
 class Dashboard:
@@ -81,13 +79,14 @@ class Dashboard:
             return source.trajectory(query)
 
     def asset(self, name: str) -> bytes:
-        """A file of the page (``static/``), or plotly.js."""
+        """A file of the page (``static/``; the plotting library from ``static/vendor/``)."""
         if name not in self._assets:
-            if name == "plotly.min.js":
-                self._assets[name] = plotly_js()
+            files = resources.files("mpcmobo.dashboard").joinpath("static")
+            if name in VENDOR:
+                data = gzip.decompress(files.joinpath("vendor", name + ".gz").read_bytes())
             else:
-                files = resources.files("mpcmobo.dashboard").joinpath("static")
-                self._assets[name] = files.joinpath(name).read_bytes()
+                data = files.joinpath(name).read_bytes()
+            self._assets[name] = data
         return self._assets[name]
 
 
@@ -134,10 +133,9 @@ class Handler(BaseHTTPRequestHandler):
         d = self.server.dashboard
         if path in ("/", "/index.html"):
             self._send(200, d.asset("index.html"), STATIC["index.html"])
-        elif path == "/static/plotly.min.js":
-            self._send(200, d.asset("plotly.min.js"), STATIC["app.js"], cache=True)
         elif path.startswith("/static/") and path[8:] in STATIC:
-            self._send(200, d.asset(path[8:]), STATIC[path[8:]])
+            name = path[8:]
+            self._send(200, d.asset(name), STATIC[name], cache=name in VENDOR)
         elif path == "/api/state":
             version, body = d.state()
             if query.get("since") == version:
@@ -166,10 +164,11 @@ class DashboardServer(ThreadingHTTPServer):
         self.dashboard = dashboard
 
     def warm(self) -> None:
-        """Read the runs and load plotly.js once, so that the first page is as fast as the
+        """Read the runs and the page's files once, so that the first page is as fast as the
         next ones."""
         self.dashboard.state()
-        self.dashboard.asset("plotly.min.js")
+        for name in STATIC:
+            self.dashboard.asset(name)
 
 
 def make_server(

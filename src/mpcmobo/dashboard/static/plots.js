@@ -1,63 +1,16 @@
-// The figures of the dashboard, drawn with plotly.js (served by the package).
+// The figures of the dashboard, drawn with uPlot (served by the package, canvas: no WebGL).
+// Every chart is kept in window.charts[id] (its data and series: what the tests read).
 "use strict";
 
-const PALETTE = ["rgb(31,119,180)", "rgb(214,39,40)", "rgb(44,160,44)", "rgb(148,103,189)", "rgb(255,127,14)", "rgb(140,86,75)",
-  "rgb(227,119,194)", "rgb(23,190,207)", "rgb(127,127,127)", "rgb(188,189,34)"];
-const CONFIG = { displaylogo: false, responsive: true };
+const PALETTE = ["rgb(31,119,180)", "rgb(214,39,40)", "rgb(44,160,44)", "rgb(148,103,189)",
+  "rgb(255,127,14)", "rgb(140,86,75)", "rgb(227,119,194)", "rgb(23,190,207)",
+  "rgb(127,127,127)", "rgb(188,189,34)"];
+const GREY = "rgb(68,68,68)", RED = "rgb(204,0,0)", LIGHT = "rgb(136,136,136)";
+window.charts = {};
 
 function seriesColor(i) { return PALETTE[i % PALETTE.length]; }
-
-function fade(color, alpha) {
-  return color.replace("rgb(", "rgba(").replace(")", `,${alpha})`);
-}
-
+function fade(color, alpha) { return color.replace("rgb(", "rgba(").replace(")", `,${alpha})`); }
 function label(run, learner, several) { return several ? `${run.name}: ${learner}` : learner; }
-
-// A median line with its min-max band.
-function band(x, stats, name, color, dash, group) {
-  return [
-    { x: x.concat(x.slice().reverse()), y: stats.max.concat(stats.min.slice().reverse()),
-      fill: "toself", fillcolor: fade(color, 0.12), line: { width: 0 }, hoverinfo: "skip", mode: "lines",
-      showlegend: false, legendgroup: group, type: "scatter", connectgaps: false },
-    { x, y: stats.median, name, legendgroup: group, line: { color, dash, width: dash === "dot" ? 1 : 2 },
-      type: "scatter", mode: "lines", connectgaps: true },
-  ];
-}
-
-function levelLines(runs, several) {
-  const shapes = [], annotations = [];
-  runs.forEach((run) => {
-    [["J_star", "J*", "dash"], ["J_initial", "theta0", "dot"]].forEach(([key, text, dash]) => {
-      if (run[key] === null || run[key] === undefined) return;
-      shapes.push({ type: "line", xref: "paper", x0: 0, x1: 1, y0: run[key], y1: run[key],
-        line: { color: "rgb(68,68,68)", width: 1, dash } });
-      annotations.push({ xref: "paper", x: 1, y: run[key], xanchor: "right", yanchor: "bottom",
-        text: several ? `${text} (${run.name})` : text, showarrow: false, font: { size: 10 } });
-    });
-  });
-  return { shapes, annotations };
-}
-
-function changeMarkers(job, name, color, group) {
-  const x = [], y = [], text = [];
-  job.changes.forEach((c) => {
-    const i = job.episode.indexOf(c.episode);
-    x.push(c.episode);
-    y.push(c.J_eval !== null ? c.J_eval : (i >= 0 ? job.cost[i] : null));
-    text.push(describeChange(c));
-  });
-  return { x, y, text, name: `${name}: deployed theta changed`, legendgroup: group,
-    mode: "markers", type: "scatter", hovertemplate: "%{text}<extra></extra>",
-    marker: { symbol: "triangle-up", size: 10, color, line: { color: "rgb(0,0,0)", width: 1 } } };
-}
-
-function describeChange(c) {
-  const parts = [`after episode ${c.episode}`];
-  if (c.new_runs) parts.push(`new theta: ${c.new_runs} episodes, mean cost ${fmt(c.new_cost)}`);
-  if (c.old_runs) parts.push(`old theta: ${c.old_runs} episodes, mean cost ${fmt(c.old_cost)}`);
-  if (c.J_eval !== null) parts.push(`J_eval ${fmt(c.J_eval)}`);
-  return parts.join("<br>");
-}
 
 function fmt(v, digits = 4) {
   if (v === null || v === undefined) return "";
@@ -66,97 +19,156 @@ function fmt(v, digits = 4) {
     : Number(v.toPrecision(digits)).toString();
 }
 
-function performanceTraces(runs, perSeed) {
-  const perf = [], cum = [];
-  const several = runs.length > 1;
-  let k = 0;
-  runs.forEach((run) => {
-    (run.learners || []).forEach((learner) => {
-      const jobs = (run.jobs || []).filter((j) => j.learner === learner);
-      if (!jobs.length) return;
-      const color = seriesColor(k++), name = label(run, learner, several), group = name;
-      if (perSeed || jobs.length === 1) {
-        jobs.forEach((job, s) => {
-          const n = jobs.length > 1 ? `${name} s${job.seed}` : name;
-          perf.push({ x: job.episode, y: job.cost, name: `${n}: plant cost`, legendgroup: group,
-            type: "scatter", mode: "lines", line: { color: fade(color, 0.45), width: 1 },
-            meta: { run: run.index, learner, seed: job.seed, kind: "cost" } });
-          perf.push({ x: job.episode, y: job.J_eval, name: `${n}: J_eval deployed`,
-            legendgroup: group, type: "scatter", mode: "lines+markers", connectgaps: true,
-            line: { color, width: 2 }, marker: { size: 4 },
-            meta: { run: run.index, learner, seed: job.seed, kind: "J_eval" } });
-          perf.push(changeMarkers(job, n, color, group));
-          cum.push({ x: job.episode, y: job.cum_cost, name: n, type: "scatter", mode: "lines",
-            line: { color }, meta: { run: run.index, learner, seed: job.seed, kind: "cum" } });
-        });
-      } else {
-        const g = run.groups[learner];
-        perf.push(...band(g.episode, g.cost, `${name}: plant cost (median)`, color, "dot", group));
-        perf.push(...band(g.episode, g.J_eval, `${name}: J_eval deployed (median, ${g.seeds} seeds)`, color, "solid", group));
-        cum.push(...band(g.episode, g.cum_cost, `${name} (median, ${g.seeds} seeds)`, color, "solid", name));
+// Horizontal lines [{y, dash, color, text}] drawn over a chart (limits, J*, theta0's level).
+function levelsHook(levels) {
+  return (u) => {
+    const ctx = u.ctx, { left, width } = u.bbox;
+    ctx.save();
+    levels.forEach((l) => {
+      if (l.y === null || l.y === undefined) return;
+      const y = Math.round(u.valToPos(l.y, "y", true));
+      ctx.strokeStyle = l.color || GREY;
+      ctx.lineWidth = 1;
+      ctx.setLineDash(l.dash === "dot" ? [2, 3] : [6, 4]);
+      ctx.beginPath(); ctx.moveTo(left, y); ctx.lineTo(left + width, y); ctx.stroke();
+      if (l.text) {
+        ctx.fillStyle = l.color || GREY;
+        ctx.font = `${11 * devicePixelRatio}px sans-serif`;
+        ctx.textAlign = "right";
+        ctx.fillText(l.text, left + width - 4, y - 4);
       }
     });
+    ctx.restore();
+  };
+}
+
+// A y range that holds the data and the levels.
+function rangeWith(levels) {
+  return (u, min, max) => {
+    const ys = levels.map((l) => l.y).filter((y) => y !== null && y !== undefined);
+    let lo = Math.min(min ?? Infinity, ...ys), hi = Math.max(max ?? -Infinity, ...ys);
+    if (!isFinite(lo) || !isFinite(hi)) return [0, 1];
+    const pad = (hi - lo || Math.abs(hi) || 1) * 0.05;
+    return [lo - pad, hi + pad];
+  };
+}
+
+// One chart in the element `id` (replacing the one there): x and series [{label, y, ...}].
+function chart(id, { x, series, levels = [], xlabel = "", ylabel = "", title = "", height = 300,
+  bands = [], legend = true, parent = null }) {
+  let el = document.getElementById(id);
+  if (!el) { el = document.createElement("div"); el.id = id; el.className = "panel"; parent.appendChild(el); }
+  if (window.charts[id]) window.charts[id].destroy();
+  el.textContent = "";
+  const width = Math.max(300, el.clientWidth || el.parentElement.clientWidth || 600);
+  const opts = { title, width, height, legend: { show: legend, live: legend },
+    scales: { x: { time: false }, y: { range: rangeWith(levels) } },
+    axes: [{ label: xlabel, size: 40 }, { label: ylabel, size: 60 }],
+    series: [{ label: xlabel || "x" }, ...series.map(({ y, edge, ...s }) => ({ spanGaps: true, ...s }))],
+    bands, hooks: { draw: [levelsHook(levels)] }, cursor: { drag: { x: true, y: false } } };
+  const u = new uPlot(opts, [x, ...series.map((s) => s.y)], el);
+  u.levels = levels;
+  if (legend) {  // the bands' edges have no entry of their own
+    const rows = u.root.querySelectorAll(".u-legend .u-series");
+    series.forEach((s, i) => { if (s.edge && rows[i + 1]) rows[i + 1].style.display = "none"; });
+  }
+  window.charts[id] = u;
+  return u;
+}
+
+// Series of one job aligned on the episodes 0..n-1 (null where the job has none).
+function aligned(job, values, n) {
+  const out = new Array(n).fill(null);
+  job.episode.forEach((e, i) => { if (e < n) out[e] = values[i]; });
+  return out;
+}
+
+function levelLines(runs) {
+  const levels = [];
+  runs.forEach((run) => {
+    const who = runs.length > 1 ? ` (${run.name})` : "";
+    levels.push({ y: run.J_star, dash: "dash", text: `J*${who}` });
+    levels.push({ y: run.J_initial, dash: "dot", text: `theta0${who}` });
   });
-  return { perf, cum };
+  return levels;
+}
+
+function describeChange(c) {
+  const parts = [`after episode ${c.episode}`];
+  if (c.new_runs) parts.push(`new theta: ${c.new_runs} episodes, mean cost ${fmt(c.new_cost)}`);
+  if (c.old_runs) parts.push(`old theta: ${c.old_runs} episodes, mean cost ${fmt(c.old_cost)}`);
+  return parts.join("; ");
+}
+
+const NO_LINE = () => null;
+
+// The band [max, min] of a median series, as uPlot series and a band between them.
+function withBand(list, bands, stats, name, color, dash) {
+  const base = list.length + 1;
+  list.push({ label: `${name} max`, y: stats.max, stroke: "transparent", points: { show: false }, edge: true });
+  list.push({ label: `${name} min`, y: stats.min, stroke: "transparent", points: { show: false }, edge: true });
+  list.push({ label: name, y: stats.median, stroke: color, width: dash === "dot" ? 1 : 2,
+    dash: dash === "dot" ? [2, 3] : undefined, points: { show: false } });
+  bands.push({ series: [base, base + 1], fill: fade(color, 0.15) });
 }
 
 function drawPerformance(runs, perSeed) {
-  const { perf, cum } = performanceTraces(runs, perSeed);
-  const levels = levelLines(runs, runs.length > 1);
-  Plotly.react("perf", perf, { margin: { t: 20, r: 10, b: 40, l: 60 },
-    xaxis: { title: { text: "episode" } }, yaxis: { title: { text: "mean stage cost" } },
-    shapes: levels.shapes, annotations: levels.annotations, legend: { font: { size: 10 } } }, CONFIG);
-  Plotly.react("cum", cum, { margin: { t: 20, r: 10, b: 40, l: 60 },
-    xaxis: { title: { text: "episode" } }, yaxis: { title: { text: "cumulative plant cost" } },
-    legend: { font: { size: 10 } } }, CONFIG);
-}
-
-// Panels of one figure (one plotly figure is much cheaper to draw than several): a grid of
-// `columns`, each panel {traces, title, levels: [[y, dash]], xtitle}.
-function panels(id, list, columns, height) {
-  const rows = Math.max(1, Math.ceil(list.length / columns));
-  const traces = [], shapes = [], annotations = [];
-  const layout = { grid: { rows, columns, pattern: "independent", ygap: 0.35 }, showlegend: false,
-    margin: { t: 30, r: 10, b: 30, l: 60 }, height: rows * height };
-  list.forEach((p, i) => {
-    const n = i ? String(i + 1) : "";
-    p.traces.forEach((t) => traces.push({ ...t, xaxis: `x${n}`, yaxis: `y${n}` }));
-    (p.levels || []).forEach(([y, dash, color]) => {
-      if (y !== null && y !== undefined) shapes.push({ type: "line", xref: `x${n} domain`, x0: 0, x1: 1,
-        yref: `y${n}`, y0: y, y1: y, line: { color: color || "rgb(68,68,68)", width: 1, dash } });
-    });
-    annotations.push({ text: p.title, xref: `x${n} domain`, yref: `y${n} domain`, x: 0.5, y: 1.02,
-      xanchor: "center", yanchor: "bottom", showarrow: false, font: { size: 12 } });
-    layout[`xaxis${n}`] = { title: { text: p.xtitle, standoff: 2 } };
-  });
-  layout.shapes = shapes;
-  layout.annotations = annotations;
-  const div = document.getElementById(id);
-  div.style.height = `${layout.height}px`;
-  Plotly.react(div, traces, layout, CONFIG);
+  const n = Math.max(1, ...runs.flatMap((r) => (r.jobs || []).map((j) => Math.max(0, ...j.episode) + 1)));
+  const x = Array.from({ length: n }, (_, i) => i);
+  const perf = [], cum = [], perfBands = [], cumBands = [];
+  let k = 0;
+  runs.forEach((run) => (run.learners || []).forEach((learner) => {
+    const jobs = (run.jobs || []).filter((j) => j.learner === learner);
+    if (!jobs.length) return;
+    const color = seriesColor(k++), name = label(run, learner, runs.length > 1);
+    if (perSeed || jobs.length === 1) {
+      jobs.forEach((job) => {
+        const who = jobs.length > 1 ? `${name} s${job.seed}` : name;
+        perf.push({ label: `${who}: plant cost`, y: aligned(job, job.cost, n), stroke: fade(color, 0.45), width: 1, points: { show: false } });
+        perf.push({ label: `${who}: J_eval deployed`, y: aligned(job, job.J_eval, n), stroke: color, width: 2, points: { show: true, size: 4 } });
+        const marks = new Array(n).fill(null);
+        job.changes.forEach((c) => { if (c.episode < n) marks[c.episode] = c.J_eval !== null ? c.J_eval : job.cost[job.episode.indexOf(c.episode)]; });
+        perf.push({ label: `${who}: deployed theta changed`, y: marks, stroke: color, paths: NO_LINE, points: { show: true, size: 10, fill: color } });
+        cum.push({ label: who, y: aligned(job, job.cum_cost, n), stroke: color, width: 2, points: { show: false } });
+      });
+    } else {
+      const g = run.groups[learner];
+      const pad = (s) => ({ median: s.median.concat(new Array(n - s.median.length).fill(null)),
+        min: s.min.concat(new Array(n - s.min.length).fill(null)), max: s.max.concat(new Array(n - s.max.length).fill(null)) });
+      withBand(perf, perfBands, pad(g.cost), `${name}: plant cost (median, ${g.seeds} seeds)`, color, "dot");
+      withBand(perf, perfBands, pad(g.J_eval), `${name}: J_eval deployed (median, ${g.seeds} seeds)`, color, "solid");
+      withBand(cum, cumBands, pad(g.cum_cost), `${name} (median, ${g.seeds} seeds)`, color, "solid");
+    }
+  }));
+  chart("perf", { x, series: perf, bands: perfBands, levels: levelLines(runs), xlabel: "episode", ylabel: "mean stage cost", height: 360 });
+  chart("cum", { x, series: cum, bands: cumBands, xlabel: "episode", ylabel: "cumulative plant cost", height: 260 });
 }
 
 function drawEpisode(run, traj) {
-  const div = document.getElementById("episode");
+  const parent = document.getElementById("episode");
   const sys = run && run.system;
-  if (!sys || !traj) { Plotly.purge(div); div.textContent = traj === null ? "no stored trajectory" : ""; return; }
-  const dt = sys.dt || 1, list = [];
-  const add = (name, y, lb, ub, ref, step) => list.push({ title: `${name} (limits dashed red)`, xtitle: "t",
-    traces: [{ x: y.map((_, k) => k * dt), y, name, type: "scatter", mode: "lines",
-      line: { shape: step ? "hv" : "linear", color: PALETTE[0] } }],
-    levels: [[lb, "dash", "rgb(204,0,0)"], [ub, "dash", "rgb(204,0,0)"], [ref, "dot", "rgb(136,136,136)"]] });
-  sys.state_names.forEach((n, i) => add(n, traj.x[i], sys.x_lb[i], sys.x_ub[i], sys.x_ref[i], false));
-  sys.input_names.forEach((n, i) => add(n, traj.u[i], sys.u_lb[i], sys.u_ub[i], sys.u_ref[i], true));
-  panels("episode", list, 3, 240);
+  if (!sys || !traj) {
+    Object.keys(window.charts).filter((k) => k.startsWith("episode-")).forEach((k) => { window.charts[k].destroy(); delete window.charts[k]; });
+    parent.textContent = traj === null ? "no stored trajectory" : "";
+    return;
+  }
+  if (!parent.querySelector(".panel")) parent.textContent = "";
+  const dt = sys.dt || 1;
+  const panel = (key, name, y, lb, ub, ref, step) => chart(`episode-${key}`, { parent,
+    x: y.map((_, i) => i * dt), title: `${name} (limits dashed red)`, xlabel: "t", height: 220, legend: false,
+    series: [{ label: name, y, stroke: PALETTE[0], width: 2, points: { show: false },
+      paths: step ? uPlot.paths.stepped({ align: 1 }) : undefined }],
+    levels: [{ y: lb, color: RED }, { y: ub, color: RED }, { y: ref, color: LIGHT, dash: "dot" }] });
+  sys.state_names.forEach((n, i) => panel(`x_${n}`, n, traj.x[i], sys.x_lb[i], sys.x_ub[i], sys.x_ref[i], false));
+  sys.input_names.forEach((n, i) => panel(`u_${n}`, n, traj.u[i], sys.u_lb[i], sys.u_ub[i], sys.u_ref[i], true));
 }
 
 // The median and min-max of several series by index (null where no series has a value).
 function medianBand(series) {
   const n = Math.max(...series.map((s) => s.length));
-  const out = { x: [], median: [], min: [], max: [] };
+  const out = { median: [], min: [], max: [] };
   for (let i = 0; i < n; i++) {
     const v = series.map((s) => s[i]).filter((y) => y !== null && y !== undefined).sort((a, b) => a - b);
-    out.x.push(i);
     out.median.push(v.length ? (v[(v.length - 1) >> 1] + v[v.length >> 1]) / 2 : null);
     out.min.push(v.length ? v[0] : null);
     out.max.push(v.length ? v[v.length - 1] : null);
@@ -165,58 +177,46 @@ function medianBand(series) {
 }
 
 function drawIdentified(runs, status, perSeed) {
+  const parent = document.getElementById("identified");
   const shown = runs.filter((r) => r.identified);
   document.getElementById("identified-section").hidden = !shown.length;
-  if (!shown.length) return;
-  const list = [];
-  shown.forEach((run) => {
-    run.identified.names.forEach((name, p) => {
-      const traces = [];
-      run.learners.forEach((learner, l) => {
-        const jobs = run.jobs.filter((j) => j.learner === learner && j.identified.length);
-        if (perSeed || jobs.length === 1) {
-          jobs.forEach((job) => traces.push({ x: job.episode, y: job.identified[p], type: "scatter",
-            mode: "lines", name: `${learner} s${job.seed}`, line: { color: seriesColor(l) } }));
-        } else if (jobs.length) {
-          const m = medianBand(jobs.map((j) => j.identified[p]));
-          traces.push(...band(m.x, m, `${learner} (median, ${jobs.length} seeds)`, seriesColor(l), "solid", learner));
-        }
-      });
-      const fit = status && status.identification && status.identification.parameters
-        && status.identification.parameters[name];
-      if (fit && fit.std !== null && run.jobs.length) {
-        const last = run.jobs[0].episode[run.jobs[0].episode.length - 1];
-        traces.push({ x: [last], y: [fit.estimate], type: "scatter", mode: "markers",
-          name: "last fit +- 2 std", error_y: { type: "data", array: [2 * fit.std], visible: true } });
+  shown.forEach((run) => run.identified.names.forEach((name, p) => {
+    const n = Math.max(1, ...run.jobs.map((j) => Math.max(0, ...j.episode) + 1));
+    const series = [], bands = [];
+    run.learners.forEach((learner, l) => {
+      const jobs = run.jobs.filter((j) => j.learner === learner && j.identified.length);
+      if (perSeed || jobs.length === 1) {
+        jobs.forEach((job) => series.push({ label: `${learner} s${job.seed}`, y: aligned(job, job.identified[p], n),
+          stroke: seriesColor(l), width: 1.5, points: { show: false } }));
+      } else if (jobs.length) {
+        withBand(series, bands, medianBand(jobs.map((j) => aligned(j, j.identified[p], n))),
+          `${learner} (median, ${jobs.length} seeds)`, seriesColor(l), "solid");
       }
-      list.push({ title: `${name}${runs.length > 1 ? " (" + run.name + ")" : ""}: nominal dashed, true dotted`,
-        xtitle: "episode", traces,
-        levels: [[run.identified.nominal[p], "dash"], [run.identified.true[p], "dot"]] });
     });
-  });
-  panels("identified", list, 3, 240);
+    const fit = status && status.identification && status.identification.parameters
+      && status.identification.parameters[name];
+    const levels = [{ y: run.identified.nominal[p], text: "nominal" }, { y: run.identified.true[p], dash: "dot", text: "true" }];
+    if (fit && fit.std !== null && fit.std !== undefined) {
+      levels.push({ y: fit.estimate + 2 * fit.std, color: LIGHT, dash: "dot", text: "last fit + 2 std" });
+      levels.push({ y: fit.estimate - 2 * fit.std, color: LIGHT, dash: "dot", text: "last fit - 2 std" });
+    }
+    chart(`identified-${run.index}-${p}`, { parent, x: Array.from({ length: n }, (_, i) => i), series, bands, levels,
+      title: `${name}${runs.length > 1 ? " (" + run.name + ")" : ""}`, xlabel: "episode", height: 220, legend: false });
+  }));
 }
 
-// f2, f3 and f4 against f1 (SVG scatter: no WebGL), the Pareto front's episodes in red.
+// f2, f3 and f4 against f1, the Pareto front's episodes in red.
 function drawObjectives(job) {
   document.getElementById("objectives-section").hidden = !job;
+  const parent = document.getElementById("objectives");
   if (!job) return;
   const [f1, ...others] = job.objectives.values;
   const front = new Set(job.objectives.front);
-  const text = job.episode.map((e) => `episode ${e}`);
-  const onFront = (values, yes) => values.map((v, i) => (front.has(i) === yes ? v : null));
-  const traces = [], layout = { margin: { t: 30, r: 10, b: 40, l: 60 }, showlegend: true,
-    grid: { rows: 1, columns: 3, pattern: "independent" }, legend: { orientation: "h", y: -0.2 },
-    title: { text: `Pareto front of f1..f4: ${front.size} of ${job.episode.length} episodes`, font: { size: 12 } } };
-  others.forEach((fk, k) => {
-    const axis = k ? String(k + 1) : "";
-    [[false, "rgb(154,167,181)", 5, "observations"], [true, "rgb(214,39,40)", 9, "Pareto front"]].forEach(([yes, color, size, name]) => {
-      traces.push({ x: onFront(f1, yes), y: onFront(fk, yes), text, type: "scatter", mode: "markers",
-        xaxis: `x${axis}`, yaxis: `y${axis}`, name, legendgroup: name, showlegend: k === 0,
-        marker: { color, size }, hovertemplate: "%{text}<br>f1 %{x}<br>%{y}<extra></extra>" });
-    });
-    layout[`xaxis${axis}`] = { title: { text: "f1" } };
-    layout[`yaxis${axis}`] = { title: { text: `f${k + 2}` } };
-  });
-  Plotly.react("objectives", traces, layout, CONFIG);
+  const order = f1.map((v, i) => i).filter((i) => f1[i] !== null).sort((a, b) => f1[a] - f1[b]);
+  document.getElementById("objectives-title").textContent =
+    `${job.learner} s${job.seed}: ${front.size} of ${job.episode.length} episodes on the Pareto front`;
+  others.forEach((fk, k) => chart(`objectives-f${k + 2}`, { parent, x: order.map((i) => f1[i]),
+    title: `f${k + 2} against f1`, xlabel: "f1", height: 260, legend: false, series: [
+      { label: "observations", y: order.map((i) => (front.has(i) ? null : fk[i])), stroke: LIGHT, paths: NO_LINE, points: { show: true, size: 5, fill: LIGHT } },
+      { label: "Pareto front", y: order.map((i) => (front.has(i) ? fk[i] : null)), stroke: RED, paths: NO_LINE, points: { show: true, size: 8, fill: RED } }] }));
 }
