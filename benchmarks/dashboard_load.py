@@ -114,7 +114,7 @@ def generate(source: Path, out: Path, learners: list[str], seeds: int, episodes:
 
 def serve(directory: Path | None, library: str = "") -> tuple[str, object]:
     server = make_server([directory] if directory else [], port=0)
-    server.warm()  # as mpcmobo dashboard does before it prints its address
+    dashboard_server.STATIC.pop("plotly.min.js", None)
     if directory is None:  # a page with the library alone
         server.dashboard._assets["index.html"] = BASELINE.format(library).encode()
         if library == "plotly.min.js":
@@ -122,6 +122,7 @@ def serve(directory: Path | None, library: str = "") -> tuple[str, object]:
 
             dashboard_server.STATIC[library] = dashboard_server.JS
             server.dashboard._assets[library] = get_plotlyjs().encode()
+    server.warm()  # as mpcmobo dashboard does before it prints its address
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return f"http://127.0.0.1:{server.server_port}/", server
 

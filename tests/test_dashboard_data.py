@@ -88,6 +88,7 @@ def test_a_checkpoint_newer_than_the_records_gives_the_jobs_rows(dashboard_run, 
     ep = pd.read_parquet(out / "episodes.parquet")
     storage.write_parquet(out / "episodes.parquet", ep[ep.episode < 1])
     ckpt = out / "jobs" / "mobo-s1" / "checkpoint.pkl"
+    storage.write_pickle(ckpt, dict(storage.read_pickle(ckpt), done=False))  # still running
     later = (out / "episodes.parquet").stat().st_mtime_ns + 10**9
     os.utime(ckpt, ns=(later, later))
     payload = run_payload(RunSource(out, FileCache()), 0)
@@ -95,6 +96,13 @@ def test_a_checkpoint_newer_than_the_records_gives_the_jobs_rows(dashboard_run, 
     assert jobs["mobo", 1]["episode"] == [0, 1, 2] and jobs["mobo", 1]["live"]
     assert jobs["mobo", 0]["episode"] == [0] and not jobs["mobo", 0]["live"]
     assert payload["messages"] == []
+    # a study in progress: no trajectories.parquet yet, the checkpoint's trajectories are shown
+    os.remove(out / "trajectories.parquet")
+    source = RunSource(out, FileCache())
+    keys = run_payload(source, 0)["trajectories"]
+    assert keys and {(k[0], k[1]) for k in keys} == {("mobo", 1)}
+    key = dict(zip(["learner", "seed", "phase", "episode", "start"], keys[0]))
+    assert len(source.trajectory(key)["x"]) == 2  # lq's two states
 
 
 def _rows(incumbents, thetas, costs):

@@ -100,6 +100,19 @@ def _start(
     return np.concatenate([theta0, [float(nominal[p]) for p in extra]]), names + extra
 
 
+def _trajectory_keys(index: Any, live: dict[tuple[str, int], dict]) -> list[list[Any]]:
+    """(learner, seed, phase, episode, start) of every stored trajectory: the records', and
+    those of the checkpoints newer than the records (a study in progress)."""
+    keys = plain(index.to_numpy().tolist())
+    known = {tuple(k) for k in keys}
+    for (learner, seed), ckpt in live.items():
+        for t in ckpt.get("trajectories", []):
+            key = [learner, seed, str(t["phase"]), int(t["episode"]), int(t["start"])]
+            if tuple(key) not in known:
+                keys.append(key)
+    return keys
+
+
 def run_payload(source: RunSource, index: int) -> dict[str, Any]:
     """Everything the page shows of the run of ``source`` (the ``index``-th of the page)."""
     source.begin()
@@ -117,7 +130,9 @@ def run_payload(source: RunSource, index: int) -> dict[str, Any]:
     for (learner, seed), rows in episodes.groupby(["learner", "seed"], sort=False):
         start, names = _start(source, settings, reference, rows)
         job = job_series(rows.sort_values("episode"), start, names)
-        head = {"learner": str(learner), "seed": int(seed), "live": (learner, seed) in live}
+        ckpt = live.get((learner, seed))
+        running = ckpt is not None and not ckpt.get("done", False)
+        head = {"learner": str(learner), "seed": int(seed), "live": running}
         jobs.append({**head, "deploy": _deploy_options(raw, str(learner)), **job})
     jobs.sort(key=lambda j: (learners.index(j["learner"]), j["seed"]))
     groups = {
@@ -141,7 +156,7 @@ def run_payload(source: RunSource, index: int) -> dict[str, Any]:
         "jobs": jobs,
         "groups": groups,
         "identified": _identified(source, settings, reference, jobs),
-        "trajectories": plain(index_frame.to_numpy().tolist()),
+        "trajectories": _trajectory_keys(index_frame, live),
         "tuner": _tuner(source, status, live),
         "complete": bool(summary.get("complete", True)) if isinstance(summary, dict) else None,
         "messages": list(dict.fromkeys(source.messages)),
