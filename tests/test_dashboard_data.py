@@ -10,6 +10,9 @@ import inspect
 import json
 import os
 import shutil
+import signal
+import subprocess
+import sys
 
 import numpy as np
 import pandas as pd
@@ -133,3 +136,38 @@ def test_the_recorded_plant_cost_is_preferred_to_the_mean_stage_cost():
     df["plant_cost"], df["excess_cost"] = [1.0, 1.0, 2.0], [0.0, 0.5, 0.5]
     series = job_series(df, None, [])
     assert series["cum_cost"] == [1.0, 2.0, 4.0] and series["cum_excess"] == [0.0, 0.5, 1.0]
+
+
+def test_a_directory_without_a_run_or_with_a_damaged_reference_is_a_message(
+    dashboard_run, tmp_path
+):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    payload = run_payload(RunSource(empty, FileCache()), 0)
+    assert payload["jobs"] == [] and "does not hold a run yet" in payload["messages"][0]
+    out = tmp_path / "run"
+    shutil.copytree(dashboard_run, out)
+    (out / "reference.pkl").write_bytes(b"not a pickle")
+    payload = run_payload(RunSource(out, FileCache()), 0)
+    assert any("reference.pkl cannot be read" in m for m in payload["messages"])
+    assert len(payload["jobs"]) == 4 and payload["J_star"] is None
+
+
+def test_the_command_serves_on_localhost_until_interrupted(dashboard_run):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mpcmobo.cli", "dashboard", str(dashboard_run), "--port", "0"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        line = ""
+        while "http://" not in line:
+            line = proc.stdout.readline()
+            assert line, "the command ended without serving"
+        url = line.split()[3].rstrip("/")
+        assert url.startswith("http://127.0.0.1:")
+        status, body = _request(url, "GET", "/api/state")
+        assert status == 200 and json.loads(body)["runs"][0]["kind"] == "run"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0

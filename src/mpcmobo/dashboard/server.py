@@ -23,6 +23,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlparse
 
 from mpcmobo.dashboard.files import FileCache, describe
+from mpcmobo.dashboard.jsonable import plain
 from mpcmobo.dashboard.payload import run_payload
 from mpcmobo.dashboard.runs import RunSource
 
@@ -67,7 +68,7 @@ class Dashboard:
                     except Exception as err:  # noqa: BLE001 - shown on the page, not a crash
                         msg = f"{source.path} cannot be shown ({describe(err)})"
                         runs.append(_broken(i, source, msg))
-                body = json.dumps({"version": version, "runs": runs}, allow_nan=False)
+                body = json.dumps({"version": version, "runs": plain(runs)}, allow_nan=False)
                 self._state = (version, body.encode("utf-8"))
             return self._state
 
