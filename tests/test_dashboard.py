@@ -127,6 +127,7 @@ def test_a_tuner_shows_its_pending_trial_recommendation_and_trials(copy, browser
         "recommendation": "stop: no candidate pays back its exploration",
         "quarantined": [7],
         "pending": 3,
+        "evidence": {"test": "one-sided t", "confidence": 0.9, "episodes": 6},
         "trials": [
             {"id": 0, "role": "candidate", "plant_cost": 0.5, "verdict": "kept"},
             {"id": 1, "role": "deployed", "plant_cost": 0.25, "verdict": "kept"},
@@ -136,7 +137,7 @@ def test_a_tuner_shows_its_pending_trial_recommendation_and_trials(copy, browser
     with serving(copy) as url:
         page, _ = _open(browser, url)
         text = page.inner_text("#tuner")
-        for part in ("trial 3", "stop: no candidate pays back", "12.5", "1.25", "7"):
+        for part in ("trial 3", "stop: no candidate pays back", "12.5", "1.25", "7", "one-sided t"):
             assert part in text, text
         trials = page.eval_on_selector_all("#tuner table tr", ROWS)
         assert trials == [["0", "candidate", "0.5", "kept"], ["1", "deployed", "0.25", "kept"]]

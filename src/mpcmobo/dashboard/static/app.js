@@ -65,6 +65,9 @@ function drawChanges(runs) {
     "J_eval after", "deploy test"], rows, 4);
 }
 
+// status.json's keys with a place of their own (the others are listed as they are)
+const SHOWN = new Set(["recommendation", "plant_cost", "excess_cost", "quarantined", "pending", "trials", "identification"]);
+
 function drawTuner(runs) {
   const tuners = runs.filter((r) => r.tuner);
   document.getElementById("tuner-section").hidden = !tuners.length;
@@ -78,7 +81,8 @@ function drawTuner(runs) {
     [["run", run.path], ["pending trial", pending],
       ["recommendation", rec === undefined || rec === null ? "not recorded" : (typeof rec === "string" ? rec : JSON.stringify(rec))],
       ["cumulative plant cost", fmt(s.plant_cost)], ["cumulative excess cost", fmt(s.excess_cost)],
-      ["quarantined trials", (s.quarantined || []).join(", ") || "none"]].forEach(([k, v]) => {
+      ["quarantined trials", (s.quarantined || []).join(", ") || "none"],
+      ...Object.entries(s).filter(([k]) => !SHOWN.has(k)).map(([k, v]) => [k, typeof v === "object" && v !== null ? JSON.stringify(v) : fmt(v)])].forEach(([k, v]) => {
       dl.appendChild(el("dt", k)); dl.appendChild(el("dd", v));
     });
     box.appendChild(dl);
@@ -167,6 +171,9 @@ async function poll() {
   }
   setTimeout(poll, POLL_MS);
 }
+
+let resizing = null;
+window.addEventListener("resize", () => { clearTimeout(resizing); resizing = setTimeout(render, 300); });
 
 function perSeed() { return document.getElementById("per-seed").checked; }
 
