@@ -99,7 +99,7 @@ def test_a_new_episode_appears_without_a_reload(copy, browser):
         page.wait_for_function(
             "() => [...document.querySelectorAll('#jobs tr')].slice(1)"
             ".every(r => r.cells[3].textContent === '3 / 3')",
-            timeout=5_000,
+            timeout=30_000,  # behaviour, not speed: benchmarks/dashboard_load.py times it
         )
         assert page.evaluate("() => window.stillHere") is True
 
@@ -114,7 +114,8 @@ def test_a_damaged_parquet_is_reported_and_its_repair_seen(copy, browser):
         assert page.is_visible("#perf")  # the rest of the page is there
         storage.atomic_write_bytes(copy / "episodes.parquet", good)
         page.wait_for_function(
-            "() => document.getElementById('messages').textContent === ''", timeout=5_000
+            "() => document.getElementById('messages').textContent === ''",
+            timeout=30_000,  # behaviour, not speed: benchmarks/dashboard_load.py times it
         )
         assert len(_jobs(page)) == 4
 
