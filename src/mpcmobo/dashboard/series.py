@@ -60,13 +60,14 @@ def changes(
     theta = _matrix(df["theta"], inc.shape[1]) if "theta" in df.columns else inc * np.nan
     episodes = df["episode"].to_numpy(int)
     prev = theta0 if theta0 is not None and len(theta0) == inc.shape[1] else None
+    # the rows whose incumbent differs from the row before's (the first: from theta0)
+    before = np.vstack([inc[:1] * np.nan if prev is None else prev[None, :], inc[:-1]])
+    moved = ~np.all(np.abs(inc - before) <= 1e-12, axis=1) & np.all(np.isfinite(inc), axis=1)
     out = []
-    for i in range(len(df)):
+    for i in np.flatnonzero(moved):
         new = inc[i]
-        if not np.all(np.isfinite(new)):
-            continue
         if prev is not None and np.allclose(new, prev, rtol=0, atol=1e-12):
-            continue
+            continue  # back to the deployed theta after a row without an incumbent
         diff = [] if prev is None else np.flatnonzero(np.abs(new - prev) > 1e-12).tolist()
         ran_new = np.all(np.isclose(theta[: i + 1], new, rtol=0, atol=1e-9), axis=1)
         ran_old = (

@@ -68,7 +68,10 @@ class Dashboard:
                     except Exception as err:  # noqa: BLE001 - shown on the page, not a crash
                         msg = f"{source.path} cannot be shown ({describe(err)})"
                         runs.append(_broken(i, source, msg))
-                body = json.dumps({"version": version, "runs": plain(runs)}, allow_nan=False)
+                try:  # the numbers are made JSON-safe as they are read
+                    body = json.dumps({"version": version, "runs": runs}, allow_nan=False)
+                except (TypeError, ValueError):  # a value of a file that is not
+                    body = json.dumps({"version": version, "runs": plain(runs)}, allow_nan=False)
                 self._state = (version, body.encode("utf-8"))
             return self._state
 
