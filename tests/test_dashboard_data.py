@@ -171,3 +171,16 @@ def test_the_command_serves_on_localhost_until_interrupted(dashboard_run):
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=30) == 0
+
+
+def test_several_runs_side_by_side(dashboard_run, tmp_path):
+    other = tmp_path / "other"
+    shutil.copytree(dashboard_run, other)
+    with serving(dashboard_run, other) as url:
+        _, body = _request(url, "GET", "/api/state")
+    runs = json.loads(body)["runs"]
+    assert [(r["index"], r["name"]) for r in runs] == [(0, dashboard_run.name), (1, "other")]
+    mobo = runs[1]["groups"]["mobo"]
+    assert mobo["seeds"] == 2 and len(mobo["cost"]["median"]) == 3
+    costs = [j["cost"] for j in runs[1]["jobs"] if j["learner"] == "mobo"]
+    assert mobo["cost"]["min"] == [min(c) for c in zip(*costs)]
