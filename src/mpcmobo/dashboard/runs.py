@@ -19,9 +19,10 @@ import pandas as pd
 from mpcmobo.dashboard.files import FileCache, describe, read_json, read_parquet, read_pickle
 from mpcmobo.dashboard.files import stamp as file_stamp
 from mpcmobo.dashboard.jsonable import floats2
+from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.records import Reference
 from mpcmobo.experiment.rundir import RunDirectory
-from mpcmobo.experiment.settings import Settings, build_system, identified_parameters, read_toml
+from mpcmobo.experiment.settings import Settings, read_toml
 
 __all__ = ["RunSource"]
 
