@@ -331,13 +331,14 @@ class _Components:
 
     def __init__(self, mpc: ParametricMPC) -> None:
         self.solver = self.sens = self.fun = 0.0
-        run_solver, sensitivities = mpc._run_solver, mpc._sensitivities
+        solver = mpc.solver
+        run_solver, sensitivities, newton = solver.ipopt, solver.sensitivities, solver.newton
 
         def timed_run(x, p, warm):
             t0 = time.perf_counter()
             out = run_solver(x, p, warm)
             self.solver += time.perf_counter() - t0
-            st = (mpc._solver_warm if warm else mpc._solver).stats()
+            st = (solver.warm if warm else solver.cold).stats()
             self.fun += sum(v for k, v in st.items() if k.startswith("t_wall_nlp"))
             return out
 
@@ -358,8 +359,9 @@ class _Components:
 
             return run
 
-        mpc._run_solver, mpc._sensitivities = timed_run, timed_sens
-        mpc._newton_solve = timed(mpc._newton_solve)
+        # the solver's path methods, replaced on this instance by timed wrappers
+        solver.ipopt, solver.sensitivities = timed_run, timed_sens
+        solver.newton = timed(newton)
 
     def take(self) -> tuple[float, float, float]:
         out = (self.solver, self.sens, self.fun)

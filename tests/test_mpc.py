@@ -76,7 +76,7 @@ def test_solution_fields_and_shapes(cstr, cstr_mpc):
     assert cstr_mpc.theta_names[0] == "theta_c" and cstr_mpc.theta0.shape == (14,)
 
 
-def test_fallback_on_forced_solver_failure(cstr):
+def test_fallback_on_forced_solver_failure(cstr, monkeypatch):
     mpc = ParametricMPC(cstr, solver_options={"max_iter": 1}, warm_start=False)
     sol = mpc.solve(np.array([100.0, 0.2, 420.0]), mpc.theta0)
     assert not sol.success and sol.fallback
@@ -87,8 +87,8 @@ def test_fallback_on_forced_solver_failure(cstr):
     good = ParametricMPC(cstr)
     x = np.array([100.0, 0.2, 420.0])
     first = good.solve(x, good.theta0)
-    good._run_solver = lambda *a, **k: (False, "forced", 0, None, None)
-    good._newton_solve = lambda p: None  # the Newton steps fail too
+    monkeypatch.setattr(good.solver, "ipopt", lambda *a, **k: (False, "forced", 0, None, None))
+    monkeypatch.setattr(good.solver, "newton", lambda p: None)  # the Newton steps fail too
     failed = good.solve(x, good.theta0)
     assert not failed.success
     np.testing.assert_allclose(failed.action, first.plan_u[1])
@@ -127,13 +127,14 @@ def _splu_sensitivities(mpc, x, theta):
     """dpi/dtheta, dV/dtheta by SciPy's sparse LU on the forward KKT system (eq. nabla_pi):
     dy/dtheta = -(dR/dy)^-1 dR/dtheta, one factorisation, n_theta right-hand sides."""
     p = np.concatenate([x, theta])
-    ok, _, _, out, w = mpc._run_solver(x, p, False)
+    ok, _, _, out, w = mpc.solver.ipopt(x, p, False)
     assert ok
     lam_g, lam_x = np.asarray(out["lam_g"]).ravel(), np.asarray(out["lam_x"]).ravel()
-    Jy, Jth, dfdth, dfdw = mpc._kkt(w, *mpc._multipliers(w, lam_g, lam_x), p)
-    dw = scipy.sparse.linalg.splu(Jy.sparse()).solve(-Jth.full())[: mpc.nw]
-    dpi = (mpc.Su[:, None] * dw[mpc._iu[0]]).T
-    dV = mpc.cost_scale * (dfdth.full().ravel() + dfdw.full().ravel() @ dw)
+    pr = mpc.problem
+    Jy, Jth, dfdth, dfdw = mpc.kkt.kkt(w, *mpc.kkt.multipliers(w, lam_g, lam_x), p)
+    dw = scipy.sparse.linalg.splu(Jy.sparse()).solve(-Jth.full())[: pr.nw]
+    dpi = (pr.Su[:, None] * dw[pr.iu[0]]).T
+    dV = pr.cost_scale * (dfdth.full().ravel() + dfdw.full().ravel() @ dw)
     return dpi, dV
 
 
@@ -158,11 +159,11 @@ def test_warm_start_shifts_primal_and_dual(cstr):
     mpc = ParametricMPC(cstr)
     x = np.array([100.0, 0.2, 420.0])
     first = mpc.solve(x, mpc.theta0, False)
-    prev = mpc._prev
+    prev, pr = mpc.solver.prev, mpc.problem
     np.testing.assert_allclose(
-        mpc.system.u_ref + mpc.Su * prev["w_shift"][mpc._iu[0]], first.plan_u[1]
+        mpc.system.u_ref + pr.Su * prev["w_shift"][pr.iu[0]], first.plan_u[1]
     )
-    assert prev["lam_g"].shape == (mpc.neq + mpc.nin,) and prev["lam_x"].shape == (mpc.nw,)
+    assert prev["lam_g"].shape == (pr.neq + pr.nin,) and prev["lam_x"].shape == (pr.nw,)
     second = mpc.solve(cstr.plant_step(x, first.action), mpc.theta0)
     assert second.success and second.iterations < 12
 

@@ -132,6 +132,10 @@ class Solver:
     ``tol``: the acceptance test of the Newton steps (``|R|_inf``) and IPOPT's tolerance;
     ``newton_steps``: the most Newton steps of a warm solve (0: IPOPT only);
     ``max_iter``, ``solver_options``, ``warm_options``: see :func:`ipopt_options`.
+
+    :meth:`solve` reaches its paths through the instance's methods :meth:`newton`,
+    :meth:`ipopt` and :meth:`sensitivities`, so a test injects a failure or a benchmark a timer
+    by replacing one of them on the instance (their signatures and returns are documented).
     """
 
     def __init__(
