@@ -1,11 +1,14 @@
 """The parametric MPC: sensitivities vs finite differences, closed loop, fallback, errors."""
 
+import copy
+
 import numpy as np
 import pytest
 import scipy.sparse.linalg
 from cstr_reference import assert_warm_sensitivities_match_fd, fd_sensitivities
 
 from mpcmobo.mpc import ParametricMPC, rollout
+from mpcmobo.mpc.interior import Continuation
 from mpcmobo.rl import GaussianExploration
 
 
@@ -89,6 +92,7 @@ def test_fallback_on_forced_solver_failure(cstr, monkeypatch):
     first = good.solve(x, good.theta0)
     monkeypatch.setattr(good.solver, "ipopt", lambda *a, **k: (False, "forced", 0, None, None))
     monkeypatch.setattr(good.solver, "newton", lambda p: None)  # the Newton steps fail too
+    monkeypatch.setattr(good.solver, "interior_point", lambda p: None)  # and the continuation
     failed = good.solve(x, good.theta0)
     assert not failed.success
     np.testing.assert_allclose(failed.action, first.plan_u[1])
@@ -217,6 +221,40 @@ def test_newton_sensitivities_match_central_differences(cstr):
 def test_newton_steps_must_be_a_count(cstr):
     with pytest.raises(ValueError, match="newton_steps must be an integer >= 0, got -1"):
         ParametricMPC(cstr, newton_steps=-1)
+    with pytest.raises(ValueError, match="continuation_steps must be an integer >= 0, got 1.5"):
+        ParametricMPC(cstr, continuation_steps=1.5)
+
+
+def _continuation_state(cstr, mpc, theta):
+    """A closed-loop state of ``mpc`` whose warm solve takes the continuation, with the warm
+    start it takes it from (the shifted plan of the solve before)."""
+    x = cstr.sample_initial_state(np.random.default_rng(0))
+    for _ in range(10):
+        prev = copy.deepcopy(mpc.solver.prev)
+        sol = mpc.solve(x, theta, False)
+        if sol.status == "Continuation_Succeeded":
+            return x, prev
+        x = cstr.plant_step(x, sol.action)
+    raise AssertionError("no step took the continuation")
+
+
+def test_continuation_reaches_the_root_ipopt_stops_at(cstr, monkeypatch):
+    # where the Newton steps cannot start (the new state violates the shifted plan), the
+    # continuation solves: the same policy, value and sensitivities as IPOPT from that start
+    mpc, ipopt = ParametricMPC(cstr), ParametricMPC(cstr, continuation_steps=0)
+    x, prev = _continuation_state(cstr, mpc, mpc.theta0)
+    mpc.solver.prev, ipopt.solver.prev = copy.deepcopy(prev), copy.deepcopy(prev)
+    a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
+    assert a.status == "Continuation_Succeeded" and b.status == "Solve_Succeeded"
+    np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a.value, b.value, rtol=1e-7)
+    assert np.all(np.abs(a.dpi_dtheta - b.dpi_dtheta) <= 1e-4 * np.abs(b.dpi_dtheta).max(axis=0))
+    mpc.solver.prev = prev
+    assert_warm_sensitivities_match_fd(mpc, x, mpc.theta0, "Continuation_Succeeded")
+    # a continuation that does not get there hands over to IPOPT
+    mpc.solver.prev = copy.deepcopy(prev)
+    monkeypatch.setattr(mpc.solver, "interior", Continuation(max_steps=1))
+    assert mpc.solve(x, mpc.theta0).status == "Solve_Succeeded"
 
 
 def test_numpy_call_gives_the_function_outputs_bit_for_bit():

@@ -7,8 +7,9 @@
 - :mod:`mpcmobo.mpc.kkt`: the NLP's barrier-relaxed KKT residual, the sensitivities of the
   policy and the value, and the Newton step of warm solves;
 - :mod:`mpcmobo.mpc.codegen` (option ``codegen``): those functions as compiled C, cached;
-- :mod:`mpcmobo.mpc.solve`: the solve paths (Newton steps, IPOPT warm and cold, the fallback
-  input) and their result, :class:`~mpcmobo.mpc.solve.MPCSolution`.
+- :mod:`mpcmobo.mpc.solve`: the solve paths (Newton steps, the interior-point continuation of
+  :mod:`mpcmobo.mpc.interior`, IPOPT warm and cold, the fallback input) and their result,
+  :class:`~mpcmobo.mpc.solve.MPCSolution`.
 
 The parts are public attributes of the MPC: ``mpc.problem`` (the
 :class:`~mpcmobo.mpc.transcription.Transcription`: sizes, scales, layout of ``w``), ``mpc.kkt``
@@ -28,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mpcmobo.mpc.codegen import compiled_library
+from mpcmobo.mpc.interior import Continuation
 from mpcmobo.mpc.kkt import KKTSystem
 from mpcmobo.mpc.solve import MPCSolution, Solver
 from mpcmobo.mpc.transcription import Transcription
@@ -81,6 +83,11 @@ class ParametricMPC:
         ``H < 0`` and ``mu > 0``). Accepted only when ``|R|_inf <= tol`` at a strictly interior
         point: then it is the barrier solution IPOPT stops at, to its tolerance; otherwise IPOPT
         solves as without it. 0: no Newton steps.
+    continuation_steps:
+        When the Newton steps cannot start or do not converge, at most this many steps of the
+        interior-point continuation of :mod:`mpcmobo.mpc.interior` on the same Newton system
+        (re-centred shifted plan, barrier parameter 1e-3 down to ``tau``), accepted by the same
+        test; IPOPT solves when it does not get there. 0: IPOPT right away.
 
     Attributes
     ----------
@@ -108,6 +115,7 @@ class ParametricMPC:
         codegen: bool = False,
         cache_dir: str | os.PathLike | None = None,
         newton_steps: int = 6,
+        continuation_steps: int = 30,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
@@ -115,7 +123,7 @@ class ParametricMPC:
         self.model_params = np.array(system.model_params(model), dtype=float)
         N = int(spec.horizon if horizon is None else horizon)
         gamma = float(spec.gamma if gamma is None else gamma)
-        _check_options(N, gamma, tau, linsol, newton_steps)
+        _check_options(N, gamma, tau, linsol, newton_steps, continuation_steps)
         self.param: Parameterization = system.parameterization
         self.theta0 = self.param.theta0.copy()
         if "model" in self.param.blocks:  # learnable model parameters: this MPC's own model
@@ -145,6 +153,9 @@ class ParametricMPC:
             warm_start=warm_start,
             solver_options=solver_options,
             warm_options=warm_options,
+            interior=Continuation(max_steps=int(continuation_steps))
+            if continuation_steps
+            else None,
         )
 
     def _compiled_library(self, cache_dir: str | os.PathLike | None) -> Path:
@@ -162,6 +173,7 @@ class ParametricMPC:
         names = ("nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l", "nlp_grad")
         kkt = self.kkt
         functions = [nlp, *(probe.get_function(n) for n in names), kkt.sens, kkt.newton]
+        functions += [kkt.newton_mu, kkt.rows]
         return compiled_library(functions, directory=cache_dir, info=self.build_info)
 
     @property
@@ -216,7 +228,9 @@ class ParametricMPC:
         return self.solver.solve(x, theta, sensitivities)
 
 
-def _check_options(horizon: int, gamma: float, tau: float, linsol: str, newton_steps: int) -> None:
+def _check_options(
+    horizon: int, gamma: float, tau: float, linsol: str, newton_steps: int, continuation: int
+) -> None:
     if horizon < 1:
         raise ValueError(f"horizon must be at least 1, got {horizon}")
     if not 0 < gamma <= 1:
@@ -227,3 +241,5 @@ def _check_options(horizon: int, gamma: float, tau: float, linsol: str, newton_s
         raise ValueError(f"linsol '{linsol}' is not a linear solver plugin of this CasADi")
     if int(newton_steps) != newton_steps or newton_steps < 0:
         raise ValueError(f"newton_steps must be an integer >= 0, got {newton_steps}")
+    if int(continuation) != continuation or continuation < 0:
+        raise ValueError(f"continuation_steps must be an integer >= 0, got {continuation}")
