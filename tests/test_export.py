@@ -144,3 +144,30 @@ def test_the_embedded_controller_needs_libc_and_libm_only_and_gives_the_mpcs_inp
     rows = _run_embedded(d / "controller", loop)
     np.testing.assert_allclose(rows[:, : cstr.nu], np.array(actions), rtol=0, atol=1e-6)
     assert np.sum(rows[:, cstr.nu] == 1) >= 15  # the warm steps take the Newton path
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_command_line_writes_and_builds_the_embedded_controller(tmp_path):
+    """``export --format embedded --compile`` on a tuner with one told trial (``lq``): the
+    program it builds gives the deployed MPC's input."""
+    from mpcmobo.experiment.tuner import Tuner
+
+    tuner = Tuner({"name": "lq", "identify": False}, "bo", tmp_path / "t", episodes=2, steps=10)
+    trial = tuner.ask()
+    x, states, inputs = trial.x0, [trial.x0], []
+    for _ in range(trial.steps):
+        u = np.clip(trial.policy(x), tuner.system.u_lb, tuner.system.u_ub)
+        x = tuner.system.plant_step(x, u)
+        states.append(x)
+        inputs.append(u)
+    tuner.tell(trial, np.array(states), np.array(inputs))
+    out = tmp_path / "emb"
+    res = CliRunner().invoke(
+        app, ["export", str(tmp_path / "t"), "--format", "embedded", "-o", str(out), "--compile"]
+    )
+    assert res.exit_code == 0 and "mpc_functions.c" in res.output, res.output
+    theta = tuner.deployed
+    mpc = ParametricMPC(get_system("lq"))
+    x = np.array([0.8, -0.3])
+    row = _run_embedded(out / "controller", [x], "--cold")[0]
+    np.testing.assert_allclose(row[: mpc.nu], mpc.solve(x, theta, False).action, atol=1e-6)
