@@ -128,7 +128,10 @@ def test_proposals_inside_bounds_and_exact_resume(name, mode):
         assert space.contains(th)
         a.observe(th, result(k, th))
     state = pickle.loads(pickle.dumps(a.state_dict()))
-    b = make_learner(name, space, theta0, seed=99, starts=starts, **_options(name))
+    other = make_learner(name, space, theta0, seed=99, starts=starts, **_options(name))
+    with pytest.raises(ValueError, match="state of a learner of seed 3 given to one of seed 99"):
+        other.load_state_dict(state)  # the constructor owns the seed (the design depends on it)
+    b = make_learner(name, space, theta0, seed=3, starts=starts, **_options(name))
     b.load_state_dict(state)
     _same_state(a, b)
     pa, pb = a.propose(), b.propose()
