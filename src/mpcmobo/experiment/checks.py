@@ -252,33 +252,48 @@ def model_problems(
     history: Sequence[float],
     model: str,
 ) -> list[Problem]:
-    """The episode's one-step error under the ``model`` (its ``params``) against the errors
-    of the episodes told before (``history``, under the same model): far worse is a finding.
-    With fewer than ``MIN_HISTORY`` episodes before it, nothing is compared."""
-    h = np.asarray([v for v in history if np.isfinite(v)], float)
-    if len(h) < MIN_HISTORY:
-        return []
+    """The episode's one-step error under the ``model`` (its ``params``: "identified" or
+    "nominal") against the errors of the episodes told before (``history``, under the same
+    model): far worse is a finding (with fewer than ``MIN_HISTORY`` episodes before it, none
+    is made). An identified model also judges the episode's steps: a few steps it explains
+    far worse than the rest (``STEP_RATIO`` times the median) are rows out of order."""
     r = residuals(system, states, inputs, params)
     e = float(np.sqrt(np.mean(r**2)))
-    med = float(np.median(h))
-    scale = max(1.4826 * float(np.median(np.abs(h - med))), 0.1 * med, 1e-12)
-    z = (e - med) / scale
-    if not (e > RESIDUAL_FLOOR and e > EPISODE_RATIO * med and z > ROBUST_Z):
-        return []
-    worst = np.flatnonzero(r > max(STEP_RATIO * float(np.median(r)), RESIDUAL_FLOOR))
-    steps = tuple(int(k) for k in worst)
-    where = f"; worst at steps {describe_steps(steps)}" if steps else ""
-    return [
-        Problem(
-            "model",
-            (
-                f"the {model} model explains this episode far worse than the {len(h)} told before "
-                f"(RMS scaled one-step error {e:.3g}, theirs {med:.3g} in the median, robust z "
-                f"{z:.1f}){where}: a sensor fault, rows out of order, or not this plant's log?"
-            ),
-            steps,
-        )
-    ]
+    limit = max(STEP_RATIO * float(np.median(r)), RESIDUAL_FLOOR)
+    steps = tuple(int(k) for k in np.flatnonzero(r > limit))
+    h = np.asarray([v for v in history if np.isfinite(v)], float)
+    if len(h) >= MIN_HISTORY:
+        med = float(np.median(h))
+        scale = max(1.4826 * float(np.median(np.abs(h - med))), 0.1 * med, 1e-12)
+        z = (e - med) / scale
+        if e > RESIDUAL_FLOOR and e > EPISODE_RATIO * med and z > ROBUST_Z:
+            where = f"; worst at steps {describe_steps(steps)}" if steps else ""
+            return [
+                Problem(
+                    "model",
+                    (
+                        f"the {model} model explains this episode far worse than the {len(h)} told "
+                        f"before (RMS scaled one-step error {e:.3g}, theirs {med:.3g} in the median, "
+                        f"robust z {z:.1f}){where}: a sensor fault, rows out of order, or not this "
+                        "plant's log?"
+                    ),
+                    steps,
+                )
+            ]
+    if model == "identified" and steps and len(steps) <= max(3, len(r) // 10):
+        return [
+            Problem(
+                "model",
+                (
+                    f"the identified model explains steps {describe_steps(steps)} far worse than the "
+                    f"episode's other steps (one-step error up to {float(np.max(r)):.3g}, the median "
+                    f"{float(np.median(r)):.3g}): rows out of order (swapped or shuffled), or a "
+                    "disturbance at those steps?"
+                ),
+                steps,
+            )
+        ]
+    return []
 
 
 def review(
@@ -306,5 +321,23 @@ def review(
     record = replay(system, mpc, plan.theta, X, U, log.stage_costs, log.violations)
     mpc_time = time.perf_counter() - t0
     problems = input_problems(system, U, record.pi, plan.noise, plan.episode)
+    if problems and len(problems[0].steps) > len(U) / 2 and _reversed(system, mpc, plan, log):
+        return [Problem("time_order", REVERSED)], record, mpc_time
     problems += model_problems(system, X, U, params, history, model)
     return problems, record, mpc_time
+
+
+REVERSED = (
+    "the log is in reverse time order: read backwards, its inputs are the trial's controller "
+    "plus its noise; the first row is the episode's start, the last the state after the last "
+    "input"
+)
+
+
+def _reversed(system: System, mpc: ParametricMPC, plan: Any, log: Any) -> bool:
+    """Whether the log read backwards is the trial's controller plus its noise (at most a
+    tenth of its steps off)."""
+    X, U = log.states[::-1], log.inputs[::-1]
+    record = replay(system, mpc, plan.theta, X, U)
+    found = input_problems(system, U, record.pi, plan.noise, plan.episode)
+    return not found or len(found[0].steps) <= len(U) / 10
