@@ -354,8 +354,9 @@ class Tuner:
         ids = list(range(tid, self.episodes))
         if len(ids) > 1 and not later:
             raise TunerError(
-                f"trials {checks.describe_steps(ids[1:])} were told after trial {tid}, proposed "
-                f"by a learner that had seen it: retract them with it (Tuner.retract({tid}, "
+                f"{'trial' if len(ids) == 2 else 'trials'} {checks.describe_steps(ids[1:])} "
+                f"{'was' if len(ids) == 2 else 'were'} told after trial {tid}, proposed by a "
+                f"learner that had seen it: retract them with it (Tuner.retract({tid}, "
                 f"later=True), mpcmobo retract DIR {tid} --with-later); their logs are kept"
             )
         entries = [self.files.told(k) for k in ids]

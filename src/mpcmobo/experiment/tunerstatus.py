@@ -18,6 +18,11 @@ import numpy as np
 from mpcmobo.experiment.records import EpisodeRow
 
 
+def _same(a: Any, b: Any) -> bool:
+    """Whether two thetas are the same (to round-off: a theta through the unit cube and back)."""
+    return bool(np.allclose(np.asarray(a, float), np.asarray(b, float), rtol=1e-9, atol=1e-12))
+
+
 def _finite(v: float) -> float | None:
     return float(v) if v is not None and math.isfinite(v) else None
 
@@ -31,15 +36,13 @@ def trial_table(
     for i, row in enumerate(rows):
         theta = np.asarray(row.theta, float)
         after = np.asarray(row.incumbent, float)
-        if np.array_equal(theta, before):
+        if _same(theta, before):
             role = "deployed"
-        elif any(np.array_equal(theta, np.asarray(r.theta, float)) for r in rows[:i]):
+        elif any(_same(theta, r.theta) for r in rows[:i]):
             role = "verification"
         else:
             role = "candidate"
-        later = next(
-            (r.episode for r in rows[i:] if np.array_equal(np.asarray(r.incumbent), theta)), None
-        )
+        later = next((r.episode for r in rows[i:] if _same(r.incumbent, theta)), None)
         if role == "deployed":
             verdict = "ran the deployed theta"
         elif later == row.episode:
