@@ -66,7 +66,7 @@ def test_bad_logs_are_refused_or_quarantined_with_the_problem_named(tmp_path, mo
         "reversed": ((X[::-1], U[::-1]), "reverse time order"),
         "another trial's": ((X0, U0), "another trial's log"),
     }
-    before = _recorded(tuner)
+    before, quarantined = _recorded(tuner), 0
     for name, (log, message) in cases.items():
         with pytest.raises(TunerError, match=message) as err:
             tuner.tell(trial, *log)
@@ -77,8 +77,11 @@ def test_bad_logs_are_refused_or_quarantined_with_the_problem_named(tmp_path, mo
             assert kept["status"] == "quarantined" and kept["problems"], name
             assert pd.read_parquet(err.value.path).shape[0] == len(X), name
             assert tuner.status()["quarantined"] == [trial.id]
+            quarantined += 1
         else:  # cycled starts: it does not start at the trial's x0 either
             assert mode == "cycle" and "must start at its trial's x0" in str(err.value), name
+    kept = sorted(p.name for p in (tuner.run_dir.path / "quarantine").glob("*.parquet"))
+    assert len(kept) == quarantined >= 2, kept  # every quarantined log is kept
     row = tuner.tell(trial, X, U)  # the true log is believed
     assert row.episode == trial.id and tuner.status()["quarantined"] == []
     assert json.loads((tuner.run_dir.path / "status.json").read_text())["told"] == 2

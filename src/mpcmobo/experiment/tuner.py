@@ -359,15 +359,19 @@ class Tuner:
                 f"learner that had seen it: retract them with it (Tuner.retract({tid}, "
                 f"later=True), mpcmobo retract DIR {tid} --with-later); their logs are kept"
             )
-        entries = [self.files.told(k) for k in ids]
-        if any(e is None or e.get("checkpoint") is None for e in entries):
+        found = [self.files.told(k, checkpoint=k == tid) for k in ids]
+        entries = [e for e in found if e is not None]
+        if len(entries) < len(ids) or entries[0].get("checkpoint") is None:
             raise TunerError(
                 f"trial {tid} cannot be retracted: the state before its tell was not kept "
                 "(told by an older mpcmobo)"
             )
         rows = [r.to_dict() for r in self.job.rows[tid:]]
-        self.files.retract(entries, rows, self.system)  # type: ignore[arg-type]  # checked
-        before = pickle.loads(entries[0]["checkpoint"])  # type: ignore[index]  # checked
+        self.files.retract(entries, rows, self.system)
+        for q in self.files.quarantined():  # a later trial's plan is gone with its log
+            if q > tid:
+                self.files.release(q, f"dropped: trial {tid} was retracted")
+        before = pickle.loads(entries[0]["checkpoint"])
         for _ in range(2):  # the previous generation is that state too
             storage.save_checkpoint(self.run_dir.path, self.learner, self.seed, before)
         self._open(self.run_dir, self.settings, new=False)

@@ -3,9 +3,11 @@
 Layout in the tuner's directory ``DIR``::
 
     told/trial-<id>.pkl          a told trial: its plan, its log, the problems the checks found
-                                 (told with --force) and the job's checkpoint before the tell
+                                 (told with --force)
+    told/trial-<id>.checkpoint.pkl  the job's checkpoint before its tell (what a retract restores)
     quarantine/trial-<id>.parquet a log the checks did not believe (the trial stays pending)
     quarantine/trial-<id>.json   why, and its status: quarantined, accepted (--force), replaced
+    quarantine/trial-<id>-<n>.*  an earlier quarantined log of the trial
     retracted/trial-<id>.parquet a retracted trial's log, and .json: its record and when
     retracted/episodes.parquet   the records of every retracted trial, ``retracted_at`` added
     status.json                  ``Tuner.status()``, rewritten after every ask, tell, retract
@@ -16,6 +18,7 @@ Every file is written atomically (:mod:`mpcmobo.experiment.storage`).
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -54,7 +57,10 @@ class TunerFiles:
         problems: list[Problem],
         forced: bool,
     ) -> None:
-        """Keep a told trial: its plan, log, findings and the checkpoint before its tell."""
+        """Keep a told trial: its plan, log, findings and the checkpoint before its tell (in
+        a file of its own, read only by a retract)."""
+        if snapshot is not None:
+            storage.atomic_write_bytes(self.told_dir / f"trial-{tid}.checkpoint.pkl", snapshot)
         storage.write_pickle(
             self.told_dir / f"trial-{tid}.pkl",
             {
@@ -63,13 +69,13 @@ class TunerFiles:
                 "log": log,
                 "problems": [p.to_dict() for p in problems],
                 "forced": forced,
-                "checkpoint": snapshot,
                 "told_at": _now(),
             },
         )
 
-    def told(self, tid: int) -> dict | None:
-        """A told trial's entry (None: not kept, e.g. told by an older version)."""
+    def told(self, tid: int, checkpoint: bool = False) -> dict | None:
+        """A told trial's entry (None: not kept, e.g. told by an older version); with
+        ``checkpoint``, also the job's checkpoint before its tell (bytes; None if not kept)."""
         path = self.told_dir / f"trial-{tid}.pkl"
         if not path.exists():
             return None
@@ -77,12 +83,25 @@ class TunerFiles:
             entry: dict = storage.read_pickle(path)
         except Exception:  # noqa: BLE001 - a damaged entry is as good as none
             return None
+        if checkpoint:
+            snap = self.told_dir / f"trial-{tid}.checkpoint.pkl"
+            entry["checkpoint"] = snap.read_bytes() if snap.exists() else None
         return entry
 
     # ------------------------------------------------------------------ quarantine
     def quarantine(self, tid: int, log: PlantLog, problems: list[Problem], system: System) -> Path:
-        """Keep a log the checks did not believe, with the reasons; its path."""
+        """Keep a log the checks did not believe, with the reasons; its path. A log the trial
+        had in quarantine before is kept as ``trial-<id>-<n>``, marked replaced."""
         path = self.quarantine_dir / f"trial-{tid}.parquet"
+        if path.with_suffix(".json").exists():
+            n = len(list(self.quarantine_dir.glob(f"trial-{tid}-*.json"))) + 1
+            entry = storage.read_json(path.with_suffix(".json"))
+            if entry.get("status") == QUARANTINED:
+                entry.update(status="replaced by a later log", released_at=_now())
+            kept = self.quarantine_dir / f"trial-{tid}-{n}.parquet"
+            if path.exists():
+                os.replace(path, kept)
+            storage.write_json(kept.with_suffix(".json"), dict(entry, log=kept.name))
         storage.write_parquet(path, log.frame(system))
         storage.write_json(
             path.with_suffix(".json"),
@@ -106,7 +125,7 @@ class TunerFiles:
                 continue
             if entry.get("status") == QUARANTINED:
                 out.append(int(entry["trial"]))
-        return sorted(out)
+        return sorted(set(out))
 
     def quarantined_log(self, tid: int, system: System, steps: int) -> PlantLog:
         """The quarantined log of trial ``tid`` (what ``tell --force`` without a log takes)."""
@@ -160,7 +179,9 @@ class TunerFiles:
             new = pd.concat([pd.read_parquet(table), new], ignore_index=True)
         storage.write_parquet(table, new)
         for entry in entries:
-            (self.told_dir / f"trial-{int(entry['trial'])}.pkl").unlink(missing_ok=True)
+            tid = int(entry["trial"])
+            (self.told_dir / f"trial-{tid}.pkl").unlink(missing_ok=True)
+            (self.told_dir / f"trial-{tid}.checkpoint.pkl").unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ status
     def write_status(self, status: dict[str, Any]) -> None:
@@ -172,7 +193,8 @@ def history_errors(
     files: TunerFiles, told: int, params: np.ndarray, system: System, cache: dict
 ) -> list[float]:
     """The one-step errors (:func:`~mpcmobo.experiment.checks.episode_error`) under the model
-    ``params`` of the ``told`` trials kept, cached per (trial, params)."""
+    ``params`` of the ``told`` trials kept; ``cache`` keeps their logs (by trial) and errors
+    (by trial and params) for the tuner's next tell."""
     from mpcmobo.experiment.checks import episode_error
 
     out = []
@@ -180,10 +202,12 @@ def history_errors(
     for tid in range(told):
         key = (tid, key_p)
         if key not in cache:
-            entry = files.told(tid)
-            if entry is None:
+            if tid not in cache:
+                entry = files.told(tid)
+                cache[tid] = None if entry is None else entry["log"]
+            log: PlantLog | None = cache[tid]
+            if log is None:
                 continue
-            log: PlantLog = entry["log"]
             cache[key] = episode_error(system, log.states, log.inputs, params)
         out.append(cache[key])
     return out
