@@ -479,28 +479,30 @@ class Tuner:
             "J_initial": None
             if not math.isfinite(self.reference.J_initial)
             else self.reference.J_initial,
-            "identification": self._identification(),
+            "identification": _identification(self.job.run.learner, self.system),
         }
 
     def _write_status(self) -> None:
         """``status.json`` rewritten (atomically: a dashboard may read it at any time)."""
         self.files.write_status(self.status())
 
-    def _identification(self) -> dict[str, Any] | None:
-        """The learner's last fit of the model, as :meth:`status` reports it (None without)."""
-        fit = self.job.run.learner.identification()
-        if fit is None:
-            return None
-        nominal = dict(zip(self.system.param_names, self.system.models["imperfect"]))
-        return {
-            "parameters": {
-                name: {"nominal": float(nominal[name]), "estimate": float(q), "std": float(sd)}
-                for name, q, sd in zip(fit.names, fit.estimate, fit.std)
-            },
-            "holdout_error": fit.holdout_error,
-            "nominal_error": fit.nominal_error,
-            "transitions": fit.n,
-        }
+
+def _identification(learner: Any, system: System) -> dict[str, Any] | None:
+    """The learner's last fit of the model, as :meth:`Tuner.status` reports it (None
+    without)."""
+    fit = learner.identification()
+    if fit is None:
+        return None
+    nominal = dict(zip(system.param_names, system.models["imperfect"]))
+    return {
+        "parameters": {
+            name: {"nominal": float(nominal[name]), "estimate": float(q), "std": float(sd)}
+            for name, q, sd in zip(fit.names, fit.estimate, fit.std)
+        },
+        "holdout_error": fit.holdout_error,
+        "nominal_error": fit.nominal_error,
+        "transitions": fit.n,
+    }
 
 
 def _trial_id(trial: Any) -> int:
