@@ -143,8 +143,11 @@ def tell(
     before = rows[-2].incumbent if len(rows) > 1 else tuner.job.run.learner.theta0
     moved = not np.array_equal(rows[-1].incumbent, before)
     changed = " (the deployed theta changed)" if moved else ""
+    told = tuner.files.told(row.episode) or {}
+    found = sorted({p["check"] for p in told.get("problems", [])})
+    forced = f" (accepted with --force despite: {', '.join(found)})" if found else ""
     cli.console.print(
-        f"trial {row.episode} told: f1 {fmt(row.f1)}, {tuner.episodes} of "
+        f"trial {row.episode} told{forced}: f1 {fmt(row.f1)}, {tuner.episodes} of "
         f"{tuner.settings.episodes} trials{changed}",
         highlight=False,
     )
