@@ -14,6 +14,7 @@ import pandas as pd
 import pytest
 
 from mpcmobo.experiment import checks
+from mpcmobo.experiment.plantlog import PlantLog
 from mpcmobo.experiment.tuner import LogQuarantined, Tuner, TunerError
 from mpcmobo.systems.plant import SystemPlant
 
@@ -80,6 +81,15 @@ def test_bad_logs_are_refused_or_quarantined_with_the_problem_named(tmp_path, mo
             quarantined += 1
         else:  # cycled starts: it does not start at the trial's x0 either
             assert mode == "cycle" and "must start at its trial's x0" in str(err.value), name
+    table = PlantLog(X, U).frame(tuner.system)  # a table sorted the wrong way
+    with pytest.raises(TunerError, match="reverse time order: its first row has no inputs"):
+        tuner.tell(trial, table.iloc[::-1].reset_index(drop=True))
+    timed = table.assign(time=np.arange(len(X)) * 0.1)
+    timed.loc[[3, 4], "time"] = timed.loc[[4, 3], "time"].to_numpy()
+    with pytest.raises(TunerError, match="out of time order at rows 4"):
+        tuner.tell(trial, timed)
+    assert _recorded(tuner) == before
+    quarantined += 1
     kept = sorted(p.name for p in (tuner.run_dir.path / "quarantine").glob("*.parquet"))
     assert len(kept) == quarantined >= 2, kept  # every quarantined log is kept
     row = tuner.tell(trial, X, U)  # the true log is believed
@@ -157,6 +167,9 @@ def test_the_checks_on_their_own():
     U = np.tile(cstr.u_ref, (4, 1))
     found = checks.order_problems(cstr, X, U, cstr.models["imperfect"], time=[4, 3, 2, 1, 0])
     assert found and "reverse time order" in found[0].message
+    (found,) = checks.order_problems(cstr, X, U, cstr.models["imperfect"], time=[0, 1, 3, 2, 4])
+    assert "out of time order at rows 3" in found.message and found.steps == (3,)
+    assert checks.order_problems(cstr, X, U, cstr.models["imperfect"], time=[0, 1, 1, 2, 3]) == []
     X[:, 0] /= 100  # V in hectolitres
     (found,) = checks.box_problems(cstr, X)
     assert "multiplied by 100" in found.message and found.steps == (0, 1, 2, 3, 4)

@@ -179,8 +179,8 @@ def order_problems(
                     ),
                 )
             ]
-        if np.any(dt <= 0):
-            bad = tuple(int(k) + 1 for k in np.flatnonzero(dt <= 0))
+        if np.any(dt < 0):
+            bad = tuple(int(k) + 1 for k in np.flatnonzero(dt < 0))
             return [
                 Problem(
                     "time_order",

@@ -152,14 +152,15 @@ def _frame(df: Any, system: System) -> tuple[Any, Any, Any, Any, Any]:
     X = df[list(system.state_names)].to_numpy(float)
     L = df["stage_cost"].to_numpy(float)[:-1] if "stage_cost" in df.columns else None
     V = df["violation"].to_numpy(float)[:-1] if "violation" in df.columns else None
-    return X, U_all[:-1], L, V, _time(df)
+    return X, U_all[:-1], L, V, _time(df, names)
 
 
-def _time(df: Any) -> np.ndarray | None:
-    """The log's time column as numbers (None without one, or one that is not a time)."""
+def _time(df: Any, names: tuple[str, ...]) -> np.ndarray | None:
+    """The log's time column as numbers (None without one, or one that is not a time); a
+    column named as a state or an input is not the time."""
     import pandas as pd
 
-    col = next((c for c in df.columns if str(c).lower() in TIME_COLUMNS), None)
+    col = next((c for c in df.columns if str(c).lower() in TIME_COLUMNS and c not in names), None)
     if col is None:
         return None
     try:
