@@ -65,7 +65,7 @@ def test_bad_logs_are_refused_or_quarantined_with_the_problem_named(tmp_path, mo
         "swapped": (swapped, r"steps [456-]+\W.*rows out of order"),
         "override": (override, r"at steps 8-12: an operator override"),
         "reversed": ((X[::-1], U[::-1]), "reverse time order"),
-        "another trial's": ((X0, U0), "another trial's log"),
+        "another trial's": (episode(tuner, first, x0=trial.x0), "another trial's log"),
     }
     before, quarantined = _recorded(tuner), 0
     for name, (log, message) in cases.items():
@@ -81,6 +81,8 @@ def test_bad_logs_are_refused_or_quarantined_with_the_problem_named(tmp_path, mo
             quarantined += 1
         else:  # cycled starts: it does not start at the trial's x0 either
             assert mode == "cycle" and "must start at its trial's x0" in str(err.value), name
+    with pytest.raises(TunerError, match="this log is trial 0's, told already"):
+        tuner.tell(trial, X0, U0)
     table = PlantLog(X, U).frame(tuner.system)  # a table sorted the wrong way
     with pytest.raises(TunerError, match="reverse time order: its first row has no inputs"):
         tuner.tell(trial, table.iloc[::-1].reset_index(drop=True))

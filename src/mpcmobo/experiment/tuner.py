@@ -39,7 +39,7 @@ from mpcmobo.experiment.records import EpisodeRow, Reference
 from mpcmobo.experiment.rundir import RunDirectory, open_run
 from mpcmobo.experiment.settings import Settings, build_system, load_settings, needs_plant
 from mpcmobo.experiment.study import compute_reference, system_info, write_records
-from mpcmobo.experiment.tunerfiles import TunerFiles, history_errors
+from mpcmobo.experiment.tunerfiles import TunerFiles, history_errors, told_twin
 from mpcmobo.experiment.usersystem import recorded_system, restore_system
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
 from mpcmobo.systems.base import System
@@ -296,6 +296,12 @@ class Tuner:
             raise TunerError("the log needs the states (T+1 rows), and the inputs applied")
         else:
             log = parse_log(self.system, steps, states, inputs, stage_costs, violations)
+        twin = told_twin(self.files, self.episodes, log, self._errors)
+        if twin is not None:
+            raise TunerError(
+                f"this log is trial {twin}'s, told already (the same states and inputs): tell "
+                f"trial {tid}'s own log"
+            )
         params, model = self._model()
         history = history_errors(self.files, self.episodes, params, self.system, self._errors)
         problems, record, mpc_time = checks.review(

@@ -211,3 +211,20 @@ def history_errors(
             cache[key] = episode_error(system, log.states, log.inputs, params)
         out.append(cache[key])
     return out
+
+
+def told_twin(files: TunerFiles, told: int, log: PlantLog, cache: dict) -> int | None:
+    """The told trial whose log ``log`` repeats (the same states and inputs), if one does;
+    ``cache`` as :func:`history_errors`'s."""
+    for tid in range(told):
+        if tid not in cache:
+            entry = files.told(tid)
+            cache[tid] = None if entry is None else entry["log"]
+        kept: PlantLog | None = cache[tid]
+        if (
+            kept is not None
+            and np.array_equal(kept.states, log.states)
+            and np.array_equal(kept.inputs, log.inputs)
+        ):
+            return tid
+    return None
