@@ -35,11 +35,12 @@ SETTINGS = {
 }
 
 
-def _episode(tuner: Tuner, trial) -> tuple[np.ndarray, np.ndarray]:
-    """The user's loop on the simulated plant: start at trial.x0, apply the trial's policy
-    plus its noise, clipped, log states and inputs."""
+def _episode(tuner: Tuner, trial, x0=None) -> tuple[np.ndarray, np.ndarray]:
+    """The user's loop on the simulated plant: start at trial.x0 (or ``x0``), apply the
+    trial's policy plus its noise, clipped, log states and inputs."""
     plant = SystemPlant(tuner.system)
-    x, _ = plant.reset(seed=0, options={"x0": trial.x0})
+    trial.restart()
+    x, _ = plant.reset(seed=0, options={"x0": trial.x0 if x0 is None else x0})
     states, inputs = [x], []
     for k in range(trial.steps):
         u = np.clip(trial.policy(x) + trial.noise[k], tuner.system.u_lb, tuner.system.u_ub)
@@ -83,7 +84,7 @@ def test_ask_and_tell_on_the_simulated_cstr_records_what_mpcmobo_run_records(stu
     assert np.array_equal(
         tuner.deployed, pd.read_parquet(study / "episodes.parquet").incumbent.iloc[-1]
     )
-    assert tuner.status()["trials"] == SETTINGS["episodes"]
+    assert tuner.status()["told"] == SETTINGS["episodes"]
     with pytest.raises(TunerError, match="budget"):
         tuner.ask()
 
@@ -198,23 +199,18 @@ def test_the_episode_starts_where_the_log_does(tmp_path):
     for mode in ("random", "cycle"):
         tuner = Tuner("lq", "bo", tmp_path / mode, episodes=3, steps=6, start_mode=mode)
         trial = tuner.ask()
-        X, U = _episode(tuner, trial)
-        near = X.copy()
-        near[0] += 0.01 * tuner.system.x_scale
-        elsewhere = X.copy()
-        elsewhere[0] = trial.x0 + 0.5 * tuner.system.x_scale
+        near, U = _episode(tuner, trial, trial.x0 + 0.01 * tuner.system.x_scale)
+        elsewhere, U_elsewhere = _episode(tuner, trial, trial.x0 + 0.5 * tuner.system.x_scale)
         if mode == "cycle":
             with pytest.raises(TunerError, match="must start at its trial's x0"):
-                tuner.tell(trial, elsewhere, U)
+                tuner.tell(trial, elsewhere, U_elsewhere)
             row = tuner.tell(trial, near, U)
             np.testing.assert_array_equal(row.x0, trial.x0)
             continue
-        row = tuner.tell(trial, elsewhere, U)
+        row = tuner.tell(trial, elsewhere, U_elsewhere)
         np.testing.assert_array_equal(row.x0, elsewhere[0])
         trial = tuner.ask()
-        X, U = _episode(tuner, trial)
-        near = X.copy()
-        near[0] += 0.01 * tuner.system.x_scale
+        near, U = _episode(tuner, trial, trial.x0 + 0.01 * tuner.system.x_scale)
         row = tuner.tell(trial, near, U)
         np.testing.assert_array_equal(row.x0, trial.x0)
         rows = pd.read_parquet(tmp_path / mode / "episodes.parquet")

@@ -4,9 +4,10 @@
 ``ask DIR`` starts a tuner in DIR the first time (from ``--config`` / ``--system``), prints the
 next trial as JSON and writes its controller next to it (``DIR/trials/<id>/``); ``tell DIR
 TRIAL FILE`` takes the logged episode (CSV or Parquet, the system's state and input names as
-columns); ``status DIR`` shows what is deployed; ``export DIR`` writes the tuned MPC as a CasADi
-function or as C code. A bad trial or log exits with code 2 and a message; nothing recorded is
-changed.
+columns); ``status DIR`` shows what is deployed, the trials and what to do (``--json``: as
+data); ``retract DIR TRIAL`` takes a told trial back; ``export DIR`` writes the tuned MPC as a
+CasADi function or as C code. A bad trial or log exits with code 2 and a message; nothing
+recorded is changed; an interrupted ``tell`` (exit code 130) leaves its trial pending.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from mpcmobo.experiment import storage
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError
 from mpcmobo.experiment.settings import SettingsError
 
-__all__ = ["ask", "export", "status", "tell"]
+__all__ = ["ask", "export", "retract", "status", "tell"]
 
 app: typer.Typer = cli.app
 
@@ -58,6 +59,12 @@ def _tuner(directory: Path, episodes: int | None, **create: Any) -> Any:
             )
         return Tuner.load(directory, episodes=episodes)
     made = {k: v for k, v in create.items() if v is not None}
+    if "system" not in made and "config" not in made:
+        raise TunerError(
+            f"{directory} holds no tuner yet: make one with --system NAME (e.g. --system "
+            "path/to/file.py:make_system; mpcmobo systems lists the names) or --config FILE "
+            "(a settings file with a [system] table)"
+        )
     if episodes is not None:
         made["episodes"] = episodes
     return Tuner(out=directory, **made)
@@ -97,44 +104,114 @@ def ask(
 def tell(
     directory: Path = typer.Argument(..., help="the tuner's directory"),
     trial: int = typer.Argument(..., help="the trial's id"),
-    log: Path = typer.Argument(..., help="the episode: a CSV or Parquet file"),
+    log: Path | None = typer.Argument(
+        None, help="the episode: a CSV or Parquet file (with --force: the quarantined one)"
+    ),
+    force: bool = typer.Option(
+        False, "--force", help="accept a log the checks would quarantine (or the quarantined)"
+    ),
 ) -> None:
     """Take a trial's logged episode: a row per step, the state and input names as columns."""
-    import pandas as pd
-
+    from mpcmobo.experiment.plantlog import read_log_file
     from mpcmobo.experiment.tuner import Tuner, TunerError
+
+    def read() -> Any:  # the file first, before the tuner and its learner are loaded
+        if log is None:
+            if not force:
+                raise TunerError("give the log file (or --force to accept the quarantined log)")
+            return None
+        df = read_log_file(log)
+        _check_columns(directory, df)
+        return df
+
+    df = _errors(read)
 
     def go() -> Any:
         tuner = Tuner.load(directory)
-        if not log.exists():
-            raise TunerError(f"the log {log} does not exist")
-        try:
-            df = pd.read_parquet(log) if log.suffix == ".parquet" else pd.read_csv(log)
-        except Exception as err:  # noqa: BLE001 - any unreadable file is reported the same way
-            raise TunerError(f"the log {log} cannot be read: {type(err).__name__}: {err}") from None
-        row = tuner.tell(trial, df)
-        return tuner, row
+        return tuner, tuner.tell(trial, df, force=force)
 
-    tuner, row = _errors(go)
+    try:
+        tuner, row = _errors(go)
+    except KeyboardInterrupt:
+        cli.err_console.print(
+            f"Interrupted: trial {trial} is still pending (nothing of this tell is recorded); "
+            f"tell it again: mpcmobo tell {directory} {trial} LOG",
+            highlight=False,
+        )
+        raise typer.Exit(130) from None
     rows = tuner.job.rows
     before = rows[-2].incumbent if len(rows) > 1 else tuner.job.run.learner.theta0
     moved = not np.array_equal(rows[-1].incumbent, before)
     changed = " (the deployed theta changed)" if moved else ""
+    told = tuner.files.told(row.episode) or {}
+    found = sorted({p["check"] for p in told.get("problems", [])})
+    forced = f" (accepted with --force despite: {', '.join(found)})" if found else ""
     cli.console.print(
-        f"trial {row.episode} told: f1 {fmt(row.f1)}, {tuner.episodes} of "
+        f"trial {row.episode} told{forced}: f1 {fmt(row.f1)}, {tuner.episodes} of "
         f"{tuner.settings.episodes} trials{changed}",
         highlight=False,
     )
 
 
+def _check_columns(directory: Path, df: Any) -> None:
+    """The log's columns against the system's state and input names, from the tuner's saved
+    reference (no learner loaded); nothing is checked if the directory has none."""
+    from mpcmobo.experiment.tuner import TunerError
+
+    run_dir = RunDirectory(directory)
+    if not run_dir.holds_run():
+        raise TunerError(f"{directory} holds no tuner (no config.toml)")
+    try:
+        info = run_dir.reference()
+    except StudyError:
+        return  # the tuner's loading reports it
+    if info is None:
+        return
+    names = [*info.system["state_names"], *info.system["input_names"]]
+    missing = [n for n in names if n not in df.columns]
+    if missing:
+        found = [str(c) for c in df.columns]
+        raise TunerError(
+            f"the log has no column {missing[0]!r}; it needs the states "
+            f"{list(info.system['state_names'])} and the inputs "
+            f"{list(info.system['input_names'])}; its columns are {found}"
+        )
+
+
 @app.command()
-def status(directory: Path = typer.Argument(..., help="the tuner's directory")) -> None:
-    """Show the deployed theta, its evidence and the trials so far."""
+def retract(
+    directory: Path = typer.Argument(..., help="the tuner's directory"),
+    trial: int = typer.Argument(..., help="the told trial to take back"),
+    with_later: bool = typer.Option(
+        False, "--with-later", help="also the trials told after it (proposed knowing it)"
+    ),
+) -> None:
+    """Take a told trial back: the tuner as before its tell, the trial pending again."""
+    from mpcmobo.experiment.tuner import Tuner
+
+    ids = _errors(lambda: Tuner.load(directory).retract(trial, later=with_later))
+    listed = ", ".join(map(str, ids))
+    cli.console.print(
+        f"retracted trial{'s' if len(ids) > 1 else ''} {listed} (kept in "
+        f"{directory / 'retracted'}); trial {trial} is pending again",
+        highlight=False,
+    )
+
+
+@app.command()
+def status(
+    directory: Path = typer.Argument(..., help="the tuner's directory"),
+    as_json: bool = typer.Option(False, "--json", help="print Tuner.status() as JSON"),
+) -> None:
+    """Show the deployed theta, its evidence, the trials so far and what to do next."""
     from mpcmobo.experiment.tuner import Tuner
 
     st = _errors(lambda: Tuner.load(directory).status())
+    if as_json:
+        cli.console.print_json(json.dumps(storage.json_safe(st)))
+        return
     cli.console.print(
-        f"{st['learner']}: {st['trials']} of {st['budget']} trials told"
+        f"{st['learner']}: {st['told']} of {st['budget']} trials told"
         + (f", trial {st['pending']} pending" if st["pending"] is not None else "")
         + f"; the deployed theta ran {st['deployed_episodes']} of them and changed "
         f"{st['changes_of_deployed']} times",
@@ -153,11 +230,43 @@ def status(directory: Path = typer.Argument(..., help="the tuner's directory")) 
     for name, value in st["deployed"].items():
         table.add_row(name, fmt(value, 6))
     cli.console.print(table)
+    _print_trials(st)
     if st["identification"] is not None:
         _print_identification(st["identification"])
     summary = directory / "summary.json"
     if summary.exists():  # an identified parameter held by its bounds
         cli.warn_bounds(storage.read_json(summary))
+    rec = st["recommendation"]
+    cli.console.print(f"next: {rec['action']}: {rec['reason']}", highlight=False)
+
+
+def _print_trials(st: dict[str, Any]) -> None:
+    """The trials (``Tuner.status``'s ``trials``) as a table, the cumulative plant cost and
+    the quarantined trials."""
+    if st["trials"]:
+        table = Table(title="trials")
+        for col in ("id", "role", "start", "plant cost", "excess", "verdict"):
+            table.add_column(col, justify="right" if col in ("id", "plant cost") else "left")
+        for t in st["trials"]:
+            start = "random" if t["start"] is None else str(t["start"])
+            cost = "failed" if t["plant_cost"] is None else fmt(t["plant_cost"])
+            excess = "-" if t["excess_cost"] is None else fmt(t["excess_cost"])
+            table.add_row(str(t["id"]), t["role"], start, cost, excess, t["verdict"])
+        cli.console.print(table)
+        total = "n/a" if st["plant_cost"] is None else fmt(st["plant_cost"])
+        excess = "not predicted" if st["excess_cost"] is None else fmt(st["excess_cost"])
+        cli.console.print(
+            f"plant cost of tuning (sum of the trials' mean stage costs) {total}; excess over "
+            f"the deployed controller {excess}",
+            highlight=False,
+        )
+    if st["quarantined"]:
+        ids = ", ".join(map(str, st["quarantined"]))
+        cli.console.print(
+            f"quarantined logs (not learned from): trial {ids}; the reasons in "
+            "quarantine/trial-<id>.json",
+            highlight=False,
+        )
 
 
 def _print_identification(ident: dict[str, Any]) -> None:
@@ -194,7 +303,9 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
         raise TunerError(f"choose one job of {run_dir.path}: {listed}")
     ((name, s),) = jobs
     ckpt = run_dir.checkpoint(name, s)
-    if ckpt is None or not ckpt.rows:
+    if ckpt is None or (not ckpt.rows and ckpt.pending is None):
+        raise TunerError(f"the job {name} s{s} has no episode yet: nothing to export")
+    if which in ("deployed", "final") and not ckpt.rows:
         raise TunerError(f"the job {name} s{s} has no episode yet: nothing to export")
     if which == "deployed":
         return settings, name, np.asarray(ckpt.rows[-1].incumbent, float)
@@ -211,9 +322,39 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
         raise TunerError(
             f"--theta must be deployed, final or a trial's id, got {which!r}"
         ) from None
+    if ckpt.pending is not None and int(ckpt.pending["episode"]) == k:
+        raise TunerError(
+            f"trial {k} is pending: it has not been told yet, so it has no record; its "
+            f"controller is {run_dir.path / 'trials' / str(k) / 'controller.casadi'} (written "
+            "by ask)"
+        )
     if not 0 <= k < len(ckpt.rows):
         raise TunerError(f"no trial {k}: the job has trials 0 to {len(ckpt.rows) - 1}")
     return settings, name, np.asarray(ckpt.rows[k].theta, float)
+
+
+def _write_controller(mpc: Any, theta: Any, fmt_: str, out: Path, compile_c: bool) -> str:
+    """Write the controller of ``mpc`` with ``theta`` in the format ``fmt_`` into ``out``
+    (compiled with ``compile_c``); what ``mpcmobo export`` prints."""
+    from mpcmobo.experiment.tuner import TunerError
+    from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
+    from mpcmobo.mpc.export import c_compile_command, export_c, export_casadi
+
+    if fmt_ == "casadi":
+        return f"wrote {export_casadi(mpc, theta, out)}"
+    if fmt_ == "embedded":
+        export_embedded(mpc, theta, out)
+        cmd = embedded_compile_command(out)
+        files = "controller.c, controller.h, mpc_functions.c, mpc_functions.h, main.c"
+    else:
+        export_c(mpc, theta, out)
+        cmd = c_compile_command(out)
+        files = "controller.c, controller.h, main.c"
+    if compile_c:
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise TunerError(f"compiling failed: {proc.stderr.strip()[-1500:]}")
+    return f"wrote {out}/{files}; build with:\n" + " ".join(cmd)
 
 
 @app.command()
@@ -232,15 +373,15 @@ def export(
     only libc and libm (embedded), with a header and a main.c."""
     from mpcmobo.experiment.build import build_system
     from mpcmobo.experiment.tuner import TunerError
+    from mpcmobo.experiment.usersystem import restore_system
     from mpcmobo.mpc import ParametricMPC
-    from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
-    from mpcmobo.mpc.export import c_compile_command, export_c, export_casadi
 
     if fmt_ not in ("casadi", "c", "embedded"):
         cli._fail(f"--format must be casadi, c or embedded, got {fmt_!r}", 2)
 
     def go() -> str:
         run_dir = cli._require_run(directory)
+        restore_system(directory)  # a tuner's System given as an object
         if fmt_ != "casadi" and out.exists() and not out.is_dir():
             raise TunerError(f"--out {out} is a file; C code goes into a directory")
         if fmt_ == "casadi" and out.is_dir():
@@ -250,20 +391,6 @@ def export(
         if fmt_ == "embedded":  # the MPC's own functions, generated again as plain C
             options["codegen"] = False
         mpc = ParametricMPC(build_system(settings, name), "imperfect", **options)
-        if fmt_ == "casadi":
-            return f"wrote {export_casadi(mpc, th, out)}"
-        if fmt_ == "embedded":
-            export_embedded(mpc, th, out)
-            cmd = embedded_compile_command(out)
-            files = "controller.c, controller.h, mpc_functions.c, mpc_functions.h, main.c"
-        else:
-            export_c(mpc, th, out)
-            cmd = c_compile_command(out)
-            files = "controller.c, controller.h, main.c"
-        if compile_c:
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            if proc.returncode != 0:
-                raise TunerError(f"compiling failed: {proc.stderr.strip()[-1500:]}")
-        return f"wrote {out}/{files}; build with:\n" + " ".join(cmd)
+        return _write_controller(mpc, th, fmt_, out, compile_c)
 
     cli.console.print(_errors(go), highlight=False, markup=False, soft_wrap=True)

@@ -114,6 +114,11 @@ def _json_safe(obj: Any) -> Any:
     return obj
 
 
+def json_safe(obj: Any) -> Any:
+    """``obj`` as standard JSON data: NaN and inf as None, NumPy values as Python's."""
+    return _json_safe(obj)
+
+
 def write_json(path: str | Path, obj: Any) -> Path:
     """Write ``obj`` as standard JSON (NaN and inf as null) atomically."""
     text = json.dumps(_json_safe(obj), indent=2, allow_nan=False)

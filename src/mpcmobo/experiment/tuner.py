@@ -7,7 +7,10 @@ every step, and where a simulated study would start it), the episode runs on the
 :meth:`Tuner.tell` takes the logged episode: the MPC is solved again on the logged states
 (it is deterministic given x and theta), so its actions, values and sensitivities, the critic
 and f1..f4 are what a simulated episode would have had; the stage cost and violation are the
-system's where the log has none. Each tell is recorded as ``mpcmobo run`` records an episode
+system's where the log has none. A log is checked before it is believed
+(:mod:`mpcmobo.experiment.checks`): one it does not believe is quarantined and the trial stays
+pending, until a corrected log or ``force=True``; :meth:`Tuner.retract` takes a told trial
+back. Each tell is recorded as ``mpcmobo run`` records an episode
 (``episodes.parquet``, ``trajectories.parquet``, ``summary.json``, a checkpoint after every ask
 and tell), so :meth:`Tuner.load` continues after a crash, also between ask and tell. Where the
 system's plant can be simulated (its true parameters, or a plant of the settings), the
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import pickle
 import shutil
 import time
 from collections.abc import Mapping
@@ -27,29 +31,35 @@ from typing import Any
 
 import numpy as np
 
-from mpcmobo.experiment import storage
+from mpcmobo.experiment import checks, storage, tunerstatus
 from mpcmobo.experiment.build import build_system, needs_plant
 from mpcmobo.experiment.job import Job
 from mpcmobo.experiment.loop import EpisodePlan
+from mpcmobo.experiment.plantlog import PlantLog, TunerError, parse_log, write_log
 from mpcmobo.experiment.records import EpisodeRow, Reference
 from mpcmobo.experiment.reference import compute_reference, system_info
 from mpcmobo.experiment.rundir import RunDirectory, open_run
 from mpcmobo.experiment.settings import Settings, load_settings
 from mpcmobo.experiment.summary import write_records
-from mpcmobo.mpc import ParametricMPC, replay
+from mpcmobo.experiment.tunerfiles import TunerFiles, history_errors, told_twin
+from mpcmobo.experiment.usersystem import recorded_system, restore_system
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
+from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import is_factory_path
 
-__all__ = ["Trial", "Tuner", "TunerError"]
+__all__ = ["LogQuarantined", "Trial", "Tuner", "TunerError", "write_log"]
 
-# a logged state further than this many widths of its bounds outside them is not a state
-STATE_RANGE = 10.0
 # a logged first state within this fraction of x_scale of the trial's x0 started there
 START_TOLERANCE = 0.05
 
 
-class TunerError(ValueError):
-    """A trial or a log the tuner cannot take; the message says what is wrong. Nothing
-    recorded is changed."""
+class LogQuarantined(TunerError):
+    """A log the checks do not believe: kept in ``quarantine/`` with the ``problems`` found;
+    the trial stays pending (tell a corrected log, or this one with ``force=True``)."""
+
+    def __init__(self, message: str, problems: list[checks.Problem], path: Path) -> None:
+        super().__init__(message)
+        self.problems, self.path = problems, path
 
 
 @dataclass(frozen=True)
@@ -92,8 +102,10 @@ class Trial:
 class Tuner:
     """One learner tuning a plant by ask and tell, recorded in ``out`` (module docstring).
 
-    ``system``: a system name or factory path (as ``--system``), or the settings' ``[system]``
-    table as a mapping (``{"name": "cstr", "identify": False}``); ``learner``: one of the
+    ``system``: a system name or factory path (as ``--system``), the settings' ``[system]``
+    table as a mapping (``{"name": "cstr", "identify": False}``), or a
+    :class:`~mpcmobo.systems.System` built in Python (recorded in ``out`` so that
+    :meth:`load` builds it again; its functions must be importable); ``learner``: one of the
     learners; ``config``: a settings file; ``overrides``: settings as in
     :func:`~mpcmobo.experiment.settings.load_settings` (``episodes``, ``start_mode``,
     ``learner_options``, ...). ``out`` must be a new or empty directory; :meth:`load` opens an
@@ -102,7 +114,7 @@ class Tuner:
 
     def __init__(
         self,
-        system: str | Mapping[str, Any] | None = None,
+        system: str | Mapping[str, Any] | System | None = None,
         learner: str = "mobo",
         out: str | Path = "tuning",
         *,
@@ -121,7 +133,16 @@ class Tuner:
                 f"{out} holds a run already: continue it with Tuner.load({str(out)!r}) "
                 f"(mpcmobo ask {out}), or give a new directory"
             )
-        if isinstance(system, Mapping):
+        if system is None and config is None:
+            raise TunerError(
+                "a new tuner needs its system: give system= (a name, a factory path "
+                "'path/to/file.py:make_system', a [system] table or a System) or config= (a "
+                "settings file with a [system] table)"
+            )
+        saved_system = None
+        if isinstance(system, System):
+            sys_table, saved_system = {"name": system.name}, recorded_system(system)
+        elif isinstance(system, Mapping):
             sys_table = dict(system)
         else:
             sys_table = (
@@ -138,6 +159,8 @@ class Tuner:
         existed = Path(out).exists()
         run_dir, settings = open_run(out, settings, resume=False)
         try:
+            if saved_system is not None:
+                storage.write_pickle(run_dir.path / "system.pkl", saved_system)
             self._open(run_dir, settings, new=True)
             storage.atomic_write_text(
                 run_dir.tuner_mark, json.dumps({"learner": learner, "seed": seed}) + "\n"
@@ -158,6 +181,7 @@ class Tuner:
         if not run_dir.holds_run():
             raise TunerError(f"{out} holds no tuner (no config.toml)")
         run_dir.check_schema()
+        restore_system(run_dir.path)
         settings = run_dir.saved_settings()
         if len(settings.learners) != 1 or len(settings.seeds) != 1:
             raise TunerError(
@@ -191,6 +215,8 @@ class Tuner:
             self.job.restore()
         self.system = self.job.run.system
         self._policy_mpc = ParametricMPC(self.system, model="imperfect", **settings.mpc.options())
+        self.files = TunerFiles(run_dir.path)
+        self._errors: dict = {}  # one-step errors of told logs, per (trial, model)
 
     def _reference(self, settings: Settings) -> Reference:
         """J* and J_eval(theta0) where the plant can be simulated; else neither."""
@@ -228,6 +254,7 @@ class Tuner:
             plan = self.job.run.plan()
             self.job.pending = plan.to_dict()
             self.job.save()  # the learner's state after the proposal, with the trial
+            self._write_status()
         return self._trial(EpisodePlan.from_dict(self.job.pending))
 
     def _trial(self, plan: EpisodePlan) -> Trial:
@@ -245,22 +272,66 @@ class Tuner:
     def tell(
         self,
         trial: Trial | int,
-        states: Any,
+        states: Any = None,
         inputs: Any | None = None,
         stage_costs: Any | None = None,
         violations: Any | None = None,
+        *,
+        force: bool = False,
     ) -> EpisodeRow:
         """Take the logged episode of ``trial``: ``states`` (T+1, nx), the last the state after
         the last input; ``inputs`` (T, nu), the inputs actually applied; ``stage_costs`` and
         ``violations`` (T,) if the plant measured them. Arrays, or one DataFrame with the
         system's state and input names as columns (inputs empty in the last row) and
-        optionally ``stage_cost`` and ``violation``. Returns the episode's row."""
-        plan = self._pending(_trial_id(trial))
-        X, U, L, V = self._log(states, inputs, stage_costs, violations)
-        plan = self._started(plan, X[0])
-        t0 = time.perf_counter()
-        record = replay(self.system, self.job.run.mpc, plan.theta, X, U, L, V)
-        mpc_time = time.perf_counter() - t0
+        optionally ``stage_cost``, ``violation`` and ``time``. Returns the episode's row.
+
+        The log is checked first (:mod:`mpcmobo.experiment.checks`); one the checks do not
+        believe is kept in ``quarantine/`` and :class:`LogQuarantined` names the problems: the
+        trial stays pending. ``force=True`` tells it all the same (without ``states``: the
+        trial's quarantined log)."""
+        tid = _trial_id(trial)
+        plan = self._pending(tid)
+        steps = self.job.run.steps
+        if states is None and force:
+            log = self.files.quarantined_log(tid, self.system, steps)
+        elif states is None:
+            raise TunerError("the log needs the states (T+1 rows), and the inputs applied")
+        else:
+            log = parse_log(self.system, steps, states, inputs, stage_costs, violations)
+        twin = told_twin(self.files, self.episodes, log, self._errors)
+        if twin is not None:
+            raise TunerError(
+                f"this log is trial {twin}'s, told already (the same states and inputs): tell "
+                f"trial {tid}'s own log"
+            )
+        params, model = self._model()
+        history = history_errors(self.files, self.episodes, params, self.system, self._errors)
+        problems, record, mpc_time = checks.review(
+            self.system, self.job.run.mpc, plan, log, params, model, history
+        )
+        started = self._started(plan, log.states[0], problems)
+        if problems and not force:
+            path = self.files.quarantine(tid, log, problems, self.system)
+            self._write_status()
+            raise LogQuarantined(_quarantine_message(tid, problems, path), problems, path)
+        if record is None:  # a log the checks stopped at, told with force
+            t0 = time.perf_counter()
+            record = replay(self.system, self.job.run.mpc, plan.theta, *_arrays(log))
+            mpc_time = time.perf_counter() - t0
+        return self._complete(started, record, mpc_time, log, problems, force)
+
+    def _complete(
+        self,
+        plan: EpisodePlan,
+        record: EpisodeRecord,
+        mpc_time: float,
+        log: PlantLog,
+        problems: list[checks.Problem],
+        force: bool,
+    ) -> EpisodeRow:
+        """The episode of ``plan`` recorded, with what a retract needs to undo it."""
+        ckpt = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
+        snapshot = ckpt.read_bytes() if ckpt.exists() else None  # the state after the ask
         try:
             row = self.job.complete(plan, record, "", mpc_time)
         except BaseException:
@@ -269,23 +340,78 @@ class Tuner:
             self._open(self.run_dir, self.settings, new=False)
             raise
         self.job.pending = None
+        self.files.save_told(plan.episode, plan.to_dict(), log, snapshot, problems, force)
         self.job.save()
+        self.files.release(plan.episode, "accepted (force)" if force else "replaced")
         write_records(self.run_dir.path, self.settings, self.reference)
+        self._write_status()
         return row
 
-    def _started(self, plan: EpisodePlan, x_first: np.ndarray) -> EpisodePlan:
+    def retract(self, trial: Trial | int, *, later: bool = False) -> list[int]:
+        """Take told trials back: the learner's state becomes what it was before ``trial``
+        was told, and ``trial`` is pending again (asked again, it is the same trial). Trials
+        told after it were proposed by a learner that had seen it: ``later=True`` retracts
+        them with it, else they are a :class:`TunerError`. The retracted records and logs are
+        kept in ``retracted/``. Returns the retracted trials' ids."""
+        tid = _trial_id(trial)
+        if not 0 <= tid < self.episodes:
+            raise TunerError(
+                f"trial {tid} has not been told: the told trials are "
+                + (f"0 to {self.episodes - 1}" if self.episodes else "none")
+            )
+        ids = list(range(tid, self.episodes))
+        if len(ids) > 1 and not later:
+            raise TunerError(
+                f"{'trial' if len(ids) == 2 else 'trials'} {checks.describe_steps(ids[1:])} "
+                f"{'was' if len(ids) == 2 else 'were'} told after trial {tid}, proposed by a "
+                f"learner that had seen it: retract them with it (Tuner.retract({tid}, "
+                f"later=True), mpcmobo retract DIR {tid} --with-later); their logs are kept"
+            )
+        found = [self.files.told(k, checkpoint=k == tid) for k in ids]
+        entries = [e for e in found if e is not None]
+        if len(entries) < len(ids) or entries[0].get("checkpoint") is None:
+            raise TunerError(
+                f"trial {tid} cannot be retracted: the state before its tell was not kept "
+                "(told by an older mpcmobo)"
+            )
+        rows = [r.to_dict() for r in self.job.rows[tid:]]
+        self.files.retract(entries, rows, self.system)
+        for q in self.files.quarantined():  # a later trial's plan is gone with its log
+            if q > tid:
+                self.files.release(q, f"dropped: trial {tid} was retracted")
+        before = pickle.loads(entries[0]["checkpoint"])
+        for _ in range(2):  # the previous generation is that state too
+            storage.save_checkpoint(self.run_dir.path, self.learner, self.seed, before)
+        self._open(self.run_dir, self.settings, new=False)
+        write_records(self.run_dir.path, self.settings, self.reference)
+        self._write_status()
+        return ids
+
+    def _model(self) -> tuple[np.ndarray, str]:
+        """The model the logs are checked with: the learner's identified model, else the
+        MPC's nominal one; and its name."""
+        fit = self.job.run.learner.identification()
+        if fit is not None and fit.success:
+            return np.asarray(fit.params, float), "identified"
+        return np.asarray(self.job.run.mpc.model_params, float), "nominal"
+
+    def _started(
+        self, plan: EpisodePlan, x_first: np.ndarray, problems: list[checks.Problem]
+    ) -> EpisodePlan:
         """The plan with the episode's logged initial state: the trial's ``x0`` if the log
         starts within ``START_TOLERANCE`` x_scale of it (a measurement of that start), else
-        the logged state; under cycled starts an episode must start at its trial's ``x0``."""
+        the logged state; under cycled starts an episode must start at its trial's ``x0``
+        (else a :class:`TunerError`, with the ``problems`` the checks found)."""
         scale = np.asarray(self.system.x_scale, float)
         if np.all(np.abs(x_first - plan.x0) <= START_TOLERANCE * scale):
             return plan
         if self.settings.start_mode == "cycle":
             j = int(np.argmax(np.abs(x_first - plan.x0) / scale))
+            found = "".join(f"{p.message}; " for p in problems)
             raise TunerError(
-                f"the log starts at {self.system.state_names[j]} = {x_first[j]:.6g}, the trial "
-                f"at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared from the "
-                "same starts, so an episode must start at its trial's x0 (within "
+                f"{found}the log starts at {self.system.state_names[j]} = {x_first[j]:.6g}, "
+                f"the trial at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared "
+                "from the same starts, so an episode must start at its trial's x0 (within "
                 f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "
                 "start_mode = 'random'"
             )
@@ -304,89 +430,55 @@ class Tuner:
             raise TunerError(f"unknown trial {tid}: no trial is pending; ask for one first")
         raise TunerError(f"unknown trial {tid}: the pending trial is {pending['episode']}")
 
-    def _log(
-        self, states: Any, inputs: Any, stage_costs: Any, violations: Any
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """The log as arrays, checked: shapes, finite values, states in range."""
-        s, T = self.system, self.job.run.steps
-        if hasattr(states, "columns"):  # a DataFrame
-            states, inputs, stage_costs, violations = _frame(states, s)
-        X = _numbers(states, "states")
-        if inputs is None:
-            raise TunerError("the log needs the inputs applied (inputs, or input columns)")
-        U = _numbers(inputs, "inputs")
-        if X.shape != (T + 1, s.nx):
-            raise TunerError(
-                f"states must be ({T + 1}, {s.nx}): the {T + 1} states of the episode "
-                f"({', '.join(s.state_names)}), the last after the last input; got {X.shape}"
-            )
-        if U.shape != (T, s.nu):
-            raise TunerError(
-                f"inputs must be ({T}, {s.nu}): the {T} inputs applied "
-                f"({', '.join(s.input_names)}); got {U.shape}"
-            )
-        for name, arr in (("states", X), ("inputs", U)):
-            if not np.all(np.isfinite(arr)):
-                k = int(np.flatnonzero(~np.all(np.isfinite(arr.reshape(len(arr), -1)), 1))[0])
-                raise TunerError(f"{name} has a value that is not finite at step {k}: {arr[k]}")
-        span = np.where(np.isfinite(s.x_ub - s.x_lb), s.x_ub - s.x_lb, np.inf)
-        far = (X < s.x_lb - STATE_RANGE * span) | (X > s.x_ub + STATE_RANGE * span)
-        if np.any(far):
-            k, j = (int(v[0]) for v in np.nonzero(far))
-            raise TunerError(
-                f"state {s.state_names[j]} = {X[k, j]} at step {k} is far outside its bounds "
-                f"[{s.x_lb[j]}, {s.x_ub[j]}]: check the log's units and columns"
-            )
-        outside = (U < s.u_lb - 1e-9 * np.abs(s.u_lb) - 1e-12) | (
-            U > s.u_ub + 1e-9 * np.abs(s.u_ub) + 1e-12
-        )
-        if np.any(outside):
-            k, j = (int(v[0]) for v in np.nonzero(outside))
-            raise TunerError(
-                f"input {s.input_names[j]} = {U[k, j]} at step {k} is outside its bounds "
-                f"[{s.u_lb[j]}, {s.u_ub[j]}]: log the inputs actually applied"
-            )
-        out: list[np.ndarray | None] = []
-        for name, arr in (("stage_costs", stage_costs), ("violations", violations)):
-            if arr is None:
-                out.append(None)
-                continue
-            a = _numbers(arr, name).reshape(-1)
-            if a.shape != (T,):
-                raise TunerError(f"{name} must be {T} numbers, one per input; got {a.shape}")
-            if not np.all(np.isfinite(a)):
-                k = int(np.flatnonzero(~np.isfinite(a))[0])
-                raise TunerError(f"{name} has a value that is not finite at step {k}: {a[k]}")
-            if name == "violations" and np.any(a < 0):
-                k = int(np.flatnonzero(a < 0)[0])
-                raise TunerError(f"violations cannot be negative; step {k} has {a[k]}")
-            out.append(a)
-        return X, U, out[0], out[1]
-
     # ------------------------------------------------------------------ status
     def status(self) -> dict[str, Any]:
-        """What is deployed and on what evidence: the deployed theta, the trials so far and how
-        many ran the deployed theta and how often it changed from theta0, the deployed theta's
-        last J_eval (a simulated plant; None until it is evaluated), the pending trial,
-        and with identification the last fit (``identification``: per parameter its nominal
+        """What is deployed, on what evidence, what tuning cost and what to do next.
+
+        ``told`` trials of the ``budget``, the ``pending`` one; ``trials``: per told trial its
+        ``id``, ``role`` (candidate, verification or deployed), ``start``, ``plant_cost`` (the
+        episode's mean stage cost), ``excess_cost`` over the deployed controller (None while
+        unknown) and ``verdict`` (:mod:`mpcmobo.experiment.tunerstatus`); ``plant_cost`` and
+        ``excess_cost`` summed over them; ``quarantined``: the trials whose log is
+        quarantined; ``recommendation``: ``action`` (continue or stop) and ``reason``; the
+        ``deployed`` theta, the trials that ran it and its ``evidence``, how often it changed
+        from theta0, its last ``J_eval`` (a simulated plant; None until it is evaluated), and
+        with identification the last fit (``identification``: per parameter its nominal
         value, estimate and standard deviation; the RMS scaled one-step errors on held-out
         transitions of the fit and of the nominal model; the transitions fitted)."""
         rows = self.job.rows
         deployed = self.deployed
-        ran = sum(1 for r in rows if np.allclose(r.theta, deployed, rtol=0, atol=1e-12))
+        ran = [r for r in rows if np.allclose(r.theta, deployed, rtol=0, atol=1e-12)]
         J = [  # the deployed theta's own evaluations
             r.J_eval_incumbent
             for r in rows
             if math.isfinite(r.J_eval_incumbent) and np.array_equal(r.incumbent, deployed)
         ]
         incumbents = [self.job.run.learner.theta0, *(np.asarray(r.incumbent) for r in rows)]
+        s = self.settings
+        trials = tunerstatus.trial_table(
+            rows, self.job.run.learner.theta0, s.start_mode, s.n_cycle_starts
+        )
+        pending = None if self.job.pending is None else int(self.job.pending["episode"])
+        quarantined = self.files.quarantined()
+        costs = [r.mean_stage_cost for r in ran if math.isfinite(r.mean_stage_cost)]
         return {
             "learner": self.learner,
-            "trials": len(rows),
-            "budget": self.settings.episodes,
-            "pending": None if self.job.pending is None else int(self.job.pending["episode"]),
+            "told": len(rows),
+            "budget": s.episodes,
+            "pending": pending,
+            "trials": trials,
+            "quarantined": quarantined,
+            "plant_cost": tunerstatus.cumulative(trials, "plant_cost"),
+            "excess_cost": tunerstatus.cumulative(trials, "excess_cost"),
+            "recommendation": tunerstatus.recommendation(
+                len(rows), s.episodes, pending, quarantined, str(self.run_dir.path)
+            ),
             "deployed": dict(zip(self._policy_mpc.theta_names, map(float, deployed))),
-            "deployed_episodes": ran,
+            "deployed_episodes": len(ran),
+            "evidence": {
+                "episodes": [int(r.episode) for r in ran],
+                "mean_plant_cost": float(np.mean(costs)) if costs else None,
+            },
             "changes_of_deployed": sum(
                 1 for a, b in zip(incumbents, incumbents[1:]) if not np.array_equal(a, b)
             ),
@@ -395,24 +487,30 @@ class Tuner:
             "J_initial": None
             if not math.isfinite(self.reference.J_initial)
             else self.reference.J_initial,
-            "identification": self._identification(),
+            "identification": _identification(self.job.run.learner, self.system),
         }
 
-    def _identification(self) -> dict[str, Any] | None:
-        """The learner's last fit of the model, as :meth:`status` reports it (None without)."""
-        fit = self.job.run.learner.identification()
-        if fit is None:
-            return None
-        nominal = dict(zip(self.system.param_names, self.system.models["imperfect"]))
-        return {
-            "parameters": {
-                name: {"nominal": float(nominal[name]), "estimate": float(q), "std": float(sd)}
-                for name, q, sd in zip(fit.names, fit.estimate, fit.std)
-            },
-            "holdout_error": fit.holdout_error,
-            "nominal_error": fit.nominal_error,
-            "transitions": fit.n,
-        }
+    def _write_status(self) -> None:
+        """``status.json`` rewritten (atomically: a dashboard may read it at any time)."""
+        self.files.write_status(self.status())
+
+
+def _identification(learner: Any, system: System) -> dict[str, Any] | None:
+    """The learner's last fit of the model, as :meth:`Tuner.status` reports it (None
+    without)."""
+    fit = learner.identification()
+    if fit is None:
+        return None
+    nominal = dict(zip(system.param_names, system.models["imperfect"]))
+    return {
+        "parameters": {
+            name: {"nominal": float(nominal[name]), "estimate": float(q), "std": float(sd)}
+            for name, q, sd in zip(fit.names, fit.estimate, fit.std)
+        },
+        "holdout_error": fit.holdout_error,
+        "nominal_error": fit.nominal_error,
+        "transitions": fit.n,
+    }
 
 
 def _trial_id(trial: Any) -> int:
@@ -424,53 +522,17 @@ def _trial_id(trial: Any) -> int:
     raise TunerError(f"a trial is a Trial or its integer id, not {trial!r}")
 
 
-def _numbers(values: Any, name: str) -> np.ndarray:
-    """``values`` as an array of floats, or a :class:`TunerError` naming what is not a
-    number."""
-    try:
-        return np.asarray(values, dtype=float)
-    except (TypeError, ValueError) as err:
-        raise TunerError(f"{name} holds a value that is not a number: {err}") from None
+def _arrays(log: PlantLog) -> tuple[Any, ...]:
+    """A log's arrays as :func:`~mpcmobo.mpc.replay` takes them."""
+    return log.states, log.inputs, log.stage_costs, log.violations
 
 
-def _frame(df: Any, system: Any) -> tuple[Any, Any, Any, Any]:
-    """States, inputs, stage costs and violations from a DataFrame with the system's state and
-    input names as columns (the inputs' last row empty)."""
-    import pandas as pd
-
-    missing = [c for c in (*system.state_names, *system.input_names) if c not in df.columns]
-    if missing:
-        raise TunerError(
-            f"the log has no column {missing[0]!r}; it needs the states "
-            f"{list(system.state_names)} and the inputs {list(system.input_names)}"
-        )
-    optional = [c for c in ("stage_cost", "violation") if c in df.columns]
-    for c in (*system.state_names, *system.input_names, *optional):
-        try:
-            pd.to_numeric(df[c])
-        except (TypeError, ValueError) as err:
-            msg = f"the log's column {c!r} holds a value that is not a number: {err}"
-            raise TunerError(msg) from None
-    X = df[list(system.state_names)].to_numpy(float)
-    U = df[list(system.input_names)].to_numpy(float)[:-1]
-    L = df["stage_cost"].to_numpy(float)[:-1] if "stage_cost" in df.columns else None
-    V = df["violation"].to_numpy(float)[:-1] if "violation" in df.columns else None
-    return X, U, L, V
-
-
-def write_log(path: str | Path, states: np.ndarray, inputs: np.ndarray, system: Any) -> Path:
-    """A logged episode as a CSV or Parquet file of the tuner's format (``mpcmobo tell``)."""
-    import pandas as pd
-
-    X, U = np.asarray(states, float), np.asarray(inputs, float)
-    data = {n: X[:, i] for i, n in enumerate(system.state_names)}
-    pad = np.full((len(X), U.shape[1]), np.nan)
-    pad[: len(U)] = U
-    data.update({n: pad[:, i] for i, n in enumerate(system.input_names)})
-    df = pd.DataFrame(data)
-    path = Path(path)
-    if path.suffix == ".parquet":
-        storage.write_parquet(path, df)
-    else:
-        df.to_csv(path, index=False)
-    return path
+def _quarantine_message(tid: int, problems: list[checks.Problem], path: Path) -> str:
+    """What a quarantined log is told: the problems, where it is kept, what to do."""
+    found = "".join(f"\n  - {p.check}: {p.message}" for p in problems)
+    return (
+        f"trial {tid}'s log is quarantined, not learned from; the trial stays pending:{found}\n"
+        f"The log is kept in {path} (the reasons in {path.with_suffix('.json').name}). Tell "
+        f"a corrected log, or accept this one with Tuner.tell({tid}, force=True) (mpcmobo "
+        f"tell {path.parent.parent} {tid} --force)"
+    )

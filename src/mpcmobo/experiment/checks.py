@@ -1,0 +1,343 @@
+"""A told log checked before it is believed: units, time order, the model, the controller.
+
+A log that parses is not yet an episode of the trial. :func:`box_problems` compares each state
+column with the system's box (a column far outside it, or one that a factor 10, 100 or 1000
+brings into it, is a unit error); :func:`order_problems` looks for a log in reverse time order
+(a ``time`` column that decreases, or transitions the model explains far better read
+backwards); :func:`input_problems` compares the applied inputs with the trial's controller
+plus its exploration noise, clipped, at the logged states (an operator override, shuffled
+rows, another trial's log); :func:`model_problems` compares the episode's one-step prediction
+error under the current model (the identified one, else the MPC's nominal model) with the
+episodes told before (a robust z-score of the per-episode RMS scaled residuals). Each finding
+is a :class:`Problem` naming the check, the column or the steps; the tuner quarantines the
+episode (:mod:`mpcmobo.experiment.tuner`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
+from mpcmobo.systems.base import System
+
+# a state more than this many box widths outside its box is not a state of the plant
+FAR_WIDTHS = 3.0
+# a state this many box widths outside its box that a power of ten brings into it: a unit error
+UNIT_OUTSIDE = 0.5
+UNIT_FACTORS = (10.0, 100.0, 1000.0)
+# an applied input further than this fraction of its span from the controller plus its noise
+INPUT_TOLERANCE = 0.005
+# an episode whose one-step error exceeds this many times the median of the episodes before it
+# (and by ROBUST_Z robust standard deviations) is not explained by the model
+EPISODE_RATIO = 5.0
+ROBUST_Z = 5.0
+MIN_HISTORY = 3  # episodes told before the comparison is made
+RESIDUAL_FLOOR = 1e-3  # scaled one-step errors below this are never an outlier
+# a log whose one-step error read backwards is below this fraction of its error as given
+REVERSE_RATIO = 0.2
+STEP_RATIO = 20.0  # a step whose error exceeds this many times the episode's median
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One finding: the ``check`` ("range", "time_order", "inputs", "model", "start"), the
+    ``message`` naming what is wrong, and the log's ``steps`` (rows from 0) it concerns."""
+
+    check: str
+    message: str
+    steps: tuple[int, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The finding as plain data (a quarantined trial's json)."""
+        return {"check": self.check, "message": self.message, "steps": list(self.steps)}
+
+
+def describe_steps(steps: Sequence[int]) -> str:
+    """``[3, 4, 5, 9]`` as ``"3-5, 9"``."""
+    out: list[str] = []
+    for run in _runs(steps):
+        out.append(str(run[0]) if len(run) == 1 else f"{run[0]}-{run[-1]}")
+    return ", ".join(out)
+
+
+def _runs(steps: Sequence[int]) -> list[list[int]]:
+    """The consecutive runs of the sorted ``steps``."""
+    runs: list[list[int]] = []
+    for k in sorted(int(s) for s in steps):
+        if runs and k == runs[-1][-1] + 1:
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    return runs
+
+
+def _box(system: System) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each state's box (lower, upper) and its width (twice x_scale where it is infinite)."""
+    lo, hi = np.asarray(system.x_lb, float), np.asarray(system.x_ub, float)
+    width = hi - lo
+    scale = np.asarray(system.x_scale, float)
+    width = np.where(np.isfinite(width) & (width > 0), width, 2 * scale)
+    return lo, hi, width
+
+
+def box_problems(system: System, states: np.ndarray) -> list[Problem]:
+    """Each state column against the system's box: far outside it, or outside it by a factor
+    that a power of ten undoes (the column's unit is named as the likely error)."""
+    X = np.asarray(states, float)
+    lo, hi, width = _box(system)
+    problems = []
+    for j, name in enumerate(system.state_names):
+        x = X[:, j]
+        out = np.maximum(np.maximum(lo[j] - x, x - hi[j]), 0.0) / width[j]
+        worst = int(np.argmax(out))
+        if out[worst] <= UNIT_OUTSIDE:
+            continue
+        where = (
+            f"state {name} = {x[worst]:.6g} at step {worst} is outside its bounds "
+            f"[{lo[j]:.6g}, {hi[j]:.6g}] by {out[worst]:.3g} box widths"
+        )
+        steps = tuple(int(k) for k in np.flatnonzero(out > UNIT_OUTSIDE))
+        unit = _unit_factor(x, lo[j], hi[j], width[j])
+        if unit is not None:
+            times = f"{unit:g} times too large" if unit > 1 else f"{1 / unit:g} times too small"
+            fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
+            problems.append(
+                Problem(
+                    "range",
+                    (
+                        f"{where}; {fix}, the column lies in its box: a unit error? (the log's {name} "
+                        f"looks {times}, e.g. mm for cm; far outside its bounds as logged)"
+                    ),
+                    steps,
+                )
+            )
+        elif out[worst] > FAR_WIDTHS:
+            problems.append(
+                Problem(
+                    "range",
+                    (
+                        f"{where}, far outside its bounds (more than {FAR_WIDTHS:g} widths): check "
+                        f"the log's units and columns (is {name} the right column?)"
+                    ),
+                    steps,
+                )
+            )
+    return problems
+
+
+def _unit_factor(x: np.ndarray, lo: float, hi: float, width: float) -> float | None:
+    """The power of ten that brings 90% of ``x`` into [lo, hi] (with a tenth of its width to
+    spare), if one does."""
+    for f in (*UNIT_FACTORS, *(1 / f for f in UNIT_FACTORS)):
+        y = x / f
+        inside = (y >= lo - 0.1 * width) & (y <= hi + 0.1 * width)
+        if np.mean(inside) >= 0.9:
+            return f
+    return None
+
+
+def residuals(system: System, states: np.ndarray, inputs: np.ndarray, params: Any) -> np.ndarray:
+    """Per step the RMS over the states of the one-step prediction error of the model with
+    ``params``, scaled by x_scale: (T,)."""
+    X, U = np.asarray(states, float), np.asarray(inputs, float)
+    T = len(U)
+    F = system.discrete_step.map(T)
+    p = np.repeat(np.asarray(params, float).reshape(-1, 1), T, axis=1)
+    pred = np.asarray(F(X[:-1].T, U.T, p), float).T
+    scaled = (X[1:] - pred) / np.asarray(system.x_scale, float)
+    with np.errstate(over="ignore", invalid="ignore"):
+        r = np.sqrt(np.mean(scaled**2, axis=1))
+    return np.where(np.isfinite(r), r, np.inf)
+
+
+def episode_error(system: System, states: np.ndarray, inputs: np.ndarray, params: Any) -> float:
+    """The episode's RMS scaled one-step prediction error under the model with ``params``."""
+    r = residuals(system, states, inputs, params)
+    return float(np.sqrt(np.mean(r**2)))
+
+
+def order_problems(
+    system: System, states: np.ndarray, inputs: np.ndarray, params: Any, time: Any = None
+) -> list[Problem]:
+    """A log in reverse time order: its ``time`` column (if it has one) decreases or is out of
+    order, or the model explains its transitions far better read backwards."""
+    if time is not None:
+        t = np.asarray(time, float)
+        dt = np.diff(t)
+        if len(dt) and np.all(dt < 0):
+            return [
+                Problem(
+                    "time_order",
+                    (
+                        "the log is in reverse time order (its time column decreases): sort it by time, "
+                        "the first row the episode's start"
+                    ),
+                )
+            ]
+        if np.any(dt < 0):
+            bad = tuple(int(k) + 1 for k in np.flatnonzero(dt < 0))
+            return [
+                Problem(
+                    "time_order",
+                    (
+                        f"the log's rows are out of time order at rows {describe_steps(bad)} (its time "
+                        "column does not increase there): sort it by time"
+                    ),
+                    bad,
+                )
+            ]
+    forward = episode_error(system, states, inputs, params)
+    backward = episode_error(system, states[::-1], inputs[::-1], params)
+    if forward > RESIDUAL_FLOOR and backward < REVERSE_RATIO * forward:
+        return [
+            Problem(
+                "time_order",
+                (
+                    f"the log seems to be in reverse time order: the model explains it read backwards "
+                    f"(one-step error {backward:.3g}) far better than as given ({forward:.3g}); the "
+                    "first row is the episode's start, the last the state after the last input"
+                ),
+            )
+        ]
+    return []
+
+
+def input_problems(
+    system: System, inputs: np.ndarray, pi: np.ndarray, noise: np.ndarray, trial: int
+) -> list[Problem]:
+    """The applied inputs against the trial's controller ``pi`` (at the logged states) plus its
+    ``noise``, clipped to the input bounds: the steps that differ by more than
+    ``INPUT_TOLERANCE`` of the input's span, and what that suggests."""
+    U, pi, noise = (np.asarray(a, float) for a in (inputs, pi, noise))
+    lb, ub = np.asarray(system.u_lb, float), np.asarray(system.u_ub, float)
+    span = np.where(np.isfinite(ub - lb), ub - lb, 2 * np.asarray(system.u_scale, float))
+    expected = np.clip(pi + noise, lb, ub)
+    off = np.max(np.abs(U - expected) / span, axis=1)
+    bad = np.flatnonzero(off > INPUT_TOLERANCE)
+    if not len(bad):
+        return []
+    T, steps = len(U), tuple(int(k) for k in bad)
+    head = (
+        f"the applied inputs differ from trial {trial}'s controller plus its noise (by more "
+        f"than {INPUT_TOLERANCE:.1%} of an input's span, up to {np.max(off):.1%})"
+    )
+    no_noise = np.max(np.abs(U - np.clip(pi, lb, ub)) / span, axis=1) <= INPUT_TOLERANCE
+    if np.any(np.abs(noise) > 0) and np.mean(no_noise) > 0.9:
+        why = "the inputs are the controller's without the trial's noise: add trial.noise[k]"
+    elif len(bad) > T / 2:
+        why = (
+            f"at {len(bad)} of {T} steps: is this another trial's log, or the inputs of "
+            "another controller?"
+        )
+    elif len(runs := _runs(steps)) == 1 and len(runs[0]) >= 3:
+        why = f"at steps {describe_steps(steps)}: an operator override?"
+    else:
+        why = (
+            f"at steps {describe_steps(steps)}: rows out of order (swapped or shuffled), or an "
+            "operator override?"
+        )
+    return [Problem("inputs", f"{head} {why}", steps)]
+
+
+def model_problems(
+    system: System,
+    states: np.ndarray,
+    inputs: np.ndarray,
+    params: Any,
+    history: Sequence[float],
+    model: str,
+) -> list[Problem]:
+    """The episode's one-step error under the ``model`` (its ``params``: "identified" or
+    "nominal") against the errors of the episodes told before (``history``, under the same
+    model): far worse is a finding (with fewer than ``MIN_HISTORY`` episodes before it, none
+    is made). An identified model also judges the episode's steps: a few steps it explains
+    far worse than the rest (``STEP_RATIO`` times the median) are rows out of order."""
+    r = residuals(system, states, inputs, params)
+    e = float(np.sqrt(np.mean(r**2)))
+    limit = max(STEP_RATIO * float(np.median(r)), RESIDUAL_FLOOR)
+    steps = tuple(int(k) for k in np.flatnonzero(r > limit))
+    h = np.asarray([v for v in history if np.isfinite(v)], float)
+    if len(h) >= MIN_HISTORY:
+        med = float(np.median(h))
+        scale = max(1.4826 * float(np.median(np.abs(h - med))), 0.1 * med, 1e-12)
+        z = (e - med) / scale
+        if e > RESIDUAL_FLOOR and e > EPISODE_RATIO * med and z > ROBUST_Z:
+            where = f"; worst at steps {describe_steps(steps)}" if steps else ""
+            return [
+                Problem(
+                    "model",
+                    (
+                        f"the {model} model explains this episode far worse than the {len(h)} told "
+                        f"before (RMS scaled one-step error {e:.3g}, theirs {med:.3g} in the median, "
+                        f"robust z {z:.1f}){where}: a sensor fault, rows out of order, or not this "
+                        "plant's log?"
+                    ),
+                    steps,
+                )
+            ]
+    if model == "identified" and steps and len(steps) <= max(3, len(r) // 10):
+        return [
+            Problem(
+                "model",
+                (
+                    f"the identified model explains steps {describe_steps(steps)} far worse than the "
+                    f"episode's other steps (one-step error up to {float(np.max(r)):.3g}, the median "
+                    f"{float(np.median(r)):.3g}): rows out of order (swapped or shuffled), or a "
+                    "disturbance at those steps?"
+                ),
+                steps,
+            )
+        ]
+    return []
+
+
+def review(
+    system: System,
+    mpc: ParametricMPC,
+    plan: Any,
+    log: Any,
+    params: np.ndarray,
+    model: str,
+    history: Sequence[float],
+) -> tuple[list[Problem], EpisodeRecord | None, float]:
+    """Every check of a told ``log`` (a :class:`~mpcmobo.experiment.plantlog.PlantLog`) of
+    the trial ``plan``, in order: the box (a unit error stops there), the time order (a
+    reversed log stops there), then the MPC replayed on the logged states and the inputs and
+    the model's one-step error checked. The problems, the replay's record (None if the checks
+    stopped before it) and its time."""
+    X, U = log.states, log.inputs
+    problems = box_problems(system, X)
+    if problems:
+        return problems, None, 0.0
+    problems = order_problems(system, X, U, params, log.time)
+    if problems:
+        return problems, None, 0.0
+    t0 = time.perf_counter()
+    record = replay(system, mpc, plan.theta, X, U, log.stage_costs, log.violations)
+    mpc_time = time.perf_counter() - t0
+    problems = input_problems(system, U, record.pi, plan.noise, plan.episode)
+    if problems and len(problems[0].steps) > len(U) / 2 and _reversed(system, mpc, plan, log):
+        return [Problem("time_order", REVERSED)], record, mpc_time
+    problems += model_problems(system, X, U, params, history, model)
+    return problems, record, mpc_time
+
+
+REVERSED = (
+    "the log is in reverse time order: read backwards, its inputs are the trial's controller "
+    "plus its noise; the first row is the episode's start, the last the state after the last "
+    "input"
+)
+
+
+def _reversed(system: System, mpc: ParametricMPC, plan: Any, log: Any) -> bool:
+    """Whether the log read backwards is the trial's controller plus its noise (at most a
+    tenth of its steps off)."""
+    X, U = log.states[::-1], log.inputs[::-1]
+    record = replay(system, mpc, plan.theta, X, U)
+    found = input_problems(system, U, record.pi, plan.noise, plan.episode)
+    return not found or len(found[0].steps) <= len(U) / 10

@@ -1,0 +1,233 @@
+"""A plant's logged episode as the tuner reads it: arrays or a table, parsed and checked.
+
+:func:`parse_log` turns what :meth:`~mpcmobo.experiment.tuner.Tuner.tell` is given (arrays, or
+one DataFrame with the system's state and input names as columns, the inputs empty in the last
+row, optionally ``stage_cost``, ``violation`` and a time column) into a :class:`PlantLog` of
+checked shapes and finite numbers; :func:`read_log_file` reads a CSV (its delimiter sniffed) or
+Parquet file, :func:`write_log` writes one. What the numbers mean is checked afterwards
+(:mod:`mpcmobo.experiment.checks`). Every refusal is a :class:`TunerError` naming the problem.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mpcmobo.experiment import storage
+from mpcmobo.systems.base import System
+
+# a column of one of these names is the log's time (checked for order, not used otherwise)
+TIME_COLUMNS = ("time", "t", "timestamp", "time_s", "datetime")
+
+
+class TunerError(ValueError):
+    """A trial or a log the tuner cannot take; the message says what is wrong. Nothing
+    recorded is changed."""
+
+
+@dataclass
+class PlantLog:
+    """An episode's log: ``states`` (T+1, nx), ``inputs`` (T, nu), the plant's ``stage_costs``
+    and ``violations`` (T,) where it measured them, and its ``time`` (T+1,) where it has one."""
+
+    states: np.ndarray
+    inputs: np.ndarray
+    stage_costs: np.ndarray | None = None
+    violations: np.ndarray | None = None
+    time: np.ndarray | None = None
+
+    def frame(self, system: System) -> Any:
+        """The log as a table of the tuner's format (what :func:`write_log` writes)."""
+        import pandas as pd
+
+        X, U = self.states, self.inputs
+        data: dict[str, Any] = {n: X[:, i] for i, n in enumerate(system.state_names)}
+        pad = np.full((len(X), U.shape[1]), np.nan)
+        pad[: len(U)] = U
+        data.update({n: pad[:, i] for i, n in enumerate(system.input_names)})
+        for name, arr in (("stage_cost", self.stage_costs), ("violation", self.violations)):
+            if arr is not None:
+                data[name] = [*np.asarray(arr, float), np.nan]
+        return pd.DataFrame(data)
+
+
+def numbers(values: Any, name: str) -> np.ndarray:
+    """``values`` as an array of floats, or a :class:`TunerError` naming what is not a
+    number."""
+    try:
+        return np.asarray(values, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise TunerError(f"{name} holds a value that is not a number: {err}") from None
+
+
+def parse_log(
+    system: System, steps: int, states: Any, inputs: Any, stage_costs: Any, violations: Any
+) -> PlantLog:
+    """The log as a :class:`PlantLog`, checked: shapes, numbers, finite values, inputs within
+    their bounds, violations not negative."""
+    time = None
+    if hasattr(states, "columns"):  # a DataFrame
+        states, inputs, stage_costs, violations, time = _frame(states, system)
+    X, U = _trajectory(system, steps, states, inputs)
+    L = _per_step(stage_costs, "stage_costs", steps)
+    V = _per_step(violations, "violations", steps)
+    return PlantLog(X, U, L, V, time)
+
+
+def _trajectory(system: System, steps: int, states: Any, inputs: Any) -> tuple[np.ndarray, ...]:
+    """The states (T+1, nx) and inputs (T, nu) of a log, checked: shapes, finite values,
+    inputs within their bounds."""
+    s, T = system, steps
+    X = numbers(states, "states")
+    if inputs is None:
+        raise TunerError("the log needs the inputs applied (inputs, or input columns)")
+    U = numbers(inputs, "inputs")
+    if X.shape != (T + 1, s.nx):
+        raise TunerError(
+            f"states must be ({T + 1}, {s.nx}): the {T + 1} states of the episode "
+            f"({', '.join(s.state_names)}), the last after the last input; got {X.shape}"
+        )
+    if U.shape != (T, s.nu):
+        raise TunerError(
+            f"inputs must be ({T}, {s.nu}): the {T} inputs applied "
+            f"({', '.join(s.input_names)}); got {U.shape}"
+        )
+    for name, arr in (("states", X), ("inputs", U)):
+        if not np.all(np.isfinite(arr)):
+            k = int(np.flatnonzero(~np.all(np.isfinite(arr.reshape(len(arr), -1)), 1))[0])
+            raise TunerError(f"{name} has a value that is not finite at step {k}: {arr[k]}")
+    outside = (U < s.u_lb - 1e-9 * np.abs(s.u_lb) - 1e-12) | (
+        U > s.u_ub + 1e-9 * np.abs(s.u_ub) + 1e-12
+    )
+    if np.any(outside):
+        k, j = (int(v[0]) for v in np.nonzero(outside))
+        raise TunerError(
+            f"input {s.input_names[j]} = {U[k, j]} at step {k} is outside its bounds "
+            f"[{s.u_lb[j]}, {s.u_ub[j]}]: log the inputs actually applied"
+        )
+    return X, U
+
+
+def _per_step(values: Any, name: str, steps: int) -> np.ndarray | None:
+    """A per-step column of the log (stage costs, violations), checked: one finite number per
+    input, violations not negative; None where the log has none."""
+    if values is None:
+        return None
+    a = numbers(values, name).reshape(-1)
+    if a.shape != (steps,):
+        raise TunerError(f"{name} must be {steps} numbers, one per input; got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        k = int(np.flatnonzero(~np.isfinite(a))[0])
+        raise TunerError(f"{name} has a value that is not finite at step {k}: {a[k]}")
+    if name == "violations" and np.any(a < 0):
+        k = int(np.flatnonzero(a < 0)[0])
+        raise TunerError(f"violations cannot be negative; step {k} has {a[k]}")
+    return a
+
+
+def _frame(df: Any, system: System) -> tuple[Any, Any, Any, Any, Any]:
+    """States, inputs, stage costs, violations and time from a DataFrame with the system's
+    state and input names as columns (the inputs' last row empty)."""
+    import pandas as pd
+
+    names = (*system.state_names, *system.input_names)
+    missing = [c for c in names if c not in df.columns]
+    if missing:
+        found = [str(c) for c in df.columns]
+        hint = ""
+        if len(found) == 1 and any(d in found[0] for d in ";\t|"):
+            hint = "; its header is one column: is the file delimited by something else?"
+        raise TunerError(
+            f"the log has no column {missing[0]!r}; it needs the states "
+            f"{list(system.state_names)} and the inputs {list(system.input_names)}; its "
+            f"columns are {found}{hint}"
+        )
+    optional = [c for c in ("stage_cost", "violation") if c in df.columns]
+    for c in (*names, *optional):
+        try:
+            pd.to_numeric(df[c])
+        except (TypeError, ValueError) as err:
+            msg = f"the log's column {c!r} holds a value that is not a number: {err}"
+            raise TunerError(msg) from None
+    U_all = df[list(system.input_names)].to_numpy(float)
+    if len(U_all) > 1 and np.all(np.isnan(U_all[0])) and np.all(np.isfinite(U_all[-1])):
+        raise TunerError(
+            "the log is in reverse time order: its first row has no inputs and its last row "
+            "has them (the last row is the state after the last input); sort it by time, the "
+            "episode's start first"
+        )
+    X = df[list(system.state_names)].to_numpy(float)
+    L = df["stage_cost"].to_numpy(float)[:-1] if "stage_cost" in df.columns else None
+    V = df["violation"].to_numpy(float)[:-1] if "violation" in df.columns else None
+    return X, U_all[:-1], L, V, _time(df, names)
+
+
+def _time(df: Any, names: tuple[str, ...]) -> np.ndarray | None:
+    """The log's time column as numbers (None without one, or one that is not a time); a
+    column named as a state or an input is not the time."""
+    import pandas as pd
+
+    col = next((c for c in df.columns if str(c).lower() in TIME_COLUMNS and c not in names), None)
+    if col is None:
+        return None
+    try:
+        return np.asarray(pd.to_numeric(df[col]), float)
+    except (TypeError, ValueError):
+        pass
+    try:
+        return np.asarray(pd.to_datetime(df[col]).astype("int64"), float)
+    except (TypeError, ValueError):
+        return None
+
+
+def read_log_file(path: str | Path) -> Any:
+    """A log file as a DataFrame: Parquet, or a CSV whose delimiter (comma, semicolon, tab)
+    is sniffed; a file that does not exist, is empty or cannot be read is a
+    :class:`TunerError`."""
+    import pandas as pd
+
+    path = Path(path)
+    if not path.exists():
+        raise TunerError(f"the log {path} does not exist")
+    if path.is_dir():
+        raise TunerError(f"the log {path} is a directory, not a CSV or Parquet file")
+    try:
+        if path.suffix == ".parquet":
+            df = pd.read_parquet(path)
+        else:
+            with path.open(newline="") as fh:
+                head = fh.read(4096)
+            try:
+                sep = csv.Sniffer().sniff(head, delimiters=",;\t|").delimiter
+            except csv.Error:
+                sep = ","
+            df = pd.read_csv(path, sep=sep)
+    except Exception as err:  # noqa: BLE001 - any unreadable file is reported the same way
+        raise TunerError(f"the log {path} cannot be read: {type(err).__name__}: {err}") from None
+    if len(df) == 0:
+        raise TunerError(f"the log {path} has no rows")
+    return df
+
+
+def write_log(
+    path: str | Path,
+    states: np.ndarray,
+    inputs: np.ndarray,
+    system: System,
+    stage_costs: np.ndarray | None = None,
+    violations: np.ndarray | None = None,
+) -> Path:
+    """A logged episode as a CSV or Parquet file of the tuner's format (``mpcmobo tell``)."""
+    df = PlantLog(
+        np.asarray(states, float), np.asarray(inputs, float), stage_costs, violations
+    ).frame(system)
+    path = Path(path)
+    if path.suffix == ".parquet":
+        storage.write_parquet(path, df)
+    else:
+        df.to_csv(path, index=False)
+    return path

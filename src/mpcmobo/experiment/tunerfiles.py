@@ -1,0 +1,230 @@
+"""What a tuner keeps besides a study's records: told logs, quarantine, retracted trials, status.
+
+Layout in the tuner's directory ``DIR``::
+
+    told/trial-<id>.pkl          a told trial: its plan, its log, the problems the checks found
+                                 (told with --force)
+    told/trial-<id>.checkpoint.pkl  the job's checkpoint before its tell (what a retract restores)
+    quarantine/trial-<id>.parquet a log the checks did not believe (the trial stays pending)
+    quarantine/trial-<id>.json   why, and its status: quarantined, accepted (--force), replaced
+    quarantine/trial-<id>-<n>.*  an earlier quarantined log of the trial
+    retracted/trial-<id>.parquet a retracted trial's log, and .json: its record and when
+    retracted/episodes.parquet   the records of every retracted trial, ``retracted_at`` added
+    status.json                  ``Tuner.status()``, rewritten after every ask, tell, retract
+    system.pkl                   a ``System`` given as an object (registered again on load)
+
+Every file is written atomically (:mod:`mpcmobo.experiment.storage`).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mpcmobo.experiment import storage
+from mpcmobo.experiment.checks import Problem
+from mpcmobo.experiment.plantlog import PlantLog, TunerError, parse_log
+from mpcmobo.systems.base import System
+
+QUARANTINED = "quarantined"
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+class TunerFiles:
+    """The tuner files of the directory ``path`` (module docstring)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.told_dir = self.path / "told"
+        self.quarantine_dir = self.path / "quarantine"
+        self.retracted_dir = self.path / "retracted"
+        self.status_path = self.path / "status.json"
+
+    # ------------------------------------------------------------------ told trials
+    def save_told(
+        self,
+        tid: int,
+        plan: dict,
+        log: PlantLog,
+        snapshot: bytes | None,
+        problems: list[Problem],
+        forced: bool,
+    ) -> None:
+        """Keep a told trial: its plan, log, findings and the checkpoint before its tell (in
+        a file of its own, read only by a retract)."""
+        if snapshot is not None:
+            storage.atomic_write_bytes(self.told_dir / f"trial-{tid}.checkpoint.pkl", snapshot)
+        storage.write_pickle(
+            self.told_dir / f"trial-{tid}.pkl",
+            {
+                "trial": tid,
+                "plan": plan,
+                "log": log,
+                "problems": [p.to_dict() for p in problems],
+                "forced": forced,
+                "told_at": _now(),
+            },
+        )
+
+    def told(self, tid: int, checkpoint: bool = False) -> dict | None:
+        """A told trial's entry (None: not kept, e.g. told by an older version); with
+        ``checkpoint``, also the job's checkpoint before its tell (bytes; None if not kept)."""
+        path = self.told_dir / f"trial-{tid}.pkl"
+        if not path.exists():
+            return None
+        try:
+            entry: dict = storage.read_pickle(path)
+        except Exception:  # noqa: BLE001 - a damaged entry is as good as none
+            return None
+        if checkpoint:
+            snap = self.told_dir / f"trial-{tid}.checkpoint.pkl"
+            entry["checkpoint"] = snap.read_bytes() if snap.exists() else None
+        return entry
+
+    # ------------------------------------------------------------------ quarantine
+    def quarantine(self, tid: int, log: PlantLog, problems: list[Problem], system: System) -> Path:
+        """Keep a log the checks did not believe, with the reasons; its path. A log the trial
+        had in quarantine before is kept as ``trial-<id>-<n>``, marked replaced."""
+        path = self.quarantine_dir / f"trial-{tid}.parquet"
+        if path.with_suffix(".json").exists():
+            n = len(list(self.quarantine_dir.glob(f"trial-{tid}-*.json"))) + 1
+            entry = storage.read_json(path.with_suffix(".json"))
+            if entry.get("status") == QUARANTINED:
+                entry.update(status="replaced by a later log", released_at=_now())
+            kept = self.quarantine_dir / f"trial-{tid}-{n}.parquet"
+            if path.exists():
+                os.replace(path, kept)
+            storage.write_json(kept.with_suffix(".json"), dict(entry, log=kept.name))
+        storage.write_parquet(path, log.frame(system))
+        storage.write_json(
+            path.with_suffix(".json"),
+            {
+                "trial": tid,
+                "status": QUARANTINED,
+                "quarantined_at": _now(),
+                "problems": [p.to_dict() for p in problems],
+                "log": path.name,
+            },
+        )
+        return path
+
+    def quarantined(self) -> list[int]:
+        """The trials whose last log is quarantined (not accepted or replaced since)."""
+        out = []
+        for path in sorted(self.quarantine_dir.glob("trial-*.json")):
+            try:
+                entry = storage.read_json(path)
+            except (OSError, ValueError):
+                continue
+            if entry.get("status") == QUARANTINED:
+                out.append(int(entry["trial"]))
+        return sorted(set(out))
+
+    def quarantined_log(self, tid: int, system: System, steps: int) -> PlantLog:
+        """The quarantined log of trial ``tid`` (what ``tell --force`` without a log takes)."""
+        path = self.quarantine_dir / f"trial-{tid}.parquet"
+        if tid not in self.quarantined() or not path.exists():
+            raise TunerError(
+                f"trial {tid} has no quarantined log: give the log to tell (--force accepts a "
+                "log the checks would quarantine)"
+            )
+        import pandas as pd
+
+        return parse_log(system, steps, pd.read_parquet(path), None, None, None)
+
+    def release(self, tid: int, status: str) -> None:
+        """A quarantined log of trial ``tid`` is no longer pending: ``status`` says why."""
+        path = self.quarantine_dir / f"trial-{tid}.json"
+        if not path.exists():
+            return
+        entry = storage.read_json(path)
+        if entry.get("status") == QUARANTINED:
+            entry.update(status=status, released_at=_now())
+            storage.write_json(path, entry)
+
+    # ------------------------------------------------------------------ retracted trials
+    def retract(self, entries: list[dict], rows: list[dict], system: System) -> None:
+        """Keep the told trials ``entries`` (with their ``rows``) in ``retracted/`` and drop
+        them from ``told/``."""
+        import pandas as pd
+
+        at = _now()
+        for entry, row in zip(entries, rows, strict=True):
+            tid = int(entry["trial"])
+            log: PlantLog = entry["log"]
+            path = self.retracted_dir / f"trial-{tid}.parquet"
+            storage.write_parquet(path, log.frame(system))
+            storage.write_json(
+                path.with_suffix(".json"),
+                {
+                    "trial": tid,
+                    "retracted_at": at,
+                    "told_at": entry.get("told_at"),
+                    "problems": entry.get("problems", []),
+                    "forced": entry.get("forced", False),
+                    "record": row,
+                    "log": path.name,
+                },
+            )
+        table = self.retracted_dir / "episodes.parquet"
+        new = pd.DataFrame([dict(r, retracted_at=at) for r in rows])
+        if table.exists():
+            new = pd.concat([pd.read_parquet(table), new], ignore_index=True)
+        storage.write_parquet(table, new)
+        for entry in entries:
+            tid = int(entry["trial"])
+            (self.told_dir / f"trial-{tid}.pkl").unlink(missing_ok=True)
+            (self.told_dir / f"trial-{tid}.checkpoint.pkl").unlink(missing_ok=True)
+
+    # ------------------------------------------------------------------ status
+    def write_status(self, status: dict[str, Any]) -> None:
+        """Write ``status.json`` atomically (another program may read it at any time)."""
+        storage.write_json(self.status_path, status)
+
+
+def history_errors(
+    files: TunerFiles, told: int, params: np.ndarray, system: System, cache: dict
+) -> list[float]:
+    """The one-step errors (:func:`~mpcmobo.experiment.checks.episode_error`) under the model
+    ``params`` of the ``told`` trials kept; ``cache`` keeps their logs (by trial) and errors
+    (by trial and params) for the tuner's next tell."""
+    from mpcmobo.experiment.checks import episode_error
+
+    out = []
+    key_p = np.asarray(params, float).tobytes()
+    for tid in range(told):
+        key = (tid, key_p)
+        if key not in cache:
+            if tid not in cache:
+                entry = files.told(tid)
+                cache[tid] = None if entry is None else entry["log"]
+            log: PlantLog | None = cache[tid]
+            if log is None:
+                continue
+            cache[key] = episode_error(system, log.states, log.inputs, params)
+        out.append(cache[key])
+    return out
+
+
+def told_twin(files: TunerFiles, told: int, log: PlantLog, cache: dict) -> int | None:
+    """The told trial whose log ``log`` repeats (the same states and inputs), if one does;
+    ``cache`` as :func:`history_errors`'s."""
+    for tid in range(told):
+        if tid not in cache:
+            entry = files.told(tid)
+            cache[tid] = None if entry is None else entry["log"]
+        kept: PlantLog | None = cache[tid]
+        if (
+            kept is not None
+            and np.array_equal(kept.states, log.states)
+            and np.array_equal(kept.inputs, log.inputs)
+        ):
+            return tid
+    return None

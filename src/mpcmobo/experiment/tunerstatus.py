@@ -1,0 +1,101 @@
+"""What ``Tuner.status()`` says beyond the deployed theta: the trials, their cost, what to do.
+
+:func:`trial_table` gives one entry per told trial: its ``role`` (``deployed``: it ran the
+theta deployed before it; ``verification``: it ran a theta an earlier trial ran, to measure it
+again; ``candidate``: a new theta), its start, its plant cost (the episode's mean stage cost),
+its excess over the deployed controller from the same start (``None`` until it is predicted)
+and its verdict (whether its theta was deployed). :func:`recommendation` says whether to go on.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from mpcmobo.experiment.records import EpisodeRow
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Whether two thetas are the same (to round-off: a theta through the unit cube and back)."""
+    return bool(np.allclose(np.asarray(a, float), np.asarray(b, float), rtol=1e-9, atol=1e-12))
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if v is not None and math.isfinite(v) else None
+
+
+def trial_table(
+    rows: Sequence[EpisodeRow], theta0: np.ndarray, start_mode: str, n_cycle_starts: int
+) -> list[dict[str, Any]]:
+    """One entry per told trial (module docstring)."""
+    out = []
+    before = np.asarray(theta0, float)
+    for i, row in enumerate(rows):
+        theta = np.asarray(row.theta, float)
+        after = np.asarray(row.incumbent, float)
+        if _same(theta, before):
+            role = "deployed"
+        elif any(_same(theta, r.theta) for r in rows[:i]):
+            role = "verification"
+        else:
+            role = "candidate"
+        later = next((r.episode for r in rows[i:] if _same(r.incumbent, theta)), None)
+        if role == "deployed":
+            verdict = "ran the deployed theta"
+        elif later == row.episode:
+            verdict = "deployed"
+        elif later is not None:
+            verdict = f"deployed after trial {later}"
+        else:
+            verdict = "not deployed"
+        if row.error:
+            verdict = f"{verdict}; error: {row.error}"
+        out.append(
+            {
+                "id": int(row.episode),
+                "role": role,
+                "start": int(row.episode % n_cycle_starts) if start_mode == "cycle" else None,
+                "x0": [float(v) for v in row.x0],
+                "plant_cost": _finite(row.mean_stage_cost),
+                "excess_cost": _finite(getattr(row, "excess_cost", math.nan)),
+                "verdict": verdict,
+            }
+        )
+        before = after
+    return out
+
+
+def cumulative(trials: list[dict[str, Any]], key: str) -> float | None:
+    """The sum of ``key`` over the trials (None if a trial has none, or there is no trial)."""
+    values = [t[key] for t in trials]
+    if not values or any(v is None for v in values):
+        return None
+    return float(sum(values))
+
+
+def recommendation(
+    told: int, budget: int, pending: int | None, quarantined: list[int], directory: str
+) -> dict[str, str]:
+    """``action`` (``continue`` or ``stop``) and ``reason``."""
+    if told >= budget:
+        return {
+            "action": "stop",
+            "reason": (
+                f"the budget of {budget} trials is spent: the deployed theta is the result "
+                f"(mpcmobo export {directory}); a larger budget goes on (mpcmobo ask "
+                f"{directory} --episodes N)"
+            ),
+        }
+    if pending is not None and pending in quarantined:
+        reason = (
+            f"trial {pending}'s log is quarantined (quarantine/trial-{pending}.json says why): "
+            f"tell a corrected log, or accept it with mpcmobo tell {directory} {pending} --force"
+        )
+    elif pending is not None:
+        reason = f"trial {pending} is pending: run it on the plant and tell its log"
+    else:
+        reason = f"{told} of {budget} trials told: ask for the next trial"
+    return {"action": "continue", "reason": reason}

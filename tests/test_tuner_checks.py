@@ -1,0 +1,178 @@
+"""A told log is checked before it is believed (mpcmobo.experiment.checks): a state in the
+wrong unit, two swapped rows, another trial's log, an operator override of 5 steps and a log in
+reverse time order are each refused or quarantined with the problem named, under both start
+modes, and nothing recorded is lost; a quarantined log stays on disk and ``force`` accepts it;
+an episode the model explains far worse than the episodes before is quarantined."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from mpcmobo.experiment import checks
+from mpcmobo.experiment.plantlog import PlantLog
+from mpcmobo.experiment.tuner import LogQuarantined, Tuner, TunerError
+from mpcmobo.systems.plant import SystemPlant
+
+MODES = ("cycle", "random")
+
+
+def episode(tuner, trial, x0=None, override=None, plant_system=None):
+    """The user's loop on the simulated plant (``plant_system``'s equations, default the
+    tuner's): the trial's policy plus its noise, clipped; ``override``: (steps, input) an
+    operator applies instead."""
+    system = tuner.system
+    plant = SystemPlant(system if plant_system is None else plant_system)
+    trial.restart()
+    x, _ = plant.reset(seed=0, options={"x0": trial.x0 if x0 is None else x0})
+    states, inputs = [x], []
+    for k in range(trial.steps):
+        u = np.clip(trial.policy(x) + trial.noise[k], system.u_lb, system.u_ub)
+        if override is not None and k in override[0]:
+            u = np.asarray(override[1], float)
+        x, *_ = plant.step(u)
+        states.append(x)
+        inputs.append(u)
+    return np.array(states), np.array(inputs)
+
+
+def _recorded(tuner):
+    """What is recorded: the checkpoint's bytes and the rows of episodes.parquet."""
+    ckpt = next((tuner.run_dir.path / "jobs").glob("*/checkpoint.pkl")).read_bytes()
+    path = tuner.run_dir.path / "episodes.parquet"
+    rows = pd.read_parquet(path).shape[0] if path.exists() else 0
+    return ckpt, rows
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_bad_logs_are_refused_or_quarantined_with_the_problem_named(tmp_path, mode):
+    tuner = Tuner("lq", "mpc-rl", tmp_path / mode, episodes=4, steps=20, start_mode=mode)
+    first = tuner.ask()
+    X0, U0 = episode(tuner, first)
+    tuner.tell(first, X0, U0)
+    trial = tuner.ask()
+    X, U = episode(tuner, trial)
+    assert np.any(trial.noise != 0)
+    swapped = X.copy(), U.copy()
+    for a in swapped:
+        a[[5, 6]] = a[[6, 5]]
+    override = episode(tuner, trial, override=(range(8, 13), [1.0]))
+    cases = {
+        "swapped": (swapped, r"steps [456-]+\W.*rows out of order"),
+        "override": (override, r"at steps 8-12: an operator override"),
+        "reversed": ((X[::-1], U[::-1]), "reverse time order"),
+        "another trial's": (episode(tuner, first, x0=trial.x0), "another trial's log"),
+    }
+    before, quarantined = _recorded(tuner), 0
+    for name, (log, message) in cases.items():
+        with pytest.raises(TunerError, match=message) as err:
+            tuner.tell(trial, *log)
+        assert _recorded(tuner) == before, name  # nothing recorded changes
+        assert tuner.status()["pending"] == trial.id, name
+        if isinstance(err.value, LogQuarantined):  # kept, with the reasons
+            kept = json.loads(err.value.path.with_suffix(".json").read_text())
+            assert kept["status"] == "quarantined" and kept["problems"], name
+            assert pd.read_parquet(err.value.path).shape[0] == len(X), name
+            assert tuner.status()["quarantined"] == [trial.id]
+            quarantined += 1
+        else:  # cycled starts: it does not start at the trial's x0 either
+            assert mode == "cycle" and "must start at its trial's x0" in str(err.value), name
+    with pytest.raises(TunerError, match="this log is trial 0's, told already"):
+        tuner.tell(trial, X0, U0)
+    table = PlantLog(X, U).frame(tuner.system)  # a table sorted the wrong way
+    with pytest.raises(TunerError, match="reverse time order: its first row has no inputs"):
+        tuner.tell(trial, table.iloc[::-1].reset_index(drop=True))
+    timed = table.assign(time=np.arange(len(X)) * 0.1)
+    timed.loc[[3, 4], "time"] = timed.loc[[4, 3], "time"].to_numpy()
+    with pytest.raises(TunerError, match="out of time order at rows 4"):
+        tuner.tell(trial, timed)
+    assert _recorded(tuner) == before
+    quarantined += 1
+    kept = sorted(p.name for p in (tuner.run_dir.path / "quarantine").glob("*.parquet"))
+    assert len(kept) == quarantined >= 2, kept  # every quarantined log is kept
+    row = tuner.tell(trial, X, U)  # the true log is believed
+    assert row.episode == trial.id and tuner.status()["quarantined"] == []
+    assert json.loads((tuner.run_dir.path / "status.json").read_text())["told"] == 2
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_a_state_in_the_wrong_unit_is_named(tmp_path, mode):
+    """The CSTR's concentration logged ten times too large: quarantined (random starts) or
+    refused (cycled starts, as it starts elsewhere), the column and the unit named, before the
+    MPC is replayed."""
+    tuner = Tuner(
+        "cstr",
+        "mpc-rl",
+        tmp_path / mode,
+        episodes=2,
+        steps=8,
+        start_mode=mode,
+        evaluation={"n_starts": 1},
+    )
+    trial = tuner.ask()
+    X, U = episode(tuner, trial)
+    X[:, 1] *= 10
+    before = _recorded(tuner) if mode == "random" else None
+    with pytest.raises(TunerError, match=r"state Ca .* divided by 10.* a unit error"):
+        tuner.tell(trial, X, U)
+    if before is not None:
+        assert _recorded(tuner) == before
+        assert tuner.status()["quarantined"] == [trial.id]
+
+
+def test_force_accepts_the_quarantined_log(tmp_path):
+    """``force=True`` without a log tells the quarantined one; the quarantine keeps it, marked
+    accepted; a trial without a quarantined log has nothing to force."""
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=3, steps=20, start_mode="random")
+    trial = tuner.ask()
+    with pytest.raises(TunerError, match="no quarantined log"):
+        tuner.tell(trial, force=True)
+    X, U = episode(tuner, trial, override=(range(3, 8), [2.5]))
+    with pytest.raises(LogQuarantined, match="steps 3-7") as err:
+        tuner.tell(trial, X, U)
+    row = Tuner.load(tuner.run_dir.path).tell(trial.id, force=True)
+    assert row.episode == 0
+    kept = json.loads(err.value.path.with_suffix(".json").read_text())
+    assert kept["status"] == "accepted (force)"
+    reloaded = Tuner.load(tuner.run_dir.path)
+    assert reloaded.episodes == 1 and reloaded.status()["quarantined"] == []
+    np.testing.assert_array_equal(reloaded.files.told(0)["log"].inputs, U)
+    assert reloaded.files.told(0)["forced"]
+
+
+def test_an_episode_the_model_cannot_explain_is_quarantined(tmp_path):
+    """After three told episodes, a log of another plant (the inputs are the trial's): the
+    identified model explains it far worse than the episodes before."""
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=5, steps=20, start_mode="random")
+    for _ in range(3):
+        trial = tuner.ask()
+        tuner.tell(trial, *episode(tuner, trial))
+    trial = tuner.ask()
+    other = replace(tuner.system, true_params=tuner.system.true_params * np.array([3, 0.3, 2]))
+    with pytest.raises(LogQuarantined, match=r"identified model explains this episode far worse"):
+        tuner.tell(trial, *episode(tuner, trial, plant_system=other))
+    tuner.tell(trial, *episode(tuner, trial))
+
+
+def test_the_checks_on_their_own():
+    """Steps are named in runs; a time column that decreases is a reversed log; a column a
+    power of ten too small is named too."""
+    assert checks.describe_steps([9, 3, 4, 5]) == "3-5, 9"
+    from mpcmobo.systems import get_system
+
+    cstr = get_system("cstr")
+    X = np.tile(cstr.x_ref, (5, 1))
+    U = np.tile(cstr.u_ref, (4, 1))
+    found = checks.order_problems(cstr, X, U, cstr.models["imperfect"], time=[4, 3, 2, 1, 0])
+    assert found and "reverse time order" in found[0].message
+    (found,) = checks.order_problems(cstr, X, U, cstr.models["imperfect"], time=[0, 1, 3, 2, 4])
+    assert "out of time order at rows 3" in found.message and found.steps == (3,)
+    assert checks.order_problems(cstr, X, U, cstr.models["imperfect"], time=[0, 1, 1, 2, 3]) == []
+    X[:, 0] /= 100  # V in hectolitres
+    (found,) = checks.box_problems(cstr, X)
+    assert "multiplied by 100" in found.message and found.steps == (0, 1, 2, 3, 4)
+    assert checks.box_problems(cstr, np.tile(cstr.x_ref, (5, 1))) == []

@@ -1,0 +1,130 @@
+"""The loop's edges on the command line and in Python: a new tuner needs its system; a log is
+read (a semicolon-separated CSV too) and refused before the tuner is loaded; Ctrl-C in a tell
+says the trial is pending; export names a pending trial; --force tells the quarantined log; a
+System built in Python is recorded so that Tuner.load builds it again, or refused saying how."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import re
+
+import pandas as pd
+import pytest
+from test_tuner_checks import episode
+from typer.testing import CliRunner
+from user_system_source import SYSTEM
+
+from mpcmobo.cli import app
+from mpcmobo.experiment.tuner import Tuner, TunerError, write_log
+from mpcmobo.systems import registry
+
+runner = CliRunner()
+
+
+def _output(res) -> str:
+    return " ".join(res.output.split())
+
+
+def test_a_new_tuner_needs_its_system(tmp_path):
+    res = runner.invoke(app, ["ask", str(tmp_path / "t")])
+    assert res.exit_code == 2 and "--system NAME" in _output(res), res.output
+    assert "--config FILE" in _output(res) and not (tmp_path / "t").exists()
+    with pytest.raises(TunerError, match="a new tuner needs its system"):
+        Tuner(out=tmp_path / "p")
+
+
+@pytest.fixture
+def asked(tmp_path):
+    """A tuner on lq made by ``mpcmobo ask``, its trial 0 pending, and a true log of it."""
+    d = tmp_path / "t"
+    res = runner.invoke(app, ["ask", str(d), "--system", "lq", "--learner", "mpc-rl", "-n", "2"])
+    assert res.exit_code == 0, res.output
+    tuner = Tuner.load(d)
+    trial = tuner.ask()
+    return d, tuner, trial, episode(tuner, trial)
+
+
+def test_a_log_is_checked_before_the_tuner_is_loaded(asked, tmp_path, monkeypatch):
+    d, tuner, _, (X, U) = asked
+    bad = tmp_path / "bad.parquet"
+    bad.write_bytes(b"not parquet")
+    renamed = tmp_path / "renamed.csv"
+    write_log(renamed, X, U, tuner.system)
+    df = pd.read_csv(renamed).rename(columns={"p": "pos"})
+    df.to_csv(renamed, index=False)
+
+    def loaded(*args, **kwargs):
+        raise AssertionError("the tuner was loaded")
+
+    monkeypatch.setattr(Tuner, "load", loaded)
+    for log, message in [
+        (tmp_path / "missing.csv", "does not exist"),
+        (bad, "cannot be read"),
+        (renamed, "no column 'p'; .* its columns are \\['pos', 'v', 'f'\\]"),
+    ]:
+        res = runner.invoke(app, ["tell", str(d), "0", str(log)])
+        assert res.exit_code == 2, res.output
+        assert re.search(message, _output(res)), res.output
+
+
+def test_a_semicolon_separated_log_is_read(asked, tmp_path):
+    d, tuner, _, (X, U) = asked
+    log = tmp_path / "ep.csv"
+    write_log(log, X, U, tuner.system)
+    pd.read_csv(log).to_csv(log, sep=";", index=False)
+    assert ";" in log.read_text()
+    res = runner.invoke(app, ["tell", str(d), "0", str(log)])
+    assert res.exit_code == 0 and "trial 0 told" in res.output, res.output
+
+
+def test_ctrl_c_in_a_tell_says_the_trial_is_pending(asked, tmp_path, monkeypatch):
+    d, tuner, _, (X, U) = asked
+    log = write_log(tmp_path / "ep.csv", X, U, tuner.system)
+
+    def interrupted(self, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Tuner, "tell", interrupted)
+    res = runner.invoke(app, ["tell", str(d), "0", str(log)])
+    assert res.exit_code == 130 and "trial 0 is still pending" in _output(res), res.output
+    monkeypatch.undo()
+    assert Tuner.load(d).status()["pending"] == 0
+
+
+def test_export_names_a_pending_trial_and_force_tells_the_quarantined_log(asked, tmp_path):
+    d, tuner, trial, _ = asked
+    res = runner.invoke(app, ["export", str(d), "--theta", "0", "--out", str(tmp_path / "c")])
+    assert res.exit_code == 2 and "trial 0 is pending" in _output(res), res.output
+    X, U = episode(tuner, trial, override=(range(2, 7), [2.5]))
+    log = write_log(tmp_path / "ep.csv", X, U, tuner.system)
+    res = runner.invoke(app, ["tell", str(d), "0", str(log)])
+    assert res.exit_code == 2 and "quarantined" in _output(res), res.output
+    assert "steps 2-6: an operator override" in _output(res)
+    res = runner.invoke(app, ["tell", str(d), "0"])
+    assert res.exit_code == 2 and "--force" in _output(res), res.output
+    res = runner.invoke(app, ["tell", str(d), "0", "--force"])
+    assert res.exit_code == 0, res.output
+    assert "trial 0 told (accepted with --force despite: inputs)" in _output(res)
+    res = runner.invoke(app, ["status", str(d), "--json"])
+    st = json.loads(res.output)
+    assert st["quarantined"] == [] and st["told"] == 1 and st["trials"][0]["id"] == 0
+
+
+def test_a_system_object_is_recorded_or_refused(tmp_path, monkeypatch):
+    (tmp_path / "fourtank_like.py").write_text(SYSTEM)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    module = importlib.import_module("fourtank_like")
+    with pytest.raises(TunerError, match="path_constraints .* a function or lambda.*make_system"):
+        Tuner(module.make_system(), "mpc-rl", tmp_path / "lambda", episodes=2)
+    assert not (tmp_path / "lambda").exists()
+    system = module.make_system(path=False)
+    out = tmp_path / "t"
+    tuner = Tuner(system, "mpc-rl", out, episodes=2, evaluation={"n_starts": 1})
+    trial = tuner.ask()
+    tuner.tell(trial, *episode(tuner, trial))
+    monkeypatch.delitem(registry._REGISTRY, system.name)  # as in another process
+    assert Tuner.load(out).episodes == 1
+    monkeypatch.delitem(registry._REGISTRY, system.name)
+    res = runner.invoke(app, ["status", str(out)])
+    assert res.exit_code == 0 and "1 of 2 trials told" in res.output, res.output
