@@ -1,7 +1,7 @@
 """The layer rule of docs/architecture.md, read from the source: every import of a mpcmobo
 module (at module level or inside a function) points to the same layer or one before it in
 
-    systems -> mpc -> identify -> rl -> bo -> learners -> experiment -> plots -> cli
+    systems -> mpc -> identify -> rl -> bo -> learners -> experiment -> connect -> plots -> cli
 
 so the package has no back-references and no import cycle between layers."""
 
@@ -15,7 +15,18 @@ import pytest
 import mpcmobo
 
 PACKAGE = Path(mpcmobo.__file__).parent
-LAYERS = ["systems", "mpc", "identify", "rl", "bo", "learners", "experiment", "plots", "cli"]
+LAYERS = [
+    "systems",
+    "mpc",
+    "identify",
+    "rl",
+    "bo",
+    "learners",
+    "experiment",
+    "connect",
+    "plots",
+    "cli",
+]
 RANK = {name: i for i, name in enumerate(LAYERS)}
 
 
