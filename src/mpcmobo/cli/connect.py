@@ -11,6 +11,7 @@ again), 2 bad input or a server that cannot be reached, 130 Ctrl-C (the safe inp
 
 from __future__ import annotations
 
+import logging
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -54,7 +55,7 @@ def connect(
     ),
 ) -> None:
     """Run trials of the tuner in DIR on a live plant over OPC UA: ask, run, tell."""
-    from mpcmobo.connect import ConnectError, run_plant
+    from mpcmobo.connect import ConnectError, load_nodes, run_plant
     from mpcmobo.connect.client import public_url
 
     create: dict[str, Any] = {"system": system, "learner": learner, "seed": seed, "config": config}
@@ -66,12 +67,14 @@ def connect(
 
     def go() -> Any:
         tuner = _tuner(directory, episodes, **create)
-        echo(
-            f"connecting to {public_url(url)}"
-            + (" (dry run: nothing is written)" if dry_run else "")
-        )
-        return run_plant(tuner, url, nodes, period, trials, dry_run, echo)
+        node_map = load_nodes(nodes, tuner.system)
+        if node_map.security.password is not None and not node_map.security.encrypted:
+            echo("warning: no security policy: the password goes to the server unencrypted")
+        dry = " (dry run: nothing is written)" if dry_run else ""
+        echo(f"connecting to {public_url(url)}{dry}")
+        return run_plant(tuner, url, node_map, period, trials, dry_run, echo)
 
+    logging.getLogger("asyncua").setLevel(logging.ERROR)  # its notes are not the user's
     try:
         outcomes = _errors(lambda: _connect_errors(go, ConnectError))
     except KeyboardInterrupt:

@@ -169,9 +169,11 @@ class PlantClient:
     async def read(self) -> Reading:
         """The states and the enable node, in one call."""
         ua = _ua()
+        if self._client is None:
+            raise ConnectionLost("not connected to the server")
         try:
             values = await self._client.read_attributes(self._reads, ua.AttributeIds.Value)
-        except (TimeoutError, OSError, ua.UaError, AttributeError) as err:
+        except (TimeoutError, OSError, ua.UaError) as err:
             raise ConnectionLost(
                 f"reading the states failed: {type(err).__name__}: {err}"
             ) from None
@@ -201,11 +203,13 @@ class PlantClient:
             self._beat = (self._beat + 1) % 2**31
             values.append(self._beat)
         dvs = [ua.DataValue(ua.Variant(_cast(v, t), t)) for v, t in zip(values, self._types)]
+        if self._client is None:
+            raise ConnectionLost("not connected to the server")
         try:
             results = await self._client.write_values(
                 self._writes, dvs, raise_on_partial_error=False
             )
-        except (TimeoutError, OSError, ua.UaError, AttributeError) as err:
+        except (TimeoutError, OSError, ua.UaError) as err:
             raise ConnectionLost(
                 f"writing the inputs failed: {type(err).__name__}: {err}"
             ) from None

@@ -28,7 +28,7 @@ from mpcmobo.connect.client import PlantClient, PlantFault, Reading, public_url
 from mpcmobo.connect.nodes import ConnectError, NodeMap, load_nodes
 from mpcmobo.connect.runner import Aborted, TrialLog, run_trial
 from mpcmobo.experiment import storage
-from mpcmobo.experiment.tuner import START_TOLERANCE, Trial, Tuner
+from mpcmobo.experiment.tuner import START_TOLERANCE, Trial, Tuner, TunerError
 
 __all__ = ["Outcome", "run_plant"]
 
@@ -99,8 +99,8 @@ class _Session:
                     return outcomes
             await self._let_go("")
             return outcomes
-        except asyncio.CancelledError:  # Ctrl-C: hand the plant back, then stop
-            await self._let_go("interrupted")
+        except BaseException:  # Ctrl-C (cancelled), a log refused: hand the plant back first
+            await self._let_go("")
             raise
         finally:
             await self.client.close()
@@ -124,7 +124,12 @@ class _Session:
             return Outcome(trial.id, "dry-run", path, "", None, *_timing(log))
         path = self._save(trial, log, "log", "")
         names = [*self.tuner.system.state_names, *self.tuner.system.input_names]
-        row = self.tuner.tell(trial, log.frame()[names])
+        try:
+            row = self.tuner.tell(trial, log.frame()[names])
+        except TunerError as err:
+            raise TunerError(
+                f"trial {trial.id}: {err} (its log is kept: {path}; the trial stays pending)"
+            ) from None
         self.echo(f"trial {trial.id} told: f1 {row.f1:.6g} (log: {path})")
         return Outcome(trial.id, "told", path, "", float(row.f1), *_timing(log))
 
