@@ -101,11 +101,11 @@ def test_a_solve_that_overruns_gives_the_last_plans_input(cstr):
 
     async def run():
         ctrl.prime(np.array([60.0]))  # the plan of period 0: 60, 70, 80, ...
-        out = [await ctrl.action(np.array([61.0]), 0, 0.1)]  # on time: its plan replaces it
-        out.append(await ctrl.action(np.array([62.0]), 1, 0.05))  # overruns
-        out.append(await ctrl.action(np.array([63.0]), 2, 0.05))  # the worker is still busy
+        out = [ctrl.action(np.array([61.0]), 0, 0.1)]  # on time: its plan replaces it
+        out.append(ctrl.action(np.array([62.0]), 1, 0.05))  # overruns
+        out.append(ctrl.action(np.array([63.0]), 2, 0.05))  # the worker is still busy
         await asyncio.sleep(0.35)
-        out.append(await ctrl.action(np.array([64.0]), 3, 0.1))  # free again, on time
+        out.append(ctrl.action(np.array([64.0]), 3, 0.1))  # free again, on time
         return out
 
     (u0, f0, t0), (u1, f1, _), (u2, f2, _), (u3, f3, _) = asyncio.run(run())

@@ -16,6 +16,7 @@ import asyncio
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
@@ -33,8 +34,9 @@ __all__ = ["Aborted", "Controller", "TrialLog", "run_trial"]
 @dataclass
 class TrialLog:
     """The log of a trial: per step the state read, the input written (none after the last
-    state), the time of the read from the trial's start, the read-to-write latency, the solve
-    time and whether the input is the previous plan's (``fallback``)."""
+    state), the time of the read from the trial's start, the read-to-write latency and its
+    parts (the read, the solve, the write; seconds) and whether the input is the previous
+    plan's (``fallback``)."""
 
     system: System
     rows: list[dict[str, float]] = field(default_factory=list)
@@ -101,14 +103,16 @@ class Controller:
         age = min(k - self._plan_step, len(self._plan) - 1)
         return self.system.clip_input(self._plan[age])
 
-    async def action(self, x: np.ndarray, k: int, budget: float) -> tuple[np.ndarray, bool, float]:
-        """(input, whether it is the fallback, solve seconds or NaN) for period ``k``."""
+    def action(self, x: np.ndarray, k: int, budget: float) -> tuple[np.ndarray, bool, float]:
+        """(input, whether it is the fallback, solve seconds or NaN) for period ``k``. It
+        blocks the event loop for at most ``budget`` seconds: between the read and the write
+        there is nothing else to do, and a thread's wake-up is faster than the loop's."""
         if self._busy is not None and not self._busy.done():
             return self.fallback(k), True, np.nan
         self._busy = self._pool.submit(self._solve, x, k)
         try:
-            u, took = await asyncio.wait_for(asyncio.wrap_future(self._busy), max(budget, 0.0))
-        except TimeoutError:
+            u, took = self._busy.result(timeout=max(budget, 0.0))
+        except FutureTimeout:
             return self.fallback(k), True, np.nan
         return u, False, took
 
@@ -163,18 +167,27 @@ async def run_trial(
             await _sleep_until(loop, t0 + k * period)
             t_read, at = time.perf_counter(), loop.time() - t0
             reading = await client.read()
+            read_s = time.perf_counter() - t_read
             if not reading.enabled:
                 raise PlantFault("enable", "the operator withdrew the enable: plant handed back")
             stale.check(reading.stamps)
             if k == trial.steps:
-                log.add(reading.x, None, time=at)
+                log.add(reading.x, None, time=at, read_time=read_s)
                 break
-            base, fallback, took = await ctrl.action(reading.x, k, nodes.solve_budget * period)
+            base, fallback, took = ctrl.action(reading.x, k, nodes.solve_budget * period)
             u = system.clip_input(base + trial.noise[k])
+            t_write = time.perf_counter()
             await client.write(u)
-            latency = time.perf_counter() - t_read
+            done = time.perf_counter()
             log.add(
-                reading.x, u, time=at, latency=latency, solve_time=took, fallback=float(fallback)
+                reading.x,
+                u,
+                time=at,
+                latency=done - t_read,
+                read_time=read_s,
+                solve_time=took,
+                write_time=done - t_write,
+                fallback=float(fallback),
             )
     except PlantFault as fault:
         raise Aborted(fault.kind, str(fault), log) from None
