@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import multiprocessing as mp
+import os
 import sys
 import tempfile
 import time
@@ -106,6 +107,7 @@ def main() -> None:
     from mpcmobo.connect import run_plant
     from mpcmobo.experiment.tuner import Tuner
 
+    load_before = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     ctx = mp.get_context("spawn")
     urls, stop = ctx.Queue(), ctx.Event()
     server = ctx.Process(target=_serve, args=(args.period, urls, stop), daemon=True)
@@ -131,7 +133,9 @@ def main() -> None:
         stop.set()
         server.join(10)
     base_p99 = float(np.percentile(base, 99)) * 1e3
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     print(f"period {args.period} s, {args.trials} trials x {args.steps} steps, {args.learner}")
+    print(f"load average before and after: {load_before}; {load}")
     print(
         "| loop | periods | median [ms] | p99 [ms] | max [ms] | p99 / period "
         "| read / solve / write median [ms] | fallbacks | p99 / baseline p99 |"
