@@ -19,6 +19,7 @@ import socket
 import threading
 import time
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -58,6 +59,17 @@ def node_map(password_env: bool = False, **extra: Any) -> str:
     return "\n".join(lines) + "\n"
 
 
+async def make_certificate(key: Path, cert: Path, app_uri: str, server: bool = False) -> None:
+    """A self-signed certificate and its private key for ``app_uri``."""
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    use = ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH
+    await setup_self_signed_certificate(
+        key, cert, app_uri, socket.gethostname(), [use], {"commonName": app_uri}
+    )
+
+
 class _Users(UserManager):
     """Only ``operator`` with the given password may open a session."""
 
@@ -77,8 +89,19 @@ class _Users(UserManager):
 class SimPlant:
     """The simulated plant and its server (module docstring)."""
 
-    def __init__(self, system: Any, x0: Any, period: float, password: str | None = None) -> None:
+    def __init__(
+        self,
+        system: Any,
+        x0: Any,
+        period: float,
+        password: str | None = None,
+        certificates: Path | None = None,
+    ) -> None:
+        """``password``: only the user ``operator`` with it may connect; ``certificates``: a
+        directory for the server's certificate (made there): only Basic256Sha256 with
+        SignAndEncrypt is offered."""
         self.system, self.period, self.password = system, period, password
+        self.certificates = certificates
         self.x0 = np.asarray(x0, float).copy()
         self.x = self.x0.copy()
         self.u = np.asarray(system.u_ref, float).copy()
@@ -168,6 +191,12 @@ class SimPlant:
         server.set_endpoint(self.url)
         if self.password:
             server.set_security_IDs(["Username"])
+        if self.certificates is not None:
+            key, cert = self.certificates / "server-key.pem", self.certificates / "server-cert.der"
+            await make_certificate(key, cert, "urn:freeopcua:python:server", server=True)
+            await server.load_certificate(str(cert))
+            await server.load_private_key(str(key))
+            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
         idx = await server.register_namespace(NS)
         assert idx == 2
         obj = await server.nodes.objects.add_object(idx, "CSTR")

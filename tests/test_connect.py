@@ -27,10 +27,11 @@ PERIOD = 0.15  # the CSTR's 3 s sampling, 20 times faster
 CONFIG = """\
 episodes = 8
 steps = 8
-start_mode = "random"
 [evaluation]
 n_starts = 1
 eval_every = 4
+[exploration]
+std = [40.0, 40.0]  # wide: the controller's input plus the noise often leaves the bounds
 """
 SAFE = np.array([100.0, 110.0])
 runner = CliRunner()
@@ -46,7 +47,7 @@ def made(tmp_path_factory, cstr_system):
     """A new mpc-rl tuner of the CSTR (made once, copied by each test)."""
     where = tmp_path_factory.mktemp("made")
     (where / "config.toml").write_text(CONFIG)
-    Tuner("cstr", "mpc-rl", where / "tuner", config=where / "config.toml")
+    Tuner("cstr", "mpc-rl", where / "tuner", config=where / "config.toml", start_mode="random")
     return where / "tuner"
 
 
@@ -97,9 +98,11 @@ def test_three_trials_are_asked_run_and_told(plant, tmp_path, cstr_system):
     assert res.output.count("told: f1") == 3
     episodes = pd.read_parquet(out / "episodes.parquet")
     assert list(episodes.episode) == [0, 1, 2]
-    assert Tuner.load(out).settings.start_mode == "random"  # the config's, as given
+    assert Tuner.load(out).settings.start_mode == "random"  # connect's default for new tuners
     n = _inputs_in_bounds(plant, cstr_system)
     assert n == 3 * 8 + 1  # a write per period, and the safe input at the end
+    written = np.c_[plant.input_writes("qs"), plant.input_writes("qc")]
+    assert np.any((written == cstr_system.u_lb) | (written == cstr_system.u_ub))  # clipped
     assert np.array_equal(_last_input(plant), SAFE)
     beats = plant.input_writes("Heartbeat")
     assert np.all(np.diff(beats) == 1)
@@ -171,7 +174,7 @@ def test_an_unreachable_server_bad_nodes_and_a_cycled_start_exit_2(plant, tuner_
     res = runner.invoke(
         app, [*base, "--url", f"opc.tcp://127.0.0.1:{free_port()}", "--nodes", str(nodes)]
     )
-    assert res.exit_code == 2 and "cannot reach the OPC UA server" in res.output
+    assert res.exit_code == 2 and "cannot connect to the OPC UA server" in res.output
     bad = tmp_path / "bad.toml"
     bad.write_text(node_map().replace('Ca = "ns=2;s=CSTR.Ca"\n', ""))
     res = runner.invoke(app, [*base, "--url", plant.url, "--nodes", str(bad)])
@@ -187,7 +190,7 @@ def test_an_unreachable_server_bad_nodes_and_a_cycled_start_exit_2(plant, tuner_
     assert res.exit_code == 2 and "enable node ns=2;s=CSTR.Enable is off" in res.output
     assert plant.writes == []
     assert {p: p.stat().st_mtime_ns for p in stamp} == stamp  # the checkpoint untouched
-    (tmp_path / "cycle.toml").write_text(CONFIG.replace('"random"', '"cycle"'))
+    (tmp_path / "cycle.toml").write_text('start_mode = "cycle"\n' + CONFIG)
     plant.set_enable(True)
     res = runner.invoke(
         app,
@@ -215,7 +218,7 @@ def test_credentials_come_from_the_environment_and_are_never_recorded(
     try:
         nodes = _nodes(tmp_path, password_env=True)
         monkeypatch.setenv("MPCMOBO_OPCUA_PASSWORD", "wrong")
-        with pytest.raises(ConnectError, match="cannot reach") as err:
+        with pytest.raises(ConnectError, match="cannot connect") as err:
             run_plant(Tuner.load(tuner_dir), plant.url, nodes, PERIOD)
         assert "wrong" not in str(err.value)
         monkeypatch.setenv("MPCMOBO_OPCUA_PASSWORD", secret)
@@ -243,3 +246,29 @@ def test_credentials_come_from_the_environment_and_are_never_recorded(
     for path in tuner_dir.rglob("*"):
         if path.is_file():
             assert secret.encode() not in path.read_bytes(), path
+
+
+def test_a_certificate_signs_and_encrypts_the_channel(
+    cstr_system, tuner_dir, tmp_path, monkeypatch
+):
+    """Basic256Sha256 with SignAndEncrypt, the certificate's files from the environment; a
+    client without them finds no endpoint."""
+    import asyncio
+
+    from opcua_plant import make_certificate
+
+    plant = SimPlant(cstr_system, cstr_system.x_ref, PERIOD, certificates=tmp_path)
+    try:
+        nodes = _nodes(tmp_path)
+        with pytest.raises(ConnectError, match="No matching endpoints"):
+            run_plant(Tuner.load(tuner_dir), plant.url, nodes, PERIOD)
+        key, cert = tmp_path / "client-key.pem", tmp_path / "client-cert.der"
+        asyncio.run(make_certificate(key, cert, "urn:example.org:FreeOpcUa:opcua-asyncio"))
+        monkeypatch.setenv("MPCMOBO_OPCUA_CERTIFICATE", str(cert))
+        monkeypatch.setenv("MPCMOBO_OPCUA_PRIVATE_KEY", str(key))
+        monkeypatch.setenv("MPCMOBO_OPCUA_POLICY", "Basic256Sha256")
+        out = run_plant(Tuner.load(tuner_dir), plant.url, nodes, PERIOD)
+        assert [o.status for o in out] == ["told"]
+        assert plant.input_writes("qs").size == 8 + 1
+    finally:
+        plant.close()

@@ -64,6 +64,7 @@ def test_the_node_map_is_checked_and_its_secrets_never_shown(cstr, tmp_path, mon
         ),
         (NODES.replace('password = "from-the-file"', "password = 12"), "security.password"),
         ("[states\n", "cannot be read"),
+        (NODES + 'policy = "Basic256Sha256"\n', "policy Basic256Sha256 needs a certificate"),
     ]:
         path.write_text(text)
         with pytest.raises(ConnectError) as err:

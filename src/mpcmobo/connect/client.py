@@ -90,7 +90,7 @@ class PlantClient:
         except (TimeoutError, OSError, ua.UaError) as err:
             await self._drop(client)
             raise ConnectError(
-                f"cannot reach the OPC UA server at {public_url(self.url)}: "
+                f"cannot connect to the OPC UA server at {public_url(self.url)}: "
                 f"{type(err).__name__}: {err or 'no answer'}"
             ) from None
         self._client = client
@@ -114,15 +114,16 @@ class PlantClient:
         if sec.password is not None:
             client.set_password(sec.password.get_secret_value())
         if sec.encrypted:
-            from asyncua import crypto, ua
+            from asyncua import ua
+            from asyncua.crypto import security_policies
 
-            if sec.certificate is None or sec.private_key is None:
-                raise ConnectError(
-                    f"security: policy {sec.policy} needs certificate and private_key"
-                )
+            for key in ("certificate", "private_key", "server_certificate"):
+                path = getattr(sec, key)
+                if path is not None and not path.is_file():
+                    raise ConnectError(f"security: the {key} file {path} does not exist")
             key_password = sec.private_key_password
             await client.set_security(
-                getattr(crypto.security_policies, f"SecurityPolicy{sec.policy}"),
+                getattr(security_policies, f"SecurityPolicy{sec.policy}"),
                 str(sec.certificate),
                 str(sec.private_key),
                 None if key_password is None else key_password.get_secret_value(),

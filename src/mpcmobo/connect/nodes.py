@@ -18,7 +18,15 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SecretStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from mpcmobo.systems.base import System
 
@@ -75,6 +83,15 @@ class Security(_Strict):
     server_certificate: Path | None = None
     policy: Literal["Basic256Sha256", "Aes128Sha256RsaOaep", "Aes256Sha256RsaPss"] | None = None
     mode: Literal["Sign", "SignAndEncrypt"] = "SignAndEncrypt"
+
+    @model_validator(mode="after")
+    def _complete(self) -> Security:
+        given = [k for k in ("certificate", "private_key") if getattr(self, k) is not None]
+        if self.policy is not None and len(given) < 2:
+            raise ValueError(f"policy {self.policy} needs a certificate and a private_key")
+        if self.policy is None and given:
+            raise ValueError(f"a {given[0]} needs a policy (Basic256Sha256, ...)")
+        return self
 
     @property
     def encrypted(self) -> bool:
