@@ -95,7 +95,7 @@ def test_three_trials_are_asked_run_and_told(plant, tmp_path, cstr_system):
     args += ["--period", str(PERIOD), "--trials", "3", "--system", "cstr", "--learner", "mpc-rl"]
     res = runner.invoke(app, [*args, "--config", str(tmp_path / "config.toml")])
     assert res.exit_code == 0, res.output
-    assert res.output.count("told: f1") == 3
+    assert res.output.count("told: f1") == 3 and "p99 (" in res.output
     episodes = pd.read_parquet(out / "episodes.parquet")
     assert list(episodes.episode) == [0, 1, 2]
     assert Tuner.load(out).settings.start_mode == "random"  # connect's default for new tuners
@@ -176,12 +176,6 @@ def test_an_unreachable_server_bad_nodes_and_a_cycled_start_exit_2(plant, tuner_
     )
     assert res.exit_code == 2 and "cannot connect to the OPC UA server" in res.output
     bad = tmp_path / "bad.toml"
-    bad.write_text(node_map().replace('Ca = "ns=2;s=CSTR.Ca"\n', ""))
-    res = runner.invoke(app, [*base, "--url", plant.url, "--nodes", str(bad)])
-    assert res.exit_code == 2 and "[states] has no 'Ca'" in res.output
-    bad.write_text(node_map().replace("qs = 100.0", "qs = 200.0"))
-    res = runner.invoke(app, [*base, "--url", plant.url, "--nodes", str(bad)])
-    assert res.exit_code == 2 and "safe_input qs = 200 is outside its bounds" in res.output
     bad.write_text(node_map().replace("CSTR.qc", "CSTR.nosuch"))
     res = runner.invoke(app, [*base, "--url", plant.url, "--nodes", str(bad)])
     assert res.exit_code == 2 and "qc (ns=2;s=CSTR.nosuch) cannot be read" in res.output

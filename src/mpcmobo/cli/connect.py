@@ -87,7 +87,10 @@ def connect(
         raise typer.Exit(130) from None
     for outcome in outcomes:
         if outcome.status == "dry-run":
-            echo(f"trial {outcome.trial} dry run: nothing written, nothing told ({outcome.log})")
+            echo(
+                f"trial {outcome.trial} dry run: nothing written, nothing told "
+                f"({outcome.log}); {outcome.timing(period)}"
+            )
     last = outcomes[-1]
     if last.status == "aborted":
         cli._fail(last.message, 1)

@@ -47,6 +47,16 @@ class Outcome:
     latencies: tuple[float, ...] = ()
     fallbacks: int = 0
 
+    def timing(self, period: float) -> str:
+        """The read-to-write times and the fallbacks in a line."""
+        if not self.latencies:
+            return "no input written"
+        p99 = float(np.percentile(self.latencies, 99))
+        return (
+            f"read to write {np.median(self.latencies) * 1e3:.1f} ms median, {p99 * 1e3:.1f} ms "
+            f"p99 ({p99 / period:.0%} of the period), {self.fallbacks} previous-plan inputs"
+        )
+
 
 def run_plant(
     tuner: Tuner,
@@ -93,6 +103,11 @@ class _Session:
         outcomes: list[Outcome] = []
         try:
             for _ in range(trials):
+                if outcomes and self.tuner.episodes >= self.tuner.settings.episodes:
+                    self.echo(
+                        f"the tuner's budget of {self.tuner.settings.episodes} trials is spent"
+                    )
+                    break
                 outcome = await self._trial(self.tuner.ask())
                 outcomes.append(outcome)
                 if outcome.status == "aborted":
@@ -130,8 +145,9 @@ class _Session:
             raise TunerError(
                 f"trial {trial.id}: {err} (its log is kept: {path}; the trial stays pending)"
             ) from None
-        self.echo(f"trial {trial.id} told: f1 {row.f1:.6g} (log: {path})")
-        return Outcome(trial.id, "told", path, "", float(row.f1), *_timing(log))
+        outcome = Outcome(trial.id, "told", path, "", float(row.f1), *_timing(log))
+        self.echo(f"trial {trial.id} told: f1 {row.f1:.6g}; {outcome.timing(self.period)}")
+        return outcome
 
     async def _start(self, trial: Trial) -> Reading:
         """The plant's state at the trial's start, checked: the enable on and, under cycled
