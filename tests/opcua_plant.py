@@ -6,7 +6,7 @@ plant takes one step of the system's true model (``System.plant_step``, its samp
 ``dt`` played ``dt / period`` times faster) with the inputs its nodes hold, and publishes the
 states with a new source timestamp (the temperature ``T`` in degrees Celsius, as a plant's
 historian would). Every write a client makes is recorded (``writes``). Faults to inject:
-``freeze`` (the states stop updating: stale), ``set_enable(False)``, ``refuse_writes`` (the
+``freeze`` (the states stop updating: stale), ``fail_sensor`` (a bad status code), ``set_enable(False)``, ``refuse_writes`` (the
 inputs become read-only), ``outage(seconds)`` (the network goes away: the
 connections close, the port refuses new ones, the plant runs on), and ``interrupt_after`` (a Ctrl-C in the main thread at a given write).
 """
@@ -110,6 +110,7 @@ class SimPlant:
         self.writes: list[tuple[str, Any]] = []
         self.requests = 0  # write requests of clients
         self.frozen = False
+        self.sensor_failed = False
         self.enable = True
         self.read_only = False
         self.interrupt_at: int | None = None
@@ -135,7 +136,7 @@ class SimPlant:
 
     def reset(self) -> None:
         """Back to the start: no fault, no write recorded, the state ``x0`` again."""
-        self.frozen, self.interrupt_at = False, None
+        self.frozen, self.sensor_failed, self.interrupt_at = False, False, None
         self.x = np.asarray(self.x0, float).copy()
         self.u = np.asarray(self.system.u_ref, float).copy()
         self.set_enable(True)
@@ -145,6 +146,10 @@ class SimPlant:
 
     def freeze(self, frozen: bool = True) -> None:
         self.frozen = frozen
+
+    def fail_sensor(self, failed: bool = True) -> None:
+        """The volume's sensor reports BadSensorFailure (from the plant's next step)."""
+        self.sensor_failed = failed
 
     def set_enable(self, on: bool) -> None:
         self.enable = on
@@ -248,6 +253,8 @@ class SimPlant:
     async def _set(self, name: str, value: Any, vtype: Any = ua.VariantType.Double) -> None:
         now = datetime.now(UTC)
         dv = ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=now, ServerTimestamp=now)
+        if name == "V" and self.sensor_failed:
+            dv.StatusCode = ua.StatusCode(ua.StatusCodes.BadSensorFailure)
         assert self._server is not None
         await self._server.write_attribute_value(self._nodes[name].nodeid, dv)
 

@@ -113,6 +113,11 @@ def test_three_trials_are_asked_run_and_told(plant, tmp_path, cstr_system):
     assert np.allclose(log["qs"].iloc[:-1], plant.input_writes("qs")[8:16])
 
 
+def _repaired(plant):
+    plant.fail_sensor(False)
+    plant.wait_steps(2)  # a good value published
+
+
 def _fault_run(plant, tuner_dir, tmp_path, fault, requests=3):
     """Run one trial with ``fault`` injected after ``requests`` writes; the outcome."""
     nodes = _nodes(tmp_path, reconnect_timeout=10.0)
@@ -126,6 +131,7 @@ def _fault_run(plant, tuner_dir, tmp_path, fault, requests=3):
     ("kind", "inject", "clear", "says"),
     [
         ("stale", lambda p: p.freeze(), lambda p: p.freeze(False), "is stale"),
+        ("quality", lambda p: p.fail_sensor(), lambda p: _repaired(p), "BadSensorFailure"),
         ("enable", lambda p: p.set_enable(False), lambda p: p.set_enable(True), "withdrew"),
         ("refused", lambda p: p.refuse_writes(), lambda p: p.refuse_writes(False), "refused"),
         ("connection", lambda p: p.outage(1.0), lambda p: None, "failed"),

@@ -11,6 +11,7 @@ optional extra ``opcua`` (``pip install "mpcmobo[opcua]"``).
 from __future__ import annotations
 
 import asyncio
+import math
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -183,7 +184,7 @@ class PlantClient:
         for dv, (name, node) in zip(values, self.nodes.states.items()):
             if not dv.StatusCode.is_good() or dv.Value is None:
                 raise PlantFault("quality", f"state {name} reads {dv.StatusCode.name}")
-            x[name] = (float(dv.Value.Value) - node.offset) / node.scale
+            x[name] = (_number(dv.Value.Value, name) - node.offset) / node.scale
             stamps[name] = dv.SourceTimestamp or dv.ServerTimestamp
         enabled = True
         if self.nodes.enable is not None:
@@ -220,6 +221,17 @@ class PlantClient:
                 raise PlantFault(
                     "refused", f"the server refused the write of {name}: {status.name}"
                 )
+
+
+def _number(value: Any, name: str) -> float:
+    """A state's value as a finite float, else a :class:`PlantFault` (``quality``)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = math.nan
+    if isinstance(value, bool) or not math.isfinite(v):
+        raise PlantFault("quality", f"state {name} reads {value!r}, not a finite number")
+    return v
 
 
 def _cast(value: float, vtype: Any) -> Any:
