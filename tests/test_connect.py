@@ -165,7 +165,7 @@ def test_ctrl_c_writes_the_safe_input_and_exits_130(plant, tuner_dir, tmp_path, 
     args = ["connect", str(tuner_dir), "--url", plant.url, "--nodes", str(_nodes(tmp_path))]
     res = runner.invoke(app, [*args, "--period", str(PERIOD)])
     assert res.exit_code == 130, res.output
-    assert "interrupted" in res.output
+    assert "interrupted (SIGINT): the safe input is written;" in res.output
     assert np.array_equal(_last_input(plant), SAFE)
     _inputs_in_bounds(plant, cstr_system)
     assert (tuner_dir / "trials" / "0" / "aborted-1.csv").exists()

@@ -77,10 +77,10 @@ def connect(
     logging.getLogger("asyncua").setLevel(logging.ERROR)  # its notes are not the user's
     try:
         outcomes = _errors(lambda: _connect_errors(go, ConnectError))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
         cli.err_console.print(
-            f"interrupted (SIGINT): the safe input is written; the trial in progress is not "
-            f"told (its log is kept under {directory}/trials); connect again to run it",
+            f"interrupted (SIGINT): {err}; the trial in progress is not told (its log is kept "
+            f"under {directory}/trials); connect again to run it",
             highlight=False,
             soft_wrap=True,
         )

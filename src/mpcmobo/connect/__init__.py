@@ -10,6 +10,6 @@ this package does not need it.
 """
 
 from mpcmobo.connect.nodes import ConnectError, NodeMap, load_nodes
-from mpcmobo.connect.session import Outcome, run_plant
+from mpcmobo.connect.session import Outcome, PlantInterrupted, run_plant
 
-__all__ = ["ConnectError", "NodeMap", "Outcome", "load_nodes", "run_plant"]
+__all__ = ["ConnectError", "NodeMap", "Outcome", "PlantInterrupted", "load_nodes", "run_plant"]

@@ -30,7 +30,12 @@ from mpcmobo.connect.runner import Aborted, TrialLog, run_trial
 from mpcmobo.experiment import storage
 from mpcmobo.experiment.tuner import START_TOLERANCE, Trial, Tuner, TunerError
 
-__all__ = ["Outcome", "run_plant"]
+__all__ = ["Outcome", "PlantInterrupted", "run_plant"]
+
+
+class PlantInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped :func:`run_plant`; the message says whether the safe input is written.
+    The trial in progress is aborted (its log kept) and not told."""
 
 
 @dataclass(frozen=True)
@@ -78,7 +83,10 @@ def run_plant(
     else:
         nodes.check(tuner.system)
     session = _Session(tuner, url, nodes, period, dry_run, echo or (lambda _: None))
-    return asyncio.run(session.run(trials))
+    try:
+        return asyncio.run(session.run(trials))
+    except KeyboardInterrupt:
+        raise PlantInterrupted(session.handed_back) from None
 
 
 class _Session:
@@ -97,6 +105,7 @@ class _Session:
         self.dry_run, self.echo = dry_run, echo
         self.client = PlantClient(url, nodes, tuner.system, dry_run)
         self.wrote = False  # whether this session has written to the plant
+        self.handed_back = "nothing was written to the plant"
 
     async def run(self, trials: int) -> list[Outcome]:
         await self.client.open()
@@ -115,7 +124,7 @@ class _Session:
             await self._let_go("")
             return outcomes
         except BaseException:  # Ctrl-C (cancelled), a log refused: hand the plant back first
-            await self._let_go("")
+            self.handed_back = (await self._let_go("")).lstrip("; ") or self.handed_back
             raise
         finally:
             await self.client.close()
