@@ -173,6 +173,8 @@ def test_ctrl_c_writes_the_safe_input_and_exits_130(plant, tuner_dir, tmp_path, 
 
 
 def test_an_unreachable_server_bad_nodes_and_a_cycled_start_exit_2(plant, tuner_dir, tmp_path):
+    res = runner.invoke(app, ["connect", "--help"], terminal_width=200)
+    assert res.exit_code == 0 and "opc.tcp://HOST:PORT" in res.output
     nodes = _nodes(tmp_path)
     ckpt = sorted((tuner_dir / "jobs").rglob("*"))
     stamp = {p: p.stat().st_mtime_ns for p in ckpt if p.is_file()}

@@ -41,7 +41,9 @@ def _sets_start_mode(config: Path | None) -> bool:
 @app.command()
 def connect(
     directory: Path = typer.Argument(..., help="the tuner's directory (made the first time)"),
-    url: str = typer.Option(..., "--url", help="the server: opc.tcp://HOST:PORT[/PATH]"),
+    url: str = typer.Option(
+        ..., "--url", help="the server: opc.tcp://HOST:PORT, with a path if it has one"
+    ),
     nodes: Path = typer.Option(..., "--nodes", help="the node map (TOML)"),
     period: float = typer.Option(..., "--period", help="the plant's sampling period (seconds)"),
     trials: int = typer.Option(1, "--trials", "-n", help="trials to run"),
