@@ -98,7 +98,7 @@ def test_a_solve_that_overruns_gives_the_last_plans_input(cstr):
 
     mpc = _SlowMPC([0.0, 0.0, 0.3, 0.0])
     trial = Trial(0, np.zeros(1), np.zeros((6, 2)), 6, np.zeros(3), ("a",), mpc)  # type: ignore[arg-type]
-    ctrl = Controller(trial, cstr)
+    ctrl = Controller(trial, cstr, 0.1)
 
     async def run():
         ctrl.prime(np.array([60.0]))  # the plan of period 0: 60, 70, 80, ...

@@ -18,7 +18,7 @@ import pytest
 import scipy.linalg
 from cstr_reference import hand_rk4
 
-from mpcmobo.experiment.settings import MPCSettings
+from mpcmobo.experiment.sections import MPCSettings
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import System, get_system
 from mpcmobo.systems.parameterization import MPCSpec

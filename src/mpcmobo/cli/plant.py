@@ -183,8 +183,12 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
     from mpcmobo.experiment.tuner import TunerError
 
     settings = run_dir.saved_settings()
-    jobs = [(n, s) for n in settings.learners for s in settings.seeds
-            if (learner is None or n == learner) and (seed is None or s == seed)]  # fmt: skip
+    jobs = [
+        (n, s)
+        for n in settings.learners
+        for s in settings.seeds
+        if (learner is None or n == learner) and (seed is None or s == seed)
+    ]
     if len(jobs) != 1:
         listed = ", ".join(f"--learner {n} --seed {s}" for n, s in jobs) or "none"
         raise TunerError(f"choose one job of {run_dir.path}: {listed}")
@@ -223,7 +227,7 @@ def export(
     compile_c: bool = typer.Option(False, "--compile", help="c: also build the example"),
 ) -> None:
     """Write the tuned MPC as a CasADi function or as C code with a header and a main.c."""
-    from mpcmobo.experiment.settings import build_system
+    from mpcmobo.experiment.build import build_system
     from mpcmobo.experiment.tuner import TunerError
     from mpcmobo.mpc import ParametricMPC
     from mpcmobo.mpc.export import c_compile_command, export_c, export_casadi

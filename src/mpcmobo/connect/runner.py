@@ -76,10 +76,11 @@ class Aborted(Exception):
 
 class Controller:
     """The trial's MPC with a deadline: :meth:`action` gives the input for period ``k`` within
-    ``budget`` seconds, or the last plan's input for period ``k`` (``fallback``)."""
+    ``budget`` seconds (the default for :meth:`action`), or the last plan's input for period
+    ``k`` (``fallback``)."""
 
-    def __init__(self, trial: Trial, system: System) -> None:
-        self.trial, self.system = trial, system
+    def __init__(self, trial: Trial, system: System, budget: float) -> None:
+        self.trial, self.system, self.budget = trial, system, budget
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mpcmobo-solve")
         self._busy: Future[Any] | None = None
         self._plan: np.ndarray | None = None
@@ -103,10 +104,14 @@ class Controller:
         age = min(k - self._plan_step, len(self._plan) - 1)
         return self.system.clip_input(self._plan[age])
 
-    def action(self, x: np.ndarray, k: int, budget: float) -> tuple[np.ndarray, bool, float]:
+    def action(
+        self, x: np.ndarray, k: int, budget: float | None = None
+    ) -> tuple[np.ndarray, bool, float]:
         """(input, whether it is the fallback, solve seconds or NaN) for period ``k``. It
-        blocks the event loop for at most ``budget`` seconds: between the read and the write
-        there is nothing else to do, and a thread's wake-up is faster than the loop's."""
+        blocks the event loop for at most ``budget`` seconds (None: the controller's): between
+        the read and the write there is nothing else to do, and a thread's wake-up is faster
+        than the loop's."""
+        budget = self.budget if budget is None else budget
         if self._busy is not None and not self._busy.done():
             return self.fallback(k), True, np.nan
         self._busy = self._pool.submit(self._solve, x, k)
@@ -149,6 +154,38 @@ async def _sleep_until(loop: asyncio.AbstractEventLoop, t: float) -> None:
         await asyncio.sleep(delay)
 
 
+async def _period(
+    client: PlantClient, ctrl: Controller, stale: _Staleness, log: TrialLog, k: int, at: float
+) -> None:
+    """Period ``k`` (``at`` seconds into the trial): read, check, compute, write, log; after
+    the last input, read and log the last state."""
+    t_read = time.perf_counter()
+    reading = await client.read()
+    read_s = time.perf_counter() - t_read
+    if not reading.enabled:
+        raise PlantFault("enable", "the operator withdrew the enable: plant handed back")
+    stale.check(reading.stamps)
+    trial = ctrl.trial
+    if k == trial.steps:
+        log.add(reading.x, None, time=at, read_time=read_s)
+        return
+    base, fallback, took = ctrl.action(reading.x, k)
+    u = ctrl.system.clip_input(base + trial.noise[k])
+    t_write = time.perf_counter()
+    await client.write(u)
+    done = time.perf_counter()
+    log.add(
+        reading.x,
+        u,
+        time=at,
+        latency=done - t_read,
+        read_time=read_s,
+        solve_time=took,
+        write_time=done - t_write,
+        fallback=float(fallback),
+    )
+
+
 async def run_trial(
     client: PlantClient, trial: Trial, nodes: NodeMap, period: float, first: Reading
 ) -> TrialLog:
@@ -156,7 +193,7 @@ async def run_trial(
     :class:`Aborted` with the log so far."""
     system = client.system
     log = TrialLog(system)
-    ctrl = Controller(trial, system)
+    ctrl = Controller(trial, system, nodes.solve_budget * period)
     stale = _Staleness(system.state_names, nodes.stale_periods)
     loop = asyncio.get_running_loop()
     try:
@@ -165,30 +202,7 @@ async def run_trial(
         t0 = loop.time()
         for k in range(trial.steps + 1):
             await _sleep_until(loop, t0 + k * period)
-            t_read, at = time.perf_counter(), loop.time() - t0
-            reading = await client.read()
-            read_s = time.perf_counter() - t_read
-            if not reading.enabled:
-                raise PlantFault("enable", "the operator withdrew the enable: plant handed back")
-            stale.check(reading.stamps)
-            if k == trial.steps:
-                log.add(reading.x, None, time=at, read_time=read_s)
-                break
-            base, fallback, took = ctrl.action(reading.x, k, nodes.solve_budget * period)
-            u = system.clip_input(base + trial.noise[k])
-            t_write = time.perf_counter()
-            await client.write(u)
-            done = time.perf_counter()
-            log.add(
-                reading.x,
-                u,
-                time=at,
-                latency=done - t_read,
-                read_time=read_s,
-                solve_time=took,
-                write_time=done - t_write,
-                fallback=float(fallback),
-            )
+            await _period(client, ctrl, stale, log, k, loop.time() - t0)
     except PlantFault as fault:
         raise Aborted(fault.kind, str(fault), log) from None
     except asyncio.CancelledError:
