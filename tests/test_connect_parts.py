@@ -116,3 +116,31 @@ def test_a_solve_that_overruns_gives_the_last_plans_input(cstr):
     assert f2 and np.allclose(u2, 81.0)  # period 2 of that plan
     assert not f3 and np.allclose(u3, 64.0)
     assert mpc.calls == 4
+
+
+def test_an_error_inside_a_trial_aborts_it_with_the_log_so_far(cstr):
+    """Any exception in a period (here the MPC's) is an aborted trial, its log kept."""
+    import asyncio
+
+    from mpcmobo.connect.client import Reading
+    from mpcmobo.connect.nodes import NodeMap
+    from mpcmobo.connect.runner import Aborted, run_trial
+
+    class _Client:
+        system = cstr
+
+        async def read(self):
+            return Reading(np.array(cstr.x_ref), (None, None, None), True)
+
+        async def write(self, u):
+            pass
+
+    mpc = _SlowMPC([0.0] * 3)
+    mpc.delays.append("not a number")  # the fourth solve raises a TypeError
+    trial = Trial(0, np.zeros(1), np.zeros((6, 2)), 6, np.zeros(3), ("a",), mpc)  # type: ignore[arg-type]
+    nodes = NodeMap.model_validate(
+        {"states": {}, "inputs": {}, "safe_input": {}, "solve_budget": 0.5}
+    )
+    with pytest.raises(Aborted, match="TypeError") as err:
+        asyncio.run(run_trial(_Client(), trial, nodes, 0.02, asyncio.run(_Client().read())))
+    assert err.value.kind == "error" and len(err.value.log.rows) == 2

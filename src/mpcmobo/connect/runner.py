@@ -66,8 +66,8 @@ class TrialLog:
 
 
 class Aborted(Exception):
-    """The trial stopped before its end: ``kind`` (a :class:`PlantFault`'s, or
-    ``interrupted``), the message and the log so far."""
+    """The trial stopped before its end: ``kind`` (a :class:`PlantFault`'s, ``interrupted``,
+    or ``error`` for any other exception, chained), the message and the log so far."""
 
     def __init__(self, kind: str, message: str, log: TrialLog) -> None:
         super().__init__(message)
@@ -207,6 +207,8 @@ async def run_trial(
         raise Aborted(fault.kind, str(fault), log) from None
     except asyncio.CancelledError:
         raise Aborted("interrupted", "interrupted (Ctrl-C)", log) from None
+    except Exception as err:  # a bug or an MPC error: the plant is handed back all the same
+        raise Aborted("error", f"{type(err).__name__}: {err}", log) from err
     finally:
         ctrl.close()
     return log
