@@ -1,7 +1,7 @@
 """The layer rule of docs/architecture.md, read from the source: every import of a mpcmobo
 module (at module level or inside a function) points to the same layer or one before it in
 
-    systems -> mpc -> identify -> rl -> bo -> learners -> experiment -> plots -> dashboard -> cli
+    systems -> mpc -> identify -> rl -> bo -> learners -> experiment -> connect -> plots -> dashboard -> cli
 
 so the package has no back-references and no import cycle between layers."""
 
@@ -23,6 +23,7 @@ LAYERS = [
     "bo",
     "learners",
     "experiment",
+    "connect",
     "plots",
     "dashboard",
     "cli",

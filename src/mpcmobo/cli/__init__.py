@@ -542,5 +542,6 @@ def systems() -> None:
     console.print(ADD_SYSTEM_HELP, markup=False, highlight=False)
 
 
+from mpcmobo.cli import connect as _connect  # noqa: E402, F401 - registers connect
 from mpcmobo.cli import dashboard as _dashboard  # noqa: E402, F401 - registers dashboard
 from mpcmobo.cli import plant as _plant  # noqa: E402, F401 - registers ask, tell, status, export
