@@ -149,22 +149,6 @@ def test_the_switch_refits_as_the_data_grow_ever_more_rarely_and_resumes_its_fit
     assert other.identification_.n == sw.identification_.n == calls[-1]
 
 
-def test_a_1_0_0_switch_state_makes_its_last_fit_again(cstr):
-    """A state of 1.0.0 holds the last fit's estimate only: loading it fits again from there."""
-    calls: list[int] = []
-    sw, theta0 = _switch(cstr, calls)
-    x, u = _episode(cstr, np.random.default_rng(0))
-    res = EpisodeResult(np.array([1.0, 0, 0, 0]), np.zeros(len(theta0)), True, start_id=0)
-    res.states, res.inputs = x, u
-    sw.observe(theta0, res, "deployed")
-    state = sw.state_dict()
-    state["estimate"] = state.pop("identification")["estimate"]
-    other, _ = _switch(cstr, calls2 := [])
-    other.load_state_dict(state)
-    assert calls2 == [60]
-    np.testing.assert_allclose(other.identification_.estimate, sw.identification_.estimate)
-
-
 class _RunawayPlant(SystemPlant):
     """A system's plant whose last state jumps to 1e6 x_scale from x_ref at the fourth step."""
 
@@ -249,11 +233,6 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
     other._decided()
     other.deployed_params_ = np.ones(3)  # a model deployed at some decision
     assert other.settled()
-    state = sw.state_dict()
-    del state["waiting"]  # a 1.0.0 state: any decision had settled the switch
-    third, _ = _switch(cstr, [])
-    third.load_state_dict(state)
-    assert third.settled()
 
 
 def _fit_of(estimate, std=0.01):
