@@ -32,7 +32,8 @@ EPISODE_FAILURES = (FloatingPointError, ValueError, RuntimeError)
 class EpisodePlan:
     """What one episode runs (:meth:`LearningRun.plan`): its theta, initial state, exploration
     noise per step (T, nu; zero where the learner asked for a noise-free episode), the plant's
-    seed, the start's index in the cycle (-1: random) and the proposal's error if it failed."""
+    seed, the start's index in the cycle (-1: random), the proposal's error if it failed and the
+    theta deployed when it was planned (what the episode's excess cost is measured against)."""
 
     episode: int
     theta: np.ndarray
@@ -43,6 +44,7 @@ class EpisodePlan:
     start_id: int = -1
     error: str = ""
     propose_time: float = 0.0
+    deployed: list[float] | None = None
 
     def to_dict(self) -> dict:
         """Plain data (a pending trial in a checkpoint)."""
@@ -168,6 +170,7 @@ class LearningRun:
         state and its exploration noise, drawn now (the random streams advance as if the
         episode ran). :meth:`finish` completes the episode from its record."""
         t0 = time.perf_counter()
+        deployed = np.asarray(self.learner.incumbent(), float)
         theta, proposal_error = self._propose()
         explore = bool(self.learner.explores())
         t_prop = time.perf_counter() - t0
@@ -187,6 +190,7 @@ class LearningRun:
             start_id=self.episode % len(self.cycle_starts) if self.start_mode == "cycle" else -1,
             error=proposal_error,
             propose_time=t_prop,
+            deployed=[float(v) for v in deployed],
         )
 
     def run_episode(self) -> tuple[dict, EpisodeRecord | None]:
@@ -209,9 +213,38 @@ class LearningRun:
         except EPISODE_FAILURES as err:
             record, error = None, f"{type(err).__name__}: {err}"
             stopped_violation = err.violation if isinstance(err, PlantDiverged) else np.nan
+        deployed_cost = self._deployed_on_plant(plan) if record is not None else np.nan
         return self.finish(
-            plan, record, error, time.perf_counter() - t1, violation=stopped_violation
+            plan,
+            record,
+            error,
+            time.perf_counter() - t1,
+            violation=stopped_violation,
+            deployed_cost=deployed_cost,
         )
+
+    def _deployed_on_plant(self, plan: EpisodePlan) -> float:
+        """The mean stage cost the deployed theta (when the episode was planned) has on the
+        simulated plant from the episode's start with its exploration noise and plant seed:
+        what the episode would have cost without tuning (NaN if that closed loop fails). Run
+        only where the episode ran another theta; it touches no random stream."""
+        if plan.deployed is None or np.array_equal(plan.deployed, plan.theta):
+            return np.nan  # the same controller: finish() records no excess
+        try:
+            rec = rollout(
+                self.system,
+                self.mpc,
+                np.asarray(plan.deployed, float),
+                plan.x0,
+                self.steps,
+                noise=plan.noise,
+                plant=self.plant,
+                plant_seed=plan.plant_seed,
+                sensitivities=False,
+            )
+        except EPISODE_FAILURES:
+            return np.nan
+        return mean_stage_cost(rec)
 
     def finish(
         self,
@@ -220,10 +253,14 @@ class LearningRun:
         error: str = "",
         mpc_time: float = 0.0,
         violation: float = np.nan,
+        deployed_cost: float = np.nan,
     ) -> tuple[dict, EpisodeRecord | None]:
         """Complete the episode of ``plan`` from its ``record`` (None: it failed, ``error``
         says why; ``violation``: the violation of the steps a stopped plant ran, else NaN):
-        the critic and the objectives, the learner's observation, the row."""
+        the critic and the objectives, the learner's observation, the row. ``deployed_cost``:
+        the deployed theta's cost on the plant from the same start with the same noise, where it
+        was measured (a simulated plant); else the MPC's own model predicts it
+        (:meth:`excess_cost`)."""
         if plan.episode != self.episode:
             raise ValueError(f"the plan is of episode {plan.episode}, the run is at {self.episode}")
         t1 = time.perf_counter()
@@ -236,6 +273,8 @@ class LearningRun:
         result.x0 = x0.copy()
         if self.learner.uses_start_cost():
             result.start_cost = self.start_cost(x0)
+        plant_cost = mean_stage_cost(record) if record is not None else np.nan
+        excess = self.excess_cost(plan, plant_cost, result, deployed_cost)
         t_mpc = mpc_time + time.perf_counter() - t1
         t2 = time.perf_counter()
         self.learner.observe(theta, result)
@@ -266,9 +305,46 @@ class LearningRun:
             "error": error,
             "start_cost": float(result.start_cost),
             "identified": _as_list(self.learner.identified()),
+            "plant_cost": float(plant_cost),
+            "excess_cost": float(excess),
         }
         self.episode += 1
         return row, record
+
+    def excess_cost(
+        self,
+        plan: EpisodePlan,
+        plant_cost: float,
+        result: EpisodeResult,
+        deployed_cost: float = np.nan,
+    ) -> float:
+        """What the episode cost the plant beyond the deployed controller from the same start:
+        0 where it ran the deployed theta; else its plant cost minus ``deployed_cost`` where
+        that was measured, or minus the deployed theta's closed loop on its own model (the MPC's
+        model with the theta's learned model parameters) from the episode's start with its
+        exploration replayed; NaN where neither is known."""
+        if plan.deployed is None or not np.isfinite(plant_cost):
+            return np.nan
+        deployed = np.asarray(plan.deployed, float)
+        if np.array_equal(deployed, plan.theta):
+            return 0.0
+        if np.isfinite(deployed_cost):
+            return float(plant_cost - deployed_cost)
+        if result.exploration is None or result.x0 is None:
+            return np.nan
+        predicted = self.start_cost(
+            result.x0, deployed, self._model_of(deployed), result.exploration
+        )
+        return float(plant_cost - predicted)
+
+    def _model_of(self, theta: np.ndarray) -> np.ndarray:
+        """The model parameters the MPC with ``theta`` predicts with: its own, with the
+        learnable ones theta holds."""
+        p = np.array(self.mpc.model_params, float)
+        param = self.mpc.param
+        if "model" in param.blocks:
+            p[list(param.model_param_index)] = np.asarray(theta, float)[param.blocks["model"]]
+        return p
 
     def start_cost(
         self,

@@ -51,6 +51,11 @@ class EpisodeRow:
     start_cost: float = math.nan
     # the model parameters the learner has identified after the episode (empty: none)
     identified: list[float] = field(default_factory=list)
+    # what the episode cost the plant (its mean stage cost) and its excess over the deployed
+    # controller's cost from the same start with the same noise (0 where it ran the deployed
+    # theta; measured on a simulated plant, predicted by the MPC's own model on a real one)
+    plant_cost: float = math.nan
+    excess_cost: float = math.nan
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EpisodeRow:

@@ -76,10 +76,23 @@ def _seed_summary(
         "complete": int(s["episode"].max()) == settings.episodes - 1,
         "episodes_to_2pct": _first_within(s, reference, 0.02),
         "episodes_to_5pct": _first_within(s, reference, 0.05),
+        # what tuning cost the plant: the sum of the episodes' mean stage costs, and of their
+        # excess over the deployed controller from the same starts (the regret)
+        "plant_cost": _sum_or_null(s, "plant_cost"),
+        "excess_cost": _sum_or_null(s, "excess_cost"),
         "theta_final": [float(x) for x in s["incumbent"].iloc[-1]],
         "identified_final": _last_identified(s),
         "wall_time_s": float(wall_time_s),
     }
+
+
+def _sum_or_null(s: pd.DataFrame, column: str) -> float | None:
+    """The sum of a column's finite values over the job's episodes (None: none, or an older
+    file without the column)."""
+    if column not in s.columns:
+        return None
+    v = s[column].to_numpy(float)
+    return float(np.sum(v[np.isfinite(v)])) if np.isfinite(v).any() else None
 
 
 def _last_identified(s: pd.DataFrame) -> list[float] | None:

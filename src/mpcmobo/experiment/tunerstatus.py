@@ -59,8 +59,8 @@ def trial_table(
                 "role": role,
                 "start": int(row.episode % n_cycle_starts) if start_mode == "cycle" else None,
                 "x0": [float(v) for v in row.x0],
-                "plant_cost": _finite(row.mean_stage_cost),
-                "excess_cost": _finite(getattr(row, "excess_cost", math.nan)),
+                "plant_cost": _finite(row.plant_cost),
+                "excess_cost": _finite(row.excess_cost),
                 "verdict": verdict,
             }
         )
