@@ -17,10 +17,12 @@ from mpcmobo.mpc import (
     model_plant,
     model_rollout,
     rollout,
+    rollouts,
 )
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
+from mpcmobo.systems.plant import SystemPlant
 
 START_MODES = ("random", "cycle")
 # what a closed loop that fails raises (a plant that runs away or raises, a broken episode):
@@ -67,9 +69,20 @@ def model_costs(
     from each start (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`),
     noise-free or with the exploration ``noise`` (steps, nu) replayed; NaN where that closed
     loop fails. What a start covariate and the twin's evaluations and predictions are made
-    of."""
+    of. On a noise-free plant of the system's equations the closed loops run together
+    (:func:`mpcmobo.mpc.rollouts`, the same records), on any other one after the other."""
+    starts = np.atleast_2d(starts)
+    if type(plant) is SystemPlant and plant.process_noise is None is plant.measurement_noise:
+        try:
+            params = plant.system.true_params
+            recs = rollouts(system, mpc, theta, starts, steps, plant_params=params, noise=noise)
+        except Exception:  # noqa: BLE001 - a failed closed loop is a NaN cost, never an end
+            return np.full(len(starts), np.nan)
+        return np.array(
+            [mean_stage_cost(r) if isinstance(r, EpisodeRecord) else np.nan for r in recs], float
+        )
     out = []
-    for x0 in np.atleast_2d(starts):
+    for x0 in starts:
         try:
             rec = model_rollout(system, mpc, theta, x0, steps, plant=plant, noise=noise)
             out.append(mean_stage_cost(rec))
