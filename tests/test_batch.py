@@ -48,6 +48,8 @@ def test_batch_equals_sequential_lq(lq, lq_mpc, replayed):
         _assert_same(seq, rec)
     statuses = {s for rec in batch for s in rec.status}
     assert "Newton_Succeeded" in statuses  # the batched Newton path ran
+    (one,) = rollouts(lq, lq_mpc, theta, starts[:1], steps, plant_params=params, noise=noise)
+    _assert_same(batch[0], one)  # a batch of one
 
 
 def test_batch_equals_sequential_cstr(cstr, cstr_mpc):
@@ -105,3 +107,40 @@ def test_evaluator_batches_the_same_episodes(lq):
     mpc = ev.mpc()
     for x0, rec in zip(ev.starts, ev.episodes(None)):
         _assert_same(rollout(lq, mpc, None, x0, 7, sensitivities=False), rec)
+
+
+def test_start_costs_run_together(lq, lq_mpc, monkeypatch):
+    """The loop's start costs of many starts: one batch for those not cached, the costs of
+    the sequential closed loops."""
+    import mpcmobo.experiment.loop as loop
+
+    class Bare:
+        name = "bare"
+        space = lq.search_space
+
+        def propose(self):
+            return lq.parameterization.theta0.copy()
+
+        def observe(self, theta, result):
+            pass
+
+        def incumbent(self):
+            return lq.parameterization.theta0.copy()
+
+    run = loop.LearningRun(lq, Bare(), lq_mpc, seed=0, steps=6)
+    batches = []
+    monkeypatch.setattr(loop, "rollouts", lambda *a, **k: batches.append(a[3]) or rollouts(*a, **k))
+    theta, params = lq_mpc.theta0 * 0.9, lq_mpc.model_params * 1.05
+    starts = _starts(lq, 4, seed=7)
+    first = run.start_cost(starts[0], theta, params)  # one start: alone, then cached
+    costs = run.start_costs(starts, theta, params)
+    assert len(batches) == 1 and len(batches[0]) == 3  # the three not cached, together
+    plant = model_plant(lq, lq_mpc, params)
+    ref = [
+        mean_stage_cost(rollout(lq, lq_mpc, theta, x0, 6, sensitivities=False, plant=plant))
+        for x0 in starts
+    ]
+    np.testing.assert_array_equal(costs, ref)
+    assert costs[0] == first
+    np.testing.assert_array_equal(run.start_costs(starts, theta, params), costs)
+    assert len(batches) == 1  # all cached

@@ -69,10 +69,14 @@ def model_costs(
     from each start (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`),
     noise-free or with the exploration ``noise`` (steps, nu) replayed; NaN where that closed
     loop fails. What a start covariate and the twin's evaluations and predictions are made
-    of. On a noise-free plant of the system's equations the closed loops run together
-    (:func:`mpcmobo.mpc.rollouts`, the same records), on any other one after the other."""
+    of. Several closed loops on a noise-free plant of the system's equations run together
+    (:func:`mpcmobo.mpc.rollouts`, the same records), others one after the other."""
     starts = np.atleast_2d(starts)
-    if type(plant) is SystemPlant and plant.process_noise is None is plant.measurement_noise:
+    if (
+        len(starts) > 1
+        and type(plant) is SystemPlant
+        and plant.process_noise is None is plant.measurement_noise
+    ):
         try:
             params = plant.system.true_params
             recs = rollouts(system, mpc, theta, starts, steps, plant_params=params, noise=noise)
@@ -89,6 +93,11 @@ def model_costs(
         except Exception:  # noqa: BLE001 - a failed closed loop is a NaN cost, never an end
             out.append(float("nan"))
     return np.array(out, float)
+
+
+def _start_key(x0: np.ndarray, theta: np.ndarray, p: np.ndarray, e: np.ndarray | None) -> bytes:
+    """The cache key of a start cost: its start, theta, model parameters and exploration."""
+    return b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p, () if e is None else e))
 
 
 def cycle_starts(system: System, seed: int, n: int) -> np.ndarray:
@@ -314,9 +323,7 @@ class LearningRun:
             raise ValueError(
                 f"exploration of shape {e.shape}, not ({self.steps}, {self.system.nu})"
             )
-        key = b"".join(
-            np.asarray(v, float).tobytes() for v in (x0, theta, p, () if e is None else e)
-        )
+        key = _start_key(x0, theta, p, e)
         if key not in self._start_costs:
             plant = self._model_plants.get(p.tobytes())
             if plant is None:
@@ -334,8 +341,24 @@ class LearningRun:
         noise: np.ndarray | None = None,
     ) -> np.ndarray:
         """:meth:`start_cost` of every start in ``starts`` (n, nx) (what a learner asks for when
-        its covariate's model changes); ``noise``: one start's exploration, replayed."""
-        return np.array([self.start_cost(x0, theta, params, noise) for x0 in np.atleast_2d(starts)])
+        its covariate's model changes); ``noise``: one start's exploration, replayed. The
+        closed loops not cached yet run together (:func:`model_costs`)."""
+        starts = np.atleast_2d(starts)
+        if theta is not None and params is not None and len(starts) > 1:
+            th, p = self.mpc.check_theta(theta), np.asarray(params, float)
+            e = None if noise is None else np.asarray(noise, float)
+            new = {_start_key(x0, th, p, e): x0 for x0 in starts}
+            new = {k: x0 for k, x0 in new.items() if k not in self._start_costs}
+            if len(new) > 1 and (e is None or e.shape == (self.steps, self.system.nu)):
+                plant = self._model_plants.get(p.tobytes())
+                if plant is None:
+                    plant = model_plant(self.system, self.mpc, p)
+                    self._model_plants[p.tobytes()] = plant
+                costs = model_costs(
+                    self.system, self.mpc, th, np.array(list(new.values())), self.steps, plant, e
+                )
+                self._start_costs.update(zip(new, (float(c) for c in costs)))
+        return np.array([self.start_cost(x0, theta, params, noise) for x0 in starts])
 
     def _propose(self) -> tuple[np.ndarray, str]:
         """The learner's proposal; if the learner fails (an exception, or a theta that is not

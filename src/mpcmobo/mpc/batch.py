@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import time
 import weakref
+from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mpcmobo.mpc.closed_loop import RUNAWAY, PlantDiverged, _blank_record, _record_solve
+from mpcmobo.mpc.closed_loop import RUNAWAY, PlantDiverged, _blank_record
 from mpcmobo.mpc.kkt import NumpyCall
 from mpcmobo.mpc.parametric import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
@@ -68,58 +69,111 @@ def _parts(mpc: ParametricMPC) -> tuple[Any, Any, Any]:
     return found[0], found[1], found[2]
 
 
+@dataclass
+class _Solved:
+    """The solves of one step of ``m`` loops: what a record keeps of each, or its error."""
+
+    action: np.ndarray  # (m, nu)
+    value: np.ndarray  # (m,)
+    slack: np.ndarray  # (m,)
+    success: np.ndarray  # (m,)
+    seconds: np.ndarray  # (m,)
+    status: list[str]
+    error: list[Exception | None]
+
+    @classmethod
+    def blank(cls, m: int, nu: int) -> _Solved:
+        """Nothing solved yet."""
+        nan = np.full(m, np.nan)
+        z = np.zeros(m)
+        return cls(np.zeros((m, nu)), nan, nan.copy(), z.astype(bool), z, [""] * m, [None] * m)
+
+    def take(self, j: int, sol: MPCSolution | Exception) -> None:
+        """Row ``j`` from a loop's own solve (or the exception it raised)."""
+        if isinstance(sol, Exception):
+            self.error[j] = sol
+            return
+        self.action[j], self.value[j], self.slack[j] = sol.action, sol.value, sol.slack
+        self.success[j], self.seconds[j], self.status[j] = sol.success, sol.solve_time, sol.status
+
+
 class _Batch:
-    """The per-loop warm starts of the MPC's solver and the batched solve of one step."""
+    """The per-loop warm starts of the MPC's solver (``prev``, as the solver keeps its own)
+    and the batched solve of one step."""
 
     def __init__(self, mpc: ParametricMPC, theta: np.ndarray, n: int) -> None:
         self.mpc, self.theta = mpc, theta
         self.problem, self.kkt, self.solver = _parts(mpc)
         self.prev: list[dict | None] = [None] * n
 
-    def solve(self, loops: np.ndarray, X: np.ndarray) -> list[MPCSolution | Exception]:
+    def solve(self, loops: np.ndarray, X: np.ndarray) -> _Solved:
         """The solve at the states ``X`` (m, nx) of ``loops`` (m,): Newton steps together,
-        the others alone; each solution with its share of the batch's time (or the exception
-        the loop's own solve raised)."""
+        the others alone, each from its loop's warm start (module docstring)."""
         t0 = time.perf_counter()
-        sv = self.solver
-        P = np.hstack([X, np.broadcast_to(self.theta, (len(loops), len(self.theta)))])
-        warm = [j for j, i in enumerate(loops) if sv.warm_start and self.prev[i] is not None]
-        found = self.newton([self.prev[loops[j]] for j in warm], P[warm]) if sv.newton_steps else []
-        sols: list[MPCSolution | Exception | None] = [None] * len(loops)
-        for j, hit in zip(warm, found):
-            if hit is None:
-                continue
-            out, w, mult = self.kkt.solver_outputs(*hit[:2])
-            sols[j] = sv.solution(X[j], P[j], out, w, "Newton_Succeeded", hit[2], mult, False)
-            self.prev[loops[j]] = sv.prev
-        shared = (time.perf_counter() - t0) / len(loops)
-        for j, i in enumerate(loops):
-            if sols[j] is not None:
-                sols[j].solve_time = shared  # type: ignore[union-attr]  # set above
-                continue
-            sv.prev = self.prev[i]  # the loop's own solve from its own warm start
+        sv, m = self.solver, len(loops)
+        P = np.hstack([X, np.broadcast_to(self.theta, (m, len(self.theta)))])
+        out = _Solved.blank(m, self.problem.nu)
+        warm = np.array([j for j in range(m) if self.prev[loops[j]] is not None], int)
+        hit = np.zeros(m, bool)
+        if sv.warm_start and sv.newton_steps and warm.size:
+            Y, F, K, done = self.newton([self.prev[i] for i in loops[warm]], P[warm])
+            rows = warm[done]
+            self.accept(loops[rows], X[rows], Y[done], F[done], out, rows)
+            hit[rows] = True
+            out.seconds[rows] = (time.perf_counter() - t0) / m
+        for j in map(int, np.flatnonzero(~hit)):  # the loop's own solve, its own warm start
+            sv.prev = self.prev[loops[j]]
             try:
-                sols[j] = self.mpc.solve(X[j], self.theta, sensitivities=False)
+                out.take(j, self.mpc.solve(X[j], self.theta, sensitivities=False))
             except Exception as err:  # noqa: BLE001 - that loop fails, the others run on
-                sols[j] = err
-            self.prev[i] = sv.prev
-        return sols  # type: ignore[return-value]  # every entry is set
+                out.take(j, err)
+            self.prev[loops[j]] = sv.prev
+        return out
 
-    def newton(self, prevs: list[dict | None], P: np.ndarray) -> list[tuple | None]:
-        """The solver's Newton path (``Solver.newton``) for each warm start in ``prevs`` with
-        its parameters in ``P``: (y, f, steps) at a converged point, else None."""
+    def accept(
+        self,
+        loops: np.ndarray,
+        X: np.ndarray,
+        Y: np.ndarray,
+        F: np.ndarray,
+        out: _Solved,
+        rows: np.ndarray,
+    ) -> None:
+        """``Solver.solution`` of the Newton roots ``Y`` (one per row, ``F`` their costs) at
+        ``X``: rows ``rows`` of ``out``, and each loop's next warm start."""
+        pr, sysm, s = self.problem, self.problem.system, len(loops)
+        res, W, _ = self.kkt.solver_outputs(Y, F)
+        plan_u = sysm.u_ref + pr.Su * W[:, pr.iu_flat].reshape(s, pr.N, pr.nu)
+        out.action[rows] = np.clip(plan_u[:, 0], sysm.u_lb, sysm.u_ub)
+        out.value[rows] = F * pr.cost_scale
+        scale = np.tile(pr.slack_scale, pr.N + 1)
+        out.slack[rows] = [float(np.sum(scale * w[pr.ie_flat])) for w in W]
+        out.success[rows] = True
+        for j in rows:
+            out.status[j] = "Newton_Succeeded"
+        shifted = pr.shifted(W, res["lam_g"], res["lam_x"])
+        for r, i in enumerate(loops):
+            self.prev[i] = {
+                "w_shift": shifted[0][r],
+                "lam_g": shifted[1][r],
+                "lam_x": shifted[2][r],
+                "plan_u": plan_u[r],
+                "age": 0,
+            }
+
+    def newton(
+        self, prevs: list[dict | None], P: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The solver's Newton path (``Solver.newton``) from each warm start in ``prevs`` with
+        its parameters in ``P``: the points Y (m, ny), their costs, steps and whether they
+        converged (m,)."""
         kkt, sv, m = self.kkt, self.solver, len(prevs)
-        result: list[tuple | None] = [None] * m
-        if m == 0:
-            return result
-        Y = np.empty((m, kkt.ny))
-        ok = np.zeros(m, bool)
-        for j, prev in enumerate(prevs):
-            w = prev["w_shift"]  # type: ignore[index]  # warm loops only
-            lam, mu = kkt.multipliers(w, prev["lam_g"], prev["lam_x"])  # type: ignore[index]
-            Y[j] = np.concatenate([w, lam, mu])
-            ok[j] = bool(np.all(mu > 0))
-        rows = np.flatnonzero(ok)  # the loops still taking steps
+        W = np.stack([prev["w_shift"] for prev in prevs])  # type: ignore[index]  # warm only
+        lam_g = np.stack([prev["lam_g"] for prev in prevs])  # type: ignore[index]
+        lam, mu = kkt.multipliers(W, lam_g, np.stack([prev["lam_x"] for prev in prevs]))  # type: ignore[index]
+        Y = np.concatenate([W, lam, mu], axis=1)
+        F, K, done = np.full(m, np.nan), np.zeros(m, int), np.zeros(m, bool)
+        rows = np.flatnonzero(np.all(mu > 0, axis=1))  # the loops still taking steps
         for k in range(1, sv.newton_steps + 1):
             if rows.size == 0:
                 break
@@ -128,12 +182,11 @@ class _Batch:
             res0, res, f, h_max, mu_min, h0_max = (_columns(v, rows.size)[:, 0] for v in scalars)
             good = (h0_max < 0) & (h_max < 0) & (mu_min > 0) & np.isfinite(res)
             Y[rows[good]] = _columns(y_next, rows.size)[good]
-            done = good & (res <= sv.tol)
-            for r, f_r in zip(rows[done], f[done]):
-                result[int(r)] = (Y[r].copy(), float(f_r), k)
+            conv = good & (res <= sv.tol)
+            done[rows[conv]], F[rows[conv]], K[rows[conv]] = True, f[conv], k
             stop = (k == sv.newton_steps) | ((k >= 2) & (res > 0.1 * res0))
-            rows = rows[good & ~done & ~stop]
-        return result
+            rows = rows[good & ~conv & ~stop]
+        return Y, F, K, done
 
 
 def rollouts(
@@ -201,15 +254,22 @@ def _step(
 ) -> None:
     """Step ``k`` of the running ``loops``: record x_k, solve, apply the inputs to the plant
     (``X`` becomes x_{k+1}); a loop whose plant diverges gets its ``PlantDiverged``."""
-    for j, sol in enumerate(batch.solve(loops, X[loops])):
-        rec = out[loops[j]]
-        if isinstance(sol, Exception):
-            out[loops[j]] = sol
+    sol = batch.solve(loops, X[loops])
+    for j, i in enumerate(loops):
+        rec = out[i]
+        if sol.error[j] is not None:
+            out[i] = sol.error[j]
             continue
-        rec.x[k] = X[loops[j]]
-        _record_solve(rec, k, sol, False)
+        rec.x[k] = X[i]  # as _record_solve of closed_loop records a solve
+        rec.success[k], rec.solve_time[k] = sol.success[j], sol.seconds[j]
+        rec.status.append(sol.status[j])
+        if sol.success[j]:
+            rec.V[k] = sol.value[j]
         if k < steps:
-            u = sol.action if noise is None else sol.action + noise[k]
+            rec.pi[k] = sol.action[j]
+            if sol.success[j]:
+                rec.slack[k] = sol.slack[j]
+            u = sol.action[j] if noise is None else sol.action[j] + noise[k]
             rec.u[k] = system.clip_input(u)
     loops = np.array([i for i in loops if isinstance(out[i], EpisodeRecord)], int)
     if k == steps or loops.size == 0:
