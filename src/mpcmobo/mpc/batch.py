@@ -97,6 +97,11 @@ class _Solved:
         self.success[j], self.seconds[j], self.status[j] = sol.success, sol.solve_time, sol.status
 
 
+def _failed_newton(p: np.ndarray) -> None:
+    """The Newton path of a loop whose Newton steps failed in the batch: no solution."""
+    return None
+
+
 class _Batch:
     """The per-loop warm starts of the MPC's solver (``prev``, as the solver keeps its own)
     and the batched solve of one step."""
@@ -121,14 +126,33 @@ class _Batch:
             self.accept(loops[rows], X[rows], Y[done], F[done], out, rows)
             hit[rows] = True
             out.seconds[rows] = (time.perf_counter() - t0) / m
+        tried = np.zeros(m, bool)
+        if sv.warm_start and sv.newton_steps:
+            tried[warm] = True
         for j in map(int, np.flatnonzero(~hit)):  # the loop's own solve, its own warm start
             sv.prev = self.prev[loops[j]]
             try:
-                out.take(j, self.mpc.solve(X[j], self.theta, sensitivities=False))
+                out.take(j, self.own_solve(X[j], bool(tried[j])))
             except Exception as err:  # noqa: BLE001 - that loop fails, the others run on
                 out.take(j, err)
             self.prev[loops[j]] = sv.prev
         return out
+
+    def own_solve(self, x: np.ndarray, tried: bool) -> MPCSolution:
+        """``ParametricMPC.solve`` at ``x`` from the solver's warm start; ``tried``: the Newton
+        steps from it failed in the batch, so the solve's own Newton path (the same numbers,
+        the same failure) returns None at once instead of taking them again."""
+        if not tried:
+            return self.mpc.solve(x, self.theta, sensitivities=False)
+        sv, own = self.solver, self.solver.__dict__.get("newton")
+        sv.newton = _failed_newton
+        try:
+            return self.mpc.solve(x, self.theta, sensitivities=False)
+        finally:
+            if own is None:
+                del sv.newton
+            else:
+                sv.newton = own
 
     def accept(
         self,
