@@ -41,20 +41,21 @@ from mpcmobo.systems.base import System
 
 __all__ = ["rollouts"]
 
-# mapped functions (one per function and batch size), kept while the function lives
-_MAPS: weakref.WeakKeyDictionary[ca.Function, dict[int, NumpyCall]] = weakref.WeakKeyDictionary()
+# mapped functions (per function, batch size and shared inputs), kept while the function lives
+_MAPS: weakref.WeakKeyDictionary[ca.Function, dict[tuple, NumpyCall]] = weakref.WeakKeyDictionary()
 
 
 def mapped(fn: ca.Function, m: int, shared: tuple[bool, ...] | None = None) -> NumpyCall:
     """``fn`` evaluated on ``m`` columns at once (``Function.map``, serial), on numpy buffers;
     ``shared``: the inputs that are the same for all columns (given once). Cached."""
     maps = _MAPS.setdefault(fn, {})
-    if m not in maps:
+    key = (m, shared)
+    if key not in maps:
         if shared is None:
-            maps[m] = NumpyCall(fn.map(m))
+            maps[key] = NumpyCall(fn.map(m))
         else:
-            maps[m] = NumpyCall(fn.map(m, list(shared), [False] * fn.n_out()))
-    return maps[m]
+            maps[key] = NumpyCall(fn.map(m, list(shared), [False] * fn.n_out()))
+    return maps[key]
 
 
 def _columns(out: Any, m: int) -> np.ndarray:
