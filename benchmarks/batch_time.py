@@ -17,8 +17,9 @@ for two thetas: theta0 with the identified parameters, and a theta tuned on the 
 short ``tune_on_twin`` from it, ``--tune-episodes``, batched). Times are CPU seconds of this
 process (``time.process_time``: the machine is shared, wall times are given too). Also: the
 largest difference of the costs (0: the batch gives the sequential records bit for bit), the
-solves per closed loop that left the batched Newton path (IPOPT, each loop alone) and their
-share of the batch's CPU time (one more batched run).
+solves per closed loop that left the batched Newton path (each loop alone: IPOPT, or first the
+continuation with ``--continuation N``) and their share of the batch's CPU time (one more
+batched run).
 
     .venv/bin/python benchmarks/batch_time.py            # 3 repeats
     .venv/bin/python benchmarks/batch_time.py --repeats 1 --tune-episodes 4
@@ -33,8 +34,9 @@ from typing import Any
 
 import numpy as np
 
+from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.loop import model_costs
-from mpcmobo.experiment.settings import build_system, identified_parameters, load_settings
+from mpcmobo.experiment.settings import load_settings
 from mpcmobo.identify import ModelFit
 from mpcmobo.learners.twin import TWIN_STARTS, Twin, tune_on_twin
 from mpcmobo.mpc import ParametricMPC, model_plant, model_rollout, rollouts
@@ -77,12 +79,21 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="the twin's starts (Twin.make)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--tune-episodes", type=int, default=10)
+    ap.add_argument(
+        "--continuation",
+        type=int,
+        default=None,
+        help="the MPC's continuation_steps (default: the config's)",
+    )
     args = ap.parse_args()
     settings = load_settings(args.config)
     system = build_system(settings, "bo")
     fit = ModelFit(system, identified_parameters(settings, system, "bo"))
     t0 = time.perf_counter()
-    mpc = ParametricMPC(system, model="imperfect", **settings.mpc.options())
+    options = settings.mpc.options()
+    if args.continuation is not None:
+        options["continuation_steps"] = args.continuation
+    mpc = ParametricMPC(system, model="imperfect", **options)
     build = time.perf_counter() - t0
     true = np.asarray(system.true_params, float)
     plant = model_plant(system, mpc, true)
@@ -109,13 +120,14 @@ def main() -> None:
     tuned = tune_on_twin(space, start, true, costs, tuned_on, args.seed, args.tune_episodes)
     print(
         f"{system.name}, {len(twin.starts)} starts x {steps} steps, codegen "
-        f"{settings.mpc.codegen} (MPC built in {build:.1f} s), {args.repeats} repeats; tuned "
+        f"{settings.mpc.codegen}, continuation_steps {options.get('continuation_steps', 0)} "
+        f"(MPC built in {build:.1f} s), {args.repeats} repeats; tuned "
         f"theta: {tuned.cost / tuned.base_cost:.3f} of theta0's cost on its {TWIN_STARTS} starts"
     )
     print(
         "| theta | sequential, 64 loops (CPU s) | batched (CPU s) | one loop (CPU s) "
         "| batched / one loop | sequential / batched | wall: sequential, batched (s) "
-        "| largest cost difference | IPOPT solves per loop | their share of the batch |"
+        "| largest cost difference | own solves per loop | their share of the batch |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name, theta in (("theta0", start), ("tuned", tuned.theta)):

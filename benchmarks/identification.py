@@ -23,8 +23,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.evaluation import make_evaluator
-from mpcmobo.experiment.settings import build_system, identified_parameters, load_settings
+from mpcmobo.experiment.settings import load_settings
 from mpcmobo.identify import ModelFit, Transitions
 from mpcmobo.mpc import ParametricMPC, rollout
 from mpcmobo.rl import GaussianExploration

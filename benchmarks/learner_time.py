@@ -42,8 +42,9 @@ def _learner(run: Path, name: str, seed: int, options: str = ""):  # noqa: ANN20
     added to its learner options."""
     import tomllib
 
+    from mpcmobo.experiment.build import build_system
     from mpcmobo.experiment.job import make_study_learner
-    from mpcmobo.experiment.settings import build_system, load_settings
+    from mpcmobo.experiment.settings import load_settings
 
     settings = load_settings(run / "config.toml")
     extra = tomllib.loads("\n".join(options.split(","))) if options else {}

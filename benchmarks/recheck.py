@@ -31,8 +31,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.evaluation import Evaluator, make_evaluator
-from mpcmobo.experiment.settings import build_system, identified_parameters, load_settings
+from mpcmobo.experiment.settings import load_settings
 from mpcmobo.rl.objectives import mean_stage_cost
 
 RECHECK_SEED = 4242  # the fresh starts' seed: apart from the evaluation's (2025)

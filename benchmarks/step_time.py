@@ -12,6 +12,9 @@ For every state of a few 60-step closed-loop CSTR episodes, this times
   and otherwise its defaults. The solve call alone is timed, no sensitivities. Its initial
   guess is the previous step's primal solution (unshifted); at the first step of an episode,
   the current state for every predicted state and ``u_ref`` for every input, zero slacks.
+* ``fatrop``, the second reference (``ratio_fat``): the same MPC as an expert's fatrop NMPC
+  (:class:`FatropBaseline`: stage-wise ``Opti``, structure detection, jit-compiled functions,
+  warm-started from the previous primal solution).
 * ``baseline_mx``, an extra row: the same ``Opti`` problem with MX function graphs, called
   through ``opti.solve()`` (MX graphs evaluate more slowly than SX: against it every ratio
   looks 4-5x larger).
@@ -19,13 +22,17 @@ For every state of a few 60-step closed-loop CSTR episodes, this times
   in ``mpcrl`` 1.4.1 driven by its ``LstdDpgAgent`` (:class:`MpcrlPeer`): its solve plus its
   dpi/dtheta per step.
 
-For our variants the step is split into components: the solver (IPOPT calls and Newton steps;
-of the IPOPT calls, IPOPT's own function-evaluation time from its statistics), the two
+For our variants the step is split into components: the solver (Newton steps, the
+interior-point continuation and IPOPT calls; of the IPOPT calls, IPOPT's own function-evaluation
+time from its statistics), the two
 sensitivities, and the rest (Python); ``build_s`` is the construction time of the MPC (with
 ``codegen``, the first build in a run compiles into an empty cache directory, the second one
 loads the library: set ``MPCMOBO_CACHE_DIR`` to a new directory to see both).
 ``du_first`` is the largest |action - the first variant's action| over all steps: the same
 policy gives about 1e-7, a different local solution in the constraint-violating phases tens.
+``du_ipopt`` compares with the ``ipopt`` variant (IPOPT alone on the same barrier problem, so
+the same policy; the baselines solve the problem without the barrier, about 1e-4 away).
+``paths`` counts the steps solved by the Newton steps, the continuation and IPOPT.
 
 The measurements of all variants and the baseline are interleaved state by state (in a new
 random order each step), so load from other processes on the shared machine hits them alike. The
@@ -36,7 +43,7 @@ same against ``baseline_mx``.
 
     .venv/bin/python benchmarks/step_time.py            # 4 episodes x 60 steps
     .venv/bin/python benchmarks/step_time.py --quick    # 1 episode x 20 steps
-    .venv/bin/python benchmarks/step_time.py --variants default codegen --no-peers
+    .venv/bin/python benchmarks/step_time.py --variants codegen_continuation continuation ipopt codegen --no-peers
 """
 
 from __future__ import annotations
@@ -152,6 +159,98 @@ class OptiBaseline:
     def _solve_function(self, x):
         if self.warm and self._prev is not None:
             guess = self._prev  # the previous step's primal solution, unshifted
+        else:
+            guess = (
+                np.tile(x[:, None], (1, self.N + 1)),
+                np.tile(self.s.u_ref[:, None], (1, self.N)),
+                np.zeros((self.s.nx, self.N + 1)),
+            )
+        t0 = time.perf_counter()
+        try:
+            out = self._fn(x, *guess)
+            raised = False
+        except RuntimeError:
+            raised = True
+        dt = time.perf_counter() - t0
+        stats = self._fn.stats()
+        ok = not raised and bool(stats.get("success", False))
+        self._prev = tuple(np.asarray(o) for o in out) if ok else None
+        u0 = self._prev[1][:, 0].copy() if ok else None
+        return dt, ok, int(stats.get("iter_count", 0)), u0
+
+
+class FatropBaseline:
+    """The same MPC as an expert's fatrop NMPC: ``casadi.Opti`` with the variables declared stage
+    by stage (``x_i``, then ``u_i`` and the slacks ``eta_i``) and each stage's model equation
+    ``x_{i+1} == F(x_i, u_i)`` before its path constraints, so that CasADi's structure detection
+    (``structure_detection="auto"``) hands fatrop its stage-wise form; the NLP functions expanded
+    to SX and compiled (``jit``, generated C, ``-O2``, built once per run); fatrop with the
+    tolerance of our MPC; warm start: the previous step's primal solution (fatrop takes no dual
+    warm start). Called through ``Opti.to_function``; the solve call alone is timed.
+    """
+
+    def __init__(self, s, model: str = "imperfect") -> None:
+        spec = s.mpc_spec
+        N, gamma, nx, nu = spec.horizon, spec.gamma, s.nx, s.nu
+        Gamma = np.full(nx, 1e5) if spec.Gamma is None else np.asarray(spec.Gamma)
+        Gamma_f = Gamma if spec.Gamma_f is None else np.asarray(spec.Gamma_f)
+        pm = ca.DM(s.model_params(model))
+        th, b = s.parameterization.theta0, s.parameterization.blocks
+        Tw, G, Qw, Rw = th[b["T"]], th[b["G"]], th[b["Q"]], th[b["R"]]
+        opti = ca.Opti()
+        x0 = opti.parameter(nx)
+        X, U, E = [], [], []
+        for i in range(N + 1):  # stage-wise declaration: x_i, u_i, eta_i
+            X.append(opti.variable(nx))
+            if i < N:
+                U.append(opti.variable(nu))
+            E.append(opti.variable(nx))
+        xr, ur = ca.DM(s.x_ref), ca.DM(s.u_ref)
+        cost = th[b["theta_c"]][0]
+        for i in range(N + 1):
+            dx = X[i] - xr
+            if i < N:  # the gap-closing constraint first
+                opti.subject_to(X[i + 1] == rk4_step(s.dynamics, X[i], U[i], pm, s.dt, s.substeps))
+            if i == 0:
+                opti.subject_to(X[0] == x0)
+            opti.subject_to(E[i] >= 0)
+            opti.subject_to(X[i] >= ca.DM(s.x_lb) - E[i])
+            opti.subject_to(X[i] <= ca.DM(s.x_ub) + E[i])
+            if i < N:
+                du = U[i] - ur
+                opti.subject_to(opti.bounded(ca.DM(s.u_lb), U[i], ca.DM(s.u_ub)))
+                cost += gamma**i * (
+                    ca.dot(dx, Qw * dx) + ca.dot(du, Rw * du) + ca.dot(ca.DM(Gamma), E[i])
+                )
+                cost += ca.dot(ca.DM(G), ca.vertcat(dx, du))
+            else:
+                cost += ca.dot(ca.DM(G[:nx]), dx)
+                cost += gamma**N * (ca.dot(dx, Tw * dx) + ca.dot(ca.DM(Gamma_f), E[i]))
+        opti.minimize(cost)
+        opti.solver(
+            "fatrop",
+            {
+                "expand": True,
+                "structure_detection": "auto",
+                "print_time": False,
+                "show_eval_warnings": False,
+                "jit": True,
+                "compiler": "shell",
+                "jit_options": {"flags": ["-O2"], "verbose": False},
+                "fatrop": {"print_level": 0, "tol": TOL},
+            },
+        )
+        Xs, Us, Es = ca.horzcat(*X), ca.horzcat(*U), ca.horzcat(*E)
+        self._fn = opti.to_function("fatrop_baseline", [x0, Xs, Us, Es], [Xs, Us, Es])
+        self.N, self.s, self._prev = N, s, None
+
+    def reset(self) -> None:
+        self._prev = None
+
+    def solve(self, x):
+        """Returns (wall time of the solve call, success, iterations, first input)."""
+        if self._prev is not None:
+            guess = self._prev
         else:
             guess = (
                 np.tile(x[:, None], (1, self.N + 1)),
@@ -308,7 +407,10 @@ VARIANTS: dict[str, dict] = {
     },
     # generated C, compiled once per machine and problem, cached on disk
     "codegen_ipopt": {"codegen": True, "newton_steps": 0},
-    "codegen": {"codegen": True},  # generated C and the Newton steps
+    "codegen": {"codegen": True},  # generated C, the Newton steps, then IPOPT (the default)
+    # with the interior-point continuation between the Newton steps and IPOPT
+    "continuation": {"continuation_steps": 30},
+    "codegen_continuation": {"codegen": True, "continuation_steps": 30},
 }
 DEFAULT_VARIANTS = list(VARIANTS)
 
@@ -318,9 +420,11 @@ BASELINES: dict[str, dict] = {
     "baseline": {"expand": True},  # SX, Opti.to_function, warm: the expert's formulation
     "baseline_mx": {"expand": False},  # MX, opti.solve(), warm: an extra row
 }
+# the expert fatrop NMPC (FatropBaseline): a second reference, ratio_fatrop
 _BASELINE_LABELS = {
     "baseline": "Opti, expand=True (SX), Opti.to_function, our tolerances",
     "baseline_mx": "Opti, MX, opti.solve(), our tolerances",
+    "fatrop": "Opti, stage-wise, structure detection, fatrop, jit -O2, our tolerance",
     "mpcrl": "mpcrl 1.4.1 LstdDpgAgent: state_value + its dpi/dtheta per step",
 }
 
@@ -331,13 +435,15 @@ class _Components:
 
     def __init__(self, mpc: ParametricMPC) -> None:
         self.solver = self.sens = self.fun = 0.0
-        run_solver, sensitivities = mpc._run_solver, mpc._sensitivities
+        solver = mpc.solver
+        run_solver, sensitivities = solver.ipopt, solver.sensitivities
+        newton, interior_point = solver.newton, solver.interior_point
 
         def timed_run(x, p, warm):
             t0 = time.perf_counter()
             out = run_solver(x, p, warm)
             self.solver += time.perf_counter() - t0
-            st = (mpc._solver_warm if warm else mpc._solver).stats()
+            st = (solver.warm if warm else solver.cold).stats()
             self.fun += sum(v for k, v in st.items() if k.startswith("t_wall_nlp"))
             return out
 
@@ -358,8 +464,9 @@ class _Components:
 
             return run
 
-        mpc._run_solver, mpc._sensitivities = timed_run, timed_sens
-        mpc._newton_solve = timed(mpc._newton_solve)
+        # the solver's path methods, replaced on this instance by timed wrappers
+        solver.ipopt, solver.sensitivities = timed_run, timed_sens
+        solver.newton, solver.interior_point = timed(newton), timed(interior_point)
 
     def take(self) -> tuple[float, float, float]:
         out = (self.solver, self.sens, self.fun)
@@ -379,6 +486,7 @@ def run(
         build[name] = time.perf_counter() - t0
     comps = {n: _Components(m) for n, m in mpcs.items()}
     bases = {name: OptiBaseline(s, **opts) for name, opts in BASELINES.items()}
+    bases["fatrop"] = FatropBaseline(s)
     if peers and _has_mpcrl():
         bases["mpcrl"] = MpcrlPeer(s)
     names = [*mpcs, *bases]
@@ -388,8 +496,10 @@ def run(
     fails = {n: 0 for n in names}
     du = {n: [] for n in mpcs}  # |action - baseline action|, a sanity check of "same problem"
     du_first = {n: [] for n in names}  # |action - first variant's action|: "same policy"
-    paths = {n: {"newton": 0, "ipopt": 0} for n in mpcs}  # which path solved
-    path_times = {n: {"newton": [], "ipopt": []} for n in mpcs}  # step times by path
+    du_ipopt: dict[str, list] = {n: [] for n in mpcs}  # |action - the "ipopt" variant's action|
+    path_names = {"Newton_Succeeded": "newton", "Continuation_Succeeded": "continuation"}
+    paths = {n: {"newton": 0, "continuation": 0, "ipopt": 0} for n in mpcs}  # which path solved
+    path_times = {n: {k: [] for k in paths[n]} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
     order_rng = np.random.default_rng(seed + 1)
@@ -428,7 +538,7 @@ def run(
                     dt = time.perf_counter() - t0
                     parts[n].append(comps[n].take())
                     ok, it = sol.success, sol.iterations
-                    path = "newton" if sol.status == "Newton_Succeeded" else "ipopt"
+                    path = path_names.get(sol.status, "ipopt")
                     paths[n][path] += 1
                     path_times[n][path].append(dt)
                     actions[n] = sol.action
@@ -439,6 +549,9 @@ def run(
             if actions["baseline"] is not None:
                 for n in mpcs:
                     du[n].append(float(np.max(np.abs(actions[n] - actions["baseline"]))))
+            if "ipopt" in mpcs:
+                for n in mpcs:
+                    du_ipopt[n].append(float(np.max(np.abs(actions[n] - actions["ipopt"]))))
             for n in names:
                 if actions[n] is not None and actions[first] is not None:
                     du_first[n].append(float(np.max(np.abs(actions[n] - actions[first]))))
@@ -454,7 +567,11 @@ def run(
         if n in bases:  # this baseline's solve / our first variant's step
             ratio = {"ratio": med[n] / med[first]}
         else:  # a baseline's solve / this variant's step
-            ratio = {"ratio": med["baseline"] / med[n], "ratio_mx": med["baseline_mx"] / med[n]}
+            ratio = {
+                "ratio": med["baseline"] / med[n],
+                "ratio_mx": med["baseline_mx"] / med[n],
+                "ratio_fatrop": med["fatrop"] / med[n],
+            }
         res[n] = {
             "median_ms": float(np.median(t)),
             "p95_ms": float(np.percentile(t, 95)),
@@ -463,6 +580,11 @@ def run(
             "failures": int(fails[n]),
             **ratio,
             "max_du_vs_baseline": float(np.max(du[n])) if n in du and du[n] else None,
+            # against our IPOPT-only variant (the same barrier problem), when it runs: the
+            # largest difference and the steps where the actions differ by more than 1e-7, 1e-4
+            "max_du_vs_ipopt": float(np.max(du_ipopt[n])) if du_ipopt.get(n) else None,
+            "n_du_vs_ipopt_gt_1e-7": int(np.sum(np.array(du_ipopt.get(n, [])) > 1e-7)),
+            "n_du_vs_ipopt_gt_1e-4": int(np.sum(np.array(du_ipopt.get(n, [])) > 1e-4)),
             "max_du_vs_first": float(np.max(du_first[n])) if du_first[n] else None,
             # steps where the action differs from the first variant's by more than 1e-4
             "n_du_vs_first_gt_1e-4": int(np.sum(np.array(du_first[n]) > 1e-4)),
@@ -521,39 +643,47 @@ def main(argv=None) -> None:
     )
     first = next(iter(variants))
     print(
-        f"ratio: baseline median / variant median; on a baseline row: that baseline's median / "
-        f"{first!r} median. ratio_mx: the same against baseline_mx"
+        f"ratio: baseline median / variant median (on a baseline row: that baseline's median / "
+        f"{first!r} median); ratio_fat: the same against the expert fatrop NMPC"
     )
     print(
-        "components (medians, ms): solver = IPOPT calls and Newton steps, fun = IPOPT's "
-        "function evaluations; sens = both sensitivities; other = the rest of the step (Python)"
+        "du_ipopt: largest |action - the 'ipopt' variant's action| (the same barrier problem, "
+        "IPOPT only); >1e-7, >1e-4: steps beyond. components "
+        "(medians, ms): solver = Newton steps, continuation and IPOPT calls, sens = both "
+        "sensitivities, other = the rest of the step (Python). paths: steps solved by "
+        "Newton / continuation / IPOPT"
     )
     hdr = (
-        f"{'variant':<18} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
-        f"{'ratio':>6} {'ratio_mx':>8} {'du_first':>9} {'n>1e-4':>6} {'solver':>6} {'fun':>6} "
-        f"{'sens':>6} {'other':>6} {'build s':>7} {'Newton/IPOPT':>20}"
+        f"{'variant':<24} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
+        f"{'ratio':>6} {'ratio_fat':>9} {'du_ipopt':>8} {'>1e-7':>5} {'>1e-4':>5} "
+        f"{'solver':>6} {'sens':>6} {'other':>6} {'build s':>7} {'paths':>12}"
     )
     print(hdr)
     for n, r in res.items():
-        rmx = f"{r['ratio_mx']:>8.2f}" if "ratio_mx" in r else f"{'':>8}"
-        duf = f"{r['max_du_vs_first']:>9.1e}" if r["max_du_vs_first"] is not None else " " * 9
+        rf = f"{r['ratio_fatrop']:>9.2f}" if "ratio_fatrop" in r else f"{'':>9}"
+        dub = r.get("max_du_vs_ipopt")
+        dub_s = (
+            f"{dub:>8.1e} {r['n_du_vs_ipopt_gt_1e-7']:>5d} {r['n_du_vs_ipopt_gt_1e-4']:>5d}"
+            if dub is not None
+            else " " * 20
+        )
         comp = (
-            f"{r['median_solver_ms']:>6.2f} {r['median_fun_ms']:>6.2f} "
-            f"{r['median_sens_ms']:>6.2f} {r['median_other_ms']:>6.2f} {r['build_s']:>7.2f} "
-            f"{'/'.join(str(v) for v in r['paths'].values()):>20}"
+            f"{r['median_solver_ms']:>6.2f} {r['median_sens_ms']:>6.2f} "
+            f"{r['median_other_ms']:>6.2f} {r['build_s']:>7.2f} "
+            f"{'/'.join(str(v) for v in r['paths'].values()):>12}"
             if "build_s" in r
             else ""
         )
         print(
-            f"{n:<18} {r['median_ms']:>7.2f} {r['mean_ms']:>7.2f} {r['p95_ms']:>7.2f} "
-            f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rmx} {duf} "
-            f"{r['n_du_vs_first_gt_1e-4']:>6d} {comp}"
+            f"{n:<24} {r['median_ms']:>7.2f} {r['mean_ms']:>7.2f} {r['p95_ms']:>7.2f} "
+            f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rf} "
+            f"{dub_s} {comp}"
         )
-    print("median step [ms] by the path that solved it (Newton steps / IPOPT):")
+    print("median step [ms] by the path that solved it (Newton / continuation / IPOPT):")
     for n, r in res.items():
         if "median_ms_by_path" in r:
             by = r["median_ms_by_path"].values()
-            print(f"  {n:<18} " + " / ".join("-" if v is None else f"{v:.2f}" for v in by))
+            print(f"  {n:<24} " + " / ".join("-" if v is None else f"{v:.2f}" for v in by))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(res, fh, indent=2, default=str)

@@ -41,10 +41,11 @@ import numpy as np
 import pandas as pd
 from recheck import RECHECK_SEED, _thetas  # benchmarks/ is on sys.path when run as a script
 
+from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.evaluation import make_evaluator
 from mpcmobo.experiment.job import single_threaded
 from mpcmobo.experiment.loop import cycle_starts, model_costs
-from mpcmobo.experiment.settings import build_system, identified_parameters, load_settings
+from mpcmobo.experiment.settings import load_settings
 from mpcmobo.identify import ModelFit
 from mpcmobo.learners.twin import TWIN_EPISODES, tune_on_twin
 from mpcmobo.mpc import ParametricMPC, model_plant

@@ -43,3 +43,11 @@ def benchmark_script(monkeypatch):
     ``sys.path`` (the scripts import each other)."""
     monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "benchmarks"))
     return importlib.import_module
+
+
+@pytest.fixture(scope="session")
+def dashboard_run(tmp_path_factory):
+    """A small finished run for the dashboard's tests (tests/dashboard_helpers.py)."""
+    from dashboard_helpers import make_small_run
+
+    return make_small_run(tmp_path_factory.mktemp("dashboard") / "run")

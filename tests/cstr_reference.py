@@ -64,10 +64,10 @@ def assert_warm_sensitivities_match_fd(mpc, x, theta, status):
     """The MPC's exact sensitivities at ``x`` against :func:`fd_sensitivities`, every solve
     warm-started from the MPC's current warm start (restored before each one) and ending with
     ``status`` (the solver path under test)."""
-    prev = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in mpc._prev.items()}
+    prev = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in mpc.solver.prev.items()}
 
     def solve(th, sens):
-        mpc._prev = dict(prev)
+        mpc.solver.prev = dict(prev)
         sol = mpc.solve(x, th, sens)
         assert sol.status == status
         return sol

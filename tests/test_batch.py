@@ -5,6 +5,7 @@ import pytest
 
 from mpcmobo.experiment.evaluation import Evaluator
 from mpcmobo.experiment.loop import model_costs
+from mpcmobo.learners import Learner
 from mpcmobo.mpc import ParametricMPC, PlantDiverged, model_plant, rollout, rollouts
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems import get_system
@@ -114,9 +115,11 @@ def test_start_costs_run_together(lq, lq_mpc, monkeypatch):
     the sequential closed loops."""
     import mpcmobo.experiment.loop as loop
 
-    class Bare:
+    class Bare(Learner):
         name = "bare"
-        space = lq.search_space
+
+        def __init__(self):
+            super().__init__(lq.search_space, lq.parameterization.theta0)
 
         def propose(self):
             return lq.parameterization.theta0.copy()

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from mpcmobo.bo import GPSurrogate
-from mpcmobo.learners import EpisodeResult, Replay, Starts, make_learner
+from mpcmobo.learners import EpisodeResult, Learner, Replay, Starts, make_learner
 from mpcmobo.learners.confidence import (
     adjusted_confidence,
     paired_confidence,
@@ -685,16 +685,12 @@ def test_the_loop_gives_the_start_cost_of_theta0_on_the_model(lq_system):
     mpc = ParametricMPC(lq_system)
     theta0 = lq_system.parameterization.theta0
 
-    class Asks:
+    class Asks(Learner):
         name = "asks"
 
         def __init__(self, asks):
-            self.space, self.theta0, self.asks, self.results = (
-                lq_system.search_space,
-                theta0,
-                asks,
-                [],
-            )
+            super().__init__(lq_system.search_space, theta0)
+            self.asks, self.results = asks, []
 
         def propose(self):
             return theta0.copy()
@@ -743,7 +739,7 @@ def test_the_loop_gives_the_start_cost_of_theta0_on_the_model(lq_system):
 
 
 def test_a_failing_covariate_never_ends_a_run(lq_system, monkeypatch):
-    """The start cost of a learner without theta0 is that of the MPC's theta0; a closed loop
+    """The start cost of a learner is that of its theta0; a closed loop
     on the model that fails gives NaN (the tests then fall back to Welch), and the episode is
     recorded as usual."""
     import mpcmobo.experiment.loop as loop
@@ -751,11 +747,12 @@ def test_a_failing_covariate_never_ends_a_run(lq_system, monkeypatch):
 
     mpc = ParametricMPC(lq_system)
 
-    class Bare:  # no theta0 attribute
+    class Bare(Learner):  # theta0: the system's
         name = "bare"
 
         def __init__(self):
-            self.space, self.results = lq_system.search_space, []
+            super().__init__(lq_system.search_space, lq_system.parameterization.theta0)
+            self.results = []
 
         def propose(self):
             return lq_system.parameterization.theta0.copy()

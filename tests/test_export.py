@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 
 from mpcmobo.cli import app
 from mpcmobo.mpc import ParametricMPC
+from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
 from mpcmobo.mpc.export import c_compile_command, controller_function, export_c, export_casadi
 from mpcmobo.systems import get_system
 
@@ -85,9 +86,88 @@ def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path / "m.casadi")])
     assert res.exit_code == 2 and "no episode yet" in res.output  # nothing told yet
     res = runner.invoke(app, ["export", str(d), "--format", "zip", "--out", str(tmp_path / "x")])
-    assert res.exit_code == 2 and "--format must be casadi or c" in res.output
+    assert res.exit_code == 2 and "--format must be casadi, c or embedded" in res.output
     (tmp_path / "file").write_text("")
     res = runner.invoke(app, ["export", str(d), "--format", "c", "--out", str(tmp_path / "file")])
     assert res.exit_code == 2 and "is a file; C code goes into a directory" in res.output
+    res = runner.invoke(
+        app, ["export", str(d), "--format", "embedded", "-o", str(tmp_path / "file")]
+    )
+    assert res.exit_code == 2 and "is a file; C code goes into a directory" in res.output
     res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path)])
     assert res.exit_code == 2 and "is a directory; the CasADi function is one file" in res.output
+
+
+def _run_embedded(program, states, *args):
+    """The embedded controller's rows (u..., path, microseconds) for ``states``, one run."""
+    text = "".join(" ".join(repr(float(v)) for v in x) + "\n" for x in states)
+    out = subprocess.run([str(program), *args], input=text, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    return np.array([[float(v) for v in line.split()] for line in out.stdout.splitlines()])
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_embedded_controller_needs_libc_and_libm_only_and_gives_the_mpcs_input(cstr, tmp_path):
+    """Compiled (-O0 for a fast test; benchmarks/embedded_time.py times -O2 on 100 states), it
+    links nothing but libc and libm, and its input equals ParametricMPC.solve's within 1e-6:
+    cold on 20 states of the box (after a reset: IPOPT from the cold guess) wherever it
+    converges, which is on 17 of them at least, and warm along a closed loop of the MPC."""
+    mpc = ParametricMPC(cstr)
+    d = export_embedded(mpc, None, tmp_path / "emb")
+    proc = subprocess.run(embedded_compile_command(d, optimize="-O0"), capture_output=True)
+    assert proc.returncode == 0, proc.stderr
+    if shutil.which("ldd"):
+        ldd = subprocess.run(["ldd", str(d / "controller")], capture_output=True, text=True)
+        libs = [line.split()[0] for line in ldd.stdout.splitlines() if line.strip()]
+        allowed = ("linux-vdso.so", "libc.so", "libm.so", "/lib64/ld-linux", "/lib/ld-linux")
+        assert libs and all(lib.startswith(allowed) for lib in libs), libs
+    states = _box_states(cstr, 20)
+    rows = _run_embedded(d / "controller", states, "--cold")
+    solved = 0
+    for x, row in zip(states, rows):
+        mpc.reset()
+        sol = mpc.solve(x, sensitivities=False)
+        if row[cstr.nu] == 0:  # the fallback: no plan yet, so the reference input
+            np.testing.assert_allclose(row[: cstr.nu], cstr.clip_input(cstr.u_ref))
+            continue
+        assert sol.success
+        np.testing.assert_allclose(row[: cstr.nu], sol.action, rtol=0, atol=1e-6)
+        solved += 1
+    assert solved >= 17
+    mpc.reset()
+    x, loop, actions = np.array([100.0, 0.15, 430.0]), [], []
+    for _ in range(20):
+        sol = mpc.solve(x, sensitivities=False)
+        loop.append(x)
+        actions.append(sol.action)
+        x = cstr.plant_step(x, sol.action)
+    rows = _run_embedded(d / "controller", loop)
+    np.testing.assert_allclose(rows[:, : cstr.nu], np.array(actions), rtol=0, atol=1e-6)
+    assert np.sum(rows[:, cstr.nu] == 1) >= 15  # the warm steps take the Newton path
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_command_line_writes_and_builds_the_embedded_controller(tmp_path):
+    """``export --format embedded --compile`` on a tuner with one told trial (``lq``): the
+    program it builds gives the deployed MPC's input."""
+    from mpcmobo.experiment.tuner import Tuner
+
+    tuner = Tuner({"name": "lq", "identify": False}, "bo", tmp_path / "t", episodes=2, steps=10)
+    trial = tuner.ask()
+    x, states, inputs = trial.x0, [trial.x0], []
+    for _ in range(trial.steps):
+        u = np.clip(trial.policy(x), tuner.system.u_lb, tuner.system.u_ub)
+        x = tuner.system.plant_step(x, u)
+        states.append(x)
+        inputs.append(u)
+    tuner.tell(trial, np.array(states), np.array(inputs))
+    out = tmp_path / "emb"
+    res = CliRunner().invoke(
+        app, ["export", str(tmp_path / "t"), "--format", "embedded", "-o", str(out), "--compile"]
+    )
+    assert res.exit_code == 0 and "mpc_functions.c" in res.output, res.output
+    theta = tuner.deployed
+    mpc = ParametricMPC(get_system("lq"))
+    x = np.array([0.8, -0.3])
+    row = _run_embedded(out / "controller", [x], "--cold")[0]
+    np.testing.assert_allclose(row[: mpc.nu], mpc.solve(x, theta, False).action, atol=1e-6)

@@ -48,7 +48,7 @@ def test_failed_solves_at_random_steps_use_the_fallback_and_are_recorded(tmp_pat
     def flaky(self, x, theta=None, sensitivities=True):
         if sensitivities and rng.random() < 0.15:  # a learning episode's solve
             injected.append(1)
-            return self._failed_solution("Injected_Failure", 0, sensitivities)
+            return self.solver.failed("Injected_Failure", 0, sensitivities)
         return original(self, x, theta, sensitivities)
 
     monkeypatch.setattr(ParametricMPC, "solve", flaky)

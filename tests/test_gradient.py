@@ -22,7 +22,8 @@ import pytest
 from cstr_reference import fd_sensitivities
 
 from mpcmobo.experiment.loop import LearningRun
-from mpcmobo.experiment.settings import MPCSettings, load_settings
+from mpcmobo.experiment.sections import MPCSettings
+from mpcmobo.experiment.settings import load_settings
 from mpcmobo.learners.base import EpisodeResult, Learner
 from mpcmobo.mpc import ParametricMPC, rollout
 from mpcmobo.rl import CompatibleCritic

@@ -22,8 +22,8 @@ from mpcmobo.identify import Identification, ModelFit, Transitions, identify, pr
 from mpcmobo.learners import EpisodeResult, Replay, Starts
 from mpcmobo.learners.confidence import adjusted_confidence
 from mpcmobo.learners.evidence import theta_key
-from mpcmobo.learners.identified import REFIT_GROWTH, ModelSwitch
 from mpcmobo.learners.options import EvidenceDeploy
+from mpcmobo.learners.switch import REFIT_GROWTH, ModelSwitch
 from mpcmobo.mpc import PlantDiverged, rollout
 from mpcmobo.systems import get_system
 from mpcmobo.systems.plant import SystemPlant
@@ -220,7 +220,7 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
     from; after a drop, once no new candidate has come for a verification's worth of episodes
     (a cycle of 3 here); or after MAX_DECISIONS decisions once a model is deployed, never on
     drops alone while candidates come."""
-    from mpcmobo.learners.identified import MAX_DECISIONS
+    from mpcmobo.learners.switch import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
     for _ in range(5):
@@ -267,7 +267,7 @@ def test_a_deployment_settles_the_switch_unless_the_fit_has_moved_on(cstr):
     """The decision that deploys a candidate looks at the fit at once: if it has moved more
     than MOVED standard deviations from the deployed model, a new candidate runs and the
     switch is not settled; if not, the switch has settled."""
-    from mpcmobo.learners.identified import MOVED
+    from mpcmobo.learners.switch import MOVED
 
     for shift, settles in ((0.5 * MOVED * 0.01, True), (2 * MOVED * 0.01, False)):
         sw, theta0 = _switch(cstr, [])
@@ -375,7 +375,7 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     """A candidate offered on the deployed model (the twin's) keeps the switch unsettled,
     even after MAX_DECISIONS decisions, and a moving fit does not replace it; once decided,
     the switch has settled. Offering needs a deployed identified model."""
-    from mpcmobo.learners.identified import MAX_DECISIONS
+    from mpcmobo.learners.switch import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
     with pytest.raises(ValueError, match="deployed identified model"):
@@ -528,16 +528,23 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
             return MPCRL(space, th)
 
         learner = IdentifyFirst(
-            make, space, theta0, starts=Starts("cycle", 3), model_fit=ModelFit(lq)
+            make,
+            space,
+            theta0,
+            name="mpc-rl",
+            starts=Starts("cycle", 3),
+            model_fit=ModelFit(lq),
+            deploy=EvidenceDeploy(),
         )
-        built.clear()  # the name is read from a learner built at construction
+        assert not built  # the inner learner is built once, when the switch has settled
         if service is not None:
             learner.use_start_costs(service)
         sw = learner.switch_
         sw.deployed_params_ = np.asarray(lq.true_params, float)
         sw.decisions_ = 1  # a deployed model the fit has not left: settled
         assert sw.settled()
-        inner = learner._tuning()
+        learner._advance()
+        inner = learner.inner_
         if service is None:
             assert inner is not None and learner.twin_ is None and len(built) == 1
             continue
@@ -546,7 +553,8 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
         assert theta_key(sw.candidate_) == theta_key(learner.twin_.theta)
         assert sw.policy.twin is not None  # the offered candidate is judged by the twin
         sw._decided()  # the plant's evidence decides the twin's theta
-        inner = learner._tuning()
+        learner._advance()
+        inner = learner.inner_
         assert inner is not None and len(built) == 1
         assert inner.blocks_.twin is not None
         np.testing.assert_array_equal(inner.blocks_.twin.params, sw.deployed_params_)
@@ -598,8 +606,8 @@ def test_the_twin_of_the_right_model_predicts_a_plant_episode_exactly_by_replayi
     MPC's) in the closed loop on the model from its start: with the true model that is the
     plant's episode itself, where the noise-free closed loop from the same start is off by
     the exploration's share of the cost."""
+    from mpcmobo.experiment.build import build_system
     from mpcmobo.experiment.job import _learning_run
-    from mpcmobo.experiment.settings import build_system
     from mpcmobo.learners.twin import Twin
     from mpcmobo.rl.objectives import mean_stage_cost
 

@@ -1,11 +1,14 @@
 """The parametric MPC: sensitivities vs finite differences, closed loop, fallback, errors."""
 
+import copy
+
 import numpy as np
 import pytest
 import scipy.sparse.linalg
 from cstr_reference import assert_warm_sensitivities_match_fd, fd_sensitivities
 
 from mpcmobo.mpc import ParametricMPC, rollout
+from mpcmobo.mpc.interior import Continuation
 from mpcmobo.rl import GaussianExploration
 
 
@@ -76,7 +79,7 @@ def test_solution_fields_and_shapes(cstr, cstr_mpc):
     assert cstr_mpc.theta_names[0] == "theta_c" and cstr_mpc.theta0.shape == (14,)
 
 
-def test_fallback_on_forced_solver_failure(cstr):
+def test_fallback_on_forced_solver_failure(cstr, monkeypatch):
     mpc = ParametricMPC(cstr, solver_options={"max_iter": 1}, warm_start=False)
     sol = mpc.solve(np.array([100.0, 0.2, 420.0]), mpc.theta0)
     assert not sol.success and sol.fallback
@@ -87,8 +90,9 @@ def test_fallback_on_forced_solver_failure(cstr):
     good = ParametricMPC(cstr)
     x = np.array([100.0, 0.2, 420.0])
     first = good.solve(x, good.theta0)
-    good._run_solver = lambda *a, **k: (False, "forced", 0, None, None)
-    good._newton_solve = lambda p: None  # the Newton steps fail too
+    monkeypatch.setattr(good.solver, "ipopt", lambda *a, **k: (False, "forced", 0, None, None))
+    monkeypatch.setattr(good.solver, "newton", lambda p: None)  # the Newton steps fail too
+    monkeypatch.setattr(good.solver, "interior_point", lambda p: None)  # and the continuation
     failed = good.solve(x, good.theta0)
     assert not failed.success
     np.testing.assert_allclose(failed.action, first.plan_u[1])
@@ -127,13 +131,14 @@ def _splu_sensitivities(mpc, x, theta):
     """dpi/dtheta, dV/dtheta by SciPy's sparse LU on the forward KKT system (eq. nabla_pi):
     dy/dtheta = -(dR/dy)^-1 dR/dtheta, one factorisation, n_theta right-hand sides."""
     p = np.concatenate([x, theta])
-    ok, _, _, out, w = mpc._run_solver(x, p, False)
+    ok, _, _, out, w = mpc.solver.ipopt(x, p, False)
     assert ok
     lam_g, lam_x = np.asarray(out["lam_g"]).ravel(), np.asarray(out["lam_x"]).ravel()
-    Jy, Jth, dfdth, dfdw = mpc._kkt(w, *mpc._multipliers(w, lam_g, lam_x), p)
-    dw = scipy.sparse.linalg.splu(Jy.sparse()).solve(-Jth.full())[: mpc.nw]
-    dpi = (mpc.Su[:, None] * dw[mpc._iu[0]]).T
-    dV = mpc.cost_scale * (dfdth.full().ravel() + dfdw.full().ravel() @ dw)
+    pr = mpc.problem
+    Jy, Jth, dfdth, dfdw = mpc.kkt.kkt(w, *mpc.kkt.multipliers(w, lam_g, lam_x), p)
+    dw = scipy.sparse.linalg.splu(Jy.sparse()).solve(-Jth.full())[: pr.nw]
+    dpi = (pr.Su[:, None] * dw[pr.iu[0]]).T
+    dV = pr.cost_scale * (dfdth.full().ravel() + dfdw.full().ravel() @ dw)
     return dpi, dV
 
 
@@ -158,11 +163,11 @@ def test_warm_start_shifts_primal_and_dual(cstr):
     mpc = ParametricMPC(cstr)
     x = np.array([100.0, 0.2, 420.0])
     first = mpc.solve(x, mpc.theta0, False)
-    prev = mpc._prev
+    prev, pr = mpc.solver.prev, mpc.problem
     np.testing.assert_allclose(
-        mpc.system.u_ref + mpc.Su * prev["w_shift"][mpc._iu[0]], first.plan_u[1]
+        mpc.system.u_ref + pr.Su * prev["w_shift"][pr.iu[0]], first.plan_u[1]
     )
-    assert prev["lam_g"].shape == (mpc.neq + mpc.nin,) and prev["lam_x"].shape == (mpc.nw,)
+    assert prev["lam_g"].shape == (pr.neq + pr.nin,) and prev["lam_x"].shape == (pr.nw,)
     second = mpc.solve(cstr.plant_step(x, first.action), mpc.theta0)
     assert second.success and second.iterations < 12
 
@@ -216,6 +221,40 @@ def test_newton_sensitivities_match_central_differences(cstr):
 def test_newton_steps_must_be_a_count(cstr):
     with pytest.raises(ValueError, match="newton_steps must be an integer >= 0, got -1"):
         ParametricMPC(cstr, newton_steps=-1)
+    with pytest.raises(ValueError, match="continuation_steps must be an integer >= 0, got 1.5"):
+        ParametricMPC(cstr, continuation_steps=1.5)
+
+
+def _continuation_state(cstr, mpc, theta):
+    """A closed-loop state of ``mpc`` whose warm solve takes the continuation, with the warm
+    start it takes it from (the shifted plan of the solve before)."""
+    x = cstr.sample_initial_state(np.random.default_rng(0))
+    for _ in range(10):
+        prev = copy.deepcopy(mpc.solver.prev)
+        sol = mpc.solve(x, theta, False)
+        if sol.status == "Continuation_Succeeded":
+            return x, prev
+        x = cstr.plant_step(x, sol.action)
+    raise AssertionError("no step took the continuation")
+
+
+def test_continuation_reaches_the_root_ipopt_stops_at(cstr, monkeypatch):
+    # where the Newton steps cannot start (the new state violates the shifted plan), the
+    # continuation solves: the same policy, value and sensitivities as IPOPT from that start
+    mpc, ipopt = ParametricMPC(cstr, continuation_steps=30), ParametricMPC(cstr)
+    x, prev = _continuation_state(cstr, mpc, mpc.theta0)
+    mpc.solver.prev, ipopt.solver.prev = copy.deepcopy(prev), copy.deepcopy(prev)
+    a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
+    assert a.status == "Continuation_Succeeded" and b.status == "Solve_Succeeded"
+    np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a.value, b.value, rtol=1e-7)
+    assert np.all(np.abs(a.dpi_dtheta - b.dpi_dtheta) <= 1e-4 * np.abs(b.dpi_dtheta).max(axis=0))
+    mpc.solver.prev = prev
+    assert_warm_sensitivities_match_fd(mpc, x, mpc.theta0, "Continuation_Succeeded")
+    # a continuation that does not get there hands over to IPOPT
+    mpc.solver.prev = copy.deepcopy(prev)
+    monkeypatch.setattr(mpc.solver, "interior", Continuation(max_steps=1))
+    assert mpc.solve(x, mpc.theta0).status == "Solve_Succeeded"
 
 
 def test_numpy_call_gives_the_function_outputs_bit_for_bit():

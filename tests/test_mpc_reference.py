@@ -18,7 +18,7 @@ import pytest
 import scipy.linalg
 from cstr_reference import hand_rk4
 
-from mpcmobo.experiment.settings import MPCSettings
+from mpcmobo.experiment.sections import MPCSettings
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import System, get_system
 from mpcmobo.systems.parameterization import MPCSpec
@@ -101,7 +101,7 @@ def test_value_is_the_papers_cost_of_the_returned_plan(cstr, study_mpc, x0):
     assert sol.success and sol.slack > 0.1  # a slack is active
     mpc = study_mpc
     cost = _paper_cost(
-        cstr, mpc.N, mpc.gamma, mpc.Gamma, mpc.Gamma_f, th, sol.plan_x, sol.plan_u
+        cstr, mpc.N, mpc.gamma, mpc.problem.Gamma, mpc.problem.Gamma_f, th, sol.plan_x, sol.plan_u
     ) - _constant_of_G(cstr, mpc.N, th)
     # The cost above prices the slacks at the plan's violations. The solver stops at the
     # barrier parameter tau, where every slack stays slightly positive: its slacks exceed the
@@ -112,7 +112,10 @@ def test_value_is_the_papers_cost_of_the_returned_plan(cstr, study_mpc, x0):
     assert 0 <= excess < 1e-4 * max(1.0, viol)
     gap = sol.value - cost
     eps = 1e-9 * abs(sol.value)
-    assert -eps <= gap <= max(mpc.Gamma.max(), mpc.Gamma_f.max()) * excess + eps, (gap, excess)
+    assert -eps <= gap <= max(mpc.problem.Gamma.max(), mpc.problem.Gamma_f.max()) * excess + eps, (
+        gap,
+        excess,
+    )
     # and the plan starts at the measured state
     np.testing.assert_array_equal(sol.plan_x[0], x)
 
@@ -232,7 +235,7 @@ def test_mpc_policy_is_the_discounted_lqr_gain():
     # V(0) is the slacks' barrier cost alone (every slack sits near tau, priced by Gamma)
     mpc.reset()
     V0 = mpc.solve(np.zeros(2), th).value
-    assert 0 < V0 < mpc.Gamma.max() * mpc.solve(np.zeros(2), th).slack
+    assert 0 < V0 < mpc.problem.Gamma.max() * mpc.solve(np.zeros(2), th).slack
     rng = np.random.default_rng(0)
     mpc.reset()
     x = rng.uniform(-1, 1, 2)

@@ -138,7 +138,7 @@ def test_a_clearly_better_block_is_deployed_and_a_worse_one_is_not(lq, cycled):
     assert lr.blocks_.conf_[0] < 0.5 and lr.blocks_.deployed_ == 0
     lr = _run_blocks(_learner(lq, starts), [BASE, better], ids)
     assert lr.blocks_.conf_[0] >= 0.9 and lr.blocks_.deployed_ == 1
-    np.testing.assert_array_equal(lr.incumbent(), lr.theta_of(lr.blocks_.Z_[1]))
+    np.testing.assert_array_equal(lr.incumbent(), lr.theta_of(lr.blocks_.candidates_[1]))
     assert not np.array_equal(lr.incumbent(), theta0)
 
 
@@ -179,7 +179,7 @@ def test_a_failed_episode_rules_the_candidate_out(lq):
         f = np.nan if k == 2 else 0.1
         lr.observe(lr.propose(), _result(f, k, ok=k != 2))
     assert lr.blocks_.conf_[0] == 0.0
-    assert np.isinf(lr.blocks_.F_[B + 2])  # a failed episode costs inf
+    assert np.isinf(lr.blocks_.evidence_.Y[:, 0][B + 2])  # a failed episode costs inf
     np.testing.assert_array_equal(lr.incumbent(), theta0)
 
 
@@ -216,7 +216,7 @@ def test_the_block_cost_is_the_stage_cost_else_f1():
     blocks.observe(z, _result(2.0, stage_cost=3.0), None)
     blocks.observe(z, _result(2.0), None)
     blocks.observe(z, _result(np.nan), None)
-    np.testing.assert_array_equal(blocks.F_, [3.0, 2.0, np.inf])
+    np.testing.assert_array_equal(blocks.evidence_.Y[:, 0], [3.0, 2.0, np.inf])
 
 
 def _lq_space():
@@ -328,13 +328,13 @@ def test_a_promising_candidate_is_extended_only_where_reruns_bring_new_starts(lq
             assert blocks.deployed_ == 0
             continue
         assert len(blocks.conf_) == 0 and blocks.target_ == 2 * B
-        z = blocks.Z_[-1].copy()
+        z = blocks.candidates_[-1].copy()
         for k in range(B):  # the same candidate, noise-free
             np.testing.assert_array_equal(blocks.candidate(lr.z_), z)
             assert not lr.explores()
             lr.observe(lr.propose(), _result(cand[k], -1))
         assert not blocks.is_open() and len(blocks.conf_) == 1  # decided after 2 B
-        assert np.count_nonzero(blocks.id_ == 1) == 2 * B
+        assert len(blocks.evidence_.group(1)) == 2 * B
 
 
 def test_a_confidently_worse_candidate_sends_the_iterate_back(lq):
@@ -347,7 +347,7 @@ def test_a_confidently_worse_candidate_sends_the_iterate_back(lq):
         lr.observe(lr.propose(), _result(BASE[k] * 1.5, k))  # worse from every start
     b = lr.blocks_
     assert b.conf_[0] < 0.1 and b.deployed_ == 0
-    np.testing.assert_array_equal(lr.z_, b.Z_[b.deployed_])  # back at the deployed theta
+    np.testing.assert_array_equal(lr.z_, b.candidates_[b.deployed_])  # back at the deployed theta
     assert lr.rule.t == t + 1  # the block's own step; the rule keeps its state
 
 
@@ -361,7 +361,7 @@ def test_a_block_worse_but_not_confidently_leaves_the_iterate(lq):
         lr.observe(lr.propose(), _result(BASE[k] * 1.02 + noise[k], k))
     conf = lr.blocks_.conf_[0]
     assert 0.1 < conf < 0.5
-    assert not np.array_equal(lr.z_, lr.blocks_.Z_[0])  # it keeps walking
+    assert not np.array_equal(lr.z_, lr.blocks_.candidates_[0])  # it keeps walking
 
 
 def test_the_loop_runs_a_noise_free_episode_on_the_same_random_stream(lq):
@@ -377,11 +377,14 @@ def test_the_loop_runs_a_noise_free_episode_on_the_same_random_stream(lq):
     mpc = ParametricMPC(lq)
     theta0 = lq.parameterization.theta0
 
-    class Quiet:  # explores from the second episode on; records what it observed
+    from mpcmobo.learners import Learner
+
+    class Quiet(Learner):  # explores from the second episode on; records what it observed
         name = "quiet"
 
         def __init__(self, quiet_first: bool):
-            self.space, self.n, self.quiet_first, self.results = lq.search_space, 0, quiet_first, []
+            super().__init__(lq.search_space, theta0)
+            self.n, self.quiet_first, self.results = 0, quiet_first, []
 
         def propose(self):
             return theta0.copy()

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mpcmobo.experiment.build import build_system
 from mpcmobo.experiment.job import make_study_learner
-from mpcmobo.experiment.settings import build_system, load_settings
+from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import check_learners
 from mpcmobo.learners.base import EpisodeResult
 from mpcmobo.learners.deploy import Incumbent

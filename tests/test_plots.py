@@ -18,10 +18,11 @@ from matplotlib.image import imread
 from typer.testing import CliRunner
 
 from mpcmobo.cli import app
+from mpcmobo.experiment.build import build_system
 from mpcmobo.experiment.evaluation import Evaluator, make_evaluator
 from mpcmobo.experiment.job import _learning_run
 from mpcmobo.experiment.rundir import RunDirectory
-from mpcmobo.experiment.settings import build_system, load_settings
+from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 from mpcmobo.experiment.training_reference import training_references
 from mpcmobo.mpc import ParametricMPC, rollout

@@ -3,34 +3,29 @@
 * No numbered references to past work (a work session, an issue or a pull request named by its
   number) in the code, the tests, the benchmarks or the documentation: each text says what is,
   in the present tense.
-* The package stays readable in small pieces: no module over 600 lines, no class over 400, no
-  function over 60, no module docstring over 30.
 * Each learner has few user options (at most 8 for ``bo`` and ``mpc-rl``, 12 for ``mobo`` and
   ``hybrid``), and every one, nested tables included, is documented: ``mpcmobo run --help`` and
   the configuration reference are generated from those descriptions.
-* README.md and docs/benchmarks.md stay short enough to read, and docs/configuration.md is the
-  generated reference itself.
+* The README's test command is what CI runs, and docs/configuration.md is the generated
+  reference itself.
+
+The size of the code is held by ruff's complexity rules (``C901``, ``PLR0911``-``PLR0915``, their
+thresholds in pyproject.toml), not here; documents are as long as their content needs.
 
 Each check lists what breaks it, so that a failure says where to look.
 """
 
 from __future__ import annotations
 
-import ast
 import re
 from pathlib import Path
 
-import pytest
 from pydantic import BaseModel, ConfigDict
 
-import mpcmobo
 from mpcmobo.experiment.options_doc import _models, configuration_reference
 from mpcmobo.learners.registry import LEARNER_SPECS, option_fields
 
 ROOT = Path(__file__).parents[1]
-PACKAGE = Path(
-    mpcmobo.__file__
-).parent  # the source under test (src/mpcmobo of an editable install)
 NUMBERED = re.compile(r"[Ss]ession [0-9]|[Ii]ssue [0-9]|#[0-9]{2}")
 SEARCHED = ["src", "tests", "benchmarks", "docs", "README.md", "CONTRIBUTING.md"]
 SKIPPED_SUFFIXES = {".png", ".pdf"}
@@ -115,74 +110,6 @@ def test_no_numbered_references_to_past_work():
     )
 
 
-# ---------------------------------------------------------------------- size limits
-MAX_FILE, MAX_CLASS, MAX_FUNCTION, MAX_DOCSTRING = 600, 400, 60, 30
-
-
-def size_offenders(package: Path) -> list[str]:
-    """Every module, class, function (methods and nested functions included) and module
-    docstring of ``package`` over its limit, as ``path[:line] name: N lines (limit M)``."""
-    out = []
-    for path in sorted(package.rglob("*.py")):
-        rel = path.relative_to(package.parent)
-        text = path.read_text(encoding="utf-8")
-        n = len(text.splitlines())
-        if n > MAX_FILE:
-            out.append(f"{rel}: {n} lines (limit {MAX_FILE})")
-        tree = ast.parse(text, filename=str(path))
-        first = tree.body[0] if tree.body else None
-        if (
-            isinstance(first, ast.Expr)
-            and isinstance(first.value, ast.Constant)
-            and isinstance(first.value.value, str)
-        ):
-            n = first.end_lineno - first.lineno + 1
-            if n > MAX_DOCSTRING:
-                out.append(f"{rel}: module docstring of {n} lines (limit {MAX_DOCSTRING})")
-        for node in ast.walk(tree):
-            if isinstance(node, ast.ClassDef):
-                kind, limit = "class", MAX_CLASS
-            elif isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                kind, limit = "function", MAX_FUNCTION
-            else:
-                continue
-            n = node.end_lineno - node.lineno + 1
-            if n > limit:
-                out.append(f"{rel}:{node.lineno} {kind} {node.name}: {n} lines (limit {limit})")
-    return out
-
-
-def test_the_size_check_finds_each_kind_of_offender(tmp_path):
-    pkg = tmp_path / "pkg"
-    pkg.mkdir()
-    body = "\n".join(f"        x{i} = {i}" for i in range(MAX_FUNCTION))  # def + 60 lines: 61
-    doc = '"""' + "\n" * MAX_DOCSTRING + '"""\n'  # 31 lines
-    (pkg / "small.py").write_text('"""Fine."""\n\n\ndef f():\n    return 1\n')
-    (pkg / "big.py").write_text(doc + f"\n\nclass C:\n    def long(self):\n{body}\n")
-    line = (pkg / "big.py").read_text().splitlines().index("    def long(self):") + 1
-    (pkg / "huge.py").write_text("x = 1\n" * (MAX_FILE + 1))
-    found = size_offenders(pkg)
-    assert found == [
-        f"pkg/big.py: module docstring of {MAX_DOCSTRING + 1} lines (limit {MAX_DOCSTRING})",
-        f"pkg/big.py:{line} function long: 61 lines (limit {MAX_FUNCTION})",
-        f"pkg/huge.py: {MAX_FILE + 1} lines (limit {MAX_FILE})",
-    ]
-    # a class over its limit, at its limit not
-    methods = "\n".join(f"    def m{i}(self):\n        return {i}\n" for i in range(134))
-    (pkg / "big.py").write_text(f"class D:\n{methods}")
-    n = len((pkg / "big.py").read_text().splitlines())
-    assert n > MAX_CLASS
-    assert size_offenders(pkg) == [
-        f"pkg/big.py:1 class D: {n} lines (limit {MAX_CLASS})",
-        f"pkg/huge.py: {MAX_FILE + 1} lines (limit {MAX_FILE})",
-    ]
-
-
-def test_no_module_class_function_or_docstring_over_its_size_limit():
-    offenders = size_offenders(PACKAGE)
-    assert not offenders, "over the size limits:\n" + "\n".join(offenders)
-
-
 # ---------------------------------------------------------------------- learner options
 MAX_OPTIONS = {"mpc-rl": 8, "bo": 8, "mobo": 12, "hybrid": 12, "identify": 8}
 
@@ -249,16 +176,6 @@ def test_the_documentation_check_looks_into_nested_tables():
 
 
 # ---------------------------------------------------------------------- documents
-@pytest.mark.parametrize(
-    "name, limit, unit",
-    [("README.md", 12_000, "bytes"), ("docs/benchmarks.md", 800, "lines")],
-)
-def test_the_documents_stay_short(name, limit, unit):
-    path = ROOT / name
-    size = len(path.read_bytes()) if unit == "bytes" else len(path.read_text().splitlines())
-    assert size <= limit, f"{name}: {size} {unit} (limit {limit})"
-
-
 def test_ci_runs_the_readme_test_command():
     """The README's two set-up commands are its only ``bash`` blocks that start with ``python3 -m
     venv``; the one that runs pytest is what ``.ci/run`` runs, verbatim."""

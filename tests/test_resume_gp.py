@@ -68,12 +68,12 @@ def test_gp_learners_resume_past_a_refit_with_identical_records(uninterrupted, t
     pd.testing.assert_frame_equal(
         storage.read_trajectories(uninterrupted), storage.read_trajectories(out)
     )
-    # past the refit threshold: before the last fit (24 observations) the GP had reused its
-    # hyperparameters once since the refit at 22
+    # past the refit threshold: the last fit (24 observations) reused the hyperparameters, the
+    # second time since the refit at 22; the state holds the GP after it, loaded without a fit
     for learner in ("mobo", "hybrid"):
         state = storage.load_checkpoint(out, learner, 0)["state"]["learner"]
         assert len(state["evidence"]["Z"]) == EPISODES
         assert "baseline" in state["evidence"]["kinds"]  # the policy's episodes are resumed
-        surrogate = state["pre_fit"]["surrogate"]
+        surrogate = state["surrogate"]
         assert surrogate["min_refit_n"] == 20
-        assert surrogate["calls_since_refit"] == 1
+        assert surrogate["calls_since_refit"] == 2 and not surrogate["last_fit_was_full"]

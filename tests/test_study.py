@@ -225,7 +225,7 @@ def test_refuses_to_overwrite_and_checks_learners(full_run, tmp_path, monkeypatc
 def test_orphaned_worker_stops_after_its_checkpoint(tmp_path):
     """A worker whose study process is gone (parent pid changed) stops after one episode's
     checkpoint; resuming then completes the job as usual."""
-    from mpcmobo.experiment.study import run_job
+    from mpcmobo.experiment.job import run_job
 
     s = small(seeds=[0])
     out = tmp_path / "orphan"
@@ -302,7 +302,7 @@ def test_summary_counts_the_deployed_thetas_worst_evaluation_and_regressions():
     last), the evaluations above J_eval(theta0) and the mean violation; per learner the worst
     seed's final, the worst deployed J_eval of any seed and the regressions summed."""
     from mpcmobo.experiment.records import Reference
-    from mpcmobo.experiment.study import summarize
+    from mpcmobo.experiment.summary import summarize
 
     settings = small(episodes=4, seeds=[0, 1])
     ref = Reference(

@@ -30,7 +30,8 @@ def test_from_a_run_it_tunes_identifys_theta_on_the_plant(tmp_path, benchmark_sc
     import pandas as pd
     import pytest
 
-    from mpcmobo.experiment.settings import build_system, identified_parameters, load_settings
+    from mpcmobo.experiment.build import build_system, identified_parameters
+    from mpcmobo.experiment.settings import load_settings
     from mpcmobo.identify import ModelFit
     from mpcmobo.mpc import ParametricMPC
 

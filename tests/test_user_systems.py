@@ -319,7 +319,7 @@ def test_a_plant_that_ignores_its_start_is_refused_before_anything_is_written(fi
 
 def test_an_unknown_plant_is_a_settings_error(files):
     settings = load_settings(None, system={"name": "lq", "plant": "mpcmobo/Nope-v0"})
-    from mpcmobo.experiment.settings import build_plant, build_system
+    from mpcmobo.experiment.build import build_plant, build_system
 
     with pytest.raises(SettingsError, match="system.plant: plant 'mpcmobo/Nope-v0'"):
         build_plant(settings, build_system(settings))

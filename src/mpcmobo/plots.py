@@ -53,8 +53,16 @@ def _band(df: pd.DataFrame, col: str) -> pd.DataFrame:
     return pd.DataFrame({"med": g.median(), "q1": g.quantile(0.25), "q3": g.quantile(0.75)})
 
 
-def _curve(ax: Axes, df: pd.DataFrame, col: str, color: str, label: str, n_seeds: int,
-           band: bool = True, **kw: Any) -> None:  # fmt: skip
+def _curve(
+    ax: Axes,
+    df: pd.DataFrame,
+    col: str,
+    color: str,
+    label: str,
+    n_seeds: int,
+    band: bool = True,
+    **kw: Any,
+) -> None:
     """The median over seeds of ``col`` per episode, and with several seeds its interquartile
     band (unless ``band`` is False)."""
     b = _band(df, col).dropna(subset=["med"])
@@ -138,70 +146,127 @@ def _log_if_positive(ax: Axes, values: Any) -> None:
 
 
 def _note(ax: Axes, text: str) -> None:
-    ax.text(0.5, 0.04, text, transform=ax.transAxes, ha="center", va="bottom", fontsize=8,
-            color="tab:blue", bbox={"facecolor": "white", "edgecolor": "tab:blue"})  # fmt: skip
+    ax.text(
+        0.5,
+        0.04,
+        text,
+        transform=ax.transAxes,
+        ha="center",
+        va="bottom",
+        fontsize=8,
+        color="tab:blue",
+        bbox={"facecolor": "white", "edgecolor": "tab:blue"},
+    )
 
 
 def fig1(ep: pd.DataFrame, summary: dict, learners: list[str]) -> Figure:
     """Fig. 1, like with like: per learner, the training curve J~ against J~* (left) and
     J_eval of the deployed theta against J* (right); each pair is computed the same way."""
     n = len(learners)
-    K = reference_window(summary)
     fig = Figure(figsize=(12, 2.7 * n + 0.4), layout="constrained")
     axes = fig.subplots(n, 2, sharex=True, squeeze=False)
-    J_star, Jt_star = summary.get("J_star"), summary.get("J_tilde_star")
-    per_seed = [v for v in (summary.get("J_tilde_star_per_seed") or {}).values() if v is not None]
-    n_eval = summary.get("settings", {}).get("evaluation", {}).get("n_starts")
     for (ax, ax_eval), name in zip(axes, learners):
         d = ep[ep.learner == name]
-        ns = d.seed.nunique()
-        c, label = COLORS.get(name, "tab:orange"), LABELS.get(name, name)
-        each = "per episode" + (" (median)" if ns > 1 else "")
-        _curve(ax, d, "J_tilde", c, each, ns, band=False, lw=0.6, alpha=0.4)
-        m = moving_mean(d, "J_tilde", K)
-        none = "" if m["J_tilde_mean"].notna().any() else ": none yet"
-        _curve(ax, m, "J_tilde_mean", c,
-               f"{label}: mean of {K} episodes ({seeds_note(ns)}){none}", ns, lw=1.6)  # fmt: skip
-        if Jt_star is not None:
-            ax.axhline(Jt_star, color="tab:blue", ls="--", lw=1.2,
-                       label=r"$\tilde J^\star$: perfect-model MPC, same starts and noise"
-                       + (f" (median of {len(per_seed)} seeds)" if len(per_seed) > 1 else ""))  # fmt: skip
-            if len(per_seed) > 1:
-                q1, q3 = np.quantile(per_seed, [0.25, 0.75])
-                ax.axhspan(q1, q3, color="tab:blue", alpha=0.12, lw=0)
-        else:
-            _note(ax, "no like-for-like reference in this run")
-        _log_if_positive(ax, np.r_[d["J_tilde"].to_numpy(float), per_seed])
-        ax.set_ylabel(rf"{label}: $\tilde J$")
-        ax.legend(loc="best", fontsize=7, framealpha=0.85)
-        e = deployed_J_eval(d)
-        _curve(ax_eval, e, "J_eval_deployed", c,
-               rf"{label}: $J_{{eval}}$ of the deployed $\theta$ ({seeds_note(ns)})", ns,
-               lw=1.6, drawstyle="steps-post")  # fmt: skip
-        if ns == 1:  # the evaluated episodes
-            ev = e[np.isfinite(e["J_eval_incumbent"])]
-            ax_eval.plot(ev.episode, ev.J_eval_incumbent, ls="none", marker=".", ms=4, color=c)
-        if J_star is not None:
-            ax_eval.axhline(J_star, color="tab:blue", ls="--", lw=1.2,
-                            label=r"$J^\star$: perfect-model MPC, same starts")  # fmt: skip
-        elif summary.get("J_initial") is not None:  # no reference model: against theta0
-            ax_eval.axhline(summary["J_initial"], color="tab:green", ls=":", lw=1.2,
-                            label=r"$J(\theta_0)$ (no $J^\star$ in this run)")  # fmt: skip
-        else:
-            _note(ax_eval, "no J* in this run")
-        _log_if_positive(ax_eval, np.r_[e["J_eval_deployed"].to_numpy(float), J_star or np.nan])
-        ax_eval.set_ylabel(rf"{label}: $J_{{eval}}$")
-        ax_eval.legend(loc="best", fontsize=7, framealpha=0.85)
+        _training_panel(ax, d, name, summary)
+        _evaluation_panel(ax_eval, d, name, summary)
+    n_eval = summary.get("settings", {}).get("evaluation", {}).get("n_starts")
     starts = f"{n_eval} fixed evaluation starts" if n_eval else "fixed evaluation starts"
-    axes[0, 0].set_title(r"training: $\tilde J$ = f1 (discounted, with exploration, "
-                         "training starts)", fontsize=9)  # fmt: skip
-    axes[0, 1].set_title(rf"evaluation: $J_{{eval}}$ (undiscounted, no exploration, {starts})",
-                         fontsize=9)  # fmt: skip
+    axes[0, 0].set_title(
+        r"training: $\tilde J$ = f1 (discounted, with exploration, "
+        "training starts)",
+        fontsize=9,
+    )
+    axes[0, 1].set_title(
+        rf"evaluation: $J_{{eval}}$ (undiscounted, no exploration, {starts})", fontsize=9
+    )
     for ax in axes[-1]:
         ax.set_xlabel("episode")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     fig.suptitle("Closed-loop performance per episode, each curve against its own reference")
     return fig
+
+
+def _training_panel(ax: Axes, d: pd.DataFrame, name: str, summary: dict) -> None:
+    """Fig. 1, left, for the learner ``name`` (its rows ``d``): J~ per episode and its moving
+    mean against J~*, the perfect-model MPC from the same starts with the same noise."""
+    K = reference_window(summary)
+    Jt_star = summary.get("J_tilde_star")
+    per_seed = [v for v in (summary.get("J_tilde_star_per_seed") or {}).values() if v is not None]
+    ns = d.seed.nunique()
+    c, label = COLORS.get(name, "tab:orange"), LABELS.get(name, name)
+    each = "per episode" + (" (median)" if ns > 1 else "")
+    _curve(ax, d, "J_tilde", c, each, ns, band=False, lw=0.6, alpha=0.4)
+    m = moving_mean(d, "J_tilde", K)
+    none = "" if m["J_tilde_mean"].notna().any() else ": none yet"
+    _curve(
+        ax,
+        m,
+        "J_tilde_mean",
+        c,
+        f"{label}: mean of {K} episodes ({seeds_note(ns)}){none}",
+        ns,
+        lw=1.6,
+    )
+    if Jt_star is not None:
+        ax.axhline(
+            Jt_star,
+            color="tab:blue",
+            ls="--",
+            lw=1.2,
+            label=r"$\tilde J^\star$: perfect-model MPC, same starts and noise"
+            + (f" (median of {len(per_seed)} seeds)" if len(per_seed) > 1 else ""),
+        )
+        if len(per_seed) > 1:
+            q1, q3 = np.quantile(per_seed, [0.25, 0.75])
+            ax.axhspan(q1, q3, color="tab:blue", alpha=0.12, lw=0)
+    else:
+        _note(ax, "no like-for-like reference in this run")
+    _log_if_positive(ax, np.r_[d["J_tilde"].to_numpy(float), per_seed])
+    ax.set_ylabel(rf"{label}: $\tilde J$")
+    ax.legend(loc="best", fontsize=7, framealpha=0.85)
+
+
+def _evaluation_panel(ax_eval: Axes, d: pd.DataFrame, name: str, summary: dict) -> None:
+    """Fig. 1, right, for the learner ``name`` (its rows ``d``): J_eval of the deployed theta
+    against J* (or, without J*, against J_eval(theta0))."""
+    J_star = summary.get("J_star")
+    ns = d.seed.nunique()
+    c, label = COLORS.get(name, "tab:orange"), LABELS.get(name, name)
+    e = deployed_J_eval(d)
+    _curve(
+        ax_eval,
+        e,
+        "J_eval_deployed",
+        c,
+        rf"{label}: $J_{{eval}}$ of the deployed $\theta$ ({seeds_note(ns)})",
+        ns,
+        lw=1.6,
+        drawstyle="steps-post",
+    )
+    if ns == 1:  # the evaluated episodes
+        ev = e[np.isfinite(e["J_eval_incumbent"])]
+        ax_eval.plot(ev.episode, ev.J_eval_incumbent, ls="none", marker=".", ms=4, color=c)
+    if J_star is not None:
+        ax_eval.axhline(
+            J_star,
+            color="tab:blue",
+            ls="--",
+            lw=1.2,
+            label=r"$J^\star$: perfect-model MPC, same starts",
+        )
+    elif summary.get("J_initial") is not None:  # no reference model: against theta0
+        ax_eval.axhline(
+            summary["J_initial"],
+            color="tab:green",
+            ls=":",
+            lw=1.2,
+            label=r"$J(\theta_0)$ (no $J^\star$ in this run)",
+        )
+    else:
+        _note(ax_eval, "no J* in this run")
+    _log_if_positive(ax_eval, np.r_[e["J_eval_deployed"].to_numpy(float), J_star or np.nan])
+    ax_eval.set_ylabel(rf"{label}: $J_{{eval}}$")
+    ax_eval.legend(loc="best", fontsize=7, framealpha=0.85)
 
 
 def fig2(ep: pd.DataFrame, learners: list[str], window: int = 1) -> Figure:
@@ -226,8 +291,15 @@ def _advantage_panel(ax: Axes, ep: pd.DataFrame, learners: list[str], window: in
             _curve(ax, d, "mean_abs_A", c, f"{label}: {each}", ns, band=False, lw=0.6, alpha=0.4)
             m = moving_mean(d, "mean_abs_A", window)
             none = "" if m["mean_abs_A_mean"].notna().any() else ": none yet"
-            _curve(ax, m, "mean_abs_A_mean", c,
-                   f"{label}: mean of {window} episodes ({seeds_note(ns)}){none}", ns, lw=1.6)  # fmt: skip
+            _curve(
+                ax,
+                m,
+                "mean_abs_A_mean",
+                c,
+                f"{label}: mean of {window} episodes ({seeds_note(ns)}){none}",
+                ns,
+                lw=1.6,
+            )
         else:
             _curve(ax, d, "mean_abs_A", c, f"{label} ({seeds_note(ns)})", ns, lw=1)
     ax.set_xlabel("episode")
@@ -257,8 +329,14 @@ def _pareto_panel(fig: Figure, ax3: Axes3D, ep: pd.DataFrame, learners: list[str
                 Y[:, j], labels[j] = np.log10(Y[:, j]), f"log10 {c}"
             elif v.min() >= 0:
                 Y[:, j], labels[j] = np.log10(1.0 + Y[:, j]), f"log10(1+{c})"
-        sc = ax3.scatter(*Y[ok & ~mask].T, c=d["episode"].to_numpy()[ok & ~mask], cmap="Greys",
-                         s=8, alpha=0.7, label="observations")  # fmt: skip
+        sc = ax3.scatter(
+            *Y[ok & ~mask].T,
+            c=d["episode"].to_numpy()[ok & ~mask],
+            cmap="Greys",
+            s=8,
+            alpha=0.7,
+            label="observations",
+        )
         ax3.scatter(*Y[mask].T, marker="*", color="red", s=60, label="Pareto front")
         if (ok & ~mask).any():
             fig.colorbar(sc, ax=ax3, shrink=0.6, pad=0.1, label="episode")
@@ -364,35 +442,11 @@ def identified_figure(ep: pd.DataFrame, summary: dict, learners: list[str]) -> F
     if not who:
         return None
     names = list(dict.fromkeys(p for v in who.values() for p in v))
-    info = summary.get("system_info", {})
-    pnames = info.get("param_names", [])
-    nominal, true = info.get("nominal_params"), info.get("true_params")
     fig = Figure(figsize=(4.2 * min(3, len(names)), 2.8 * int(np.ceil(len(names) / 3))))
     axes = fig.subplots(int(np.ceil(len(names) / 3)), min(3, len(names)), squeeze=False)
     for k, name in enumerate(names):
         ax = axes.flat[k]
-        for learner, ids in who.items():
-            if name not in ids:
-                continue
-            d = ep[ep["learner"] == learner].copy()
-            j = ids.index(name)
-            d["value"] = [v[j] if v is not None and len(v) > j else np.nan for v in d["identified"]]
-            _curve(ax, d, "value", COLORS.get(learner, "k"), LABELS.get(learner, learner),
-                   d["seed"].nunique())  # fmt: skip
-        if name in pnames:
-            i = pnames.index(name)
-            if nominal is not None:
-                ax.axhline(nominal[i], color="grey", ls=":", lw=1, label="nominal model")
-            if true is not None:
-                ax.axhline(true[i], color="k", ls="--", lw=1, label="plant")
-        held = {
-            (b["bound"], b["value"])
-            for n in who
-            for b in summary["learners"][n].get("identified_at_bound") or []
-            if b["name"] == name
-        }
-        for side, value in sorted(held):  # a bound the fit ends on
-            ax.axhline(value, color="tab:red", ls="-.", lw=1, label=f"{side} bound (fit held)")
+        held = _parameter_panel(ax, ep, name, who, summary)
         if held and k:
             ax.legend(fontsize=7)
         ax.set_title(name, fontsize=9)
@@ -403,3 +457,38 @@ def identified_figure(ep: pd.DataFrame, summary: dict, learners: list[str]) -> F
     fig.suptitle("Model parameters identified from the plant's transitions")
     fig.tight_layout()
     return fig
+
+
+def _parameter_panel(
+    ax: Axes, ep: pd.DataFrame, name: str, who: dict[str, list[str]], summary: dict
+) -> bool:
+    """The panel of the model parameter ``name``: its identified value per learner that
+    identifies it (``who``: learner -> its identified parameters), the MPC's nominal value,
+    where known the plant's, and a bound of the identification that a final fit sits on
+    (returned: whether there is one)."""
+    for learner, ids in who.items():
+        if name not in ids:
+            continue
+        d = ep[ep["learner"] == learner].copy()
+        j = ids.index(name)
+        d["value"] = [v[j] if v is not None and len(v) > j else np.nan for v in d["identified"]]
+        color, label = COLORS.get(learner, "k"), LABELS.get(learner, learner)
+        _curve(ax, d, "value", color, label, d["seed"].nunique())
+    info = summary.get("system_info", {})
+    pnames = info.get("param_names", [])
+    nominal, true = info.get("nominal_params"), info.get("true_params")
+    if name in pnames:
+        i = pnames.index(name)
+        if nominal is not None:
+            ax.axhline(nominal[i], color="grey", ls=":", lw=1, label="nominal model")
+        if true is not None:
+            ax.axhline(true[i], color="k", ls="--", lw=1, label="plant")
+    held = {
+        (b["bound"], b["value"])
+        for n in who
+        for b in summary["learners"][n].get("identified_at_bound") or []
+        if b["name"] == name
+    }
+    for side, value in sorted(held):  # a bound the fit ends on
+        ax.axhline(value, color="tab:red", ls="-.", lw=1, label=f"{side} bound (fit held)")
+    return bool(held)

@@ -319,6 +319,23 @@ class GPSurrogate:
         self._fast = None
         return self
 
+    def restore(
+        self, X: np.ndarray, Y: np.ndarray, groups: np.ndarray | None, state: dict[str, Any]
+    ) -> GPSurrogate:
+        """The model of the last :meth:`fit` on ``(X, Y, groups)``, rebuilt from the
+        :meth:`state_dict` saved after it, without fitting: the same hyperparameters, group
+        offsets and data give the same posterior (what a loaded tuner answers with at once)."""
+        self.load_state_dict(state)
+        Xf, Yf, gf = self._finite_data(X, Y, groups)
+        self.train_X, self.train_Y = Xf.copy(), Yf.copy()
+        T = self.transform.fit(Yf).forward(Yf)
+        tX = torch.as_tensor(Xf, dtype=DTYPE)
+        tY = torch.as_tensor(T if gf is None else T - self.start_offsets(gf), dtype=DTYPE)
+        self.model = self._make_model(tX, tY)
+        self.model.eval()
+        self.last_fit_was_full = bool(state["last_fit_was_full"])
+        return self
+
     def _subsample(self, n: int) -> np.ndarray | None:
         """The seeded subset of ``fit_subsample`` rows a full fit uses, or None for all."""
         if self.fit_subsample is None or n <= self.fit_subsample:
@@ -430,7 +447,8 @@ class GPSurrogate:
     def state_dict(self) -> dict[str, Any]:
         """Plain-python/numpy, picklable state: settings, counters, hyperparameters.
 
-        Restoring it and calling ``fit`` on the same data rebuilds exactly the same model.
+        Restoring it and calling ``fit`` on the same data rebuilds exactly the same model;
+        taken after a fit, :meth:`restore` rebuilds that fit's model without fitting.
         """
         return {
             "version": 1,
@@ -447,6 +465,7 @@ class GPSurrogate:
             "group_outputs": list(self.group_outputs),
             "group_prior_std": self.group_prior_std,
             "group_offsets": {int(g): v.copy() for g, v in self.group_offsets.items()},
+            "last_fit_was_full": self.last_fit_was_full,
         }
 
     def load_state_dict(self, d: dict[str, Any]) -> None:

@@ -14,7 +14,7 @@ import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
@@ -27,6 +27,9 @@ from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError, read_run_file
 from mpcmobo.experiment.settings import DEFAULT_LEARNERS, Settings, SettingsError, load_settings
 from mpcmobo.learners.registry import LEARNER_SPECS
+
+if TYPE_CHECKING:
+    from mpcmobo.experiment.evaluation import Evaluator
 
 app: typer.Typer = typer.Typer(
     name="mpcmobo",
@@ -202,8 +205,13 @@ def run(
     seed_list = _parse_seeds(seeds, list(ctx.args))
     try:
         if resume:
-            fixed = {"--config": config, "--system": system, "--learner": learner or None,
-                     "--steps": steps, "--seeds": seed_list}  # fmt: skip
+            fixed = {
+                "--config": config,
+                "--system": system,
+                "--learner": learner or None,
+                "--steps": steps,
+                "--seeds": seed_list,
+            }
             settings = _resumed_settings(out, fixed, workers=workers, episodes=episodes)
         else:
             settings = load_settings(
@@ -402,7 +410,7 @@ def _summary_from_records(run_dir: RunDirectory) -> dict:
     episodes (as the study writes it)."""
     import pandas as pd
 
-    from mpcmobo.experiment.study import summarize
+    from mpcmobo.experiment.summary import summarize
     from mpcmobo.experiment.training_reference import training_summary
 
     try:
@@ -424,8 +432,8 @@ def evaluate(
     seed: int | None = typer.Option(None, help="seed of the initial states (default: the run's)"),
 ) -> None:
     """J_eval of the saved incumbents (last episode of every job), as a table."""
+    from mpcmobo.experiment.build import build_system
     from mpcmobo.experiment.evaluation import make_evaluator
-    from mpcmobo.experiment.settings import build_system
 
     run_dir = _require_run(directory)
     try:
@@ -446,10 +454,23 @@ def evaluate(
     try:
         evaluator = make_evaluator(settings, build_system(settings))
         # a job with identification has the identified parameters in theta: its own MPC
-        evaluators = {n: make_evaluator(settings, build_system(settings, n))
-                      for n in dict.fromkeys(learner for learner, *_ in incumbents)}  # fmt: skip
+        evaluators = {
+            n: make_evaluator(settings, build_system(settings, n))
+            for n in dict.fromkeys(learner for learner, *_ in incumbents)
+        }
     except SettingsError as err:
         _fail(str(err), 2)
+    console.print(_evaluation_table(settings, incumbents, evaluator, evaluators))
+
+
+def _evaluation_table(
+    settings: Settings,
+    incumbents: list[tuple[str, int, int, Any]],
+    evaluator: Evaluator,
+    evaluators: dict[str, Evaluator],
+) -> Table:
+    """J_eval of each job's incumbent (by the evaluator of its learner) and its gap to J* (by
+    ``evaluator``, the study's), or without J* its improvement over theta0."""
     J_star = evaluator.J_star()
     J0 = evaluator.J_eval(None)
     table = Table(title=f"{settings.system.name}: J* = {fmt(J_star)}, J(theta0) = {fmt(J0)}")
@@ -468,7 +489,7 @@ def evaluate(
         else:
             gap = f"{100 * (J0 - J) / abs(J0):.2f}"
         table.add_row(learner, str(s), str(episodes), fmt(J), gap)
-    console.print(table)
+    return table
 
 
 ADD_SYSTEM_HELP = (
@@ -481,8 +502,10 @@ ADD_SYSTEM_HELP = (
 )
 
 
-@app.command(help="List the systems that can be run: built-in, registered and plug-ins.\n\n"
-             + escape(ADD_SYSTEM_HELP))  # fmt: skip  # the help is Rich markup: keep [..]
+@app.command(
+    help="List the systems that can be run: built-in, registered and plug-ins.\n\n"
+    + escape(ADD_SYSTEM_HELP)
+)  # the help is Rich markup: keep [..]
 def systems() -> None:
     """List the systems that can be run: built-in, registered and plug-ins."""
     from mpcmobo.systems import SystemDefinitionError, SystemSpecError, get_system
@@ -519,4 +542,5 @@ def systems() -> None:
     console.print(ADD_SYSTEM_HELP, markup=False, highlight=False)
 
 
+from mpcmobo.cli import dashboard as _dashboard  # noqa: E402, F401 - registers dashboard
 from mpcmobo.cli import plant as _plant  # noqa: E402, F401 - registers ask, tell, status, export

@@ -183,8 +183,12 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
     from mpcmobo.experiment.tuner import TunerError
 
     settings = run_dir.saved_settings()
-    jobs = [(n, s) for n in settings.learners for s in settings.seeds
-            if (learner is None or n == learner) and (seed is None or s == seed)]  # fmt: skip
+    jobs = [
+        (n, s)
+        for n in settings.learners
+        for s in settings.seeds
+        if (learner is None or n == learner) and (seed is None or s == seed)
+    ]
     if len(jobs) != 1:
         listed = ", ".join(f"--learner {n} --seed {s}" for n, s in jobs) or "none"
         raise TunerError(f"choose one job of {run_dir.path}: {listed}")
@@ -216,37 +220,50 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
 def export(
     directory: Path = typer.Argument(..., help="a tuner's or a study's directory"),
     theta: str = typer.Option("deployed", "--theta", help="deployed | final | a trial's id"),
-    fmt_: str = typer.Option("casadi", "--format", help="casadi | c"),
-    out: Path = typer.Option(..., "--out", "-o", help="the file (casadi) or directory (c)"),
+    fmt_: str = typer.Option("casadi", "--format", help="casadi | c | embedded"),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="the file (casadi) or directory (c, embedded)"
+    ),
     learner: str | None = typer.Option(None, "--learner", help="the job's learner (a study)"),
     seed: int | None = typer.Option(None, "--seed", help="the job's seed (a study)"),
-    compile_c: bool = typer.Option(False, "--compile", help="c: also build the example"),
+    compile_c: bool = typer.Option(False, "--compile", help="c, embedded: build the example"),
 ) -> None:
-    """Write the tuned MPC as a CasADi function or as C code with a header and a main.c."""
-    from mpcmobo.experiment.settings import build_system
+    """Write the tuned MPC as a CasADi function, as C code calling IPOPT (c) or as C that needs
+    only libc and libm (embedded), with a header and a main.c."""
+    from mpcmobo.experiment.build import build_system
     from mpcmobo.experiment.tuner import TunerError
     from mpcmobo.mpc import ParametricMPC
+    from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
     from mpcmobo.mpc.export import c_compile_command, export_c, export_casadi
 
-    if fmt_ not in ("casadi", "c"):
-        cli._fail(f"--format must be casadi or c, got {fmt_!r}", 2)
+    if fmt_ not in ("casadi", "c", "embedded"):
+        cli._fail(f"--format must be casadi, c or embedded, got {fmt_!r}", 2)
 
     def go() -> str:
         run_dir = cli._require_run(directory)
-        if fmt_ == "c" and out.exists() and not out.is_dir():
+        if fmt_ != "casadi" and out.exists() and not out.is_dir():
             raise TunerError(f"--out {out} is a file; C code goes into a directory")
         if fmt_ == "casadi" and out.is_dir():
             raise TunerError(f"--out {out} is a directory; the CasADi function is one file")
         settings, name, th = _theta_of(run_dir, theta, learner, seed)
-        mpc = ParametricMPC(build_system(settings, name), "imperfect", **settings.mpc.options())
+        options = settings.mpc.options()
+        if fmt_ == "embedded":  # the MPC's own functions, generated again as plain C
+            options["codegen"] = False
+        mpc = ParametricMPC(build_system(settings, name), "imperfect", **options)
         if fmt_ == "casadi":
             return f"wrote {export_casadi(mpc, th, out)}"
-        export_c(mpc, th, out)
-        cmd = c_compile_command(out)
+        if fmt_ == "embedded":
+            export_embedded(mpc, th, out)
+            cmd = embedded_compile_command(out)
+            files = "controller.c, controller.h, mpc_functions.c, mpc_functions.h, main.c"
+        else:
+            export_c(mpc, th, out)
+            cmd = c_compile_command(out)
+            files = "controller.c, controller.h, main.c"
         if compile_c:
             proc = subprocess.run(cmd, capture_output=True, text=True)
             if proc.returncode != 0:
                 raise TunerError(f"compiling failed: {proc.stderr.strip()[-1500:]}")
-        return f"wrote {out}/controller.c, controller.h, main.c; build with:\n" + " ".join(cmd)
+        return f"wrote {out}/{files}; build with:\n" + " ".join(cmd)
 
     cli.console.print(_errors(go), highlight=False, markup=False, soft_wrap=True)

@@ -12,7 +12,8 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 
-from mpcmobo.experiment.settings import Settings, build_plant, needs_plant
+from mpcmobo.experiment.build import build_plant, needs_plant
+from mpcmobo.experiment.settings import Settings
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout, rollouts
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
@@ -80,7 +81,7 @@ class Evaluator:
                 sensitivities=False,
                 plant=self.plant,
                 plant_seed=self.plant_seed(i),
-            )  # fmt: skip
+            )
             for i, x0 in enumerate(self.starts)
         ]
 

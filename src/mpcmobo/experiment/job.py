@@ -22,22 +22,15 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from mpcmobo.experiment import interrupts, storage
+from mpcmobo.experiment.build import build_plant, build_system, identified_parameters, needs_plant
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.loop import EPISODE_FAILURES, EpisodePlan, LearningRun
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
-from mpcmobo.experiment.settings import (
-    Settings,
-    build_plant,
-    build_system,
-    identified_parameters,
-    needs_plant,
-    validate_settings,
-)
+from mpcmobo.experiment.settings import Settings, validate_settings
 from mpcmobo.identify import ModelFit
 from mpcmobo.learners import Learner, Starts, make_learner
-from mpcmobo.learners.identified import IdentifyFirst
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import register_system
@@ -290,24 +283,17 @@ class Job:
 def make_study_learner(
     settings: Settings, system: System, name: str, theta0: np.ndarray, seed: int
 ) -> Learner:
-    """The learner ``name`` with the study's options for it, built for the study's start
-    design (cycled or random starts); with identification (``system`` built for the job by
-    :func:`~mpcmobo.experiment.settings.build_system`, theta holding the identified
-    parameters), the identify learner, or the learner tuning after the model switch."""
+    """The learner ``name`` with the study's options for it, built by the registry for the
+    study's start design (cycled or random starts); with identification (``system`` built for
+    the job by :func:`~mpcmobo.experiment.build.build_system`, theta holding the identified
+    parameters), given the model to identify (the registry then builds identify-first)."""
     options = settings.learner_options.get(name, {})
     starts = Starts(settings.start_mode, settings.n_cycle_starts)
     names = identified_parameters(settings, system, name)
-    if not names:
-        return make_learner(name, system.search_space, theta0, seed=seed, starts=starts, **options)
-    fit = ModelFit(system, names)
-    if name == "identify":
-        return make_learner(name, system.search_space, theta0, seed=seed, starts=starts,
-                            model_fit=fit, **options)  # fmt: skip
-
-    def tuner(theta: np.ndarray) -> Learner:
-        return make_learner(name, system.search_space, theta, seed=seed, starts=starts, **options)
-
-    return IdentifyFirst(tuner, system.search_space, theta0, seed, starts=starts, model_fit=fit)
+    fit = ModelFit(system, names) if names else None
+    return make_learner(
+        name, system.search_space, theta0, seed=seed, starts=starts, model_fit=fit, **options
+    )
 
 
 def _learning_run(

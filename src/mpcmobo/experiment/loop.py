@@ -172,9 +172,7 @@ class LearningRun:
         self.previous_Vc: float | None = None
         self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)
         self._model_plants: dict[bytes, gymnasium.Env] = {}  # a model as a plant, per parameters
-        use = getattr(learner, "use_start_costs", None)  # a learner that recomputes covariates
-        if use is not None:
-            use(self.start_costs)
+        learner.use_start_costs(self.start_costs)
 
     def plant_seed(self) -> int:
         """The plant's seed of this episode (its own noise, if any): a function of (seed,
@@ -193,8 +191,7 @@ class LearningRun:
         episode ran). :meth:`finish` completes the episode from its record."""
         t0 = time.perf_counter()
         theta, proposal_error = self._propose()
-        explores = getattr(self.learner, "explores", None)  # duck-typed learners: always
-        explore = True if explores is None else bool(explores())
+        explore = bool(self.learner.explores())
         t_prop = time.perf_counter() - t0
         x0 = self.next_start()
         self.exploration.episode = self.episode
@@ -259,8 +256,7 @@ class LearningRun:
         theta, x0 = plan.theta, plan.x0
         result.start_id = plan.start_id
         result.x0 = x0.copy()
-        uses = getattr(self.learner, "uses_start_cost", None)  # duck-typed learners: no
-        if uses is not None and uses():
+        if self.learner.uses_start_cost():
             result.start_cost = self.start_cost(x0)
         t_mpc = mpc_time + time.perf_counter() - t1
         t2 = time.perf_counter()
@@ -291,7 +287,7 @@ class LearningRun:
             "incumbent": incumbent.tolist(),
             "error": error,
             "start_cost": float(result.start_cost),
-            "identified": _as_list(getattr(self.learner, "identified", lambda: None)()),
+            "identified": _as_list(self.learner.identified()),
         }
         self.episode += 1
         return row, record
@@ -311,11 +307,11 @@ class LearningRun:
         function of its arguments alone, so the random streams and a resumed run are
         unaffected."""
         if theta is None:
-            model = getattr(self.learner, "start_model", lambda: None)()
+            model = self.learner.start_model()
             if model is not None:
                 theta, params = model
             else:
-                theta = getattr(self.learner, "theta0", None)  # None: the MPC's own theta0
+                theta = self.learner.theta0
         theta = self.mpc.check_theta(theta)
         p = np.asarray(self.mpc.model_params if params is None else params, float)
         e = None if noise is None else np.asarray(noise, float)

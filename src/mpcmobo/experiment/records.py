@@ -159,8 +159,8 @@ class TrainingReference:
     """The like-for-like reference of the training curve J~ (f1, eq. cl_perf) for one seed:
     f1 of ``len(J_tilde)`` episodes of the perfect-model MPC (theta0) from the same initial
     states ``x0`` and with the same exploration noise as the first episodes of every learner
-    of that seed (:func:`mpcmobo.experiment.study.training_reference`). Its mean is J~* of the
-    seed."""
+    of that seed (:func:`mpcmobo.experiment.training_reference.training_reference`). Its mean
+    is J~* of the seed."""
 
     seed: int
     J_tilde: list[float]
@@ -185,7 +185,7 @@ class TrainingReference:
 class Reference:
     """The study-level reference (``reference.pkl``), computed once per study: J* (the
     perfect-model MPC with theta0), J_eval(theta0), their evaluation episodes and what the
-    figures need to know about the system (``study.system_info``). Without a reference model
+    figures need to know about the system (``reference.system_info``). Without a reference model
     ``J_star`` is None and ``J_star_missing`` says why. ``training``: the like-for-like reference
     of the training curve, one :class:`TrainingReference` per seed (empty in runs made before it
     existed, or without a reference model)."""

@@ -206,7 +206,7 @@ class RunDirectory:
             except READ_ERRORS:
                 continue  # damaged: the checkpoint's own reading reports it
             if schema is not None and schema != storage.CHECKPOINT_SCHEMA:
-                made_by = "mpcmobo 0.1.0" if schema == 1 else f"checkpoint schema {schema}"
+                made_by = storage.SCHEMA_WRITERS.get(schema, f"checkpoint schema {schema}")
                 raise OlderRunError(
                     f"{path}: this run was written by {made_by} (checkpoint schema {schema}); "
                     f"mpcmobo {__version__} resumes only its own checkpoints (schema "
@@ -335,7 +335,7 @@ def _read_checkpoint(path: Path, learner: str, seed: int) -> Checkpoint:
         d: Any = storage.read_pickle(p)
         if not isinstance(d, dict):
             raise TypeError(f"holds a {type(d).__name__}, not a checkpoint")
-        if storage.checkpoint_schema(d) not in (1, storage.CHECKPOINT_SCHEMA):
+        if storage.checkpoint_schema(d) not in (*storage.SCHEMA_WRITERS, storage.CHECKPOINT_SCHEMA):
             raise ValueError(f"checkpoint schema {storage.checkpoint_schema(d)} is not known")
         if d.get("learner") != learner or int(d.get("seed", -1)) != int(seed):
             raise ValueError(f"it is the checkpoint of {d.get('learner')}-s{d.get('seed')}")

@@ -37,8 +37,11 @@ import pandas as pd
 
 from mpcmobo.experiment.records import ROW_FIELDS
 
-# the checkpoint format: 2 since mpcmobo 1.0 (learner state as options + evidence); 1 was 0.1.0's
-CHECKPOINT_SCHEMA = 2
+# the checkpoint format, raised with every change of a learner's state: 3 since mpcmobo 1.2
+# (the declared learner contract: identify-first's inner learner, MPC-RL's evidence); 2 was
+# written by 1.0 and 1.1, 1 by 0.1.0 (SCHEMA_WRITERS)
+CHECKPOINT_SCHEMA = 3
+SCHEMA_WRITERS = {1: "mpcmobo 0.1.0", 2: "mpcmobo 1.0 or 1.1"}
 EPISODE_COLUMNS = list(ROW_FIELDS)
 WALL_TIME_COLUMNS = ("mpc_time_s", "learner_time_s", "eval_time_s")
 

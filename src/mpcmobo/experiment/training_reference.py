@@ -21,10 +21,11 @@ from typing import Any
 import numpy as np
 
 from mpcmobo.experiment import interrupts
+from mpcmobo.experiment.build import build_plant, needs_plant
 from mpcmobo.experiment.job import _learning_run
 from mpcmobo.experiment.loop import EPISODE_FAILURES
 from mpcmobo.experiment.records import Reference, TrainingReference
-from mpcmobo.experiment.settings import Settings, build_plant, needs_plant
+from mpcmobo.experiment.settings import Settings
 from mpcmobo.mpc import ParametricMPC, rollout
 from mpcmobo.rl.objectives import f1_closed_loop_cost
 from mpcmobo.systems.base import System
@@ -54,9 +55,18 @@ def training_reference(
         x0 = run.next_start()
         run.exploration.episode = episode
         try:
-            record = rollout(system, mpc, None, x0, run.steps, rng=run.rng_noise,
-                             exploration=run.exploration, sensitivities=False,
-                             plant=plant, plant_seed=run.plant_seed())  # fmt: skip
+            record = rollout(
+                system,
+                mpc,
+                None,
+                x0,
+                run.steps,
+                rng=run.rng_noise,
+                exploration=run.exploration,
+                sensitivities=False,
+                plant=plant,
+                plant_seed=run.plant_seed(),
+            )
             values.append(f1_closed_loop_cost(record))
         except EPISODE_FAILURES:
             values.append(math.nan)

@@ -28,12 +28,14 @@ from typing import Any
 import numpy as np
 
 from mpcmobo.experiment import storage
+from mpcmobo.experiment.build import build_system, needs_plant
 from mpcmobo.experiment.job import Job
 from mpcmobo.experiment.loop import EpisodePlan
 from mpcmobo.experiment.records import EpisodeRow, Reference
+from mpcmobo.experiment.reference import compute_reference, system_info
 from mpcmobo.experiment.rundir import RunDirectory, open_run
-from mpcmobo.experiment.settings import Settings, build_system, load_settings, needs_plant
-from mpcmobo.experiment.study import compute_reference, system_info, write_records
+from mpcmobo.experiment.settings import Settings, load_settings
+from mpcmobo.experiment.summary import write_records
 from mpcmobo.mpc import ParametricMPC, replay
 from mpcmobo.systems.registry import is_factory_path
 

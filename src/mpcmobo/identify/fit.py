@@ -97,14 +97,22 @@ class Transitions:
 
     def state_dict(self) -> dict:
         """The arrays, as copies."""
-        return {"x": self.x.copy(), "u": self.u.copy(), "x_next": self.x_next.copy(),
-                "episode": self.episode.copy()}  # fmt: skip
+        return {
+            "x": self.x.copy(),
+            "u": self.u.copy(),
+            "x_next": self.x_next.copy(),
+            "episode": self.episode.copy(),
+        }
 
     @classmethod
     def from_state_dict(cls, d: dict) -> Transitions:
         """The inverse of :meth:`state_dict`."""
-        return cls(np.array(d["x"], float), np.array(d["u"], float),
-                   np.array(d["x_next"], float), np.array(d["episode"], int))  # fmt: skip
+        return cls(
+            np.array(d["x"], float),
+            np.array(d["u"], float),
+            np.array(d["x_next"], float),
+            np.array(d["episode"], int),
+        )
 
 
 @dataclass(frozen=True)
@@ -261,8 +269,16 @@ def _fit(
         # a trial step far out (a model that runs away over one step) overflows the robust
         # loss: its cost is inf and the step is refused, which is all the warning would say
         with np.errstate(over="ignore"):
-            return least_squares(fun, v_start, jac=jac, bounds=(v_lo, v_hi), loss="soft_l1",
-                                 f_scale=max(prior_w, 1e-9), x_scale="jac", max_nfev=200)  # fmt: skip
+            return least_squares(
+                fun,
+                v_start,
+                jac=jac,
+                bounds=(v_lo, v_hi),
+                loss="soft_l1",
+                f_scale=max(prior_w, 1e-9),
+                x_scale="jac",
+                max_nfev=200,
+            )
 
     first = run(0.0, v)
     r1, _ = res(data, to_q(first.x))
@@ -327,8 +343,18 @@ class ModelFit:
         x0 = q0 if start is None else np.asarray(start, float)
         if len(train) == 0:
             inf = np.full(len(q0), np.inf)
-            return Identification(self.names, q0, inf, np.diag(inf), self.nominal.copy(),
-                                  np.nan, np.nan, 0, False, "no transitions")  # fmt: skip
+            return Identification(
+                self.names,
+                q0,
+                inf,
+                np.diag(inf),
+                self.nominal.copy(),
+                np.nan,
+                np.nan,
+                0,
+                False,
+                "no transitions",
+            )
         q_train, _, _, ok_train, _ = _fit(self._res, train, q0, x0, self.prior_std, self.bounds)
         q, J, _, ok, message = _fit(self._res, data, q0, q_train, self.prior_std, self.bounds)
         params = self.nominal.copy()

@@ -1,24 +1,47 @@
-"""One interface for every learner: propose the next theta, observe the finished episode.
+"""One declared interface for every learner: :class:`Learner`.
 
 A learner is built with its options (one typed object, :mod:`mpcmobo.learners.options`) and
 the study's start design (:class:`Starts`: cycled or random initial states), and never
 changes its configuration afterwards; what it learns lives in attributes with a trailing
-underscore and is what :meth:`Learner.state_dict` saves.
+underscore and is what :meth:`Learner.state_dict` saves. Every optional ability is a method
+of :class:`Learner` with a documented default, which the loop, the job and the tuner call
+unconditionally (docs/architecture.md, "The learner contract").
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
 from mpcmobo.identify import Identification
-from mpcmobo.mpc.records import EpisodeRecord
-from mpcmobo.rl import CompatibleCritic, CriticResult, mean_stage_cost, objectives
+from mpcmobo.learners.episode import (
+    EpisodeResult,
+    Replay,
+    episode_result,
+    replays_from_state,
+    replays_state,
+)
+from mpcmobo.learners.prediction import StartCosts, Twin
 from mpcmobo.systems.space import SearchSpace
+
+__all__ = [
+    "EpisodeResult",
+    "Learner",
+    "Progress",
+    "Replay",
+    "Starts",
+    "check_choice",
+    "episode_result",
+    "replays_from_state",
+    "replays_state",
+]
+
+# what long work reports as it goes: (what, done, total)
+Progress = Callable[[str, int, int], None]
 
 
 def check_choice(name: str, value: object, choices: Collection[str]) -> str:
@@ -47,120 +70,20 @@ class Starts:
             raise ValueError(f"n_starts must be at least 1, got {self.n_starts}")
 
 
-@dataclass(frozen=True)
-class Replay:
-    """What the twin replays to predict a plant episode
-    (:class:`~mpcmobo.learners.twin.Twin`): its initial state ``x0`` (nx,) and its
-    ``exploration`` (T, nu), the inputs applied minus the MPC's (None: a noise-free closed
-    loop)."""
-
-    x0: np.ndarray
-    exploration: np.ndarray | None = None
-
-    def state_dict(self) -> dict:
-        """The arrays, as copies."""
-        e = None if self.exploration is None else np.array(self.exploration, float)
-        return {"x0": np.array(self.x0, float), "exploration": e}
-
-    @classmethod
-    def from_state(cls, state: dict | np.ndarray | None) -> Replay | None:
-        """A :meth:`state_dict` again; an array is an initial state alone (a state of 1.0),
-        an empty array or None no replay."""
-        if state is None:
-            return None
-        if isinstance(state, dict):
-            e = state["exploration"]
-            return cls(np.array(state["x0"], float), None if e is None else np.array(e, float))
-        x0 = np.array(state, float)
-        return cls(x0) if x0.size else None
-
-
-def replays_state(replays: list[Replay | None]) -> list[dict | None]:
-    """A list of replays as plain arrays (a learner's :meth:`Learner.state_dict`)."""
-    return [None if r is None else r.state_dict() for r in replays]
-
-
-def replays_from_state(states: list) -> list[Replay | None]:
-    """:func:`replays_state` read back (see :meth:`Replay.from_state`)."""
-    return [Replay.from_state(s) for s in states]
-
-
-@dataclass
-class EpisodeResult:
-    """What a learner observes of one episode: the objectives f1..f4 and the CDPG gradient."""
-
-    objectives: np.ndarray  # (4,) f1..f4 (NaN where undefined, e.g. a diverged episode)
-    grad: np.ndarray  # (n_theta,) CDPG policy gradient (eq. DPG), zeros if the critic failed
-    critic_ok: bool
-    Vc: float = float("nan")  # sum_k V^nu(x_k), for f3 of the next episode
-    mean_abs_advantage: float = float("nan")
-    failures: int = 0  # failed MPC solves in the episode
-    start_id: int = -1  # index of the initial state in a fixed cycled set; -1: a random start
-    x0: np.ndarray | None = None  # the episode's initial state
-    violation: float = float("nan")  # plant constraint violation summed over the episode
-    stage_cost: float = float("nan")  # the plain (undiscounted) mean stage cost, as J_eval's
-    # theta0's mean stage cost from x0 on the MPC's own model (NaN unless the learner asks for
-    # it, Learner.uses_start_cost): how hard the start is, a covariate of the episode's cost
-    start_cost: float = float("nan")
-    states: np.ndarray | None = None  # (T+1, nx) the plant's states (None: the episode failed)
-    inputs: np.ndarray | None = None  # (T, nu) the inputs applied
-    exploration: np.ndarray | None = None  # (T, nu) the inputs applied minus the MPC's
-
-    @property
-    def replay(self) -> Replay | None:
-        """What the twin replays to predict the episode (None: its initial state is
-        unknown)."""
-        if self.x0 is None:
-            return None
-        e = None if self.exploration is None else np.asarray(self.exploration, float)
-        return Replay(np.asarray(self.x0, float), e)
-
-    @property
-    def f1(self) -> float:
-        """The closed-loop cost f1 (eq. cl_perf)."""
-        return float(self.objectives[0])
-
-    @property
-    def valid(self) -> bool:
-        """Whether all four objectives are finite."""
-        return bool(np.all(np.isfinite(self.objectives)))
-
-
-def episode_result(
-    record: EpisodeRecord,
-    critic: CompatibleCritic,
-    previous_Vc: float | None,
-    beta: float = 1.0,
-) -> tuple[EpisodeResult, CriticResult]:
-    """Fit the compatible critic to a record and compute the four objectives of section 4."""
-    cr = critic.fit(record)
-    f = np.asarray(objectives(record, cr, previous_Vc, beta), dtype=float)
-    res = EpisodeResult(
-        objectives=f,
-        grad=np.where(np.isfinite(cr.grad), cr.grad, 0.0) if cr.ok else np.zeros_like(cr.grad),
-        critic_ok=bool(cr.ok),
-        Vc=float(cr.Vc),
-        mean_abs_advantage=float(cr.mean_abs_advantage),
-        failures=record.failures,
-        x0=np.asarray(record.x[0], dtype=float).copy(),
-        violation=float(np.sum(record.violation)),
-        stage_cost=mean_stage_cost(record),
-        states=np.asarray(record.x, dtype=float),
-        inputs=np.asarray(record.u, dtype=float),
-        exploration=np.asarray(record.u, dtype=float) - np.asarray(record.pi, dtype=float),
-    )
-    return res, cr
-
-
 class Learner(ABC):
     """A learner of the MPC parameters theta over a declared :class:`SearchSpace`.
 
     The loop is ``theta = learner.propose(); ...run an episode (with exploration noise unless
-    learner.explores() is False)...; learner.observe(theta, result)``.
-    ``incumbent()`` is the deployed theta: what the plant runs outside learning and what J_eval
-    measures.
-    ``state_dict()`` holds the whole state (random generators included) as plain Python and NumPy
-    objects, and ``load_state_dict`` restores it so that the next proposal is exactly the same.
+    learner.explores() is False)...; learner.observe(theta, result)``. Work (a fit, the twin's
+    tuning) happens in :meth:`propose` and :meth:`observe`, and reports through the callback of
+    :meth:`use_progress` where it is long. The queries (:meth:`incumbent`, :meth:`explores`,
+    :meth:`uses_start_cost`, :meth:`start_model`, :meth:`identified`, :meth:`identification`)
+    are cheap and change nothing. :meth:`incumbent` is the deployed theta: what the plant runs
+    outside learning and what J_eval measures.
+
+    ``state_dict()`` holds the whole learned state (random generators included) as plain Python
+    and NumPy objects, and ``load_state_dict`` restores it into a learner built with the same
+    configuration, so that the next proposal is exactly the same.
     """
 
     name: str = "learner"
@@ -174,6 +97,7 @@ class Learner(ABC):
         self.starts = Starts() if starts is None else starts
         self.rng = np.random.default_rng(self.seed)
         self.n_observed = 0
+        self.progress: Progress | None = None
 
     def theta_of(self, z: np.ndarray) -> np.ndarray:
         """The theta of the unit-cube point ``z``: exactly theta0 at theta0's own point (its
@@ -182,6 +106,7 @@ class Learner(ABC):
             return self.theta0.copy()
         return self.space.from_unit(z, base=self.theta0)
 
+    # ------------------------------------------------------------------ the loop
     @abstractmethod
     def propose(self) -> np.ndarray:
         """The next theta to run (full vector, inside the bounds)."""
@@ -190,6 +115,7 @@ class Learner(ABC):
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
         """Take the result of the episode run with ``theta``."""
 
+    # ------------------------------------------------------------------ queries
     @abstractmethod
     def incumbent(self) -> np.ndarray:
         """The deployed theta."""
@@ -200,17 +126,6 @@ class Learner(ABC):
         verification blocks); such an episode has no critic, so no gradient."""
         return True
 
-    def identified(self) -> np.ndarray | None:
-        """The model parameters the learner has identified from the plant (None: it does not
-        identify, or has no fit yet)."""
-        return None
-
-    def identification(self) -> Identification | None:
-        """The last fit of the model to the plant's transitions, with the parameters' standard
-        deviations and the held-out one-step errors (None: the learner does not identify, or
-        has no fit yet)."""
-        return None
-
     def uses_start_cost(self) -> bool:
         """Whether the learner reads ``EpisodeResult.start_cost`` (default False): theta0's
         closed loop from the episode's initial state on the MPC's own model
@@ -219,6 +134,45 @@ class Learner(ABC):
         start is whatever theta runs (the deployment tests' covariate under random starts)."""
         return False
 
+    def start_model(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The controller and model of the start covariate, ``(theta, model parameters)``
+        (default None: the learner's theta0 on the MPC's nominal model)."""
+        return None
+
+    def identified(self) -> np.ndarray | None:
+        """The model parameters the learner has identified from the plant (default None: it
+        does not identify, or has no fit yet)."""
+        return None
+
+    def identification(self) -> Identification | None:
+        """The last fit of the model to the plant's transitions, with the parameters' standard
+        deviations and the held-out one-step errors (default None: the learner does not
+        identify, or has no fit yet)."""
+        return None
+
+    # ------------------------------------------------------------------ services and abilities
+    def use_start_costs(self, costs: StartCosts) -> None:
+        """Take the loop's closed-loop service (costs of a theta on a model from given starts),
+        called once when the run is built. Default: not used. The identifying learners use it
+        for the start covariate, the twin's tuning and its judgement."""
+        return
+
+    def use_progress(self, progress: Progress | None) -> None:
+        """Report long work (the twin's tuning) to ``progress(what, done, total)``; None: to
+        nobody (the default)."""
+        self.progress = progress
+
+    def seed_with(self, episodes: list[tuple[np.ndarray, EpisodeResult]]) -> None:
+        """Take episodes run before the learner was built (identify-first's episodes of the
+        learner's theta0) as evidence, before the first proposal. Default: ignored."""
+        return
+
+    def use_twin(self, twin: Twin) -> None:
+        """Let ``twin`` (the closed loop on the deployed identified model) judge the learner's
+        deployments. Default: ignored (a learner without deployment tests)."""
+        return
+
+    # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
         """The learner's state (name, seed, random stream, observations); the constructor owns the
         configuration."""
@@ -230,14 +184,17 @@ class Learner(ABC):
         }
 
     def _check_name(self, state: dict) -> None:
-        """A ``ValueError`` unless ``state`` is of a learner of this name."""
+        """A ``ValueError`` unless ``state`` is of a learner of this name and seed."""
         if state.get("name") != self.name:
             raise ValueError(f"state of learner '{state.get('name')}' given to '{self.name}'")
+        if int(state["seed"]) != self.seed:
+            raise ValueError(
+                f"state of a learner of seed {state['seed']} given to one of seed {self.seed}"
+            )
 
     def load_state_dict(self, state: dict) -> None:
-        """Continue from a :meth:`state_dict` of a learner of the same name."""
+        """Continue from a :meth:`state_dict` of a learner of the same name and seed."""
         self._check_name(state)
-        self.seed = int(state["seed"])
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = state["rng"]
         self.n_observed = int(state["n_observed"])

@@ -225,8 +225,7 @@ def twin_confidence(
         keep = np.isfinite(y_d) & np.isfinite(yh_d) & np.isfinite(y_c) & np.isfinite(yh_c)
         sides = [(y_d[keep], yh_d[keep]), (y_c[keep], yh_c[keep])]
     else:
-        sides = [(y[np.isfinite(y) & np.isfinite(yh)], yh[np.isfinite(y) & np.isfinite(yh)])
-                 for y, yh in ((y_d, yh_d), (y_c, yh_c))]  # fmt: skip
+        sides = [_finite_pairs(y, yh) for y, yh in ((y_d, yh_d), (y_c, yh_c))]
     usable = all(len(y) >= 2 and np.all(yh > 0) for y, yh in sides)
     if np.count_nonzero(ok_sim) < 2 or not usable:
         return paired_confidence(y_d - y_c) if paired else unpaired_confidence(y_d, y_c)
@@ -239,6 +238,12 @@ def twin_confidence(
 
 
 Side = tuple[np.ndarray, np.ndarray]
+
+
+def _finite_pairs(y: np.ndarray, yh: np.ndarray) -> Side:
+    """The episodes whose cost ``y`` and prediction ``yh`` are both finite."""
+    keep = np.isfinite(y) & np.isfinite(yh)
+    return y[keep], yh[keep]
 
 
 def _ratio_estimate(
@@ -264,10 +269,14 @@ def _ratio_estimate(
         parts.append((_jackknife(np.array(loo)), len(loo) - 1))
     else:
         for k, side in enumerate(sides):
-            loo = [means[k] * drop(side, i)[0].sum() / drop(side, i)[1].sum()
-                   for i in range(len(side[0]))]  # fmt: skip
+            loo = [_ratio(means[k], drop(side, i)) for i in range(len(side[0]))]
             parts.append((_jackknife(np.array(loo)), len(loo) - 1))
     return estimate(d, c), parts
+
+
+def _ratio(mean: float, side: Side) -> float:
+    """``mean`` times the ratio of the side's plant costs to the twin's predictions."""
+    return mean * side[0].sum() / side[1].sum()
 
 
 def _jackknife(leave_one_out: np.ndarray) -> float:

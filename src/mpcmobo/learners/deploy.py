@@ -27,23 +27,17 @@ the twin's prediction, and the twin's costs on its simulated starts.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from mpcmobo.bo import GPSurrogate, pareto_mask
 from mpcmobo.learners.base import Starts
-from mpcmobo.learners.confidence import (
-    adjusted_confidence,
-    paired_confidence,
-    relative_screen,
-    twin_confidence,
-)
+from mpcmobo.learners.confidence import adjusted_confidence, paired_confidence, relative_screen
 from mpcmobo.learners.evidence import Evidence, theta_key
+from mpcmobo.learners.judge import paired_differences, twin_verdict
 from mpcmobo.learners.options import EvidenceDeploy, IncumbentDeploy
-
-if TYPE_CHECKING:
-    from mpcmobo.learners.twin import Twin
+from mpcmobo.learners.prediction import Twin
 
 __all__ = [
     "CycledEvidence",
@@ -155,25 +149,17 @@ class EvidencePolicy:
         """The confidence that ``z`` is cheaper than ``deployed``."""
         raise NotImplementedError
 
-    def twin_sides(
-        self, ev: Evidence, twin: Twin, z: np.ndarray, deployed: np.ndarray
-    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """The plant's costs and the twin's predictions of them, the deployed theta's and
-        ``z``'s (:func:`~mpcmobo.learners.confidence.twin_confidence`)."""
-        raise NotImplementedError
-
     def verdict(
         self, ev: Evidence, surrogate: GPSurrogate | None, z: np.ndarray, deployed: np.ndarray
     ) -> float:
-        """The confidence a deployment rests on: the twin's test once a twin judges, else
-        :meth:`confidence_of`."""
+        """The confidence a deployment rests on: the judge's twin test
+        (:func:`~mpcmobo.learners.judge.twin_verdict`) on the two thetas' finite episodes
+        once a twin judges, else :meth:`confidence_of`."""
         twin = self.twin
         if twin is None:
             return self.confidence_of(ev, surrogate, z, deployed)
-        (y_d, p_d), (y_c, p_c) = self.twin_sides(ev, twin, z, deployed)
-        return twin_confidence(
-            (y_d, p_d, twin.simulate(deployed)), (y_c, p_c, twin.simulate(z)), self.paired
-        )
+        rows = (ev.rows_of(deployed), ev.rows_of(z))
+        return twin_verdict(ev, twin, rows, (deployed, z), self.paired)
 
     def needed(self) -> int:
         """The candidate's evidence (:meth:`runs`) before it is judged."""
@@ -248,31 +234,15 @@ class CycledEvidence(EvidencePolicy):
         start offset removed), or 0 without a GP."""
         rows = ev.rows_of(z)
         own = ev.rows_of(deployed)
-        d = []
-        for i in rows:
-            same = [j for j in own if ev.starts[j] == ev.starts[i]]
-            if same:
-                d.append(float(np.mean(ev.Y[same, 0])) - float(ev.Y[i, 0]))
-        if d:
-            return paired_confidence(np.asarray(d))
+        d = paired_differences(ev.Y[:, 0], ev.starts, rows, own, per="episode")
+        if len(d):
+            return paired_confidence(d)
         if not len(rows) or surrogate is None:
             return 0.0
         t_obs = surrogate.to_model_space(ev.Y[rows])[:, 0]
         t_obs = t_obs - surrogate.start_offsets(ev.starts[rows])[:, 0]
         mt, _ = surrogate.posterior_model_space(np.repeat(deployed[None, :], len(rows), axis=0))
         return paired_confidence(t_obs - mt[:, 0])
-
-    def twin_sides(
-        self, ev: Evidence, twin: Twin, z: np.ndarray, deployed: np.ndarray
-    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """Per start both thetas ran from, each theta's mean cost there and the twin's
-        prediction from that start (paired)."""
-        rows, own = ev.rows_of(z), ev.rows_of(deployed)
-        common = sorted(set(ev.starts[rows].tolist()) & set(ev.starts[own].tolist()))
-        return (
-            twin.per_start(deployed, own, ev.starts, ev.costs, ev.replays, common),
-            twin.per_start(z, rows, ev.starts, ev.costs, ev.replays, common),
-        )
 
     def next_check(
         self, ev: Evidence, deployed: np.ndarray, verify: np.ndarray | None
@@ -316,16 +286,6 @@ class RandomEvidence(EvidencePolicy):
         on six episodes a side deployed thetas 17-51% dearer than theta0 on four of 40 jobs.
         With the twin, its simulated starts carry the costly starts instead."""
         return self.min_runs if self.twin is not None else self.max_runs
-
-    def twin_sides(
-        self, ev: Evidence, twin: Twin, z: np.ndarray, deployed: np.ndarray
-    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-        """Each theta's episode costs and the twin's predictions of them."""
-        sides = []
-        for theta in (deployed, z):
-            rows = ev.rows_of(theta)
-            sides.append((ev.costs[rows], twin.predict(theta, [ev.replays[i] for i in rows])))
-        return sides[0], sides[1]
 
     def next_check(
         self, ev: Evidence, deployed: np.ndarray, verify: np.ndarray | None

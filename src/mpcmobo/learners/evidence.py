@@ -5,10 +5,11 @@ modelled objectives (f1..f4 or f1 alone; NaN rows are kept and never fitted), it
 gradient, the index of its start in the study's cycle (-1 under random starts), its start
 cost (theta0's mean stage cost from its initial state on the MPC's own model; NaN where not
 computed), its plain mean stage cost and its replay (initial state and exploration: what a
-twin predicts the cost from) and what kind
-of proposal it was (``"design"``, ``"search"``, ``"verify"``,
-``"baseline"``, ``"gradient"``). Appending is the only change; the queries answer what the
-deployment policies ask: the rows of a theta, the starts it was run from, how many
+twin predicts the cost from), what kind of proposal it was (``"design"``, ``"search"``,
+``"verify"``, ``"baseline"``, ``"gradient"``, ``"seed"``) and its group (MPC-RL's verification
+block; -1: none). Every learner that judges deployments keeps its episodes here, and the judge
+(:mod:`mpcmobo.learners.judge`) reads them. Appending is the only change; the queries answer
+what the deployment policies ask: the rows of a theta, the starts it was run from, how many
 episodes it has.
 """
 
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mpcmobo.learners.base import Replay, replays_from_state, replays_state
+from mpcmobo.learners.episode import Replay, replays_from_state, replays_state
 
 __all__ = ["Evidence", "theta_key"]
 
@@ -38,6 +39,7 @@ class Evidence:
         self.costs = np.zeros(0)  # the plain mean stage cost (J's measure)
         self.replays: list[Replay | None] = []  # what a twin replays (None: unknown)
         self.kinds: list[str] = []
+        self.groups = np.zeros(0, dtype=int)
 
     def __len__(self) -> int:
         return int(self.Z.shape[0])
@@ -52,9 +54,11 @@ class Evidence:
         kind: str,
         cost: float = float("nan"),
         replay: Replay | None = None,
+        group: int = -1,
     ) -> None:
         """One more episode (a non-finite gradient entry is stored as 0); ``cost`` and
-        ``replay`` its plain mean stage cost and what a twin replays, where known."""
+        ``replay`` its plain mean stage cost and what a twin replays, where known; ``group``
+        its verification block (-1: none)."""
         g = np.asarray(grad, dtype=float)
         self.Z = np.vstack([self.Z, np.asarray(z, float)])
         self.Y = np.vstack([self.Y, np.asarray(y, float)])
@@ -64,6 +68,7 @@ class Evidence:
         self.costs = np.append(self.costs, float(cost))
         self.replays.append(replay)
         self.kinds.append(str(kind))
+        self.groups = np.append(self.groups, int(group))
 
     # ------------------------------------------------------------------ queries
     def finite(self) -> np.ndarray:
@@ -76,6 +81,10 @@ class Evidence:
         return np.array(
             [i for i in np.flatnonzero(self.finite()) if theta_key(self.Z[i]) == key], dtype=int
         )
+
+    def group(self, g: int) -> np.ndarray:
+        """The rows of group ``g``, finite or not, in order."""
+        return np.flatnonzero(self.groups == g)
 
     def runs(self, z: np.ndarray) -> int:
         """Finite episodes run with ``z``."""
@@ -107,20 +116,21 @@ class Evidence:
             "costs": self.costs.copy(),
             "replays": replays_state(self.replays),
             "kinds": list(self.kinds),
+            "groups": self.groups.copy(),
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict` (a state of 1.0, without costs and replays: NaN and
-        unknown)."""
+        """Restore :meth:`state_dict`."""
         self.Z = np.array(state["Z"], float).reshape(-1, self.Z.shape[1])
         self.Y = np.array(state["Y"], float).reshape(-1, self.Y.shape[1])
         self.grads = np.array(state["grads"], float).reshape(-1, self.grads.shape[1])
         self.starts = np.array(state["starts"], dtype=int)
         self.start_costs = np.array(state["start_costs"], float)
         self.kinds = list(state["kinds"])
+        self.costs = np.array(state["costs"], float)
+        self.replays = replays_from_state(state["replays"])
+        self.groups = np.array(state["groups"], dtype=int)
         n = len(self.Z)
-        self.costs = np.array(state.get("costs", np.full(n, np.nan)), float)
-        self.replays = replays_from_state(state.get("replays", [None] * n))
         lengths = (len(self.Y), len(self.grads), len(self.starts), len(self.kinds), len(self.costs))
-        if any(k != n for k in (*lengths, len(self.replays))):
+        if any(k != n for k in (*lengths, len(self.replays), len(self.groups))):
             raise ValueError("the learner's evidence arrays have different lengths")

@@ -9,13 +9,14 @@ decide what is deployed, and move the trust region (a proposal that becomes the 
 theta is a success; a verification is neither). :class:`BOLearner` models f1 with expected
 improvement (eq. EI); :mod:`mpcmobo.learners.mobo` adds the multi-objective learners.
 
-Resume is exact: the state holds the evidence and the GP's state before the last fit, and
-loading it replays that fit.
+Resume is exact and immediate: the state holds the evidence, the GP's state after the last fit
+and that fit's decision, and loading it rebuilds the fitted GP without fitting
+(:meth:`~mpcmobo.bo.GPSurrogate.restore`).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from scipy.stats import qmc
@@ -27,10 +28,8 @@ from mpcmobo.learners.base import EpisodeResult, Learner, Starts
 from mpcmobo.learners.deploy import DeployPolicy, EvidencePolicy, make_policy
 from mpcmobo.learners.evidence import Evidence, theta_key
 from mpcmobo.learners.options import BOOptions
+from mpcmobo.learners.prediction import Twin
 from mpcmobo.systems.space import SearchSpace
-
-if TYPE_CHECKING:
-    from mpcmobo.learners.twin import Twin
 
 __all__ = ["BOLearner", "GPLearner"]
 
@@ -79,7 +78,6 @@ class GPLearner(Learner):
         )
         self.fitted_ = False
         self.pending_: tuple[str, bytes] | None = None  # the last proposal's kind and theta
-        self.pre_fit_: dict | None = None  # the state the last fit started from (resume)
         self.n_seeded_ = 0  # episodes given before the design (:meth:`seed_with`)
 
     # ------------------------------------------------------------------ the design
@@ -154,8 +152,16 @@ class GPLearner(Learner):
     def _append(self, theta: np.ndarray, result: EpisodeResult, kind: str) -> None:
         z = self.space.to_unit(self.space.clip(theta))
         y = np.asarray(result.objectives, dtype=float)[list(self.outputs)]
-        self.evidence_.append(z, y, result.grad, result.start_id, result.start_cost, kind,
-                              cost=result.stage_cost, replay=result.replay)  # fmt: skip
+        self.evidence_.append(
+            z,
+            y,
+            result.grad,
+            result.start_id,
+            result.start_cost,
+            kind,
+            cost=result.stage_cost,
+            replay=result.replay,
+        )
         self.n_observed += 1
 
     def _model_Y(self) -> np.ndarray:
@@ -175,13 +181,7 @@ class GPLearner(Learner):
         return Y
 
     def _fit(self) -> None:
-        """Fit the GP on the finite episodes, let the policy decide, move the trust region;
-        the state before the fit is kept so that a resumed learner replays it."""
-        self.pre_fit_ = {
-            "surrogate": self.surrogate.state_dict(),
-            "deployed": self.deployed_z_.copy(),
-            "trust": None if self.trust_ is None else self.trust_.to_dict(),
-        }
+        """Fit the GP on the finite episodes, let the policy decide, move the trust region."""
         previous = self.deployed_z_.copy()
         self._before_fit()
         ev = self.evidence_
@@ -228,32 +228,35 @@ class GPLearner(Learner):
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
-        """The base state, the evidence and the state before the last fit."""
+        """The base state, the evidence, the GP's state after the last fit and its decision."""
         d = super().state_dict()
         d["evidence"] = self.evidence_.state_dict()
-        d["pre_fit"] = self.pre_fit_
+        d["surrogate"] = self.surrogate.state_dict()
+        d["fitted"] = self.fitted_
         d["deployed"] = self.deployed_z_.copy()
+        d["verify"] = None if self.verify_z_ is None else self.verify_z_.copy()
         d["trust"] = None if self.trust_ is None else self.trust_.to_dict()
         d["n_seeded"] = self.n_seeded_
         d["pending"] = self.pending_  # a proposal not yet observed (ask and tell)
         return d
 
     def load_state_dict(self, state: dict) -> None:
-        """Continue from a :meth:`state_dict`: the last fit is replayed from its start."""
+        """Continue from a :meth:`state_dict`: the fitted GP is rebuilt as it was, without
+        fitting."""
         super().load_state_dict(state)
         self.evidence_.load_state_dict(state["evidence"])
         self.n_seeded_ = int(state["n_seeded"])
         self.pending_ = state["pending"]
         self.deployed_z_ = np.array(state["deployed"], float)
+        verify = state["verify"]
+        self.verify_z_ = None if verify is None else np.array(verify, float)
         self.trust_ = None if state["trust"] is None else TrustState.from_dict(state["trust"])
-        self.verify_z_ = None
-        self.fitted_ = False
-        pre: dict[str, Any] | None = state["pre_fit"]
-        if pre is not None:
-            self.surrogate.load_state_dict(pre["surrogate"])
-            self.deployed_z_ = np.array(pre["deployed"], float)
-            self.trust_ = None if pre["trust"] is None else TrustState.from_dict(pre["trust"])
-            self._fit()
+        self.fitted_ = bool(state["fitted"])
+        ev = self.evidence_
+        if self.fitted_:
+            self.surrogate.restore(ev.Z, self._model_Y(), ev.starts, state["surrogate"])
+        else:
+            self.surrogate.load_state_dict(state["surrogate"])
 
 
 class BOLearner(GPLearner):

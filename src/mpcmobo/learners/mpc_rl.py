@@ -18,25 +18,16 @@ What it deploys is a policy of its own:
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
-from mpcmobo.learners.base import (
-    EpisodeResult,
-    Learner,
-    Replay,
-    Starts,
-    replays_from_state,
-    replays_state,
-)
-from mpcmobo.learners.confidence import adjusted_confidence, paired_confidence, twin_confidence
+from mpcmobo.learners.base import EpisodeResult, Learner, Starts
+from mpcmobo.learners.confidence import adjusted_confidence, paired_confidence
+from mpcmobo.learners.evidence import Evidence
+from mpcmobo.learners.judge import paired_differences, twin_verdict
 from mpcmobo.learners.options import AdamStep, MPCRLOptions, VerifiedDeploy
+from mpcmobo.learners.prediction import Twin
 from mpcmobo.rl.steps import Adam, PlainGradient, StepRule
 from mpcmobo.systems.space import SearchSpace
-
-if TYPE_CHECKING:
-    from mpcmobo.learners.twin import Twin
 
 __all__ = ["MPCRL", "VerifiedBlocks"]
 
@@ -50,19 +41,17 @@ def make_step_rule(options: MPCRLOptions) -> StepRule:
 
 
 class VerifiedBlocks:
-    """The verification blocks of ``deploy = "verified"`` (module docstring): per episode its
-    block, cost and start; per block its candidate; the deployed block (0: theta0's)."""
+    """The verification blocks of ``deploy = "verified"`` (module docstring): the block
+    episodes in an :class:`~mpcmobo.learners.evidence.Evidence` (one group per block; the
+    cost judged is the plain mean stage cost, f1 where it is unknown, inf for a failed
+    episode), per block its candidate, and the deployed block (0: theta0's)."""
 
     def __init__(self, options: VerifiedDeploy, starts: Starts, dim: int, n_theta: int) -> None:
         self.options = options
         self.random = starts.mode == "random"  # a re-run from new starts brings new evidence
         self.n_theta = n_theta
-        self.Z_ = np.zeros((0, dim))  # the candidate of each block
-        self.id_ = np.zeros(0, dtype=int)  # per episode: its block, cost, start, start cost
-        self.F_ = np.zeros(0)
-        self.S_ = np.zeros(0, dtype=int)
-        self.C_ = np.zeros(0)
-        self.R_: list[Replay | None] = []  # per episode what a twin replays (None: unknown)
+        self.evidence_ = Evidence(dim, n_theta, 1)
+        self.candidates_ = np.zeros((0, dim))  # the candidate of each block
         self.twin: Twin | None = None  # the twin that judges, if any (module docstring)
         self.conf_ = np.zeros(0)  # each later block's confidence of being cheaper
         self.deployed_ = 0
@@ -72,18 +61,26 @@ class VerifiedBlocks:
 
     def is_open(self) -> bool:
         """Whether the last block still needs episodes."""
-        n = len(self.Z_)
-        return bool(n) and bool(np.count_nonzero(self.id_ == n - 1) < self.target_)
+        n = len(self.candidates_)
+        return bool(n) and len(self.evidence_.group(n - 1)) < self.target_
 
     def in_block(self) -> bool:
         """Whether the next episode belongs to a block: the first, an open one, or a new one
         after ``every`` steps."""
-        return not len(self.Z_) or self.is_open() or self.since_ >= self.options.every
+        return not len(self.candidates_) or self.is_open() or self.since_ >= self.options.every
 
     def candidate(self, iterate: np.ndarray) -> np.ndarray:
         """The open block's candidate; the iterate when none is open (a new block opens
         there)."""
-        return self.Z_[-1] if self.is_open() else iterate.copy()
+        return self.candidates_[-1] if self.is_open() else iterate.copy()
+
+    def deployed_point(self) -> np.ndarray:
+        """The deployed block's candidate (unit cube)."""
+        return self.candidates_[self.deployed_]
+
+    def stepped(self) -> None:
+        """A gradient step outside the blocks (a new block opens after ``every``)."""
+        self.since_ += 1
 
     def observe(
         self, z: np.ndarray, result: EpisodeResult, g: np.ndarray | None
@@ -91,22 +88,29 @@ class VerifiedBlocks:
         """Record a block episode (``g``: its gradient, None if invalid). When the block ends:
         the block's mean gradient (None without one) and its confidence (None for theta0's)."""
         if not self.is_open():
-            self.Z_ = np.vstack([self.Z_, z])
+            self.candidates_ = np.vstack([self.candidates_, z])
             self.G_, self.nG_ = np.zeros(self.n_theta), 0
             self.target_ = self.options.runs
-        n = len(self.Z_)
-        self.id_ = np.append(self.id_, n - 1)
+        n = len(self.candidates_)
         f = result.f1 if np.isnan(result.stage_cost) else result.stage_cost
-        self.F_ = np.append(self.F_, float(f) if np.isfinite(f) else np.inf)
-        self.S_ = np.append(self.S_, int(result.start_id))
-        self.C_ = np.append(self.C_, float(result.start_cost))
-        self.R_.append(result.replay)
+        f = float(f) if np.isfinite(f) else np.inf
+        self.evidence_.append(
+            z,
+            np.array([f]),
+            np.zeros(self.n_theta),
+            result.start_id,
+            result.start_cost,
+            "verify",
+            cost=f,
+            replay=result.replay,
+            group=n - 1,
+        )
         if g is not None:
             self.G_, self.nG_ = self.G_ + g, self.nG_ + 1
         if self.is_open():
             return None, None
         conf = self.confidence(n - 1) if n > 1 else None
-        count = int(np.count_nonzero(self.id_ == n - 1))
+        count = len(self.evidence_.group(n - 1))
         promising = conf is not None and 0.5 <= conf < self.options.confidence
         if promising and self.random and count + self.options.runs <= self.options.max_runs:
             self.target_ = count + self.options.runs  # run it again from new starts
@@ -121,51 +125,29 @@ class VerifiedBlocks:
 
     def confidence(self, b: int) -> float:
         """The confidence that block ``b``'s candidate is cheaper than the deployed theta, from
-        the two blocks' own episodes: per start the deployed block's mean cost minus the
-        candidate's (paired), else adjusted for the starts' costs; a failed episode in the
-        candidate's block rules it out."""
-        cand, dep = self.id_ == b, self.id_ == self.deployed_
-        if not np.all(np.isfinite(self.F_[cand])):
+        the two blocks' own episodes (:mod:`mpcmobo.learners.judge`): per start the deployed
+        block's mean cost minus the candidate's (paired), else adjusted for the starts' costs;
+        once a twin judges, its test; a failed episode in the candidate's block rules it out."""
+        ev = self.evidence_
+        cand, dep = ev.group(b), ev.group(self.deployed_)
+        F, S = ev.Y[:, 0], ev.starts
+        if not np.all(np.isfinite(F[cand])):
             return 0.0
+        paired = bool(np.all(S[cand] >= 0) and np.all(S[dep] >= 0))  # cycled: like for like
         if self.twin is not None:
-            return self._twin_confidence(b)
-        S, F = self.S_, self.F_
-        if np.all(S[cand] >= 0) and np.all(S[dep] >= 0):  # cycled starts: like for like
-            d = [
-                float(np.mean(F[dep & (S == s)])) - float(np.mean(F[cand & (S == s)]))
-                for s in np.unique(S[cand])
-                if np.any(dep & (S == s))
-            ]
-            if d:
-                return paired_confidence(np.asarray(d))
-        return adjusted_confidence(F[dep], F[cand], self.C_[dep], self.C_[cand])
-
-    def _twin_confidence(self, b: int) -> float:
-        """:meth:`confidence` judged with the twin: per start under cycled starts, else each
-        block's episodes, with the twin's predictions of them and its simulated starts."""
-        twin, S, F = self.twin, self.S_, self.F_
-        assert twin is not None
-        cand, dep = np.flatnonzero(self.id_ == b), np.flatnonzero(self.id_ == self.deployed_)
-        sides = []
-        paired = bool(np.all(S[cand] >= 0) and np.all(S[dep] >= 0))
-        common = sorted(set(S[cand].tolist()) & set(S[dep].tolist()))
-        for rows, z in ((dep, self.Z_[self.deployed_]), (cand, self.Z_[b])):
-            if paired:
-                y, p = twin.per_start(z, rows, S, F, self.R_, common)
-            else:
-                y, p = F[rows], twin.predict(z, [self.R_[int(i)] for i in rows])
-            sides.append((y, p, twin.simulate(z)))
-        return twin_confidence(sides[0], sides[1], paired)
+            points = (self.candidates_[self.deployed_], self.candidates_[b])
+            return twin_verdict(ev, self.twin, (dep, cand), points, paired)
+        if paired:
+            d = paired_differences(F, S, cand, dep, per="start")
+            if len(d):
+                return paired_confidence(d)
+        return adjusted_confidence(F[dep], F[cand], ev.start_costs[dep], ev.start_costs[cand])
 
     def state_dict(self) -> dict:
-        """The blocks as arrays."""
+        """The blocks' evidence and candidates, and the open block's progress."""
         return {
-            "Z": self.Z_.copy(),
-            "id": self.id_.copy(),
-            "F": self.F_.copy(),
-            "S": self.S_.copy(),
-            "C": self.C_.copy(),
-            "replays": replays_state(self.R_),
+            "evidence": self.evidence_.state_dict(),
+            "candidates": self.candidates_.copy(),
             "conf": self.conf_.copy(),
             "deployed": self.deployed_,
             "G": self.G_.copy(),
@@ -176,12 +158,10 @@ class VerifiedBlocks:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict`."""
-        self.Z_ = np.array(state["Z"], float).reshape(-1, self.Z_.shape[1])
-        self.id_ = np.array(state["id"], int)
-        self.F_ = np.array(state["F"], float)
-        self.S_ = np.array(state["S"], int)
-        self.C_ = np.array(state["C"], float)
-        self.R_ = replays_from_state(state.get("replays", [None] * len(self.id_)))
+        self.evidence_.load_state_dict(state["evidence"])
+        self.candidates_ = np.array(state["candidates"], float).reshape(
+            -1, self.candidates_.shape[1]
+        )
         self.conf_ = np.array(state["conf"], float)
         self.deployed_ = int(state["deployed"])
         self.G_ = np.array(state["G"], float)
@@ -230,7 +210,9 @@ class MPCRL(Learner):
         if self.blocks_ is None:
             return self.space.from_unit(self.z_, base=self.theta0)
         b = self.blocks_
-        return self.theta_of(b.Z_[b.deployed_] if len(b.Z_) else self.space.to_unit(self.theta0))
+        if not len(b.candidates_):
+            return self.theta_of(self.space.to_unit(self.theta0))
+        return self.theta_of(b.deployed_point())
 
     def use_twin(self, twin: Twin) -> None:
         """Let ``twin`` judge the verification blocks (``deploy = "verified"``)."""
@@ -261,10 +243,10 @@ class MPCRL(Learner):
             if conf is not None and conf < c and conf <= 1.0 - c:
                 # confidently worse than the deployed theta: the iterate goes back to it (the
                 # step rule keeps its state: a fresh Adam's first steps are its largest)
-                self.z_ = b.Z_[b.deployed_].copy()
+                self.z_ = b.deployed_point().copy()
             return
         if b is not None:
-            b.since_ += 1
+            b.stepped()
         if ok:
             self._step(theta, g)
 

@@ -10,17 +10,20 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
+from mpcmobo.identify import ModelFit
 from mpcmobo.learners.base import Learner, Starts
 from mpcmobo.learners.gp import BOLearner
-from mpcmobo.learners.identified import IdentifyLearner
+from mpcmobo.learners.identified import IdentifyFirst, IdentifyLearner
 from mpcmobo.learners.mobo import HybridLearner, MOBOLearner
 from mpcmobo.learners.mpc_rl import MPCRL
 from mpcmobo.learners.options import (
     BOOptions,
+    EvidenceDeploy,
     HybridOptions,
     IdentifyOptions,
     MOBOOptions,
     MPCRLOptions,
+    VerifiedDeploy,
 )
 from mpcmobo.systems.space import SearchSpace
 
@@ -34,6 +37,7 @@ __all__ = [
     "make_learner",
     "option_fields",
     "register_learner",
+    "switch_deploy",
     "validate_options",
 ]
 
@@ -153,6 +157,35 @@ def validate_options(
         raise LearnerOptionError(f"{_problem(err, prefix)}\n{listing}") from None
 
 
+def switch_deploy(options: BaseModel | None) -> EvidenceDeploy:
+    """The deployment options of identify-first's model switch: the learner's own evidence
+    rule (its confidence and ``min_runs``; MPC-RL's verification: its confidence and
+    ``runs``), else the default evidence rule (a learner on the paper's rules, or without
+    options)."""
+    deploy = options.deploy if isinstance(options, (BOOptions, MPCRLOptions)) else None
+    if isinstance(deploy, EvidenceDeploy):
+        return deploy
+    if isinstance(deploy, VerifiedDeploy):
+        return EvidenceDeploy(confidence=deploy.confidence, min_runs=deploy.runs)
+    return EvidenceDeploy()
+
+
+def _build(
+    spec: LearnerSpec,
+    opts: BaseModel | None,
+    space: SearchSpace,
+    theta0: np.ndarray,
+    seed: int,
+    starts: Starts | None,
+    **extra: Any,
+) -> Learner:
+    """The learner of ``spec`` with the validated options ``opts``."""
+    if spec.options is None:
+        return spec.cls(space, theta0, seed, starts=starts, **extra)
+    cls: Any = spec.cls  # a learner with options takes them after the seed
+    return cls(space, theta0, seed, opts, starts=starts, **extra)
+
+
 def make_learner(
     name: str,
     space: SearchSpace,
@@ -160,18 +193,32 @@ def make_learner(
     seed: int = 0,
     *,
     starts: Starts | None = None,
-    model_fit: Any = None,
+    model_fit: ModelFit | None = None,
     **options: Any,
 ) -> Learner:
-    """Build the learner ``name`` ("mpc-rl", "bo", "mobo", "hybrid", "identify") with its
-    options (the keys of its settings table) for the study's start design ``starts`` (default:
-    random); ``model_fit``: the identification of the ``identify`` learner
-    (:class:`~mpcmobo.identify.ModelFit`). A bad option is a :class:`LearnerOptionError` (a
-    ``ValueError``)."""
+    """Build the learner ``name`` ("mpc-rl", "bo", "mobo", "hybrid", "identify", or one
+    registered) with its options (the keys of its settings table) for the study's start design
+    ``starts`` (default: random). ``model_fit`` (:class:`~mpcmobo.identify.ModelFit`): the
+    model to identify first; ``identify`` needs it, and any other learner given one is built
+    as :class:`~mpcmobo.learners.identified.IdentifyFirst`, the model switch with the
+    learner's deployment options (:func:`switch_deploy`), then the learner itself from the
+    deployed theta. A bad option is a :class:`LearnerOptionError` (a ``ValueError``)."""
     spec = _spec(name)
     opts = validate_options(name, options)
-    extra = {} if model_fit is None else {"model_fit": model_fit}
-    if spec.options is None:
-        return spec.cls(space, theta0, seed, starts=starts, **extra)
-    cls: Any = spec.cls  # a learner with options takes them after the seed
-    return cls(space, theta0, seed, opts, starts=starts, **extra)
+    if name == "identify" or model_fit is None:
+        extra = {} if model_fit is None else {"model_fit": model_fit}
+        return _build(spec, opts, space, theta0, seed, starts, **extra)
+
+    def inner(theta: np.ndarray) -> Learner:
+        return _build(spec, opts, space, theta, seed, starts)
+
+    return IdentifyFirst(
+        inner,
+        space,
+        theta0,
+        seed,
+        name=name,
+        starts=starts,
+        model_fit=model_fit,
+        deploy=switch_deploy(opts),
+    )

@@ -63,13 +63,6 @@ def _columns(out: Any, m: int) -> np.ndarray:
     return np.asarray(out, float).reshape(-1, m).T if np.ndim(out) else np.full((m, 1), out)
 
 
-def _parts(mpc: ParametricMPC) -> tuple[Any, Any, Any]:
-    """The MPC's transcription, KKT system and solve paths."""
-    names = (("problem", "_problem"), ("kkt", "_kkt_system"), ("solver", "_paths"))
-    found = [getattr(mpc, public, None) or getattr(mpc, private) for public, private in names]
-    return found[0], found[1], found[2]
-
-
 @dataclass
 class _Solved:
     """The solves of one step of ``m`` loops: what a record keeps of each, or its error."""
@@ -109,7 +102,7 @@ class _Batch:
 
     def __init__(self, mpc: ParametricMPC, theta: np.ndarray, n: int) -> None:
         self.mpc, self.theta = mpc, theta
-        self.problem, self.kkt, self.solver = _parts(mpc)
+        self.problem, self.kkt, self.solver = mpc.problem, mpc.kkt, mpc.solver
         self.prev: list[dict | None] = [None] * n
 
     def solve(self, loops: np.ndarray, X: np.ndarray) -> _Solved:
@@ -146,14 +139,14 @@ class _Batch:
         if not tried:
             return self.mpc.solve(x, self.theta, sensitivities=False)
         sv, own = self.solver, self.solver.__dict__.get("newton")
-        sv.newton = _failed_newton
+        sv.newton = _failed_newton  # type: ignore[method-assign]  # this solve only
         try:
             return self.mpc.solve(x, self.theta, sensitivities=False)
         finally:
             if own is None:
                 del sv.newton
             else:
-                sv.newton = own
+                sv.newton = own  # type: ignore[method-assign]
 
     def accept(
         self,
@@ -234,11 +227,7 @@ def rollouts(
     if steps < 1:
         raise ValueError(f"an episode needs at least one step, got {steps}")
     theta = mpc.check_theta(theta)
-    e = None if noise is None else np.asarray(noise, float)
-    if e is not None and e.shape != (steps, system.nu):
-        raise ValueError(f"noise must be ({steps}, {system.nu}), got {e.shape}")
-    if e is not None and not np.all(np.isfinite(e)):
-        raise ValueError("the exploration noise contains NaN or inf")
+    e = _checked_noise(noise, steps, system.nu)
     if plant_params is None and system.true_params is None:
         raise ValueError(
             f"{system.name} has no true plant (true_params is None): give plant_params"
@@ -260,32 +249,46 @@ def rollouts(
             loops = np.array([i for i in range(n) if isinstance(out[i], EpisodeRecord)], int)
             if loops.size == 0:
                 break
-            _step(system, batch, out, loops, X, k, steps, p, e)
+            _record(system, batch.solve(loops, X[loops]), out, loops, X, k, steps, e)
+            loops = np.array([i for i in loops if isinstance(out[i], EpisodeRecord)], int)
+            if k < steps and loops.size:
+                _plant_step(system, out, loops, X, k, p)
     finally:
         mpc.reset()
     return out
 
 
-def _step(
+def _checked_noise(noise: ArrayLike | None, steps: int, nu: int) -> np.ndarray | None:
+    """The exploration to replay as a (steps, nu) array (None: none); a wrong shape or a value
+    that is not finite is a ``ValueError``."""
+    if noise is None:
+        return None
+    e = np.asarray(noise, float)
+    if e.shape != (steps, nu):
+        raise ValueError(f"noise must be ({steps}, {nu}), got {e.shape}")
+    if not np.all(np.isfinite(e)):
+        raise ValueError("the exploration noise contains NaN or inf")
+    return e
+
+
+def _record(
     system: System,
-    batch: _Batch,
+    sol: _Solved,
     out: list,
     loops: np.ndarray,
     X: np.ndarray,
     k: int,
     steps: int,
-    p: np.ndarray,
     noise: np.ndarray | None,
 ) -> None:
-    """Step ``k`` of the running ``loops``: record x_k, solve, apply the inputs to the plant
-    (``X`` becomes x_{k+1}); a loop whose plant diverges gets its ``PlantDiverged``."""
-    sol = batch.solve(loops, X[loops])
+    """Record step ``k``'s state and solve of each of ``loops`` (as ``rollout`` records a
+    solve), and the input it applies; a loop whose solve raised gets the exception."""
     for j, i in enumerate(loops):
         rec = out[i]
         if sol.error[j] is not None:
             out[i] = sol.error[j]
             continue
-        rec.x[k] = X[i]  # as _record_solve of closed_loop records a solve
+        rec.x[k] = X[i]
         rec.success[k], rec.solve_time[k] = sol.success[j], sol.seconds[j]
         rec.status.append(sol.status[j])
         if sol.success[j]:
@@ -296,9 +299,13 @@ def _step(
                 rec.slack[k] = sol.slack[j]
             u = sol.action[j] if noise is None else sol.action[j] + noise[k]
             rec.u[k] = system.clip_input(u)
-    loops = np.array([i for i in loops if isinstance(out[i], EpisodeRecord)], int)
-    if k == steps or loops.size == 0:
-        return
+
+
+def _plant_step(
+    system: System, out: list, loops: np.ndarray, X: np.ndarray, k: int, p: np.ndarray
+) -> None:
+    """The plant step of ``loops`` from their states in ``X`` (x_{k+1} in place) with their
+    stage costs and violations; a loop whose plant diverges gets its ``PlantDiverged``."""
     for i in loops:
         rec = out[i]
         rec.L[k] = system.stage_cost(X[i], rec.u[k])

@@ -38,7 +38,7 @@ def controller_function(mpc: ParametricMPC, theta: np.ndarray | None = None) -> 
     """The MPC with ``theta`` (default theta0) as ``controller(x, warm, cold) -> (u,
     warm_next)`` (module docstring)."""
     theta = mpc.check_theta(theta)
-    pr = mpc._problem
+    pr = mpc.problem
     x = ca.MX.sym("x", mpc.nx)
     warm = ca.MX.sym("warm", pr.nw)
     cold = ca.MX.sym("cold")
@@ -49,7 +49,7 @@ def controller_function(mpc: ParametricMPC, theta: np.ndarray | None = None) -> 
     shifted = warm[pr.wshift.tolist()]
     w0 = ca.if_else(cold > 0.5, guess, shifted)
     p = ca.vertcat(x, ca.DM(theta))
-    options = {**mpc._paths.cold_options, "error_on_fail": True}
+    options = {**mpc.solver.cold_options, "error_on_fail": True}
     solver = ca.nlpsol(f"{NAME}_ipopt", "ipopt", pr.nlp, options)
     sol = solver(x0=w0, p=p, lbx=pr.lbw, ubx=pr.ubw, lbg=pr.lbg, ubg=pr.ubg)
     w = sol["x"]
@@ -111,7 +111,7 @@ def export_c(mpc: ParametricMPC, theta: np.ndarray | None, directory: str | os.P
     gen = ca.CodeGenerator(f"{NAME}.c", {"with_header": True})
     gen.add(fn)
     gen.generate(str(directory) + os.sep)
-    sizes = f"#define NX {mpc.nx}\n#define NU {mpc.nu}\n#define NW {mpc._problem.nw}\n"
+    sizes = f"#define NX {mpc.nx}\n#define NU {mpc.nu}\n#define NW {mpc.problem.nw}\n"
     header = directory / f"{NAME}.h"
     header.write_text(header.read_text() + "\n" + sizes)
     (directory / "main.c").write_text(MAIN_C)

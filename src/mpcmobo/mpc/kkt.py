@@ -128,6 +128,13 @@ class KKTSystem:
         self.ny = y.numel()
         self.sens = self._sensitivity_function()
         self.newton = self._newton_function(wv, y, p, R, Jy, H, f)
+        # the same step on the residual at a barrier parameter m >= tau (the interior-point
+        # continuation of :mod:`mpcmobo.mpc.interior`), and the rows H(w, p) themselves
+        m = ca.SX.sym("m")
+        R_m = ca.vertcat(R[: self.nw + self.neq], mu * H + m)
+        self.newton_mu = self._newton_function(wv, y, p, R_m, Jy, H, f, m)
+        self.rows = ca.Function("rows", [wv, p], [H])
+        self.slack_of_row = _slack_of_row(H, wv, problem.ie_flat)
         self._wrap()
 
     def load(self, library: Path) -> None:
@@ -135,34 +142,49 @@ class KKTSystem:
         :func:`mpcmobo.mpc.codegen.compiled_library` (the same numbers, faster)."""
         self.sens = ca.external("sens", str(library))
         self.newton = ca.external("newton", str(library))
+        self.newton_mu = ca.external("newton_mu", str(library))
+        self.rows = ca.external("rows", str(library))
         self._wrap()
 
     def _wrap(self) -> None:
         """``sens_call``, ``newton_call``: ``sens`` and ``newton`` on numpy buffers."""
         self.sens_call = NumpyCall(self.sens)
         self.newton_call = NumpyCall(self.newton)
+        self.newton_mu_call = NumpyCall(self.newton_mu)
+        self.rows_call = NumpyCall(self.rows)
 
     def _newton_function(
-        self, wv: ca.SX, y: ca.SX, p: ca.SX, R: ca.SX, Jy: ca.SX, H: ca.SX, f: ca.SX
+        self,
+        wv: ca.SX,
+        y: ca.SX,
+        p: ca.SX,
+        R: ca.SX,
+        Jy: ca.SX,
+        H: ca.SX,
+        f: ca.SX,
+        m: ca.SX | None = None,
     ) -> ca.Function:
         """(y, p) -> (y+ = y + a dy, |R(y)|_inf, |R(y+)|_inf, f(y+), max H(y+), min mu+,
         max H(y)): one Newton step on the barrier KKT system, ``dR/dy dy = -R``, with the
         fraction-to-boundary rule ``a <= 1`` (:func:`fraction_to_boundary`); and the residual at
-        the new point, so that no step is taken in vain."""
+        the new point, so that no step is taken in vain. With ``m`` (the barrier parameter of
+        ``R``, a symbol): ``newton_mu``, (y, p, m) -> the same outputs."""
         nw, neq = self.nw, self.neq
         dw = ca.SX.sym("dw", self.nw)
-        res = ca.Function("newton_res", [y, p], [R, Jy, H])
-        point = ca.Function("newton_point", [y, p], [ca.norm_inf(R), f, ca.mmax(H)])
+        extra = [] if m is None else [m]
+        res = ca.Function("newton_res", [y, p, *extra], [R, Jy, H])
+        point = ca.Function("newton_point", [y, p, *extra], [ca.norm_inf(R), f, ca.mmax(H)])
         dH = ca.Function("newton_dH", [wv, p, dw], [ca.jtimes(H, wv, dw)])
         Y = ca.MX.sym("y", self.ny)
         P = ca.MX.sym("p", p.numel())
-        Rv, J, Hv = res(Y, P)
+        M = [] if m is None else [ca.MX.sym("m")]
+        Rv, J, Hv = res(Y, P, *M)
         dy = ca.solve(J, -Rv, self.linsol)
         a = fraction_to_boundary(Y[nw + neq :], dy[nw + neq :], Hv, dH(Y[:nw], P, dy[:nw]))
         Y1 = Y + a * dy
-        res1, f1, h1 = point(Y1, P)
+        res1, f1, h1 = point(Y1, P, *M)
         out = [Y1, ca.norm_inf(Rv), res1, f1, h1, ca.mmin(Y1[nw + neq :]), ca.mmax(Hv)]
-        return ca.Function("newton", [Y, P], out)
+        return ca.Function("newton" if m is None else "newton_mu", [Y, P, *M], out)
 
     def _sensitivity_function(self) -> ca.Function:
         """(w, lam, mu, p) -> (dpi/dtheta, dV/dtheta), one call, one sparse factorisation.
@@ -242,3 +264,20 @@ class KKTSystem:
         if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
             raise ValueError("non-finite sensitivity (singular KKT matrix)")
         return dpi, dV
+
+
+def _slack_of_row(H: ca.SX, w: ca.SX, slacks: np.ndarray) -> np.ndarray:
+    """For each row of ``H``, the position in ``w`` of the slack that relaxes it, or -1.
+
+    A row relaxed by a slack ``z`` has ``dH/dz = -1`` (the transcription's rows are
+    ``(... - eta) / scale`` with ``eta = scale z``): raising ``z`` by ``d`` lowers the row by
+    ``d``, exactly. A row with several slacks, or none, gets -1.
+    """
+    J = ca.Function("dH_dslack", [w], [ca.jacobian(H, w[slacks.tolist()])])
+    D = np.asarray(ca.DM(J(ca.DM.zeros(w.numel()))).full())
+    rows = np.full(H.numel(), -1)
+    for j in range(H.numel()):
+        nz = np.flatnonzero(D[j])
+        if len(nz) == 1 and D[j, nz[0]] == -1.0:
+            rows[j] = slacks[nz[0]]
+    return rows

@@ -7,10 +7,12 @@
    with a fraction-to-boundary rule. They reach the root of ``R`` in 3-4 steps when the active
    set does not change; accepted at ``|R|_inf <= tol`` at a strictly interior point, it is the
    point IPOPT stops at;
-2. IPOPT from the warm start (when the Newton steps do not converge, typically because the new
-   state violates a state bound of the shifted plan);
-3. IPOPT from a cold start (when the warm start misled it, or there is none);
-4. the fallback input when IPOPT fails: the shifted previous plan, else ``u_r``, with NaN value
+2. when they cannot start or do not converge (typically because the new state violates a
+   state bound of the shifted plan), the interior-point continuation of
+   :mod:`mpcmobo.mpc.interior` on the same Newton system, ending at the same root;
+3. IPOPT from the warm start (when the continuation does not get there either);
+4. IPOPT from a cold start (when the warm start misled it, or there is none);
+5. the fallback input when IPOPT fails: the shifted previous plan, else ``u_r``, with NaN value
    and gradients.
 
 A solution gives the policy ``pi_theta(x)``, the first input of the plan clipped to the input
@@ -27,6 +29,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from mpcmobo.mpc.interior import Continuation, continuation, recentre
 from mpcmobo.mpc.kkt import KKTSystem
 from mpcmobo.mpc.transcription import Transcription
 
@@ -131,7 +134,12 @@ class Solver:
 
     ``tol``: the acceptance test of the Newton steps (``|R|_inf``) and IPOPT's tolerance;
     ``newton_steps``: the most Newton steps of a warm solve (0: IPOPT only);
+    ``interior``: the settings of the continuation after them (None: IPOPT right away);
     ``max_iter``, ``solver_options``, ``warm_options``: see :func:`ipopt_options`.
+
+    :meth:`solve` reaches its paths through the instance's methods :meth:`newton`,
+    :meth:`interior_point`, :meth:`ipopt` and :meth:`sensitivities`, so a test injects a failure or a benchmark a timer
+    by replacing one of them on the instance (their signatures and returns are documented).
     """
 
     def __init__(
@@ -146,8 +154,9 @@ class Solver:
         warm_start: bool,
         solver_options: dict | None = None,
         warm_options: dict | None = None,
+        interior: Continuation | None = None,
     ) -> None:
-        self.problem, self.kkt = problem, kkt
+        self.problem, self.kkt, self.interior = problem, kkt, interior
         self.tol, self.newton_steps, self.warm_start = float(tol), newton_steps, bool(warm_start)
         cold, warm = ipopt_options(
             tol, kkt.tau, max_iter, options=solver_options, warm=warm_options
@@ -171,6 +180,8 @@ class Solver:
         warm = self.warm_start and self.prev is not None
         if warm and self.newton_steps:
             found = self.newton(p)
+            if found is None and self.interior is not None:
+                found = self.interior_point(p)
             if found is not None:
                 sol = self.solution(x, p, *found, sensitivities=sensitivities)
                 sol.solve_time = time.perf_counter() - t0
@@ -214,6 +225,23 @@ class Solver:
                 return None
         out, w, mult = self.kkt.solver_outputs(y, f)
         return out, w, "Newton_Succeeded", k, mult
+
+    def interior_point(self, p: np.ndarray) -> Found | None:
+        """The interior-point continuation from the shifted previous solution
+        (:mod:`mpcmobo.mpc.interior`): the arguments of :meth:`solution`, as :meth:`newton`
+        returns them, or None when it does not reach ``|R|_inf <= tol`` (IPOPT then solves)."""
+        prev, settings = self.prev, self.interior
+        if prev is None or settings is None:
+            return None
+        w = prev["w_shift"]
+        lam, mu = self.kkt.multipliers(w, prev["lam_g"], prev["lam_x"])
+        y = recentre(self.kkt, w, lam, mu, p, settings)
+        got = None if y is None else continuation(self.kkt, y, p, self.tol, settings)
+        if got is None:
+            return None
+        y, f, steps = got
+        out, w, mult = self.kkt.solver_outputs(y, f)
+        return out, w, "Continuation_Succeeded", steps, mult
 
     def ipopt(self, x: np.ndarray, p: np.ndarray, warm: bool) -> tuple[bool, str, int, Any, Any]:
         """IPOPT from the warm start (``warm``) or the cold guess: (ok, status, iterations,

@@ -99,8 +99,9 @@ def make_cstr(**spec_overrides: Any) -> System:
 # which can match the plant's rate at one temperature but not its sensitivity to temperature.
 ACTIVATION = 1.04
 STRUCTURAL_NAMES = (*PARAM_NAMES, "activation")
-STRUCTURAL_TRUE = np.array([1.0, *(2 * [np.exp((ACTIVATION - 1) * E_R / 433.0)]), 1.0, 1.0,
-                            ACTIVATION])  # fmt: skip
+STRUCTURAL_TRUE = np.array(
+    [1.0, *(2 * [np.exp((ACTIVATION - 1) * E_R / 433.0)]), 1.0, 1.0, ACTIVATION]
+)
 STRUCTURAL_MODEL = np.array([*IMPERFECT_PARAMS, 1.0])
 
 

@@ -153,8 +153,15 @@ def _add_weights(
     Cholesky factor of ``W0`` (diagonal in log scale within sqrt(W0_ii) e^(+-r/2), the
     off-diagonal entries within +-sqrt(W0_ii) e^(r/2))."""
     if not full:
-        b.add(block, [f"{block}_{s}" for s in labels], W0, W0 * np.exp(-r), W0 * np.exp(r),
-              True, False)  # fmt: skip
+        b.add(
+            block,
+            [f"{block}_{s}" for s in labels],
+            W0,
+            W0 * np.exp(-r),
+            W0 * np.exp(r),
+            True,
+            False,
+        )
         return
     L0 = np.linalg.cholesky(W0 if W0.ndim == 2 else np.diag(W0))
     rows, cols = np.tril_indices(len(labels))

@@ -1,0 +1,88 @@
+"""The study's reference: J*, J_eval(theta0) and their evaluation episodes, computed once.
+
+Every J_eval of a study is measured against the :class:`~mpcmobo.experiment.records.Reference`
+that :func:`compute_reference` measures on the plant from the evaluation starts, before any
+job runs; :func:`system_info` is what the figures need to know about the system.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from mpcmobo.experiment import interrupts
+from mpcmobo.experiment.build import build_system
+from mpcmobo.experiment.evaluation import make_evaluator, mean_cost, no_J_star_reason
+from mpcmobo.experiment.loop import EPISODE_FAILURES
+from mpcmobo.experiment.records import Reference, Trajectory
+from mpcmobo.experiment.rundir import StudyError
+from mpcmobo.experiment.settings import Settings
+from mpcmobo.experiment.training_reference import training_references
+from mpcmobo.systems.base import System
+
+
+def system_info(system: System) -> dict:
+    """What the figures need to know about the system (JSON-safe: inf -> None)."""
+    return {
+        "name": system.name,
+        "description": system.description,
+        "state_names": list(system.state_names),
+        "input_names": list(system.input_names),
+        "dt": float(system.dt),
+        "x_ref": system.x_ref.tolist(),
+        "u_ref": system.u_ref.tolist(),
+        "x_lb": system.x_lb.tolist(),
+        "x_ub": system.x_ub.tolist(),
+        "u_lb": system.u_lb.tolist(),
+        "u_ub": system.u_ub.tolist(),
+        "theta_names": list(system.parameterization.names),
+        "param_names": list(system.param_names),
+        "nominal_params": np.asarray(system.models["imperfect"], float).tolist(),
+        "true_params": None
+        if system.true_params is None
+        else np.asarray(system.true_params, float).tolist(),
+    }
+
+
+def compute_reference(settings: Settings) -> Reference:
+    """J*, J_eval(theta0) and the evaluation episodes of theta0 ("initial") and perfect MPC."""
+    system = build_system(settings)
+    evaluator = make_evaluator(settings, system)
+    phases: list[tuple[str, str, np.ndarray | None]] = [
+        ("initial", "imperfect", evaluator.mpc("imperfect").theta0.copy())
+    ]
+    if evaluator.has_J_star:
+        phases.append(("perfect", "perfect", None))
+    for _, model, _ in phases:  # an interrupt ends a solve, never fails it
+        interrupts.guard_solves(evaluator.mpc(model))
+    theta0 = evaluator.mpc("imperfect").theta0.copy()
+    t0 = time.perf_counter()
+    trajectories = []
+    values = {}
+    for phase, model, theta in phases:
+        try:
+            eps = evaluator.episodes(theta, model)
+        except EPISODE_FAILURES as err:
+            what = "J(theta0), theta0's MPC" if phase == "initial" else "J*, the perfect MPC"
+            raise StudyError(
+                f"computing {what} on the plant from the evaluation starts failed: "
+                f"{type(err).__name__}: {err}. Every J_eval is measured against these; check the "
+                "plant (docs/user-systems.md) and run again"
+            ) from None
+        values[phase] = mean_cost(eps)
+        trajectories += [
+            Trajectory(phase, -1, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)
+        ]
+    # J~*, like for like: needs the perfect model
+    training = training_references(settings, system) if evaluator.has_J_star else []
+    return Reference(
+        J_star=values.get("perfect"),
+        J_initial=values["initial"],
+        theta0=theta0,
+        system=system_info(system),
+        trajectories=trajectories,
+        wall_time_s=time.perf_counter() - t0,
+        J_star_missing=None if evaluator.has_J_star else no_J_star_reason(system),
+        training=training,
+    )
