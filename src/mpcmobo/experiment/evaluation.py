@@ -14,9 +14,10 @@ import numpy as np
 
 from mpcmobo.experiment.build import build_plant, needs_plant
 from mpcmobo.experiment.settings import Settings
-from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout
+from mpcmobo.mpc import EpisodeRecord, ParametricMPC, rollout, rollouts
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
+from mpcmobo.systems.plant import SystemPlant
 
 
 def mean_cost(episodes: list[EpisodeRecord]) -> float:
@@ -55,8 +56,21 @@ class Evaluator:
         return self._mpcs[model]
 
     def episodes(self, theta: np.ndarray | None, model: str = "imperfect") -> list[EpisodeRecord]:
-        """The evaluation episodes of ``theta`` (no exploration, no sensitivities)."""
+        """The evaluation episodes of ``theta`` (no exploration, no sensitivities); the first
+        start's whose closed loop fails raises what it raised. On the system's own equations
+        (or a noise-free :class:`~mpcmobo.systems.plant.SystemPlant`) the closed loops run
+        together (:func:`mpcmobo.mpc.rollouts`: the same records), else one after the other."""
         mpc = self.mpc(model)
+        plant = self.plant
+        if plant is None or (
+            type(plant) is SystemPlant and plant.process_noise is None is plant.measurement_noise
+        ):
+            system = self.system if plant is None else plant.system
+            recs = rollouts(system, mpc, theta, self.starts, self.steps)
+            for r in recs:
+                if not isinstance(r, EpisodeRecord):
+                    raise r
+            return recs  # type: ignore[return-value]  # all records: checked above
         return [
             rollout(
                 self.system,

@@ -17,10 +17,12 @@ from mpcmobo.mpc import (
     model_plant,
     model_rollout,
     rollout,
+    rollouts,
 )
 from mpcmobo.rl import CompatibleCritic, GaussianExploration
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
+from mpcmobo.systems.plant import SystemPlant
 
 START_MODES = ("random", "cycle")
 # what a closed loop that fails raises (a plant that runs away or raises, a broken episode):
@@ -69,15 +71,36 @@ def model_costs(
     from each start (n, nx) on ``plant`` (a model's, :func:`mpcmobo.mpc.model_plant`),
     noise-free or with the exploration ``noise`` (steps, nu) replayed; NaN where that closed
     loop fails. What a start covariate and the twin's evaluations and predictions are made
-    of."""
+    of. Several closed loops on a noise-free plant of the system's equations run together
+    (:func:`mpcmobo.mpc.rollouts`, the same records), others one after the other."""
+    starts = np.atleast_2d(starts)
+    if (
+        len(starts) > 1
+        and type(plant) is SystemPlant
+        and plant.process_noise is None
+        and plant.measurement_noise is None
+    ):
+        try:
+            params = plant.system.true_params
+            recs = rollouts(system, mpc, theta, starts, steps, plant_params=params, noise=noise)
+        except Exception:  # noqa: BLE001 - a failed closed loop is a NaN cost, never an end
+            return np.full(len(starts), np.nan)
+        return np.array(
+            [mean_stage_cost(r) if isinstance(r, EpisodeRecord) else np.nan for r in recs], float
+        )
     out = []
-    for x0 in np.atleast_2d(starts):
+    for x0 in starts:
         try:
             rec = model_rollout(system, mpc, theta, x0, steps, plant=plant, noise=noise)
             out.append(mean_stage_cost(rec))
         except Exception:  # noqa: BLE001 - a failed closed loop is a NaN cost, never an end
             out.append(float("nan"))
     return np.array(out, float)
+
+
+def _start_key(x0: np.ndarray, theta: np.ndarray, p: np.ndarray, e: np.ndarray | None) -> bytes:
+    """The cache key of a start cost: its start, theta, model parameters and exploration."""
+    return b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p, () if e is None else e))
 
 
 def cycle_starts(system: System, seed: int, n: int) -> np.ndarray:
@@ -373,9 +396,7 @@ class LearningRun:
             raise ValueError(
                 f"exploration of shape {e.shape}, not ({self.steps}, {self.system.nu})"
             )
-        key = b"".join(
-            np.asarray(v, float).tobytes() for v in (x0, theta, p, () if e is None else e)
-        )
+        key = _start_key(x0, theta, p, e)
         if key not in self._start_costs:
             plant = self._model_plants.get(p.tobytes())
             if plant is None:
@@ -393,8 +414,24 @@ class LearningRun:
         noise: np.ndarray | None = None,
     ) -> np.ndarray:
         """:meth:`start_cost` of every start in ``starts`` (n, nx) (what a learner asks for when
-        its covariate's model changes); ``noise``: one start's exploration, replayed."""
-        return np.array([self.start_cost(x0, theta, params, noise) for x0 in np.atleast_2d(starts)])
+        its covariate's model changes); ``noise``: one start's exploration, replayed. The
+        closed loops not cached yet run together (:func:`model_costs`)."""
+        starts = np.atleast_2d(starts)
+        if theta is not None and params is not None and len(starts) > 1:
+            th, p = self.mpc.check_theta(theta), np.asarray(params, float)
+            e = None if noise is None else np.asarray(noise, float)
+            new = {_start_key(x0, th, p, e): x0 for x0 in starts}
+            new = {k: x0 for k, x0 in new.items() if k not in self._start_costs}
+            if len(new) > 1 and (e is None or e.shape == (self.steps, self.system.nu)):
+                plant = self._model_plants.get(p.tobytes())
+                if plant is None:
+                    plant = model_plant(self.system, self.mpc, p)
+                    self._model_plants[p.tobytes()] = plant
+                costs = model_costs(
+                    self.system, self.mpc, th, np.array(list(new.values())), self.steps, plant, e
+                )
+                self._start_costs.update(zip(new, (float(c) for c in costs)))
+        return np.array([self.start_cost(x0, theta, params, noise) for x0 in starts])
 
     def _propose(self) -> tuple[np.ndarray, str]:
         """The learner's proposal; if the learner fails (an exception, or a theta that is not

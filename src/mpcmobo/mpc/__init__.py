@@ -1,5 +1,6 @@
 """The parametric MPC of eq. (V0), its sensitivities and closed-loop episodes."""
 
+from mpcmobo.mpc.batch import rollouts
 from mpcmobo.mpc.closed_loop import PlantDiverged, model_plant, model_rollout, replay, rollout
 from mpcmobo.mpc.parametric import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
@@ -14,4 +15,5 @@ __all__ = [
     "model_rollout",
     "replay",
     "rollout",
+    "rollouts",
 ]

@@ -211,11 +211,12 @@ class KKTSystem:
     def multipliers(
         self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Split CasADi's multipliers into (lambda for G, mu >= 0 for every row of H)."""
+        """Split CasADi's multipliers into (lambda for G, mu >= 0 for every row of H); of
+        several solutions at once, one per row (a batch, :mod:`mpcmobo.mpc.batch`)."""
         tau = self.tau
         lbw, ubw = self.problem.lbw, self.problem.ubw
-        lam = lam_g[: self.neq]
-        mu_g = np.maximum(lam_g[self.neq :], 1e-300)
+        lam = lam_g[..., : self.neq]
+        mu_g = np.maximum(lam_g[..., self.neq :], 1e-300)
         # casadi: lam_x = z_U - z_L. With both bounds finite, the far bound's multiplier follows
         # from barrier complementarity, z * gap = tau; the near one from the difference.
         gap_l = w - lbw
@@ -230,22 +231,27 @@ class KKTSystem:
         zL = np.where(near_u, tau / np.maximum(gap_l, 1e-300), zL)
         zU = np.where(near_u, lam_x + zL, zU)
         mu = np.concatenate(
-            [mu_g, np.maximum(zL[self.lb_idx], 1e-300), np.maximum(zU[self.ub_idx], 1e-300)]
+            [
+                mu_g,
+                np.maximum(zL[..., self.lb_idx], 1e-300),
+                np.maximum(zU[..., self.ub_idx], 1e-300),
+            ],
+            axis=-1,
         )
         return lam, mu
 
     def solver_outputs(
-        self, y: np.ndarray, f: float
+        self, y: np.ndarray, f: float | np.ndarray
     ) -> tuple[dict, np.ndarray, tuple[np.ndarray, np.ndarray]]:
         """A root y = (w, lambda, mu) of R as IPOPT's outputs: ({"lam_g", "lam_x", "f"}, w,
-        (lambda, mu)), the inverse of :meth:`multipliers`."""
+        (lambda, mu)), the inverse of :meth:`multipliers` (of one root per row, too)."""
         nw, neq = self.nw, self.neq
-        w, lam, mu = y[:nw], y[nw : nw + neq], y[nw + neq :]
-        mu_g, n_lb = mu[: self.nin], len(self.lb_idx)
-        lam_x = np.zeros(nw)
-        lam_x[self.ub_idx] += mu[self.nin + n_lb :]
-        lam_x[self.lb_idx] -= mu[self.nin : self.nin + n_lb]
-        out = {"lam_g": np.concatenate([lam, mu_g]), "lam_x": lam_x, "f": f}
+        w, lam, mu = y[..., :nw], y[..., nw : nw + neq], y[..., nw + neq :]
+        mu_g, n_lb = mu[..., : self.nin], len(self.lb_idx)
+        lam_x = np.zeros(w.shape)
+        lam_x[..., self.ub_idx] += mu[..., self.nin + n_lb :]
+        lam_x[..., self.lb_idx] -= mu[..., self.nin : self.nin + n_lb]
+        out = {"lam_g": np.concatenate([lam, mu_g], axis=-1), "lam_x": lam_x, "f": f}
         return out, w, (lam, mu)
 
     def sensitivities(

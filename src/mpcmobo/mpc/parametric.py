@@ -222,13 +222,19 @@ class ParametricMPC:
         return self.solver.fallback_action()
 
     def solve(
-        self, x: ArrayLike, theta: ArrayLike | None = None, sensitivities: bool = True
+        self,
+        x: ArrayLike,
+        theta: ArrayLike | None = None,
+        sensitivities: bool = True,
+        *,
+        newton: bool = True,
     ) -> MPCSolution:
         """Solve eq. (V0) at state ``x``; return pi_theta(x), V_theta(x) and their gradients
-        (``sensitivities``), by the paths of :mod:`mpcmobo.mpc.solve`."""
+        (``sensitivities``), by the paths of :mod:`mpcmobo.mpc.solve` (``newton=False``:
+        without the Newton steps, for a caller that took them already and saw them fail)."""
         x = self.system.check_state(x)
         theta = self.check_theta(theta)
-        return self.solver.solve(x, theta, sensitivities)
+        return self.solver.solve(x, theta, sensitivities, newton=newton)
 
 
 def _check_options(

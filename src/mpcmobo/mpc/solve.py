@@ -172,14 +172,17 @@ class Solver:
         """Forget the warm start."""
         self.prev = None
 
-    def solve(self, x: np.ndarray, theta: np.ndarray, sensitivities: bool) -> MPCSolution:
+    def solve(
+        self, x: np.ndarray, theta: np.ndarray, sensitivities: bool, newton: bool = True
+    ) -> MPCSolution:
         """Solve at state ``x`` with parameters ``theta`` (both checked) by the first path
-        that succeeds (see the module docstring)."""
+        that succeeds (see the module docstring); ``newton=False``: without the Newton steps
+        (a caller that took them already and saw them fail)."""
         t0 = time.perf_counter()
         p = np.concatenate([x, theta])
         warm = self.warm_start and self.prev is not None
         if warm and self.newton_steps:
-            found = self.newton(p)
+            found = self.newton(p) if newton else None
             if found is None and self.interior is not None:
                 found = self.interior_point(p)
             if found is not None:

@@ -247,5 +247,6 @@ class Transcription:
     def shifted(
         self, w: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """A solution and its multipliers one stage later: the next solve's warm start."""
-        return w[self.wshift], lam_g[self.gshift], lam_x[self.wshift]
+        """A solution and its multipliers one stage later: the next solve's warm start (of
+        one solution per row, too)."""
+        return w[..., self.wshift], lam_g[..., self.gshift], lam_x[..., self.wshift]
