@@ -90,10 +90,10 @@ def test_failed_solve_among_many(lq, lq_mpc, monkeypatch):
     solve = lq_mpc.solve
     bad = starts[1].copy()
 
-    def failing(x, theta=None, sensitivities=True):
+    def failing(x, theta=None, sensitivities=True, **kwargs):
         if np.array_equal(x, bad):
             raise RuntimeError("broken solve")
-        return solve(x, theta, sensitivities)
+        return solve(x, theta, sensitivities, **kwargs)
 
     monkeypatch.setattr(lq_mpc, "solve", failing)
     costs = model_costs(lq, lq_mpc, lq_mpc.theta0, starts, steps, SystemPlant(lq))
