@@ -157,26 +157,34 @@ class OptiBaseline:
         return dt, ok, int(stats.get("iter_count", 0)), u0
 
     def _solve_function(self, x):
-        if self.warm and self._prev is not None:
-            guess = self._prev  # the previous step's primal solution, unshifted
-        else:
-            guess = (
-                np.tile(x[:, None], (1, self.N + 1)),
-                np.tile(self.s.u_ref[:, None], (1, self.N)),
-                np.zeros((self.s.nx, self.N + 1)),
-            )
-        t0 = time.perf_counter()
-        try:
-            out = self._fn(x, *guess)
-            raised = False
-        except RuntimeError:
-            raised = True
-        dt = time.perf_counter() - t0
-        stats = self._fn.stats()
-        ok = not raised and bool(stats.get("success", False))
-        self._prev = tuple(np.asarray(o) for o in out) if ok else None
-        u0 = self._prev[1][:, 0].copy() if ok else None
-        return dt, ok, int(stats.get("iter_count", 0)), u0
+        previous = self._prev if self.warm else None  # the last primal solution, unshifted
+        dt, ok, iters, self._prev, u0 = solve_warm(self._fn, x, previous, self.s, self.N)
+        return dt, ok, iters, u0
+
+
+def solve_warm(fn, x, previous, s, N):
+    """One call of an expert's solver function ``fn(x, X, U, eta)`` from ``previous`` (its
+    last primal solution), else the cold guess (x held, u_ref, no slack): (wall time,
+    success, iterations, the solution for the next call or None, the first input)."""
+    guess = previous
+    if guess is None:
+        guess = (
+            np.tile(x[:, None], (1, N + 1)),
+            np.tile(s.u_ref[:, None], (1, N)),
+            np.zeros((s.nx, N + 1)),
+        )
+    t0 = time.perf_counter()
+    try:
+        out = fn(x, *guess)
+        raised = False
+    except RuntimeError:
+        raised = True
+    dt = time.perf_counter() - t0
+    stats = fn.stats()
+    ok = not raised and bool(stats.get("success", False))
+    solution = tuple(np.asarray(o) for o in out) if ok else None
+    u0 = solution[1][:, 0].copy() if ok else None
+    return dt, ok, int(stats.get("iter_count", 0)), solution, u0
 
 
 class FatropBaseline:
@@ -249,26 +257,8 @@ class FatropBaseline:
 
     def solve(self, x):
         """Returns (wall time of the solve call, success, iterations, first input)."""
-        if self._prev is not None:
-            guess = self._prev
-        else:
-            guess = (
-                np.tile(x[:, None], (1, self.N + 1)),
-                np.tile(self.s.u_ref[:, None], (1, self.N)),
-                np.zeros((self.s.nx, self.N + 1)),
-            )
-        t0 = time.perf_counter()
-        try:
-            out = self._fn(x, *guess)
-            raised = False
-        except RuntimeError:
-            raised = True
-        dt = time.perf_counter() - t0
-        stats = self._fn.stats()
-        ok = not raised and bool(stats.get("success", False))
-        self._prev = tuple(np.asarray(o) for o in out) if ok else None
-        u0 = self._prev[1][:, 0].copy() if ok else None
-        return dt, ok, int(stats.get("iter_count", 0)), u0
+        dt, ok, iters, self._prev, u0 = solve_warm(self._fn, x, self._prev, self.s, self.N)
+        return dt, ok, iters, u0
 
 
 class MpcrlPeer:
