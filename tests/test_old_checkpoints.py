@@ -81,7 +81,8 @@ def test_cli_resume_exits_2_naming_the_version_and_writes_nothing(old_run):
         assert "Traceback" not in text
         assert "written by mpcmobo 0.1.0" in text and "schema 1" in text, text
         assert (
-            f"mpcmobo {mpcmobo.__version__} resumes only its own checkpoints (schema 2)" in text
+            f"mpcmobo {mpcmobo.__version__} resumes only its own checkpoints (schema {storage.CHECKPOINT_SCHEMA})"
+            in text
         ), text
         # what to do: read the records, or start a new run from the saved settings
         assert f"mpcmobo plot {old_run}" in text and f"mpcmobo evaluate {old_run}" in text
@@ -100,8 +101,8 @@ def test_run_study_refuses_to_resume_it(old_run):
 
 
 def test_its_checkpoints_are_read_for_their_rows(old_run):
-    """The rows and incumbents of a schema-1 checkpoint are read as they were written (a
-    column added since, ``start_cost``, is NaN, ``identified`` empty)."""
+    """The rows and incumbents of a schema-1 checkpoint are read as they were written (the
+    columns added since are NaN, ``identified`` empty)."""
     run_dir = RunDirectory(old_run)
     settings = run_dir.saved_settings(for_records=True)
     for learner, seed in JOBS.items():
@@ -110,8 +111,10 @@ def test_its_checkpoints_are_read_for_their_rows(old_run):
         assert ckpt.schema == 1 and len(ckpt.rows) == RESUMED_AT
         for row, d in zip(ckpt.rows, raw["rows"], strict=True):
             got = row.to_dict()
-            assert set(got) == set(d) | {"start_cost", "identified"}
-            assert np.isnan(got["start_cost"]) and got["identified"] == []
+            added = {"start_cost", "identified", "plant_cost", "excess_cost"}
+            assert set(got) == set(d) | added
+            assert got["identified"] == []
+            assert all(np.isnan(got[k]) for k in added - {"identified"})
             np.testing.assert_equal({k: got[k] for k in d}, d)  # NaN equal to NaN
     incumbents = run_dir.incumbents(settings)
     assert [(n, s, k) for n, s, k, _ in incumbents] == [("mpc-rl", 0, 4), ("mobo", 0, 4)]
