@@ -70,7 +70,8 @@ def test_the_node_map_is_checked_and_its_secrets_never_shown(cstr, tmp_path, mon
         with pytest.raises(ConnectError) as err:
             load_nodes(path, cstr)
         assert says in str(err.value), str(err.value)
-        assert "from-the" not in str(err.value) and "12" not in str(err.value).split(":")[-1]
+        msg = str(err.value).replace(str(path), "NODES")  # the temporary path may hold "12"
+        assert "from-the" not in msg and "12" not in msg.split(":")[-1], msg
     with pytest.raises(ConnectError, match="does not exist"):
         load_nodes(tmp_path / "none.toml", cstr)
     assert public_url("opc.tcp://op:pw@host:4840/p") == "opc.tcp://host:4840/p"

@@ -155,8 +155,8 @@ def test_the_command_line_writes_and_builds_the_embedded_controller(tmp_path):
     tuner = Tuner({"name": "lq", "identify": False}, "bo", tmp_path / "t", episodes=2, steps=10)
     trial = tuner.ask()
     x, states, inputs = trial.x0, [trial.x0], []
-    for _ in range(trial.steps):
-        u = np.clip(trial.policy(x), tuner.system.u_lb, tuner.system.u_ub)
+    for k in range(trial.steps):
+        u = np.clip(trial.policy(x) + trial.noise[k], tuner.system.u_lb, tuner.system.u_ub)
         x = tuner.system.plant_step(x, u)
         states.append(x)
         inputs.append(u)

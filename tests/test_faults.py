@@ -45,11 +45,11 @@ def test_failed_solves_at_random_steps_use_the_fallback_and_are_recorded(tmp_pat
     injected = []
     original = ParametricMPC.solve
 
-    def flaky(self, x, theta=None, sensitivities=True):
+    def flaky(self, x, theta=None, sensitivities=True, **kwargs):
         if sensitivities and rng.random() < 0.15:  # a learning episode's solve
             injected.append(1)
             return self.solver.failed("Injected_Failure", 0, sensitivities)
-        return original(self, x, theta, sensitivities)
+        return original(self, x, theta, sensitivities, **kwargs)
 
     monkeypatch.setattr(ParametricMPC, "solve", flaky)
     summary = run_study(small(["mpc-rl", "bo"]), tmp_path / "run")

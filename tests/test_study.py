@@ -81,10 +81,10 @@ def test_checkpoints_are_plain_dicts_that_round_trip(full_run):
     out, _, _ = full_run
     d = storage.load_checkpoint(out, "mpc-rl", 0)
     assert type(d) is dict and all(type(r) is dict for r in d["rows"])
-    assert d["schema"] == storage.CHECKPOINT_SCHEMA == 2 and "version" not in d
-    assert storage.checkpoint_schema(d) == 2
+    assert d["schema"] == storage.CHECKPOINT_SCHEMA == 3 and "version" not in d
+    assert storage.checkpoint_schema(d) == 3
     ckpt = Checkpoint.from_dict(d)
-    assert ckpt.schema == 2
+    assert ckpt.schema == 3
     again = dict(ckpt.to_dict(), schema=d["schema"], learner="mpc-rl", seed=0)
     assert list(again) == list(d) and list(again["rows"][0]) == list(d["rows"][0])
     np.testing.assert_equal(again, d)  # nested: arrays, lists, NaN equal to NaN

@@ -106,7 +106,9 @@ def test_status_lists_the_trials_and_says_what_to_do(tmp_path):
     rows = pd.read_parquet(out / "episodes.parquet")
     assert [t["plant_cost"] for t in st["trials"]] == pytest.approx(list(rows.mean_stage_cost))
     assert st["plant_cost"] == pytest.approx(rows.mean_stage_cost.sum())
-    assert st["excess_cost"] is None and all(t["excess_cost"] is None for t in st["trials"])
+    excess = [t["excess_cost"] for t in st["trials"]]
+    assert excess == pytest.approx(list(rows.excess_cost))
+    assert st["excess_cost"] == pytest.approx(rows.excess_cost.sum())
     assert st["trials"][0]["role"] == "deployed"  # theta0, deployed before it
     assert st["trials"][0]["start"] == 0 and st["trials"][1]["start"] == 1
     assert st["quarantined"] == [2] and st["pending"] == 2
