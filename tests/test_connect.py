@@ -161,15 +161,19 @@ def test_a_fault_aborts_the_trial_keeps_its_log_and_the_next_connect_runs_it(
 
 
 def test_ctrl_c_writes_the_safe_input_and_exits_130(plant, tuner_dir, tmp_path, cstr_system):
-    plant.interrupt_after(4)
     args = ["connect", str(tuner_dir), "--url", plant.url, "--nodes", str(_nodes(tmp_path))]
-    res = runner.invoke(app, [*args, "--period", str(PERIOD)])
+    for _ in range(3):  # the simulated Ctrl-C (interrupt_main) can reach a trial's last period
+        tid = Tuner.load(tuner_dir).ask().id
+        plant.interrupt_after(4)
+        res = runner.invoke(app, [*args, "--period", str(PERIOD), "--trials", "1"])
+        if res.exit_code != 0:
+            break
     assert res.exit_code == 130, res.output
     assert "interrupted (SIGINT): the safe input is written;" in res.output
     assert np.array_equal(_last_input(plant), SAFE)
     _inputs_in_bounds(plant, cstr_system)
-    assert (tuner_dir / "trials" / "0" / "aborted-1.csv").exists()
-    assert Tuner.load(tuner_dir).status()["pending"] == 0
+    assert (tuner_dir / "trials" / str(tid) / "aborted-1.csv").exists()
+    assert Tuner.load(tuner_dir).status()["pending"] == tid
 
 
 def test_an_unreachable_server_bad_nodes_and_a_cycled_start_exit_2(plant, tuner_dir, tmp_path):
