@@ -106,6 +106,61 @@ def table(outs: list[Path], only_seeds: list[int] | None = None) -> str:
     return "\n".join(lines)
 
 
+def _first_deployment(d: pd.DataFrame) -> int:
+    """The first episode after which the deployed theta is not the first one (len: never)."""
+    first = np.asarray(d["incumbent"].iloc[0], float)
+    moved = [not np.allclose(inc, first, rtol=0, atol=1e-12) for inc in d["incumbent"]]
+    return int(np.argmax(moved)) if any(moved) else len(d)
+
+
+def plant_table(outs: list[Path], only_seeds: list[int] | None = None) -> str:
+    """What tuning cost the plant, one row per learner (seeds pooled over ``outs``): the
+    cumulative plant cost of the episodes (the sum of their mean stage costs; median and worst
+    over seeds), its ratio to ``identify``'s of the same seed (median, worst), the cumulative
+    excess over the deployed controller from the same starts, the worst exploring episode after
+    the first deployment as a multiple of the deployed controller's cost from its start with
+    its noise (plant cost / (plant cost - excess)), the candidates refused by the exploration
+    budget and the seeds whose tuning converged (stopped exploring) with the median episode."""
+    df = pd.concat([pd.read_parquet(out / "episodes.parquet") for out in outs])
+    if only_seeds is not None:
+        df = df[df["seed"].isin(only_seeds)]
+    total = df.groupby(["learner", "seed"])["plant_cost"].sum()
+    ident = total.get("identify") if "identify" in total.index.get_level_values(0) else None
+    lines = [
+        "| learner | seeds | plant cost, sum over episodes (median, worst) | / identify's "
+        "(median, worst) | excess over the deployed (median, worst) | worst exploring "
+        "episode / deployed, after the first deployment | refused candidates | converged "
+        "(seeds, median episode) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name in dict.fromkeys(df["learner"]):
+        d = df[df["learner"] == name]
+        t = total[name]
+        rel = (t / ident).dropna().to_numpy() if ident is not None else np.array([])
+        excess = d.groupby("seed")["excess_cost"].sum()
+        worst, conv = [], []
+        for _, ds in d.groupby("seed"):
+            ds = ds.sort_values("episode")
+            after = ds.iloc[_first_deployment(ds) + 1 :]
+            e = after["excess_cost"].to_numpy(float)
+            c = after["plant_cost"].to_numpy(float)
+            ok = np.isfinite(e) & np.isfinite(c) & (e != 0)
+            worst.append(float(np.max(c[ok] / (c[ok] - e[ok]))) if ok.any() else 1.0)
+            frozen = (ds["refused"] == "") & (ds["predicted_cost"].isna())
+            stops = ds["episode"][frozen & (ds["episode"] > 0)]
+            if "refused" in ds and (ds["refused"] != "").any() and len(stops):
+                conv.append(int(stops.iloc[0]))
+        refused = int((d["refused"] != "").sum()) if "refused" in d else 0
+        rel_col = f"{np.median(rel):.3f}, {rel.max():.3f}" if len(rel) else "-"
+        conv_col = f"{len(conv)}, {np.median(conv):g}" if conv else "0"
+        lines.append(
+            f"| {name} | {len(t)} | {t.median():.4g}, {t.max():.4g} | {rel_col} "
+            f"| {excess.median():.4g}, {excess.max():.4g} | {max(worst):.2f} | {refused} "
+            f"| {conv_col} |"
+        )
+    return "\n".join(lines)
+
+
 def compare(runs: list[tuple[str, Path]]) -> str:
     """One compact row per (label, learner) of several run directories of one system (same
     J*), not pooled, and theta0's: the final J_eval/J* (median, worst seed), the final thetas
@@ -181,6 +236,12 @@ def main() -> None:
     ap.add_argument(
         "--only-seeds", type=int, nargs="+", default=None, help="table: only these seeds"
     )
+    ap.add_argument(
+        "--budget",
+        type=float,
+        default=None,
+        help="the exploration budget ([exploration] budget; inf: none; default: the settings')",
+    )
     args = ap.parse_args()
     if args.compare:
         pairs = [item.partition("=") for item in args.compare]
@@ -204,10 +265,13 @@ def main() -> None:
             workers=args.workers,
             start_mode=args.start_mode,
             evaluation={"eval_every": args.eval_every},
+            **({} if args.budget is None else {"exploration": {"budget": args.budget}}),
         )
         resume = (args.out[0] / "config.toml").exists()
         run_study(None if resume else settings, args.out[0], resume=resume)
     print(table(args.out, args.only_seeds))
+    print()
+    print(plant_table(args.out, args.only_seeds))
 
 
 if __name__ == "__main__":

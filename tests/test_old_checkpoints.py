@@ -111,10 +111,17 @@ def test_its_checkpoints_are_read_for_their_rows(old_run):
         assert ckpt.schema == 1 and len(ckpt.rows) == RESUMED_AT
         for row, d in zip(ckpt.rows, raw["rows"], strict=True):
             got = row.to_dict()
-            added = {"start_cost", "identified", "plant_cost", "excess_cost"}
+            added = {
+                "start_cost",
+                "identified",
+                "plant_cost",
+                "excess_cost",
+                "predicted_cost",
+                "refused",
+            }
             assert set(got) == set(d) | added
-            assert got["identified"] == []
-            assert all(np.isnan(got[k]) for k in added - {"identified"})
+            assert got["identified"] == [] and got["refused"] == ""
+            assert all(np.isnan(got[k]) for k in added - {"identified", "refused"})
             np.testing.assert_equal({k: got[k] for k in d}, d)  # NaN equal to NaN
     incumbents = run_dir.incumbents(settings)
     assert [(n, s, k) for n, s, k, _ in incumbents] == [("mpc-rl", 0, 4), ("mobo", 0, 4)]

@@ -260,6 +260,7 @@ def _print_trials(st: dict[str, Any]) -> None:
             f"the deployed controller {excess}",
             highlight=False,
         )
+    _print_exploration(st["exploration"])
     if st["quarantined"]:
         ids = ", ".join(map(str, st["quarantined"]))
         cli.console.print(
@@ -267,6 +268,21 @@ def _print_trials(st: dict[str, Any]) -> None:
             "quarantine/trial-<id>.json",
             highlight=False,
         )
+
+
+def _print_exploration(ex: dict[str, Any]) -> None:
+    """The exploration budget's account (``Tuner.status``'s ``exploration``), one line."""
+    if ex["budget"] is None:
+        cli.console.print("no exploration budget: every candidate runs", highlight=False)
+        return
+    refused = ", ".join(map(str, ex["refused"])) or "none"
+    error = "not calibrated yet" if ex["model_error"] is None else f"{100 * ex['model_error']:.1f}%"
+    cli.console.print(
+        f"exploration budget {1 + ex['budget']:.2f}x the deployed controller's predicted cost; "
+        f"trials whose candidate it refused (the deployed ran): {refused}; the model's "
+        f"prediction error {error}",
+        highlight=False,
+    )
 
 
 def _print_identification(ident: dict[str, Any]) -> None:

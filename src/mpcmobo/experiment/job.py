@@ -26,6 +26,7 @@ from mpcmobo.experiment.build import build_plant, build_system, identified_param
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost
 from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.loop import EPISODE_FAILURES, EpisodePlan, LearningRun
+from mpcmobo.experiment.price import ExplorationPrice
 from mpcmobo.experiment.records import Checkpoint, EpisodeRow, Trajectory
 from mpcmobo.experiment.rundir import RunDirectory, RunFileError
 from mpcmobo.experiment.settings import Settings, validate_settings
@@ -319,6 +320,7 @@ def _learning_run(
         critic_weighting=settings.critic.weighting,
         beta=settings.beta,
         plant=plant,
+        price=ExplorationPrice(settings.exploration.budget, settings.episodes),
     )
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -9,6 +10,7 @@ from dataclasses import dataclass
 import gymnasium
 import numpy as np
 
+from mpcmobo.experiment.price import ExplorationPrice
 from mpcmobo.learners.base import EpisodeResult, Learner, episode_result
 from mpcmobo.mpc import (
     EpisodeRecord,
@@ -35,7 +37,11 @@ class EpisodePlan:
     """What one episode runs (:meth:`LearningRun.plan`): its theta, initial state, exploration
     noise per step (T, nu; zero where the learner asked for a noise-free episode), the plant's
     seed, the start's index in the cycle (-1: random), the proposal's error if it failed and the
-    theta deployed when it was planned (what the episode's excess cost is measured against)."""
+    theta deployed when it was planned (what the episode's excess cost is measured against).
+    With an exploration budget (:mod:`mpcmobo.experiment.price`): the predicted cost of the
+    theta that runs and of the deployed one from ``x0`` with ``noise`` (NaN: not predicted),
+    why the learner's candidate was refused ("": it was not) and whether tuning has converged
+    (the deployed theta runs without noise and the learner does not observe it)."""
 
     episode: int
     theta: np.ndarray
@@ -47,6 +53,10 @@ class EpisodePlan:
     error: str = ""
     propose_time: float = 0.0
     deployed: list[float] | None = None
+    predicted_cost: float = math.nan
+    predicted_deployed: float = math.nan
+    refused: str = ""
+    converged: bool = False
 
     def to_dict(self) -> dict:
         """Plain data (a pending trial in a checkpoint)."""
@@ -147,11 +157,13 @@ class LearningRun:
         critic_weighting: str = "uniform",
         beta: float = 1.0,
         plant: gymnasium.Env | None = None,
+        price: ExplorationPrice | None = None,
     ) -> None:
         if start_mode not in START_MODES:
             raise ValueError(f"start_mode must be one of {START_MODES}, got '{start_mode}'")
         self.system, self.learner, self.mpc = system, learner, mpc
         self.plant = plant  # None: the system's own equations (SystemPlant)
+        self.price = ExplorationPrice(math.inf, 0) if price is None else price
         self.seed = int(seed)
         self.steps = int(system.episode_steps if steps is None else steps)
         std = np.zeros(system.nu) if exploration_std is None else exploration_std
@@ -191,11 +203,17 @@ class LearningRun:
     def plan(self) -> EpisodePlan:
         """What the next episode runs: the learner's proposal, whether it explores, its initial
         state and its exploration noise, drawn now (the random streams advance as if the
-        episode ran). :meth:`finish` completes the episode from its record."""
+        episode ran), judged by the exploration budget (:meth:`_priced`). Once tuning has
+        converged the deployed theta runs without noise and the learner is not asked.
+        :meth:`finish` completes the episode from its record."""
         t0 = time.perf_counter()
         deployed = np.asarray(self.learner.incumbent(), float)
-        theta, proposal_error = self._propose()
-        explore = bool(self.learner.explores())
+        converged = self.price.converged
+        if converged:
+            theta, proposal_error, explore = deployed.copy(), "", False
+        else:
+            theta, proposal_error = self._propose()
+            explore = bool(self.learner.explores())
         t_prop = time.perf_counter() - t0
         x0 = self.next_start()
         self.exploration.episode = self.episode
@@ -203,7 +221,7 @@ class LearningRun:
         if not explore:  # zero noise, drawn all the same: the stream does not depend on it
             exploration = GaussianExploration(np.zeros(exploration.nu), episode=self.episode)
         noise = np.array([exploration.sample(self.rng_noise, k) for k in range(self.steps)])
-        return EpisodePlan(
+        plan = EpisodePlan(
             episode=self.episode,
             theta=theta,
             x0=x0,
@@ -214,7 +232,38 @@ class LearningRun:
             error=proposal_error,
             propose_time=t_prop,
             deployed=[float(v) for v in deployed],
+            converged=converged,
         )
+        return self._priced(plan) if self.price.active and not converged else plan
+
+    def _priced(self, plan: EpisodePlan) -> EpisodePlan:
+        """``plan`` with its predicted cost and the deployed theta's, on the learner's model of
+        the plant (:meth:`prediction_params`) from its start with its noise; an exploring
+        candidate the budget refuses is replaced by the deployed theta (same noise)."""
+        t0 = time.perf_counter()
+        deployed = np.asarray(plan.deployed, float)
+        params = self.prediction_params(deployed)
+        d = self.start_cost(plan.x0, deployed, params, plan.noise)
+        if np.array_equal(plan.theta, deployed):
+            plan.predicted_cost = plan.predicted_deployed = d
+        else:
+            c = self.start_cost(plan.x0, plan.theta, params, plan.noise)
+            plan.predicted_cost, plan.predicted_deployed = c, d
+            if plan.explore:
+                verdict = self.price.judge(c, d, plan.episode)
+                if not verdict.run:
+                    plan.refused = verdict.reason
+                    plan.theta, plan.predicted_cost = deployed.copy(), d
+        plan.propose_time += time.perf_counter() - t0
+        return plan
+
+    def prediction_params(self, deployed: np.ndarray) -> np.ndarray:
+        """The model parameters the loop predicts plant episodes with: the model of the
+        learner's last identification, else the deployed theta's own model."""
+        fit = self.learner.identification()
+        if fit is not None:
+            return np.asarray(fit.params, float)
+        return self._model_of(deployed)
 
     def run_episode(self) -> tuple[dict, EpisodeRecord | None]:
         """Run one episode; return its row of records (the fields of :class:`EpisodeRow` except
@@ -299,8 +348,10 @@ class LearningRun:
         plant_cost = mean_stage_cost(record) if record is not None else np.nan
         excess = self.excess_cost(plan, plant_cost, result, deployed_cost)
         t_mpc = mpc_time + time.perf_counter() - t1
+        self.price.calibrate(plan.predicted_cost, plant_cost)
         t2 = time.perf_counter()
-        self.learner.observe(theta, result)
+        if not plan.converged:  # a converged tuning's learner no longer observes
+            self.learner.observe(theta, result)
         incumbent = np.asarray(self.learner.incumbent(), dtype=float)
         t_learn = plan.propose_time + time.perf_counter() - t2
         if np.isfinite(result.Vc):
@@ -330,6 +381,8 @@ class LearningRun:
             "identified": _as_list(self.learner.identified()),
             "plant_cost": float(plant_cost),
             "excess_cost": float(excess),
+            "predicted_cost": float(plan.predicted_cost),
+            "refused": plan.refused,
         }
         self.episode += 1
         return row, record
@@ -343,9 +396,10 @@ class LearningRun:
     ) -> float:
         """What the episode cost the plant beyond the deployed controller from the same start:
         0 where it ran the deployed theta; else its plant cost minus ``deployed_cost`` where
-        that was measured, or minus the deployed theta's closed loop on its own model (the MPC's
-        model with the theta's learned model parameters) from the episode's start with its
-        exploration replayed; NaN where neither is known."""
+        that was measured, or minus its prediction before the episode ran (the exploration
+        budget's, :meth:`_priced`), or minus the deployed theta's closed loop on its own model
+        (the MPC's model with the theta's learned model parameters) from the episode's start
+        with its exploration replayed; NaN where none is known."""
         if plan.deployed is None or not np.isfinite(plant_cost):
             return np.nan
         deployed = np.asarray(plan.deployed, float)
@@ -353,6 +407,8 @@ class LearningRun:
             return 0.0
         if np.isfinite(deployed_cost):
             return float(plant_cost - deployed_cost)
+        if np.isfinite(plan.predicted_deployed):
+            return float(plant_cost - plan.predicted_deployed)
         if result.exploration is None or result.x0 is None:
             return np.nan
         predicted = self.start_cost(
@@ -469,6 +525,7 @@ class LearningRun:
             "rng_start": self.rng_start.bit_generator.state,
             "rng_noise": self.rng_noise.bit_generator.state,
             "learner": self.learner.state_dict(),
+            "price": self.price.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -478,3 +535,4 @@ class LearningRun:
         self.rng_start.bit_generator.state = state["rng_start"]
         self.rng_noise.bit_generator.state = state["rng_noise"]
         self.learner.load_state_dict(state["learner"])
+        self.price.load_state_dict(state.get("price"))

@@ -56,6 +56,11 @@ class EpisodeRow:
     # theta; measured on a simulated plant, predicted by the MPC's own model on a real one)
     plant_cost: float = math.nan
     excess_cost: float = math.nan
+    # with an exploration budget: the episode's cost predicted before it ran (on the learner's
+    # model of the plant, from its start with its noise; NaN: not predicted), and why the
+    # learner's candidate was refused and the deployed theta ran instead ("": it was not)
+    predicted_cost: float = math.nan
+    refused: str = ""
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EpisodeRow:

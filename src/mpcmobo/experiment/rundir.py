@@ -9,6 +9,7 @@ may change. :class:`RunDirectory` reads and writes the typed records of the dire
 
 from __future__ import annotations
 
+import math
 import os
 import pickle
 import warnings
@@ -54,8 +55,12 @@ class OlderRunError(StudyError):
 READ_ONLY_DROPS = {"mpc": ("barrier_steps", "barrier_mu0", "barrier_push")}
 
 # settings a run saved before they existed ran without: their value then, where today's default
-# differs (the MPC's Newton steps: IPOPT only; identification: none)
-SAVED_BEFORE = {("mpc", "newton_steps"): 0, ("system", "identify"): False}
+# differs (the MPC's Newton steps: IPOPT only; identification: none; exploration: no budget)
+SAVED_BEFORE = {
+    ("mpc", "newton_steps"): 0,
+    ("system", "identify"): False,
+    ("exploration", "budget"): math.inf,
+}
 
 
 def _saved_before(saved: dict[str, Any]) -> dict[str, Any]:

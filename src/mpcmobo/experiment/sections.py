@@ -8,6 +8,7 @@ them). :class:`~mpcmobo.experiment.settings.Settings` assembles them.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
@@ -185,6 +186,21 @@ class ExplorationSettings(Section):
     """Standard deviation of the noise added to each input; unset: 2% of each input's range."""
     decay: float = Field(1.0, gt=0, le=1)
     """The standard deviation is multiplied by this factor after every episode (1: constant)."""
+    budget: float = Field(0.5, ge=0, allow_inf_nan=True)
+    """The price an exploring episode may have: how much more than the deployed controller a
+    candidate may be predicted to cost from the coming start, as a fraction of the deployed
+    controller's predicted cost (0.5: at most 1.5x). A candidate predicted over it, or not
+    paying back its excess within the remaining episodes, does not run (the deployed controller
+    runs instead); after 5 refusals in a row tuning stops exploring (docs/real-plant.md).
+    ``inf``: every candidate runs and nothing is predicted. Costs two closed loops on the
+    model per exploring episode."""
+
+    @field_validator("budget")
+    @classmethod
+    def _not_nan(cls, v: float) -> float:
+        if math.isnan(v):
+            raise ValueError("must be a number >= 0, or inf (no budget)")
+        return v
 
     @field_validator("std")
     @classmethod

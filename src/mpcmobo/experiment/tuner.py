@@ -439,7 +439,8 @@ class Tuner:
         episode's mean stage cost), ``excess_cost`` over the deployed controller (None while
         unknown) and ``verdict`` (:mod:`mpcmobo.experiment.tunerstatus`); ``plant_cost`` and
         ``excess_cost`` summed over them; ``quarantined``: the trials whose log is
-        quarantined; ``recommendation``: ``action`` (continue or stop) and ``reason``; the
+        quarantined; ``recommendation``: ``action`` (continue or stop) and ``reason``;
+        ``exploration``: the exploration budget's account (:meth:`_exploration`); the
         ``deployed`` theta, the trials that ran it and its ``evidence``, how often it changed
         from theta0, its last ``J_eval`` (a simulated plant; None until it is evaluated), and
         with identification the last fit (``identification``: per parameter its nominal
@@ -471,8 +472,14 @@ class Tuner:
             "plant_cost": tunerstatus.cumulative(trials, "plant_cost"),
             "excess_cost": tunerstatus.cumulative(trials, "excess_cost"),
             "recommendation": tunerstatus.recommendation(
-                len(rows), s.episodes, pending, quarantined, str(self.run_dir.path)
+                len(rows),
+                s.episodes,
+                pending,
+                quarantined,
+                str(self.run_dir.path),
+                self.job.run.price.converged_,
             ),
+            "exploration": self._exploration(rows),
             "deployed": dict(zip(self._policy_mpc.theta_names, map(float, deployed))),
             "deployed_episodes": len(ran),
             "evidence": {
@@ -488,6 +495,19 @@ class Tuner:
             if not math.isfinite(self.reference.J_initial)
             else self.reference.J_initial,
             "identification": _identification(self.job.run.learner, self.system),
+        }
+
+    def _exploration(self, rows: list[EpisodeRow]) -> dict[str, Any]:
+        """The exploration budget's account: the ``budget``, the trials whose candidate it
+        ``refused`` (the deployed theta ran), the relative ``model_error`` of its predictions
+        so far (None before two) and why tuning ``converged`` (None: it has not)."""
+        price = self.job.run.price
+        error = price.error()
+        return {
+            "budget": price.budget if price.active else None,
+            "refused": [int(r.episode) for r in rows if r.refused],
+            "model_error": error if math.isfinite(error) else None,
+            "converged": price.converged_ or None,
         }
 
     def _write_status(self) -> None:

@@ -77,9 +77,23 @@ def cumulative(trials: list[dict[str, Any]], key: str) -> float | None:
 
 
 def recommendation(
-    told: int, budget: int, pending: int | None, quarantined: list[int], directory: str
+    told: int,
+    budget: int,
+    pending: int | None,
+    quarantined: list[int],
+    directory: str,
+    converged: str = "",
 ) -> dict[str, str]:
-    """``action`` (``continue`` or ``stop``) and ``reason``."""
+    """``action`` (``continue`` or ``stop``) and ``reason``; ``converged``: why tuning stopped
+    exploring ("": it has not; :mod:`mpcmobo.experiment.price`)."""
+    if converged and (pending is None or pending not in quarantined):
+        return {
+            "action": "stop",
+            "reason": (
+                f"tuning has converged: {converged}. The deployed theta is the result (mpcmobo "
+                f"export {directory}); further trials run it without exploration"
+            ),
+        }
     if told >= budget:
         return {
             "action": "stop",

@@ -1,0 +1,144 @@
+"""The price of exploration: which candidates run on the plant, and when tuning stops exploring.
+
+Before an exploring episode of a candidate theta runs, the loop predicts its cost from the
+coming start, with the episode's exploration noise replayed, on the learner's best model of
+the plant (the identified model where the learner identifies one, else the deployed theta's
+own model), and the deployed controller's cost from the same start with the same noise
+(:meth:`~mpcmobo.experiment.loop.LearningRun.plan`). :class:`ExplorationPrice` decides:
+
+* a candidate predicted to cost no more than the deployed controller runs;
+* a candidate predicted to cost more than ``1 + budget`` times the deployed controller is not
+  run: the deployed controller runs instead (with the same noise), and the learner observes
+  that episode;
+* a candidate predicted to cost more, within the budget, runs only if it can pay back its
+  excess within the remaining episodes: at best it saves the prediction's error per episode
+  (the RMS relative error of the model's predictions of the episodes run so far, its
+  calibration) less its own predicted excess, over the remaining episodes;
+* after :data:`PATIENCE` candidates in a row are refused, tuning has converged: every later
+  episode runs the deployed controller without exploration noise, the learner no longer
+  proposes nor observes, and the reason is kept (the tuner's ``status`` reports it).
+
+A candidate whose predicted closed loop fails (the model's plant runs away) is refused; where
+the deployed controller's prediction fails there is no basis, and the candidate runs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["PATIENCE", "ExplorationPrice", "Verdict"]
+
+# candidates refused in a row after which tuning has converged
+PATIENCE = 5
+# the model's calibration needs this many predicted episodes before it bounds a payback
+MIN_CALIBRATION = 2
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether a candidate runs, and if not, why (``reason``)."""
+
+    run: bool
+    reason: str = ""
+
+
+class ExplorationPrice:
+    """The gate of exploring episodes (module docstring). ``budget``: how much more than the
+    deployed controller a candidate may be predicted to cost, as a fraction of the deployed
+    controller's predicted cost (inf: no gate, nothing is predicted); ``episodes``: the run's
+    budget of episodes (the remaining ones bound a payback)."""
+
+    def __init__(self, budget: float, episodes: int) -> None:
+        if not budget >= 0:
+            raise ValueError(f"the exploration budget must be >= 0 (inf: none), got {budget}")
+        self.budget = float(budget)
+        self.episodes = int(episodes)
+        self.errors_: list[float] = []  # relative errors of the model's predictions
+        self.refused_ = 0  # candidates refused in a row
+        self.converged_ = ""  # why tuning stopped exploring ("": it has not)
+
+    @property
+    def active(self) -> bool:
+        """Whether the gate predicts and judges (a finite budget)."""
+        return math.isfinite(self.budget)
+
+    @property
+    def converged(self) -> bool:
+        """Whether tuning has stopped exploring."""
+        return bool(self.converged_)
+
+    def error(self) -> float:
+        """The RMS relative error of the model's predictions of the episodes run so far (inf
+        before :data:`MIN_CALIBRATION` of them)."""
+        if len(self.errors_) < MIN_CALIBRATION:
+            return math.inf
+        return float(np.sqrt(np.mean(np.square(self.errors_))))
+
+    def calibrate(self, predicted: float, plant_cost: float) -> None:
+        """Take an episode's predicted and measured cost (ignored where either is unknown)."""
+        if math.isfinite(predicted) and math.isfinite(plant_cost) and predicted > 0:
+            self.errors_.append(float(plant_cost / predicted - 1.0))
+
+    def judge(self, candidate: float, deployed: float, episode: int) -> Verdict:
+        """Whether the candidate predicted to cost ``candidate`` runs where the deployed
+        controller is predicted to cost ``deployed`` (both from the coming start of episode
+        ``episode``); a refusal counts towards convergence."""
+        verdict = self._verdict(candidate, deployed, self.episodes - int(episode) - 1)
+        if verdict.run:
+            self.refused_ = 0
+            return verdict
+        self.refused_ += 1
+        if self.refused_ >= PATIENCE:
+            self.converged_ = (
+                f"{PATIENCE} candidates in a row were refused (the last at episode {episode}: "
+                f"{verdict.reason}): exploring no longer pays"
+            )
+        return verdict
+
+    def _verdict(self, candidate: float, deployed: float, remaining: int) -> Verdict:
+        """The rule of the module docstring."""
+        if not (math.isfinite(deployed) and deployed > 0):
+            return Verdict(True)
+        if not math.isfinite(candidate):
+            return Verdict(False, "its closed loop on the model fails")
+        excess = candidate / deployed - 1.0
+        if excess <= 0:
+            return Verdict(True)
+        if excess > self.budget:
+            return Verdict(
+                False,
+                f"predicted at {1 + excess:.2f}x the deployed controller's cost, over the "
+                f"budget of {1 + self.budget:.2f}x",
+            )
+        err = self.error()
+        if math.isfinite(err) and excess * (remaining + 1) > err * remaining:
+            return Verdict(
+                False,
+                f"its predicted excess of {100 * excess:.1f}% does not pay back in "
+                f"{remaining} remaining episodes at the model's error of {100 * err:.1f}%",
+            )
+        return Verdict(True)
+
+    def state_dict(self) -> dict:
+        """What the gate has learned (its configuration comes from the settings)."""
+        return {
+            "errors": list(self.errors_),
+            "refused": self.refused_,
+            "converged": self.converged_,
+            "episodes": self.episodes,
+        }
+
+    def load_state_dict(self, state: dict | None) -> None:
+        """Continue from a :meth:`state_dict` (None: a checkpoint without one). A run given
+        more episodes than it had explores again: its remaining episodes changed."""
+        if state is None:
+            return
+        self.errors_ = [float(e) for e in state["errors"]]
+        self.refused_ = int(state["refused"])
+        extended = int(state["episodes"]) != self.episodes
+        self.converged_ = "" if extended else str(state["converged"])
+        if extended:
+            self.refused_ = 0

@@ -1,0 +1,183 @@
+"""The exploration budget: which candidates run on the plant, and when tuning stops exploring."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mpcmobo.experiment.loop import LearningRun
+from mpcmobo.experiment.price import PATIENCE, ExplorationPrice
+from mpcmobo.experiment.settings import SettingsError, load_settings
+from mpcmobo.experiment.tunerstatus import recommendation
+from mpcmobo.learners.base import Learner
+from mpcmobo.mpc import ParametricMPC
+from mpcmobo.systems import get_system
+
+
+def test_a_candidate_within_the_budget_runs_one_over_it_does_not():
+    price = ExplorationPrice(0.5, episodes=50)
+    assert price.judge(1.4, 1.0, 0).run
+    assert price.judge(0.8, 1.0, 1).run  # cheaper: always
+    v = price.judge(1.6, 1.0, 2)
+    assert not v.run and "1.60x" in v.reason and "1.50x" in v.reason
+
+
+def test_a_failing_prediction_is_refused_and_no_basis_runs():
+    price = ExplorationPrice(0.5, episodes=50)
+    assert not price.judge(math.nan, 1.0, 0).run
+    assert price.judge(5.0, math.nan, 1).run  # the deployed controller's prediction failed
+
+
+def test_an_excess_that_does_not_pay_back_is_refused_once_the_model_is_calibrated():
+    price = ExplorationPrice(0.5, episodes=50)
+    assert price.error() == math.inf
+    assert price.judge(1.1, 1.0, 0).run  # no calibration yet: only the budget bounds it
+    for predicted, cost in [(1.0, 1.02), (2.0, 1.96), (1.0, 1.0)]:
+        price.calibrate(predicted, cost)
+    assert price.error() == pytest.approx(np.sqrt((0.02**2 + 0.02**2) / 3))
+    v = price.judge(1.1, 1.0, 10)  # 10% more, a model that errs by 1.6%
+    assert not v.run and "pay back" in v.reason
+    assert price.judge(1.01, 1.0, 11).run  # within the model's error over 38 episodes
+    assert not price.judge(1.01, 1.0, 49).run  # but not with no episode left
+
+
+def test_tuning_converges_after_refusals_in_a_row_and_a_larger_budget_reopens_it():
+    price = ExplorationPrice(0.2, episodes=20)
+    for k in range(PATIENCE - 1):
+        assert not price.judge(2.0, 1.0, k).run
+    assert price.judge(1.0, 1.0, PATIENCE).run  # a run breaks the row
+    for k in range(PATIENCE):
+        assert not price.converged
+        price.judge(2.0, 1.0, 10 + k)
+    assert price.converged and "in a row" in price.converged_
+    again = ExplorationPrice(0.2, episodes=20)
+    again.load_state_dict(price.state_dict())
+    assert again.converged and again.state_dict() == price.state_dict()
+    extended = ExplorationPrice(0.2, episodes=40)
+    extended.load_state_dict(price.state_dict())
+    assert not extended.converged and extended.errors_ == price.errors_
+
+
+def test_the_budget_setting_is_checked_and_inf_means_none():
+    assert load_settings(exploration={"budget": math.inf}).exploration.budget == math.inf
+    assert not ExplorationPrice(math.inf, 10).active
+    for bad in (-0.1, math.nan):
+        with pytest.raises(SettingsError, match="exploration.budget"):
+            load_settings(exploration={"budget": bad})
+
+
+def test_a_converged_tuning_recommends_to_stop_and_says_why():
+    rec = recommendation(12, 50, None, [], "tuning", "5 candidates in a row were refused")
+    assert rec["action"] == "stop" and "converged" in rec["reason"]
+    assert "5 candidates" in rec["reason"] and "mpcmobo export tuning" in rec["reason"]
+    assert recommendation(12, 50, None, [], "tuning")["action"] == "continue"
+
+
+# ---------------------------------------------------------------------- in the loop
+@pytest.fixture(scope="module")
+def lq():
+    return get_system("lq")
+
+
+class FarAway(Learner):
+    """Proposes the same far-away candidate; deploys theta0; counts its calls."""
+
+    name = "far-away"
+
+    def __init__(self, system, candidate):
+        super().__init__(system.search_space, system.parameterization.theta0)
+        self.candidate = np.asarray(candidate, float)
+        self.proposed, self.observed = 0, []
+
+    def propose(self):
+        self.proposed += 1
+        return self.candidate.copy()
+
+    def observe(self, theta, result):
+        self.observed.append(np.array(theta))
+
+    def incumbent(self):
+        return self.theta0.copy()
+
+
+def _run(lq, budget, candidate, episodes=12):
+    mpc = ParametricMPC(lq, model="imperfect")
+    learner = FarAway(lq, candidate)
+    run = LearningRun(
+        lq,
+        learner,
+        mpc,
+        seed=3,
+        steps=10,
+        exploration_std=[0.05],
+        price=ExplorationPrice(budget, episodes),
+    )
+    return run, learner
+
+
+def _expensive(lq):
+    theta = lq.parameterization.theta0.copy()
+    theta[lq.search_space.names.index("R_f")] = lq.search_space.upper[-1]  # a sluggish input
+    return lq.search_space.clip(theta)
+
+
+def test_the_loop_refuses_an_expensive_candidate_runs_the_deployed_and_converges(lq):
+    run, learner = _run(lq, 0.0, _expensive(lq))
+    rows = []
+    for _ in range(PATIENCE + 2):
+        plan = run.plan()
+        rows.append(run.run_episode.__func__ and plan)
+        record_row, _ = run.finish(plan, _episode(lq, run, plan))
+        rows[-1] = record_row
+    refused = [r for r in rows if r["refused"]]
+    assert len(refused) == PATIENCE  # each ran the deployed theta, with the noise
+    for r in refused:
+        np.testing.assert_array_equal(r["theta"], learner.theta0)
+        assert r["excess_cost"] == 0.0 and np.isfinite(r["predicted_cost"])
+    assert run.price.converged
+    frozen = rows[PATIENCE:]
+    assert all(not r["refused"] and math.isnan(r["predicted_cost"]) for r in frozen)
+    assert learner.proposed == PATIENCE  # a converged tuning does not ask the learner
+    assert len(learner.observed) == PATIENCE  # nor shows it the deployed theta's episodes
+    plan = run.plan()
+    assert plan.converged and not plan.explore and not np.any(plan.noise)
+
+
+def _episode(lq, run, plan):
+    from mpcmobo.mpc import rollout
+
+    return rollout(lq, run.mpc, plan.theta, plan.x0, run.steps, noise=plan.noise)
+
+
+def test_the_prediction_is_that_of_the_episode_on_an_exact_model(lq):
+    """With the true model, the predicted cost of an episode is its plant cost."""
+    run, _ = _run(lq, 10.0, lq.parameterization.theta0 * 1.05)
+    run.mpc = ParametricMPC(lq, model="perfect")
+    plan = run.plan()
+    assert not plan.refused and np.isfinite(plan.predicted_cost)
+    row, _ = run.finish(plan, _episode(lq, run, plan))
+    assert row["predicted_cost"] == pytest.approx(row["plant_cost"], rel=1e-6)
+
+
+def test_without_a_budget_nothing_is_predicted_and_the_streams_are_those_of_the_budget(lq):
+    a, learner = _run(lq, math.inf, _expensive(lq))
+    b, _ = _run(lq, 0.0, _expensive(lq))
+    pa, pb = a.plan(), b.plan()
+    assert math.isnan(pa.predicted_cost) and not pa.refused
+    np.testing.assert_array_equal(pa.theta, learner.candidate)
+    np.testing.assert_array_equal(pa.x0, pb.x0)
+    np.testing.assert_array_equal(pa.noise, pb.noise)
+
+
+def test_the_gate_resumes_from_the_run_state(lq):
+    run, _ = _run(lq, 0.0, _expensive(lq))
+    for _ in range(3):
+        plan = run.plan()
+        run.finish(plan, _episode(lq, run, plan))
+    state = run.state_dict()
+    other, _ = _run(lq, 0.0, _expensive(lq))
+    other.load_state_dict(state)
+    assert other.price.state_dict() == run.price.state_dict()
+    assert other.price.refused_ == 3
