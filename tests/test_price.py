@@ -16,41 +16,54 @@ from mpcmobo.mpc import ParametricMPC
 from mpcmobo.systems import get_system
 
 
+def _no_saving():
+    return -0.05, 1.0
+
+
+def _unasked():
+    raise AssertionError("the saving is asked only of a costlier candidate within the budget")
+
+
 def test_a_candidate_within_the_budget_runs_one_over_it_does_not():
     price = ExplorationPrice(0.5, episodes=50)
-    assert price.judge(1.4, 1.0, 0).run
-    assert price.judge(0.8, 1.0, 1).run  # cheaper: always
-    v = price.judge(1.6, 1.0, 2)
+    assert price.judge(1.4, 1.0, 0, _no_saving).run  # not calibrated: the budget alone
+    assert price.judge(0.8, 1.0, 1, _unasked).run  # cheaper: always
+    v = price.judge(1.6, 1.0, 2, _unasked)
     assert not v.run and "1.60x" in v.reason and "1.50x" in v.reason
 
 
 def test_a_failing_prediction_is_refused_and_no_basis_runs():
     price = ExplorationPrice(0.5, episodes=50)
-    assert not price.judge(math.nan, 1.0, 0).run
-    assert price.judge(5.0, math.nan, 1).run  # the deployed controller's prediction failed
+    assert not price.judge(math.nan, 1.0, 0, _unasked).run
+    assert price.judge(5.0, math.nan, 1, _unasked).run  # the deployed's prediction failed
+    assert not price.judge(1.1, 1.0, 2, lambda: (math.nan, 1.0)).run  # fails from a start
 
 
 def test_an_excess_that_does_not_pay_back_is_refused_once_the_model_is_calibrated():
     price = ExplorationPrice(0.5, episodes=50)
     assert price.error() == math.inf
-    assert price.judge(1.1, 1.0, 0).run  # no calibration yet: only the budget bounds it
     for predicted, cost in [(1.0, 1.02), (2.0, 1.96), (1.0, 1.0)]:
         price.calibrate(predicted, cost)
     assert price.error() == pytest.approx(np.sqrt((0.02**2 + 0.02**2) / 3))
-    v = price.judge(1.1, 1.0, 10)  # 10% more, a model that errs by 1.6%
+    # 10% more from this start, 5% worse on the fixed starts: beyond the model's 1.6% error
+    v = price.judge(1.1, 1.0, 10, _no_saving)
     assert not v.run and "pay back" in v.reason
-    assert price.judge(1.01, 1.0, 11).run  # within the model's error over 38 episodes
-    assert not price.judge(1.01, 1.0, 49).run  # but not with no episode left
+    # better on the fixed starts (a saving of 0.01 per episode): 39 episodes pay it back
+    assert price.judge(1.1, 1.0, 10, lambda: (0.01, 1.0)).run
+    assert not price.judge(1.1, 1.0, 46, lambda: (0.01, 1.0)).run  # but not 3 of them
+    assert not price.judge(1.01, 1.0, 49, lambda: (1.0, 1.0)).run  # nor none
+    price.use_model("another model")
+    assert price.error() == math.inf  # a new model: a new calibration
 
 
 def test_tuning_converges_after_refusals_in_a_row_and_a_larger_budget_reopens_it():
     price = ExplorationPrice(0.2, episodes=20)
     for k in range(PATIENCE - 1):
-        assert not price.judge(2.0, 1.0, k).run
-    assert price.judge(1.0, 1.0, PATIENCE).run  # a run breaks the row
+        assert not price.judge(2.0, 1.0, k, _unasked).run
+    assert price.judge(1.0, 1.0, PATIENCE, _unasked).run  # a run breaks the row
     for k in range(PATIENCE):
         assert not price.converged
-        price.judge(2.0, 1.0, 10 + k)
+        price.judge(2.0, 1.0, 10 + k, _unasked)
     assert price.converged and "in a row" in price.converged_
     again = ExplorationPrice(0.2, episodes=20)
     again.load_state_dict(price.state_dict())
@@ -128,9 +141,7 @@ def test_the_loop_refuses_an_expensive_candidate_runs_the_deployed_and_converges
     rows = []
     for _ in range(PATIENCE + 2):
         plan = run.plan()
-        rows.append(run.run_episode.__func__ and plan)
-        record_row, _ = run.finish(plan, _episode(lq, run, plan))
-        rows[-1] = record_row
+        rows.append(run.finish(plan, _episode(lq, run, plan))[0])
     refused = [r for r in rows if r["refused"]]
     assert len(refused) == PATIENCE  # each ran the deployed theta, with the noise
     for r in refused:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from collections.abc import Sequence
@@ -239,10 +240,12 @@ class LearningRun:
     def _priced(self, plan: EpisodePlan) -> EpisodePlan:
         """``plan`` with its predicted cost and the deployed theta's, on the learner's model of
         the plant (:meth:`prediction_params`) from its start with its noise; an exploring
-        candidate the budget refuses is replaced by the deployed theta (same noise)."""
+        candidate the budget refuses (:mod:`mpcmobo.experiment.price`) is replaced by the
+        deployed theta (same noise)."""
         t0 = time.perf_counter()
         deployed = np.asarray(plan.deployed, float)
         params = self.prediction_params(deployed)
+        self.price.use_model(hashlib.sha1(params.tobytes()).hexdigest())
         d = self.start_cost(plan.x0, deployed, params, plan.noise)
         if np.array_equal(plan.theta, deployed):
             plan.predicted_cost = plan.predicted_deployed = d
@@ -250,12 +253,33 @@ class LearningRun:
             c = self.start_cost(plan.x0, plan.theta, params, plan.noise)
             plan.predicted_cost, plan.predicted_deployed = c, d
             if plan.explore:
-                verdict = self.price.judge(c, d, plan.episode)
+                theta = plan.theta
+
+                def gain() -> tuple[float, float]:
+                    return self._saving(theta, deployed, params)
+
+                verdict = self.price.judge(c, d, plan.episode, gain)
                 if not verdict.run:
                     plan.refused = verdict.reason
                     plan.theta, plan.predicted_cost = deployed.copy(), d
         plan.propose_time += time.perf_counter() - t0
         return plan
+
+    def _saving(
+        self, theta: np.ndarray, deployed: np.ndarray, params: np.ndarray
+    ) -> tuple[float, float]:
+        """What ``theta`` would save per episode were it deployed instead of ``deployed``: the
+        mean over the run's fixed starts of the deployed theta's noise-free cost on the model
+        with ``params`` less its own (NaN where its closed loop fails and the deployed
+        theta's does not), and the deployed theta's mean cost there."""
+        d = self.start_costs(self.cycle_starts, deployed, params)
+        c = self.start_costs(self.cycle_starts, theta, params)
+        ok = np.isfinite(d)
+        if not ok.any():
+            return np.nan, np.nan
+        if not np.all(np.isfinite(c[ok])):
+            return np.nan, float(np.mean(d[ok]))
+        return float(np.mean(d[ok] - c[ok])), float(np.mean(d[ok]))
 
     def prediction_params(self, deployed: np.ndarray) -> np.ndarray:
         """The model parameters the loop predicts plant episodes with: the model of the

@@ -10,21 +10,25 @@ own model), and the deployed controller's cost from the same start with the same
 * a candidate predicted to cost more than ``1 + budget`` times the deployed controller is not
   run: the deployed controller runs instead (with the same noise), and the learner observes
   that episode;
-* a candidate predicted to cost more, within the budget, runs only if it can pay back its
-  excess within the remaining episodes: at best it saves the prediction's error per episode
-  (the RMS relative error of the model's predictions of the episodes run so far, its
-  calibration) less its own predicted excess, over the remaining episodes;
+* a candidate predicted to cost more, within the budget, runs only if it can pay back that
+  excess within the remaining episodes: were it deployed, it would save per episode its
+  predicted gain (the deployed controller's mean cost less its own, noise-free on the model
+  from the run's fixed starts) plus, at best, the model's error (the RMS relative error of
+  its predictions of the episodes run so far, its calibration, times the deployed
+  controller's mean cost);
 * after :data:`PATIENCE` candidates in a row are refused, tuning has converged: every later
   episode runs the deployed controller without exploration noise, the learner no longer
   proposes nor observes, and the reason is kept (the tuner's ``status`` reports it).
 
 A candidate whose predicted closed loop fails (the model's plant runs away) is refused; where
-the deployed controller's prediction fails there is no basis, and the candidate runs.
+the deployed controller's prediction fails there is no basis, and the candidate runs. A new
+model (a new identification, another deployed model) starts a new calibration.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +61,7 @@ class ExplorationPrice:
         self.budget = float(budget)
         self.episodes = int(episodes)
         self.errors_: list[float] = []  # relative errors of the model's predictions
+        self.model_ = ""  # the model they are of
         self.refused_ = 0  # candidates refused in a row
         self.converged_ = ""  # why tuning stopped exploring ("": it has not)
 
@@ -77,16 +82,30 @@ class ExplorationPrice:
             return math.inf
         return float(np.sqrt(np.mean(np.square(self.errors_))))
 
+    def use_model(self, key: str) -> None:
+        """Predict with the model ``key`` names from now on (another: a new calibration)."""
+        if key != self.model_:
+            self.model_, self.errors_ = key, []
+
     def calibrate(self, predicted: float, plant_cost: float) -> None:
         """Take an episode's predicted and measured cost (ignored where either is unknown)."""
         if math.isfinite(predicted) and math.isfinite(plant_cost) and predicted > 0:
             self.errors_.append(float(plant_cost / predicted - 1.0))
 
-    def judge(self, candidate: float, deployed: float, episode: int) -> Verdict:
+    def judge(
+        self,
+        candidate: float,
+        deployed: float,
+        episode: int,
+        gain: Callable[[], tuple[float, float]],
+    ) -> Verdict:
         """Whether the candidate predicted to cost ``candidate`` runs where the deployed
         controller is predicted to cost ``deployed`` (both from the coming start of episode
-        ``episode``); a refusal counts towards convergence."""
-        verdict = self._verdict(candidate, deployed, self.episodes - int(episode) - 1)
+        ``episode``, with its noise); ``gain()``: the candidate's predicted saving per episode
+        were it deployed and the deployed controller's mean cost (module docstring; NaN where
+        a closed loop fails), asked only when the candidate is costlier within the budget. A
+        refusal counts towards convergence."""
+        verdict = self._verdict(candidate, deployed, self.episodes - int(episode) - 1, gain)
         if verdict.run:
             self.refused_ = 0
             return verdict
@@ -98,27 +117,39 @@ class ExplorationPrice:
             )
         return verdict
 
-    def _verdict(self, candidate: float, deployed: float, remaining: int) -> Verdict:
+    def _verdict(
+        self,
+        candidate: float,
+        deployed: float,
+        remaining: int,
+        gain: Callable[[], tuple[float, float]],
+    ) -> Verdict:
         """The rule of the module docstring."""
         if not (math.isfinite(deployed) and deployed > 0):
             return Verdict(True)
         if not math.isfinite(candidate):
-            return Verdict(False, "its closed loop on the model fails")
-        excess = candidate / deployed - 1.0
+            return Verdict(False, "its closed loop on the model fails from this start")
+        excess = candidate - deployed
         if excess <= 0:
             return Verdict(True)
-        if excess > self.budget:
+        if excess > self.budget * deployed:
             return Verdict(
                 False,
-                f"predicted at {1 + excess:.2f}x the deployed controller's cost, over the "
-                f"budget of {1 + self.budget:.2f}x",
+                f"predicted at {candidate / deployed:.2f}x the deployed controller's cost, over "
+                f"the budget of {1 + self.budget:.2f}x",
             )
-        err = self.error()
-        if math.isfinite(err) and excess * (remaining + 1) > err * remaining:
+        if remaining <= 0:
+            return Verdict(False, "no episode is left to pay back its predicted excess")
+        saving, mean = gain()
+        if not math.isfinite(saving):
+            return Verdict(False, "its closed loop on the model fails from a fixed start")
+        best = saving + self.error() * mean  # inf before the model is calibrated
+        if best * remaining < excess:
             return Verdict(
                 False,
-                f"its predicted excess of {100 * excess:.1f}% does not pay back in "
-                f"{remaining} remaining episodes at the model's error of {100 * err:.1f}%",
+                f"its predicted excess of {100 * excess / deployed:.1f}% does not pay back in "
+                f"{remaining} remaining episodes (predicted saving {saving:.4g} per episode, "
+                f"the model's error {100 * self.error():.1f}%)",
             )
         return Verdict(True)
 
@@ -126,6 +157,7 @@ class ExplorationPrice:
         """What the gate has learned (its configuration comes from the settings)."""
         return {
             "errors": list(self.errors_),
+            "model": self.model_,
             "refused": self.refused_,
             "converged": self.converged_,
             "episodes": self.episodes,
@@ -137,6 +169,7 @@ class ExplorationPrice:
         if state is None:
             return
         self.errors_ = [float(e) for e in state["errors"]]
+        self.model_ = str(state["model"])
         self.refused_ = int(state["refused"])
         extended = int(state["episodes"]) != self.episodes
         self.converged_ = "" if extended else str(state["converged"])
