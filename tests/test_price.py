@@ -29,7 +29,7 @@ def test_a_candidate_within_the_budget_runs_one_over_it_does_not():
     assert price.judge(1.4, 1.0, 0, _no_saving).run  # not calibrated: the budget alone
     assert price.judge(0.8, 1.0, 1, _unasked).run  # cheaper: always
     v = price.judge(1.6, 1.0, 2, _unasked)
-    assert not v.run and "1.60x" in v.reason and "1.50x" in v.reason
+    assert not v.run and "1.600x" in v.reason and "1.500x" in v.reason
 
 
 def test_a_failing_prediction_is_refused_and_no_basis_runs():
@@ -192,3 +192,41 @@ def test_the_gate_resumes_from_the_run_state(lq):
     other.load_state_dict(state)
     assert other.price.state_dict() == run.price.state_dict()
     assert other.price.refused_ == 3
+
+
+def test_a_tuner_converges_hands_out_the_deployed_controller_and_says_so(tmp_path):
+    """bo on ``lq`` with no budget at all: its design's candidates are refused until tuning
+    has converged; then each trial is the deployed theta without noise (from a start told
+    before, the same log, which is no longer taken for a repeat), and status says to stop."""
+    from test_tuner import FAST, _episode
+    from typer.testing import CliRunner
+
+    from mpcmobo import Tuner
+    from mpcmobo.cli import app
+
+    out = tmp_path / "t"
+    tuner = Tuner(
+        {"name": "lq", "identify": False},
+        "bo",
+        out,
+        episodes=14,
+        steps=6,
+        exploration={"budget": 0.0},
+        learner_options={"bo": FAST},
+        evaluation={"n_starts": 2, "eval_every": 50},
+    )
+    refused = []
+    for _ in range(14):
+        converged = tuner.status()["exploration"]["converged"] is not None
+        trial = tuner.ask()
+        if converged:
+            assert not np.any(trial.noise)
+            np.testing.assert_array_equal(trial.theta, tuner.deployed)
+        row = tuner.tell(trial, *_episode(tuner, trial))
+        refused += [row.episode] if row.refused else []
+    st = tuner.status()
+    assert st["exploration"]["refused"] == refused and len(refused) >= PATIENCE
+    assert st["exploration"]["converged"] and st["recommendation"]["action"] == "stop"
+    res = CliRunner().invoke(app, ["status", str(out)])
+    assert res.exit_code == 0 and "tuning has converged" in res.output
+    assert "refused" in res.output

@@ -135,8 +135,8 @@ class ExplorationPrice:
         if excess > self.budget * deployed:
             return Verdict(
                 False,
-                f"predicted at {candidate / deployed:.2f}x the deployed controller's cost, over "
-                f"the budget of {1 + self.budget:.2f}x",
+                f"predicted at {candidate / deployed:.3f}x the deployed controller's cost, over "
+                f"the budget of {1 + self.budget:.3f}x",
             )
         if remaining <= 0:
             return Verdict(False, "no episode is left to pay back its predicted excess")

@@ -298,7 +298,7 @@ class Tuner:
             raise TunerError("the log needs the states (T+1 rows), and the inputs applied")
         else:
             log = parse_log(self.system, steps, states, inputs, stage_costs, violations)
-        twin = told_twin(self.files, self.episodes, log, self._errors)
+        twin = told_twin(self.files, self.episodes, log, self._errors, self._repeatable(plan))
         if twin is not None:
             raise TunerError(
                 f"this log is trial {twin}'s, told already (the same states and inputs): tell "
@@ -386,6 +386,17 @@ class Tuner:
         write_records(self.run_dir.path, self.settings, self.reference)
         self._write_status()
         return ids
+
+    def _repeatable(self, plan: EpisodePlan) -> frozenset[int]:
+        """The told trials whose log the pending trial's may repeat: the same theta from the
+        same start, where the pending trial runs without noise (a converged tuner's)."""
+        if np.any(plan.noise):
+            return frozenset()
+        return frozenset(
+            int(r.episode)
+            for r in self.job.rows
+            if np.array_equal(r.theta, plan.theta) and np.array_equal(r.x0, plan.x0)
+        )
 
     def _model(self) -> tuple[np.ndarray, str]:
         """The model the logs are checked with: the learner's identified model, else the

@@ -213,10 +213,16 @@ def history_errors(
     return out
 
 
-def told_twin(files: TunerFiles, told: int, log: PlantLog, cache: dict) -> int | None:
+def told_twin(
+    files: TunerFiles, told: int, log: PlantLog, cache: dict, same: frozenset[int] = frozenset()
+) -> int | None:
     """The told trial whose log ``log`` repeats (the same states and inputs), if one does;
-    ``cache`` as :func:`history_errors`'s."""
+    ``cache`` as :func:`history_errors`'s; ``same``: the told trials that may repeat it (the
+    same theta from the same start, and the trial told now without noise: a noise-free plant
+    repeats such an episode exactly, and the input check holds it to its controller)."""
     for tid in range(told):
+        if tid in same:
+            continue
         if tid not in cache:
             entry = files.told(tid)
             cache[tid] = None if entry is None else entry["log"]
