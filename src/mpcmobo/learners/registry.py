@@ -65,7 +65,7 @@ class LearnerSpec:
         """The learner's class (imported here if :attr:`cls` names it)."""
         if isinstance(self.cls, str):
             module, _, name = self.cls.partition(":")
-            found: type[Learner] = getattr(importlib.import_module(module), name)
+            found: type[Learner] = vars(importlib.import_module(module))[name]
             return found
         return self.cls
 
