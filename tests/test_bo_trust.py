@@ -27,8 +27,9 @@ def _fast(name):
 
 
 def test_length_doubles_halves_caps_and_restarts_as_written():
-    tr = TrustRegion(length_init=0.2, length_min=0.05, length_max=0.5, success_tolerance=2,
-                     failure_tolerance=3)  # fmt: skip
+    tr = TrustRegion(
+        length_init=0.2, length_min=0.05, length_max=0.5, success_tolerance=2, failure_tolerance=3
+    )
     s = tr.start()
     assert s == TrustState(0.2, 0, 0)
     s = tr.update(s, True, d=8)

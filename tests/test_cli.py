@@ -13,8 +13,18 @@ from mpcmobo.cli import app
 from mpcmobo.experiment import storage
 
 runner = CliRunner()
-SMALL = ["--system", "lq", "--learner", "mpc-rl", "--episodes", "3", "--steps", "8",
-         "--workers", "1"]  # fmt: skip
+SMALL = [
+    "--system",
+    "lq",
+    "--learner",
+    "mpc-rl",
+    "--episodes",
+    "3",
+    "--steps",
+    "8",
+    "--workers",
+    "1",
+]
 
 
 def test_systems_is_a_narrow_table_and_one_description_line_per_system(monkeypatch):
@@ -36,16 +46,30 @@ def test_systems_is_a_narrow_table_and_one_description_line_per_system(monkeypat
     out = res.output.splitlines()
     header = next(line for line in out if line.startswith("┃"))
     assert header.replace("┃", " ").split() == [
-        "name", "source", "states", "inputs", "theta", "steps", "J*"
-    ]  # fmt: skip
+        "name",
+        "source",
+        "states",
+        "inputs",
+        "theta",
+        "steps",
+        "J*",
+    ]
     rows = {line.split()[1]: line for line in out if line.startswith("│")}
     assert set(rows) == {"cstr", "cstr-structural", "lq"}  # one line each: no folded cell
     assert all(len(line) <= 80 for line in out if line[:1] in "┏┃┡│└")
     cstr = get_system("cstr")
     assert rows["cstr"].replace("│", " ").split() == [
-        "cstr", "built-in", "V,", "Ca,", "T", "qs,", "qc",
-        str(cstr.search_space.n_theta), str(cstr.episode_steps), "yes",
-    ]  # fmt: skip
+        "cstr",
+        "built-in",
+        "V,",
+        "Ca,",
+        "T",
+        "qs,",
+        "qc",
+        str(cstr.search_space.n_theta),
+        str(cstr.episode_steps),
+        "yes",
+    ]
     text = " ".join(res.output.split())
     for name in ("cstr", "cstr-structural", "lq"):
         s = get_system(name)
@@ -95,7 +119,7 @@ def test_invalid_config_file_exit_2(tmp_path):
             st.text(max_size=4),
             st.lists(st.integers(-2, 2), max_size=3),
             st.floats(allow_nan=False, allow_infinity=False),
-        ),  # fmt: skip
+        ),
         min_size=1,
         max_size=3,
     )

@@ -18,8 +18,20 @@ from mpcmobo.experiment.study import run_study
 
 runner = CliRunner()
 WALL = ["mpc_time_s", "learner_time_s", "eval_time_s"]
-SMALL = ["--system", "lq", "--learner", "mpc-rl", "--episodes", "4", "--steps", "6",
-         "--workers", "1", "-q", "--no-plot"]  # fmt: skip
+SMALL = [
+    "--system",
+    "lq",
+    "--learner",
+    "mpc-rl",
+    "--episodes",
+    "4",
+    "--steps",
+    "6",
+    "--workers",
+    "1",
+    "-q",
+    "--no-plot",
+]
 
 
 def small(**kw):
@@ -237,7 +249,16 @@ def test_redirected_output_prints_progress_lines(tmp_path):
     assert res.exit_code == 0, res.output
     lines = [ln for ln in res.output.splitlines() if "mpc-rl s0: episode" in ln]
     assert [ln.split("episode ")[1].split(",")[0] for ln in lines] == [
-        "1/20", "2/20", "4/20", "6/20", "8/20", "10/20", "12/20", "14/20", "16/20", "18/20",
+        "1/20",
+        "2/20",
+        "4/20",
+        "6/20",
+        "8/20",
+        "10/20",
+        "12/20",
+        "14/20",
+        "16/20",
+        "18/20",
         "20/20",
-    ]  # fmt: skip
+    ]
     assert all("best J_eval" in ln for ln in lines)

@@ -346,8 +346,9 @@ def test_the_deployed_theta_runs_early_alternating_with_the_search(lq):
         s = float(rng.uniform(0.1, 1.0))
         z = space.to_unit(theta)
         f = 0.72 * s * (1.0 + np.sum((z - z0) ** 2))
-        lr.observe(theta, EpisodeResult(np.array([f, 1.0, 0.0, 0.0]), np.zeros(9), True,
-                                        start_cost=s))  # fmt: skip
+        lr.observe(
+            theta, EpisodeResult(np.array([f, 1.0, 0.0, 0.0]), np.zeros(9), True, start_cost=s)
+        )
     assert lr.evidence_.kinds == ["design"] * 3 + ["baseline", "search"] * 2 + ["search"] * 2
     assert lr.evidence_.runs(z0) == 3
     assert lr.verify_z_ is None

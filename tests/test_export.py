@@ -71,8 +71,13 @@ def test_the_generated_c_compiles_and_gives_the_same_inputs(tmp_path):
     states = _box_states(lq, 5)
     # main.c warm-starts each state from the previous solution: feed one state per run
     for x in states:
-        out = subprocess.run([str(d / "controller")], input=" ".join(map(str, x)) + "\n",
-                             capture_output=True, text=True, check=True)  # fmt: skip
+        out = subprocess.run(
+            [str(d / "controller")],
+            input=" ".join(map(str, x)) + "\n",
+            capture_output=True,
+            text=True,
+            check=True,
+        )
         mpc.reset()
         np.testing.assert_allclose(
             np.array(out.stdout.split(), float), mpc.solve(x, sensitivities=False).action, atol=1e-9

@@ -129,11 +129,13 @@ def test_a_failing_proposal_is_recorded_and_the_incumbent_runs(
 @pytest.mark.parametrize(
     ("error", "recorded"),
     [
-        (FloatingPointError("the plant ran away at step 3: state [1e+70]"),
-         "evaluation: the plant ran away at step 3"),
+        (
+            FloatingPointError("the plant ran away at step 3: state [1e+70]"),
+            "evaluation: the plant ran away at step 3",
+        ),
         (RuntimeError("plant step failure"), "evaluation: RuntimeError: plant step failure"),
     ],
-)  # fmt: skip
+)
 def test_an_evaluation_that_runs_the_plant_away_is_recorded_and_the_run_goes_on(
     tmp_path, monkeypatch, error, recorded
 ):
@@ -195,8 +197,9 @@ def test_a_plant_that_fails_while_the_reference_is_computed_ends_the_run_with_a_
     from mpcmobo.experiment.settings import settings_to_toml
 
     (tmp_path / "s.toml").write_text(settings_to_toml(settings))
-    res = CliRunner().invoke(app, ["run", "-c", str(tmp_path / "s.toml"), "--out",
-                                   str(tmp_path / "run"), "-q"])  # fmt: skip
+    res = CliRunner().invoke(
+        app, ["run", "-c", str(tmp_path / "s.toml"), "--out", str(tmp_path / "run"), "-q"]
+    )
     text = " ".join(res.output.split())
     assert res.exit_code == 1 and "Traceback" not in text, text
     assert (

@@ -187,9 +187,14 @@ def test_a_runaway_episode_is_a_recorded_failure_of_the_study(tmp_path, monkeypa
 
     monkeypatch.setattr(loop, "rollout", flaky)
     settings = load_settings(
-        None, system={"name": "lq"}, learners=["mpc-rl"], episodes=3, steps=8, workers=1,
+        None,
+        system={"name": "lq"},
+        learners=["mpc-rl"],
+        episodes=3,
+        steps=8,
+        workers=1,
         evaluation={"n_starts": 2},
-    )  # fmt: skip
+    )
     summary = run_study(settings, tmp_path / "run")
     assert summary["complete"] is True
     df = storage.read_episodes(tmp_path / "run")
@@ -238,8 +243,9 @@ def test_identify_first_tunes_once_the_switch_has_settled(cstr):
 def _fit_of(estimate, std=0.01):
     """A successful fit at ``estimate`` with standard deviations ``std`` (better than nominal)."""
     q = np.asarray(estimate, float)
-    return Identification(("a",) * len(q), q, np.full(len(q), std), np.eye(len(q)),
-                          q, 0.1, 1.0, 100, True)  # fmt: skip
+    return Identification(
+        ("a",) * len(q), q, np.full(len(q), std), np.eye(len(q)), q, 0.1, 1.0, 100, True
+    )
 
 
 def test_a_deployment_settles_the_switch_unless_the_fit_has_moved_on(cstr):
@@ -286,10 +292,15 @@ def test_a_candidate_follows_the_fit_until_it_first_runs(cstr):
 def _ident_settings(learners):
     cheap = {"n_init": 3, "search": {"num_restarts": 1, "raw_samples": 16, "maxiter": 10}}
     return load_settings(
-        None, system={"name": "lq", "identify": True}, learners=learners, episodes=22,
-        seeds=[0], evaluation={"n_starts": 3, "eval_every": 4},
-        learner_options={"bo": cheap}, workers=1,
-    )  # fmt: skip
+        None,
+        system={"name": "lq", "identify": True},
+        learners=learners,
+        episodes=22,
+        seeds=[0],
+        evaluation={"n_starts": 3, "eval_every": 4},
+        learner_options={"bo": cheap},
+        workers=1,
+    )
 
 
 def test_identify_first_deploys_the_identified_model_and_resumes_exactly(tmp_path):
@@ -557,8 +568,21 @@ def test_a_fit_held_by_its_bounds_is_reported_and_drawn(tmp_path):
     on_lo, on_hi = at_bounds(np.array([-2.0, -1.9]), np.array([-2.0, -2.0]), np.array([1.0, 1.0]))
     assert on_lo.tolist() == [True, False] and not on_hi.any()
 
-    args = ["run", "--system", "lq", "--learner", "identify", "--episodes", "2", "--seeds",
-            "0", "1", "--workers", "1", "-q"]  # fmt: skip
+    args = [
+        "run",
+        "--system",
+        "lq",
+        "--learner",
+        "identify",
+        "--episodes",
+        "2",
+        "--seeds",
+        "0",
+        "1",
+        "--workers",
+        "1",
+        "-q",
+    ]
     cfg = tmp_path / "narrow.toml"
     cfg.write_text("[system]\nmodel_log_range = 0.2\n[evaluation]\nn_starts = 2\n")
     res = CliRunner().invoke(app, [*args, "--config", str(cfg), "--out", str(tmp_path / "n")])

@@ -318,8 +318,14 @@ def test_mobo_halves_its_ehvi_search_after_reduce_effort_after(cstr, monkeypatch
 
     monkeypatch.setattr(mobo_module, "propose_ehvi", fake_ehvi)
     space = cstr.search_space
-    mobo = make_learner("mobo", space, cstr.parameterization.theta0, n_init=2,
-                        search={"reduce_effort_after": 4}, deploy="incumbent")  # fmt: skip
+    mobo = make_learner(
+        "mobo",
+        space,
+        cstr.parameterization.theta0,
+        n_init=2,
+        search={"reduce_effort_after": 4},
+        deploy="incumbent",
+    )
     for k in range(6):
         th = mobo.propose()
         mobo.observe(th, _result([1000.0 + 100 * k, 10.0 - k, k % 2, 0]))

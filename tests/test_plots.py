@@ -122,8 +122,9 @@ def test_references_use_the_formula_of_their_curves(small_run):
                 got = ep[(ep.learner == name) & (ep.seed == seed) & (ep.episode == episode)]
                 np.testing.assert_array_equal(got.x0.iloc[0], x0)
             run.exploration.episode = episode
-            record = rollout(system, perfect, None, x0, run.steps, rng=run.rng_noise,
-                             exploration=run.exploration)  # fmt: skip
+            record = rollout(
+                system, perfect, None, x0, run.steps, rng=run.rng_noise, exploration=run.exploration
+            )
             values.append(f1_closed_loop_cost(record))
             run.episode += 1
         assert summary["J_tilde_star_per_seed"][str(seed)] == pytest.approx(np.mean(values))
@@ -134,8 +135,9 @@ def test_references_use_the_formula_of_their_curves(small_run):
     steps = settings.evaluation.steps
 
     def J(mpc, theta):
-        return np.mean([mean_stage_cost(rollout(system, mpc, theta, x0, steps))
-                        for x0 in evaluator.starts])  # fmt: skip
+        return np.mean(
+            [mean_stage_cost(rollout(system, mpc, theta, x0, steps)) for x0 in evaluator.starts]
+        )
 
     assert summary["J_star"] == pytest.approx(J(perfect, None))
     row = ep[np.isfinite(ep.J_eval_incumbent)].iloc[-1]
@@ -315,12 +317,24 @@ def test_recheck_summary_names_the_seeds_that_end_above_identify(benchmark_scrip
     rc = benchmark_script("recheck")
 
     def row(learner, seed, ev, fresh):
-        return {"learner": learner, "seed": seed, "theta": "final", "J_eval_ratio": ev,
-                "J_fresh_ratio": fresh, "J0_fresh_ratio": 4.0, "regression": False}  # fmt: skip
+        return {
+            "learner": learner,
+            "seed": seed,
+            "theta": "final",
+            "J_eval_ratio": ev,
+            "J_fresh_ratio": fresh,
+            "J0_fresh_ratio": 4.0,
+            "regression": False,
+        }
 
-    rows = [row("identify", 0, 1.0, 1.0), row("identify", 1, 1.0, 1.0),
-            row("mobo", 0, 0.9, 1.0003), row("mobo", 1, 1.02, 0.99),
-            row("bo", 0, 0.9, 0.95), row("bo", 1, 1.0, 1.005)]  # fmt: skip
+    rows = [
+        row("identify", 0, 1.0, 1.0),
+        row("identify", 1, 1.0, 1.0),
+        row("mobo", 0, 0.9, 1.0003),
+        row("mobo", 1, 1.02, 0.99),
+        row("bo", 0, 0.9, 0.95),
+        row("bo", 1, 1.0, 1.005),
+    ]
     assert rc.above_identify(rows) == {"mobo": "1 (eval +2.0%)", "bo": "1 (fresh +0.5%)"}
     assert rc.above_identify([r for r in rows if r["seed"] == 0]) == {"mobo": "none", "bo": "none"}
     assert rc.above_identify([r for r in rows if r["learner"] != "identify"]) == {
@@ -331,8 +345,11 @@ def test_recheck_summary_names_the_seeds_that_end_above_identify(benchmark_scrip
     assert table[0].endswith("| seeds above `identify` |")
     assert table[3].endswith("| none | 1 (eval +2.0%) |")
     two = [dict(r, run="id") for r in rows] + [dict(row("mobo", 0, 2.0, 2.0), run="noid")]
-    assert rc.above_identify(two) == {"mobo (id)": "1 (eval +2.0%)", "bo": "1 (fresh +0.5%)",
-                                      "mobo (noid)": "0 (eval +100.0%), 0 (fresh +100.0%)"}  # fmt: skip
+    assert rc.above_identify(two) == {
+        "mobo (id)": "1 (eval +2.0%)",
+        "bo": "1 (fresh +0.5%)",
+        "mobo (noid)": "0 (eval +100.0%), 0 (fresh +100.0%)",
+    }
 
 
 def test_recheck_counts_a_theta_that_runs_the_plant_away_as_a_regression(

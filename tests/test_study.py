@@ -48,8 +48,19 @@ def test_records_layout_and_eval_policy(full_run):
     assert (out / "jobs" / "mpc-rl-s1" / "checkpoint.pkl").exists()
     df = storage.read_episodes(out)
     assert len(df) == 14
-    for col in ("theta", "f1", "f4", "J_tilde", "mean_abs_A", "violation", "solver_failures",
-                "mpc_time_s", "learner_time_s", "incumbent", "J_eval_incumbent"):  # fmt: skip
+    for col in (
+        "theta",
+        "f1",
+        "f4",
+        "J_tilde",
+        "mean_abs_A",
+        "violation",
+        "solver_failures",
+        "mpc_time_s",
+        "learner_time_s",
+        "incumbent",
+        "J_eval_incumbent",
+    ):
         assert col in df.columns
     s0 = df[df.seed == 0].set_index("episode")
     evaluated = sorted(s0.index[np.isfinite(s0["J_eval_incumbent"])])
@@ -312,11 +323,18 @@ def test_summary_counts_the_deployed_thetas_worst_evaluation_and_regressions():
     J = {0: [6.0, 9.0, nan, 2.0], 1: [6.0, 7.0, 8.0, 5.0]}
     df = pd.DataFrame(
         [
-            {"learner": "mpc-rl", "seed": seed, "episode": k, "J_eval_incumbent": J[seed][k],
-             "violation": float(k + seed), "incumbent": np.zeros(2)}
-            for seed in (0, 1) for k in range(4)
+            {
+                "learner": "mpc-rl",
+                "seed": seed,
+                "episode": k,
+                "J_eval_incumbent": J[seed][k],
+                "violation": float(k + seed),
+                "incumbent": np.zeros(2),
+            }
+            for seed in (0, 1)
+            for k in range(4)
         ]
-    )  # fmt: skip
+    )
     s = summarize(settings, ref, df, {})["learners"]["mpc-rl"]
     per = s["per_seed"]
     assert (per["0"]["J_final"], per["0"]["J_worst"], per["0"]["regressions"]) == (2.0, 9.0, 1)

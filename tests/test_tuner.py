@@ -270,9 +270,15 @@ def test_status_counts_every_change_and_evaluates_only_the_deployed_theta(tmp_pa
     theta0): status counts both changes, and with the second tell not evaluated (every 2nd
     episode is) it gives no J_eval rather than the previous theta's."""
     out = tmp_path / "t"
-    tuner = Tuner({"name": "lq", "identify": False}, "mpc-rl", out, episodes=3, steps=6,
-                  learner_options={"mpc-rl": {"deploy": "iterate"}},
-                  evaluation={"n_starts": 2, "eval_every": 2})  # fmt: skip
+    tuner = Tuner(
+        {"name": "lq", "identify": False},
+        "mpc-rl",
+        out,
+        episodes=3,
+        steps=6,
+        learner_options={"mpc-rl": {"deploy": "iterate"}},
+        evaluation={"n_starts": 2, "eval_every": 2},
+    )
     for _ in range(2):
         trial = tuner.ask()
         tuner.tell(trial, *_episode(tuner, trial))
@@ -287,8 +293,15 @@ def test_a_dataframe_log_with_measured_costs(lq_tuner):
     records (the mean stage cost is theirs)."""
     tuner, trial = lq_tuner
     X, U = _episode(tuner, trial)
-    df = pd.DataFrame({"p": X[:, 0], "v": X[:, 1], "f": [*U[:, 0], np.nan],
-                       "stage_cost": [2.0] * 7, "violation": [0.5] * 7})  # fmt: skip
+    df = pd.DataFrame(
+        {
+            "p": X[:, 0],
+            "v": X[:, 1],
+            "f": [*U[:, 0], np.nan],
+            "stage_cost": [2.0] * 7,
+            "violation": [0.5] * 7,
+        }
+    )
     row = tuner.tell(trial, df)
     assert row.mean_stage_cost == pytest.approx(2.0) and row.violation == pytest.approx(3.0)
 
@@ -321,8 +334,9 @@ def test_status_reports_the_identified_model(tmp_path):
     system = tuner.system
     assert list(ident["parameters"]) == list(system.param_names)
     assert ident["transitions"] == 20
-    for name, true, nominal in zip(system.param_names, system.true_params,
-                                   system.models["imperfect"]):  # fmt: skip
+    for name, true, nominal in zip(
+        system.param_names, system.true_params, system.models["imperfect"]
+    ):
         p = ident["parameters"][name]
         assert p["nominal"] == pytest.approx(nominal)
         assert p["estimate"] == pytest.approx(true, rel=0.02), name  # the prior pulls a little

@@ -115,9 +115,12 @@ def test_a_discrete_map_is_used_as_it_is_by_plant_model_and_mpc(files):
     dt = 0.2
     exact = np.array([x[0] + dt * x[1] + 0.5 * dt**2 * u[0], x[1] + dt * u[0]])
     np.testing.assert_array_equal(s.plant_step(x, u), exact)  # no RK4 around the map
-    np.testing.assert_allclose(s.model_step(x, u, "imperfect"),
-                               [x[0] + dt * x[1] + 0.5 * dt**2 * 0.6 * u[0],
-                                x[1] + dt * 0.6 * u[0]], rtol=0, atol=1e-15)  # fmt: skip
+    np.testing.assert_allclose(
+        s.model_step(x, u, "imperfect"),
+        [x[0] + dt * x[1] + 0.5 * dt**2 * 0.6 * u[0], x[1] + dt * 0.6 * u[0]],
+        rtol=0,
+        atol=1e-15,
+    )
     mpc = ParametricMPC(s)
     sol = mpc.solve(x, mpc.theta0, sensitivities=False)
     np.testing.assert_allclose(sol.plan_x[1], s.model_step(x, sol.plan_u[0]), atol=1e-8)
@@ -206,8 +209,9 @@ def test_a_plant_that_terminates_shortens_the_episode():
             self.k = getattr(self, "k", 0) + 1
             return obs, r, self.k >= 4, trunc, {"stage_cost": 7.0}  # no "violation"
 
-    rec = rollout(lq, ParametricMPC(lq), None, np.array([1.0, 0.0]), 10,
-                  sensitivities=False, plant=Stops(lq))  # fmt: skip
+    rec = rollout(
+        lq, ParametricMPC(lq), None, np.array([1.0, 0.0]), 10, sensitivities=False, plant=Stops(lq)
+    )
     assert rec.steps == 4 and rec.x.shape == (5, 2) and rec.V.shape == (5,)
     # the stage cost comes from the plant's info; a missing violation from the model
     np.testing.assert_array_equal(rec.L, 7.0)
@@ -216,8 +220,11 @@ def test_a_plant_that_terminates_shortens_the_episode():
 
 def test_plant_sizes_must_match_the_model(files):
     s = di_system(files)
-    with pytest.raises(SystemDefinitionError, match=r"observation space has shape \(3,\).* 2 "
-                       r"states \(pos, vel\)"):  # fmt: skip
+    with pytest.raises(
+        SystemDefinitionError,
+        match=r"observation space has shape \(3,\).* 2 "
+        r"states \(pos, vel\)",
+    ):
         make_plant(f"{files}/userplant.py:make_env_3", s)
     with pytest.raises(
         SystemDefinitionError,
@@ -284,8 +291,13 @@ def _model_on_plant(files, plant, **settings):
 def test_a_gymnasium_plant_with_a_separate_model_and_no_J_star(files, tmp_path):
     """Acceptance: a gymnasium environment that is not a mpcmobo system is the plant of a
     study; the model has no true parameters, so J* is absent and every summary says so."""
-    settings = _model_on_plant(files, "make_env", learners=["mpc-rl", "bo"], episodes=3,
-                               evaluation={"n_starts": 2, "eval_every": 1})  # fmt: skip
+    settings = _model_on_plant(
+        files,
+        "make_env",
+        learners=["mpc-rl", "bo"],
+        episodes=3,
+        evaluation={"n_starts": 2, "eval_every": 1},
+    )
     out = tmp_path / "run"
     summary = run_study(settings, out)
     assert summary["J_star"] is None and "no reference model" in summary["J_star_missing"]

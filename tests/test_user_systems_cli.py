@@ -42,8 +42,21 @@ def files(tmp_path_factory):
 
 
 def run_args(spec: str, out: Path, workers: int, *extra: str) -> list[str]:
-    return ["run", "--system", spec, "--learner", "all", "--episodes", "3", "--workers",
-            str(workers), "--out", str(out), "--no-plot", *extra]  # fmt: skip
+    return [
+        "run",
+        "--system",
+        spec,
+        "--learner",
+        "all",
+        "--episodes",
+        "3",
+        "--workers",
+        str(workers),
+        "--out",
+        str(out),
+        "--no-plot",
+        *extra,
+    ]
 
 
 def records(out: Path) -> pd.DataFrame:
@@ -59,9 +72,12 @@ def test_a_system_in_a_file_runs_every_learner_on_two_workers_and_resumes(files,
     out = tmp_path / "interrupted"
     proc = subprocess.Popen(
         [sys.executable, "-m", "mpcmobo.cli", *run_args(spec, out, 2)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
         env=same_source_env(),
-    )  # fmt: skip
+    )
     jobs = out / "jobs"
     deadline = time.monotonic() + GUARD_S
     while proc.poll() is None and not (jobs.exists() and any(jobs.glob("*/checkpoint.pkl"))):
@@ -93,15 +109,28 @@ def test_a_system_in_a_file_runs_every_learner_on_two_workers_and_resumes(files,
         ("{d}/raises.py:make_system", None, "RuntimeError: this file does not import"),
         ("{d}/usersys.py:make_wrong_type", None, "returned dict, expected a mpcmobo.systems"),
         ("{d}/usersys.py:make_broadcast", None, "returns shape (1, 1), expected (2 states, 1)"),
-        ("{d}/usersys.py:make_system", "{d}/userplant.py:make_env_3",
-         "observation space has shape (3,), but the model 'double_integrator' has 2 states"),
+        (
+            "{d}/usersys.py:make_system",
+            "{d}/userplant.py:make_env_3",
+            "observation space has shape (3,), but the model 'double_integrator' has 2 states",
+        ),
         ("lq", "{d}/userplant.py:nope", "has no attribute 'nope'"),
     ],
-)  # fmt: skip
+)
 def test_bad_factories_and_plants_exit_2_with_one_line(files, tmp_path, spec, plant, message):
     spec = spec.format(d=files)
-    args = ["run", "--system", spec, "--episodes", "1", "--workers", "1",
-            "--out", str(tmp_path / "o"), "--quiet"]  # fmt: skip
+    args = [
+        "run",
+        "--system",
+        spec,
+        "--episodes",
+        "1",
+        "--workers",
+        "1",
+        "--out",
+        str(tmp_path / "o"),
+        "--quiet",
+    ]
     if plant is not None:
         cfg = tmp_path / "c.toml"
         cfg.write_text(f'[system]\nplant = "{plant.format(d=files)}"\n')

@@ -22,10 +22,12 @@ import typer
 from rich.table import Table
 
 from mpcmobo import cli
-from mpcmobo.cli.progress import fmt
+from mpcmobo.cli.progress import WorkProgress, fmt
 from mpcmobo.experiment import storage
+from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError
 from mpcmobo.experiment.settings import SettingsError
+from mpcmobo.experiment.tunerstatus import saved_status
 
 __all__ = ["ask", "export", "retract", "status", "tell"]
 
@@ -35,8 +37,6 @@ app: typer.Typer = cli.app
 def _errors(fn: Any) -> Any:
     """Run ``fn`` with the tuner's and the settings' errors as exit code 2, a run's files that
     cannot be read as exit code 1."""
-    from mpcmobo.experiment.tuner import TunerError
-
     try:
         return fn()
     except (TunerError, SettingsError, OlderRunError) as err:
@@ -48,7 +48,7 @@ def _errors(fn: Any) -> Any:
 def _tuner(directory: Path, episodes: int | None, **create: Any) -> Any:
     """The tuner of ``directory``: loaded (``episodes``: a larger budget), or made there from
     ``create`` the first time (None: the default)."""
-    from mpcmobo.experiment.tuner import Tuner, TunerError
+    from mpcmobo.experiment.tuner import Tuner
 
     if RunDirectory(directory).holds_run():
         given = [f"--{k}" for k, v in create.items() if v is not None]
@@ -111,9 +111,9 @@ def tell(
         False, "--force", help="accept a log the checks would quarantine (or the quarantined)"
     ),
 ) -> None:
-    """Take a trial's logged episode: a row per step, the state and input names as columns."""
+    """Take a trial's logged episode: a row per step, the state and input names as columns.
+    The learner's long work (the twin's tuning) shows as a progress line."""
     from mpcmobo.experiment.plantlog import read_log_file
-    from mpcmobo.experiment.tuner import Tuner, TunerError
 
     def read() -> Any:  # the file first, before the tuner and its learner are loaded
         if log is None:
@@ -127,8 +127,11 @@ def tell(
     df = _errors(read)
 
     def go() -> Any:
+        from mpcmobo.experiment.tuner import Tuner
+
         tuner = Tuner.load(directory)
-        return tuner, tuner.tell(trial, df, force=force)
+        with WorkProgress(cli.err_console) as progress:
+            return tuner, tuner.tell(trial, df, force=force, progress=progress)
 
     try:
         tuner, row = _errors(go)
@@ -156,8 +159,6 @@ def tell(
 def _check_columns(directory: Path, df: Any) -> None:
     """The log's columns against the system's state and input names, from the tuner's saved
     reference (no learner loaded); nothing is checked if the directory has none."""
-    from mpcmobo.experiment.tuner import TunerError
-
     run_dir = RunDirectory(directory)
     if not run_dir.holds_run():
         raise TunerError(f"{directory} holds no tuner (no config.toml)")
@@ -204,9 +205,7 @@ def status(
     as_json: bool = typer.Option(False, "--json", help="print Tuner.status() as JSON"),
 ) -> None:
     """Show the deployed theta, its evidence, the trials so far and what to do next."""
-    from mpcmobo.experiment.tuner import Tuner
-
-    st = _errors(lambda: Tuner.load(directory).status())
+    st = _status_of(directory)
     if as_json:
         cli.console.print_json(json.dumps(storage.json_safe(st)))
         return
@@ -238,6 +237,18 @@ def status(
         cli.warn_bounds(storage.read_json(summary))
     rec = st["recommendation"]
     cli.console.print(f"next: {rec['action']}: {rec['reason']}", highlight=False)
+
+
+def _status_of(directory: Path) -> dict[str, Any]:
+    """``Tuner.status()`` of the tuner in ``directory``: from its ``status.json`` where that is
+    up to date (no learner loaded), else from the loaded tuner."""
+    st = saved_status(directory)
+    if st is not None:
+        return st
+    from mpcmobo.experiment.tuner import Tuner
+
+    loaded: dict[str, Any] = _errors(lambda: Tuner.load(directory).status())
+    return loaded
 
 
 def _print_trials(st: dict[str, Any]) -> None:
@@ -305,8 +316,6 @@ def _print_identification(ident: dict[str, Any]) -> None:
 def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int | None) -> Any:
     """The theta ``which`` ("deployed", "final" or a trial's id) of the job of ``run_dir``, and
     the settings."""
-    from mpcmobo.experiment.tuner import TunerError
-
     settings = run_dir.saved_settings()
     jobs = [
         (n, s)
@@ -352,7 +361,6 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
 def _write_controller(mpc: Any, theta: Any, fmt_: str, out: Path, compile_c: bool) -> str:
     """Write the controller of ``mpc`` with ``theta`` in the format ``fmt_`` into ``out``
     (compiled with ``compile_c``); what ``mpcmobo export`` prints."""
-    from mpcmobo.experiment.tuner import TunerError
     from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
     from mpcmobo.mpc.export import c_compile_command, export_c, export_casadi
 
@@ -388,7 +396,6 @@ def export(
     """Write the tuned MPC as a CasADi function, as C code calling IPOPT (c) or as C that needs
     only libc and libm (embedded), with a header and a main.c."""
     from mpcmobo.experiment.build import build_system
-    from mpcmobo.experiment.tuner import TunerError
     from mpcmobo.experiment.usersystem import restore_system
     from mpcmobo.mpc import ParametricMPC
 

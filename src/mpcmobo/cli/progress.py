@@ -15,7 +15,7 @@ from rich.progress import (
     TimeElapsedColumn,
 )
 
-__all__ = ["Bars", "Lines", "fmt", "progress_bars"]
+__all__ = ["Bars", "Lines", "WorkProgress", "fmt", "progress_bars"]
 
 
 def fmt(x: float | None, digits: int = 5) -> str:
@@ -114,3 +114,44 @@ class Bars:
                     f1=fmt(event["f1"]),
                     best=fmt(event["best_J_eval"]),
                 )
+
+
+class WorkProgress:
+    """A learner's long work, ``(what, done, total)`` (``Learner.use_progress``), as a rich
+    progress line per ``what`` on a terminal, else as a plain line at every tenth of it; a
+    context manager (the line is finished on exit)."""
+
+    def __init__(self, console: Console) -> None:
+        self.console = console
+        self.live = console.is_terminal
+        self.progress = Progress(
+            TextColumn("{task.description:<14}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=console,
+            transient=False,
+        )
+        self.tasks: dict[str, TaskID] = {}
+        self.shown: dict[str, int] = {}
+
+    def __enter__(self) -> WorkProgress:
+        if self.live:
+            self.progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.live:
+            self.progress.stop()
+
+    def __call__(self, what: str, done: int, total: int) -> None:
+        """Show that ``done`` of the ``total`` steps of ``what`` are done."""
+        if self.live:
+            if what not in self.tasks:
+                self.tasks[what] = self.progress.add_task(what, total=total)
+            self.progress.update(self.tasks[what], completed=done, total=total)
+            return
+        tenth = done * 10 // max(total, 1)
+        if self.shown.get(what) != tenth:
+            self.shown[what] = tenth
+            self.console.print(f"{what}: {done}/{total}", markup=False, highlight=False)

@@ -1,11 +1,41 @@
-"""Settings, evaluation protocol, learning loop, study runner and storage of results."""
+"""Settings, evaluation protocol, learning loop, study runner and storage of results.
 
-from mpcmobo.experiment.evaluation import Evaluator
-from mpcmobo.experiment.job import EvaluationSchedule, Job
-from mpcmobo.experiment.loop import LearningRun
-from mpcmobo.experiment.rundir import RunDirectory, open_run
-from mpcmobo.experiment.settings import Settings, SettingsError, load_settings, validate_settings
-from mpcmobo.experiment.study import StudyError, run_study
+The names below are imported when first used (PEP 562): ``import mpcmobo.experiment.rundir``
+(what ``mpcmobo status`` reads) does not import the learners, torch or BoTorch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from mpcmobo.experiment.evaluation import Evaluator
+    from mpcmobo.experiment.job import EvaluationSchedule, Job
+    from mpcmobo.experiment.loop import LearningRun
+    from mpcmobo.experiment.rundir import RunDirectory, open_run
+    from mpcmobo.experiment.settings import (
+        Settings,
+        SettingsError,
+        load_settings,
+        validate_settings,
+    )
+    from mpcmobo.experiment.study import StudyError, run_study
+
+_WHERE = {
+    "Evaluator": "evaluation",
+    "EvaluationSchedule": "job",
+    "Job": "job",
+    "LearningRun": "loop",
+    "RunDirectory": "rundir",
+    "open_run": "rundir",
+    "Settings": "settings",
+    "SettingsError": "settings",
+    "load_settings": "settings",
+    "validate_settings": "settings",
+    "StudyError": "study",
+    "run_study": "study",
+}
 
 __all__ = [
     "EvaluationSchedule",
@@ -21,3 +51,16 @@ __all__ = [
     "run_study",
     "validate_settings",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """A name of ``__all__``, imported from its module on first use."""
+    if name in _WHERE:
+        value = getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])

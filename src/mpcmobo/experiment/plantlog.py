@@ -188,13 +188,13 @@ def read_log_file(path: str | Path) -> Any:
     """A log file as a DataFrame: Parquet, or a CSV whose delimiter (comma, semicolon, tab)
     is sniffed; a file that does not exist, is empty or cannot be read is a
     :class:`TunerError`."""
-    import pandas as pd
-
     path = Path(path)
     if not path.exists():
         raise TunerError(f"the log {path} does not exist")
     if path.is_dir():
         raise TunerError(f"the log {path} is a directory, not a CSV or Parquet file")
+    import pandas as pd  # after the checks that need none: a missing file is refused at once
+
     try:
         if path.suffix == ".parquet":
             df = pd.read_parquet(path)

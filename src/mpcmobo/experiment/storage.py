@@ -30,12 +30,14 @@ import pickle
 import secrets
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from mpcmobo.experiment.records import ROW_FIELDS
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 # the checkpoint format, raised with every change of a learner's state: 3 since mpcmobo 1.2
 # (the declared learner contract: identify-first's inner learner, MPC-RL's evidence); 2 was
@@ -220,6 +222,8 @@ def load_checkpoints(out_dir: str | Path, jobs: Iterable[tuple[str, int]]) -> li
 
 def episodes_frame(checkpoints: list[dict]) -> pd.DataFrame:
     """All rows of the checkpoints, ordered by learner (as given), seed and episode."""
+    import pandas as pd
+
     rows = [r for c in checkpoints for r in c["rows"]]
     if not rows:
         return pd.DataFrame({c: pd.Series(dtype=object) for c in EPISODE_COLUMNS})
@@ -246,6 +250,8 @@ def trajectory_rows(
     dt: float,
 ) -> pd.DataFrame:
     """Long format: one row per time index k of one trajectory (u is NaN at k = T)."""
+    import pandas as pd
+
     x, u = np.asarray(x, float), np.asarray(u, float)
     T1 = x.shape[0]
     d: dict[str, Any] = {
@@ -274,6 +280,8 @@ def trajectories_frame(
     dt: float,
 ) -> pd.DataFrame:
     """The study-level (learner "", seed -1) and per-job stored trajectories, long format."""
+    import pandas as pd
+
     parts = []
     items: list[tuple[str, int, dict]] = []
     if reference is not None:
@@ -302,9 +310,13 @@ def trajectories_frame(
 
 def read_episodes(out_dir: str | Path) -> pd.DataFrame:
     """``DIR/episodes.parquet``, one row per episode."""
+    import pandas as pd
+
     return pd.read_parquet(Path(out_dir) / "episodes.parquet")
 
 
 def read_trajectories(out_dir: str | Path) -> pd.DataFrame:
     """``DIR/trajectories.parquet``, the stored states and inputs."""
+    import pandas as pd
+
     return pd.read_parquet(Path(out_dir) / "trajectories.parquet")

@@ -43,6 +43,7 @@ from mpcmobo.experiment.settings import Settings, load_settings
 from mpcmobo.experiment.summary import write_records
 from mpcmobo.experiment.tunerfiles import TunerFiles, history_errors, told_twin
 from mpcmobo.experiment.usersystem import recorded_system, restore_system
+from mpcmobo.learners.base import Progress
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import is_factory_path
@@ -197,6 +198,8 @@ class Tuner:
             settings = run_dir.reopen(settings.model_copy(update={"episodes": int(episodes)}))
         tuner = cls.__new__(cls)
         tuner._open(run_dir, settings, new=False)
+        if episodes is not None and episodes > tuner.files.status_budget():
+            tuner._write_status()  # the larger budget, for `mpcmobo status`
         return tuner
 
     def _open(self, run_dir: RunDirectory, settings: Settings, new: bool) -> None:
@@ -278,6 +281,7 @@ class Tuner:
         violations: Any | None = None,
         *,
         force: bool = False,
+        progress: Progress | None = None,
     ) -> EpisodeRow:
         """Take the logged episode of ``trial``: ``states`` (T+1, nx), the last the state after
         the last input; ``inputs`` (T, nu), the inputs actually applied; ``stage_costs`` and
@@ -288,7 +292,26 @@ class Tuner:
         The log is checked first (:mod:`mpcmobo.experiment.checks`); one the checks do not
         believe is kept in ``quarantine/`` and :class:`LogQuarantined` names the problems: the
         trial stays pending. ``force=True`` tells it all the same (without ``states``: the
-        trial's quarantined log)."""
+        trial's quarantined log). ``progress(what, done, total)`` hears the learner's long work
+        (the twin's tuning, :meth:`~mpcmobo.learners.base.Learner.use_progress`)."""
+        learner = self.job.run.learner
+        learner.use_progress(progress)
+        try:
+            return self._tell(trial, states, inputs, stage_costs, violations, force)
+        finally:
+            learner.use_progress(None)
+            self.job.run.learner.use_progress(None)  # a learner reloaded by an interrupted tell
+
+    def _tell(
+        self,
+        trial: Trial | int,
+        states: Any,
+        inputs: Any | None,
+        stage_costs: Any | None,
+        violations: Any | None,
+        force: bool,
+    ) -> EpisodeRow:
+        """:meth:`tell` with the learner's progress in place."""
         tid = _trial_id(trial)
         plan = self._pending(tid)
         steps = self.job.run.steps

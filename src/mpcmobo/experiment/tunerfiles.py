@@ -184,6 +184,13 @@ class TunerFiles:
             (self.told_dir / f"trial-{tid}.checkpoint.pkl").unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ status
+    def status_budget(self) -> int:
+        """The budget ``status.json`` says (0 without one)."""
+        try:
+            return int(storage.read_json(self.status_path)["budget"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return 0
+
     def write_status(self, status: dict[str, Any]) -> None:
         """Write ``status.json`` atomically (another program may read it at any time)."""
         storage.write_json(self.status_path, status)

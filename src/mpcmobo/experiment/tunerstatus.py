@@ -5,12 +5,16 @@ theta deployed before it; ``verification``: it ran a theta an earlier trial ran,
 again; ``candidate``: a new theta), its start, its plant cost (the episode's mean stage cost),
 its excess over the deployed controller from the same start (``None`` until it is predicted)
 and its verdict (whether its theta was deployed). :func:`recommendation` says whether to go on.
+:func:`saved_status` reads ``status.json`` (what the tuner wrote after its last ask, tell or
+retract) without loading the tuner, if it is as new as the tuner's checkpoint and settings.
 """
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -113,3 +117,55 @@ def recommendation(
     else:
         reason = f"{told} of {budget} trials told: ask for the next trial"
     return {"action": "continue", "reason": reason}
+
+
+# the keys of Tuner.status() that ``mpcmobo status`` reads
+STATUS_KEYS = frozenset(
+    (
+        "learner",
+        "told",
+        "budget",
+        "pending",
+        "trials",
+        "quarantined",
+        "plant_cost",
+        "excess_cost",
+        "recommendation",
+        "exploration",
+        "deployed",
+        "deployed_episodes",
+        "evidence",
+        "changes_of_deployed",
+        "J_eval",
+        "J_star",
+        "J_initial",
+        "identification",
+    )
+)
+
+
+def saved_status(directory: str | Path) -> dict[str, Any] | None:
+    """``Tuner.status()`` of the tuner in ``directory`` as its ``status.json`` holds it (NaN
+    as None), with the recommendation naming ``directory`` as given; None where the file is
+    missing, unreadable, of other keys, or older than the tuner's settings or a checkpoint of
+    its job (written by an interrupted tell, or the budget extended since): then the tuner must
+    be loaded to say it."""
+    path = Path(directory)
+    status, mark = path / "status.json", path / "tuner.json"
+    if not (status.is_file() and mark.is_file()):
+        return None
+    try:
+        written = status.stat().st_mtime_ns
+        newer = [path / "config.toml", *path.glob("jobs/*/checkpoint*.pkl")]
+        if any(p.stat().st_mtime_ns > written for p in newer):
+            return None
+        st = json.loads(status.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(st, dict) or not STATUS_KEYS <= set(st):
+        return None
+    converged = (st["exploration"] or {}).get("converged") or ""
+    st["recommendation"] = recommendation(
+        st["told"], st["budget"], st["pending"], st["quarantined"], str(path), converged
+    )
+    return st

@@ -1,16 +1,41 @@
-"""Learners behind one propose/observe interface: identify, MPC-RL, BO, MPC-RL-MOBO and the hybrid."""
+"""Learners behind one propose/observe interface: identify, MPC-RL, BO, MPC-RL-MOBO and the hybrid.
 
-from mpcmobo.learners.base import EpisodeResult, Learner, Replay, Starts, episode_result
-from mpcmobo.learners.gp import BOLearner
-from mpcmobo.learners.mobo import HybridLearner, MOBOLearner
-from mpcmobo.learners.mpc_rl import MPCRL
-from mpcmobo.learners.options import (
-    BOOptions,
-    HybridOptions,
-    MOBOOptions,
-    MPCRLOptions,
-)
-from mpcmobo.learners.registry import LEARNER_SPECS, LEARNERS, LearnerSpec, make_learner
+The names are imported when first used (PEP 562): ``mpcmobo.learners.registry`` and
+``mpcmobo.learners.options`` can be read without importing torch and BoTorch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from mpcmobo.learners.base import EpisodeResult, Learner, Replay, Starts, episode_result
+    from mpcmobo.learners.gp import BOLearner
+    from mpcmobo.learners.mobo import HybridLearner, MOBOLearner
+    from mpcmobo.learners.mpc_rl import MPCRL
+    from mpcmobo.learners.options import BOOptions, HybridOptions, MOBOOptions, MPCRLOptions
+    from mpcmobo.learners.registry import LEARNER_SPECS, LEARNERS, LearnerSpec, make_learner
+
+_WHERE = {
+    "EpisodeResult": "base",
+    "Learner": "base",
+    "Replay": "base",
+    "Starts": "base",
+    "episode_result": "base",
+    "BOLearner": "gp",
+    "HybridLearner": "mobo",
+    "MOBOLearner": "mobo",
+    "MPCRL": "mpc_rl",
+    "BOOptions": "options",
+    "HybridOptions": "options",
+    "MOBOOptions": "options",
+    "MPCRLOptions": "options",
+    "LEARNER_SPECS": "registry",
+    "LEARNERS": "registry",
+    "LearnerSpec": "registry",
+    "make_learner": "registry",
+}
 
 __all__ = [
     "LEARNERS",
@@ -31,3 +56,16 @@ __all__ = [
     "episode_result",
     "make_learner",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """A name of ``__all__``, imported from its module on first use."""
+    if name in _WHERE:
+        value = getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])

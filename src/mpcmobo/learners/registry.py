@@ -1,21 +1,20 @@
 """Learners by name: one :class:`LearnerSpec` per learner carries everything the package knows
 about it (class, options class, label and colour in the figures, scheduling cost, whether the
-paper runs it). Adding a learner is one entry in ``LEARNER_SPECS``."""
+paper runs it). Adding a learner is one entry in ``LEARNER_SPECS``.
+
+The built-in learners' classes are named by ``"module:Class"`` and imported when a learner is
+built: reading the names, labels and options (the settings, the command line) imports neither
+torch nor BoTorch."""
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
-from mpcmobo.identify import ModelFit
-from mpcmobo.learners.base import Learner, Starts
-from mpcmobo.learners.gp import BOLearner
-from mpcmobo.learners.identified import IdentifyFirst, IdentifyLearner
-from mpcmobo.learners.mobo import HybridLearner, MOBOLearner
-from mpcmobo.learners.mpc_rl import MPCRL
 from mpcmobo.learners.options import (
     BOOptions,
     EvidenceDeploy,
@@ -26,6 +25,10 @@ from mpcmobo.learners.options import (
     VerifiedDeploy,
 )
 from mpcmobo.systems.space import SearchSpace
+
+if TYPE_CHECKING:
+    from mpcmobo.identify import ModelFit
+    from mpcmobo.learners.base import Learner, Starts
 
 __all__ = [
     "LEARNERS",
@@ -44,33 +47,75 @@ __all__ = [
 
 @dataclass(frozen=True)
 class LearnerSpec:
-    """One learner: its settings name, class, options class (None: it takes no options),
-    figure label and colour, its relative cost per episode (only to start the slowest jobs
-    first: the EHVI learners spend the most per episode, MPC-RL the least), and whether the
-    paper's study runs it (the default ``learners`` of the settings)."""
+    """One learner: its settings name, class (or ``"module:Class"``, imported when first
+    needed: :meth:`learner_class`), options class (None: it takes no options), figure label
+    and colour, its relative cost per episode (only to start the slowest jobs first: the EHVI
+    learners spend the most per episode, MPC-RL the least), and whether the paper's study runs
+    it (the default ``learners`` of the settings)."""
 
     name: str
-    cls: type[Learner]
+    cls: type[Learner] | str
     label: str
     color: str
     job_cost: int
     in_paper: bool
     options: type[BaseModel] | None = None
 
+    def learner_class(self) -> type[Learner]:
+        """The learner's class (imported here if :attr:`cls` names it)."""
+        if isinstance(self.cls, str):
+            module, _, name = self.cls.partition(":")
+            found: type[Learner] = vars(importlib.import_module(module))[name]
+            return found
+        return self.cls
 
+
+class _LearnerClasses(dict[str, Any]):
+    """The learner classes by name: a spec's class, imported when it is looked up."""
+
+    def __getitem__(self, name: str) -> type[Learner]:
+        return (
+            LEARNER_SPECS[name].learner_class()
+            if name in LEARNER_SPECS
+            else super().__getitem__(name)
+        )
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self[name] if name in self else default
+
+    def values(self) -> Any:
+        return [self[name] for name in self]
+
+    def items(self) -> Any:
+        return [(name, self[name]) for name in self]
+
+
+_L = "mpcmobo.learners."
 LEARNER_SPECS: dict[str, LearnerSpec] = {
     spec.name: spec
     for spec in (
-        LearnerSpec("mpc-rl", MPCRL, "MPC-RL", "tab:green", 1, True, MPCRLOptions),
-        LearnerSpec("bo", BOLearner, "BO", "grey", 3, True, BOOptions),
-        LearnerSpec("mobo", MOBOLearner, "MPC-RL-MOBO", "tab:red", 4, True, MOBOOptions),
-        LearnerSpec("hybrid", HybridLearner, "hybrid", "tab:purple", 4, False, HybridOptions),
-        LearnerSpec("identify", IdentifyLearner, "identify", "tab:blue", 1, False, IdentifyOptions),
+        LearnerSpec("mpc-rl", _L + "mpc_rl:MPCRL", "MPC-RL", "tab:green", 1, True, MPCRLOptions),
+        LearnerSpec("bo", _L + "gp:BOLearner", "BO", "grey", 3, True, BOOptions),
+        LearnerSpec(
+            "mobo", _L + "mobo:MOBOLearner", "MPC-RL-MOBO", "tab:red", 4, True, MOBOOptions
+        ),
+        LearnerSpec(
+            "hybrid", _L + "mobo:HybridLearner", "hybrid", "tab:purple", 4, False, HybridOptions
+        ),
+        LearnerSpec(
+            "identify",
+            _L + "identified:IdentifyLearner",
+            "identify",
+            "tab:blue",
+            1,
+            False,
+            IdentifyOptions,
+        ),
     )
 }
 """The learners by name, one entry each: what the settings, the CLI and the figures read."""
-LEARNERS: dict[str, type[Learner]] = {name: spec.cls for name, spec in LEARNER_SPECS.items()}
-"""The learner classes by name (from :data:`LEARNER_SPECS`)."""
+LEARNERS: dict[str, type[Learner]] = _LearnerClasses(dict.fromkeys(LEARNER_SPECS))
+"""The learner classes by name (from :data:`LEARNER_SPECS`, imported when looked up)."""
 
 
 def register_learner(spec: LearnerSpec) -> None:
@@ -80,7 +125,7 @@ def register_learner(spec: LearnerSpec) -> None:
     if spec.name in LEARNER_SPECS and LEARNER_SPECS[spec.name] != spec:
         raise ValueError(f"a different learner '{spec.name}' is already registered")
     LEARNER_SPECS[spec.name] = spec
-    LEARNERS[spec.name] = spec.cls
+    LEARNERS[spec.name] = spec.learner_class()
 
 
 class LearnerOptionError(ValueError, TypeError):
@@ -181,8 +226,8 @@ def _build(
 ) -> Learner:
     """The learner of ``spec`` with the validated options ``opts``."""
     if spec.options is None:
-        return spec.cls(space, theta0, seed, starts=starts, **extra)
-    cls: Any = spec.cls  # a learner with options takes them after the seed
+        return spec.learner_class()(space, theta0, seed, starts=starts, **extra)
+    cls: Any = spec.learner_class()  # a learner with options takes them after the seed
     return cls(space, theta0, seed, opts, starts=starts, **extra)
 
 
@@ -203,6 +248,8 @@ def make_learner(
     as :class:`~mpcmobo.learners.identified.IdentifyFirst`, the model switch with the
     learner's deployment options (:func:`switch_deploy`), then the learner itself from the
     deployed theta. A bad option is a :class:`LearnerOptionError` (a ``ValueError``)."""
+    from mpcmobo.learners.identified import IdentifyFirst
+
     spec = _spec(name)
     opts = validate_options(name, options)
     if name == "identify" or model_fit is None:

@@ -1,0 +1,124 @@
+"""A tuner that answers at once: ``mpcmobo status`` reads status.json without torch, a bad log
+is refused before the learner is loaded, and the learner's long work reaches ``tell``'s
+progress."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from test_tuner_checks import episode
+from typer.testing import CliRunner
+
+from mpcmobo.cli import app
+from mpcmobo.experiment.tuner import Tuner, write_log
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+HEAVY = ("torch", "botorch", "gpytorch", "mpcmobo.experiment.tuner", "mpcmobo.learners.gp")
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def told(tmp_path_factory):
+    """A tuner of one told trial and one pending (lq, mpc-rl), and the pending trial's log."""
+    base = tmp_path_factory.mktemp("latency")
+    tuner = Tuner({"name": "lq", "identify": False}, "mpc-rl", base / "t", episodes=3, steps=6)
+    trial = tuner.ask()
+    tuner.tell(trial, *episode(tuner, trial))
+    trial = tuner.ask()
+    log = write_log(base / "trial-1.csv", *episode(tuner, trial), tuner.system)
+    return base / "t", log
+
+
+def _status_in_a_fresh_process(d: Path, *args: str) -> tuple[str, list[str]]:
+    """``mpcmobo status d *args``'s output in a new interpreter, and the heavy modules it
+    imported."""
+    code = (
+        "import sys, io, contextlib\n"
+        "from mpcmobo.cli import app\n"
+        "out = io.StringIO()\n"
+        "with contextlib.redirect_stdout(out):\n"
+        f"    try: app([*sys.argv[1:]])\n"
+        "    except SystemExit as e: assert not e.code, e.code\n"
+        f"print(repr([m for m in {HEAVY!r} if m in sys.modules]))\n"
+        "print(out.getvalue())\n"
+    )
+    env = {**os.environ, "PYTHONPATH": SRC, "COLUMNS": "200"}
+    proc = subprocess.run(
+        [sys.executable, "-c", code, "status", str(d), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    first, _, rest = proc.stdout.partition("\n")
+    return rest, eval(first)  # noqa: S307 - the list printed above
+
+
+def test_status_reads_status_json_without_torch_and_loads_the_tuner_when_it_is_stale(
+    told, tmp_path
+):
+    d = tmp_path / "t"
+    shutil.copytree(told[0], d)
+    text, heavy = _status_in_a_fresh_process(d)
+    assert heavy == [] and "1 of 3 trials told, trial 1 pending" in text
+    as_json, heavy = _status_in_a_fresh_process(d, "--json")
+    assert heavy == [] and json.loads(as_json)["pending"] == 1
+    assert json.loads(as_json) == json.loads(json.dumps(Tuner.load(d).status()))
+    ckpt = next(d.glob("jobs/*/checkpoint.pkl"))
+    later = (d / "status.json").stat().st_mtime_ns + 10**9
+    os.utime(ckpt, ns=(later, later))  # a tell interrupted after its checkpoint
+    stale_text, heavy = _status_in_a_fresh_process(d)
+    assert "mpcmobo.experiment.tuner" in heavy and stale_text == text
+
+
+def test_a_bad_log_is_refused_before_the_learner_is_loaded(told, tmp_path, monkeypatch):
+    d = tmp_path / "t"
+    shutil.copytree(told[0], d)
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("the tuner was loaded")
+
+    monkeypatch.setattr(Tuner, "load", no_load)
+    missing = tmp_path / "nosuch.csv"
+    res = runner.invoke(app, ["tell", str(d), "1", str(missing)])
+    assert res.exit_code == 2 and str(missing) in res.output and "does not exist" in res.output
+    bad = tmp_path / "bad.csv"
+    bad.write_text("a,b\n1,2\n")
+    res = runner.invoke(app, ["tell", str(d), "1", str(bad)])
+    assert res.exit_code == 2 and "no column 'p'" in res.output, res.output
+
+
+def test_the_learners_progress_reaches_tell(told, tmp_path, monkeypatch):
+    """Tuner.tell hands its callback to the learner for the tell (and takes it back after);
+    the command line's tell shows what the learner reports."""
+    d = tmp_path / "t"
+    shutil.copytree(told[0], d)
+    tuner = Tuner.load(d)
+    learner = tuner.job.run.learner
+    observe = type(learner).observe
+
+    def reporting(self, *args, **kwargs):
+        if self.progress is not None:
+            for k in range(1, 4):
+                self.progress("twin", k, 3)
+        return observe(self, *args, **kwargs)
+
+    monkeypatch.setattr(type(learner), "observe", reporting)
+    heard = []
+    X, U = episode(tuner, tuner.ask())
+    tuner.tell(1, X, U, progress=lambda *a: heard.append(a))
+    assert heard == [("twin", 1, 3), ("twin", 2, 3), ("twin", 3, 3)]
+    assert tuner.job.run.learner.progress is None
+
+    d2 = tmp_path / "cli"
+    shutil.copytree(told[0], d2)
+    res = runner.invoke(app, ["tell", str(d2), "1", str(told[1])])
+    assert res.exit_code == 0, res.output
+    assert "twin: 3/3" in res.output and "trial 1 told" in res.output
