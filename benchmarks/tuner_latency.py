@@ -2,12 +2,13 @@
 
 ``--out DIR`` holds the tuner: made there the first time (``--trials`` trials of ``--learner``
 on ``--system``, told through the Python API from simulated episodes, with a budget of
-one more), reused after. Each repeat works on a copy of it and times the
+two more), reused after. Each repeat works on a copy of it and times the
 command line as subprocesses (``python -m mpcmobo.cli``): ``status DIR``, ``status DIR
---json``, ``ask`` (a new trial: the learner's proposal), ``ask`` again (the pending trial),
-``tell`` of the trial's simulated log (a CSV; the episode runs between the timings, in this
-process), ``tell`` of a missing file and of a malformed one (a CSV without the system's
-columns). The baseline, measured in the same run: the interpreter's start (``python -c
+--json``, ``ask`` (a new trial: the tuner loaded, the learner's proposal), ``ask`` again (the
+pending trial, as the first ask wrote it), ``tell`` of a missing file and of a malformed one
+(a CSV without the system's columns), ``tell`` of the trial's simulated log (a CSV; the
+episode runs between the timings, in this process; the tell then prepares the next trial),
+and ``ask`` after it (the trial the tell prepared). The baseline, measured in the same run: the interpreter's start (``python -c
 pass``). Printed: a markdown table of the median and max seconds per command against its
 target (status 1 s, ask and tell 2 s, a bad log 1 s; a tell that runs the twin's tuning is
 over 2 s and shows its progress).
@@ -38,6 +39,7 @@ TARGETS = {
     "ask (new trial)": 2.0,
     "ask (pending)": 2.0,
     "tell": 2.0,
+    "ask (prepared by the tell)": 2.0,
     "tell (missing file)": 1.0,
     "tell (malformed file)": 1.0,
 }
@@ -67,7 +69,7 @@ def build(out: Path, system: str, learner: str, trials: int, budget: int) -> Non
         from mpcmobo.experiment.rundir import RunDirectory
 
         saved = RunDirectory(out).saved_settings().episodes
-        tuner = Tuner.load(out, episodes=max(saved, trials + 1))
+        tuner = Tuner.load(out, episodes=max(saved, trials + 2))
     else:
         tuner = Tuner(system, learner, out, episodes=budget)
     t0 = time.perf_counter()
@@ -116,6 +118,7 @@ def repeat(base: Path, work: Path, seed: int) -> dict[str, float]:
     )
     t["tell (malformed file)"] = _timed([*cli, "tell", str(d), str(trial.id), str(bad)], 2)
     t["tell"] = _timed([*cli, "tell", str(d), str(trial.id), str(log), "--force"], 0)
+    t["ask (prepared by the tell)"] = _timed([*cli, "ask", str(d)], 0)
     shutil.rmtree(d, ignore_errors=True)
     return t
 
@@ -133,7 +136,7 @@ def main() -> None:
     )
     with tempfile.TemporaryDirectory() as tmp:
         out = args.out or Path(tmp) / "tuner"
-        build(out, args.system, args.learner, args.trials, args.trials + 1)
+        build(out, args.system, args.learner, args.trials, args.trials + 2)
         times: dict[str, list[float]] = {k: [] for k in TARGETS}
         for r in range(args.repeats):
             for k, v in repeat(out, Path(tmp), r).items():

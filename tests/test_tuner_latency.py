@@ -122,3 +122,28 @@ def test_the_learners_progress_reaches_tell(told, tmp_path, monkeypatch):
     res = runner.invoke(app, ["tell", str(d2), "1", str(told[1])])
     assert res.exit_code == 0, res.output
     assert "twin: 3/3" in res.output and "trial 1 told" in res.output
+
+
+def test_tell_prepares_the_next_trial_and_ask_prints_it_without_the_tuner(
+    told, tmp_path, monkeypatch
+):
+    """After ``mpcmobo tell`` the next trial is written (its JSON and controller); ``ask``
+    prints that trial without loading the tuner, and it is the trial the tuner asks."""
+    d, log = told
+    work = tmp_path / "t"
+    shutil.copytree(d, work)
+    res = runner.invoke(app, ["tell", str(work), "1", str(log)])
+    assert res.exit_code == 0, res.output
+    assert "trial 2 is ready" in res.output
+    assert (work / "trials" / "2" / "controller.casadi").is_file()
+
+    def no_load(*a, **k):
+        raise AssertionError("ask loaded the tuner")
+
+    with monkeypatch.context() as m:
+        m.setattr(Tuner, "load", no_load)
+        res = runner.invoke(app, ["ask", str(work)])
+    assert res.exit_code == 0, res.output
+    printed = json.loads(res.output)
+    assert printed["id"] == 2
+    assert printed == Tuner.load(work).ask().to_json()

@@ -81,23 +81,51 @@ def ask(
         None, "--episodes", "-n", help="the budget of trials; on a tuner, a larger one"
     ),
 ) -> None:
-    """Print the next trial as JSON and write it, with its controller, to DIR/trials/<id>/."""
-    from mpcmobo.mpc.export import export_casadi
-
+    """Print the next trial as JSON and write it, with its controller, to DIR/trials/<id>/
+    (a trial that ``tell`` prepared is printed as it was written, without loading the tuner)."""
     create = {"system": system, "learner": learner, "seed": seed, "config": config}
+    given = episodes is not None or any(v is not None for v in create.values())
+    prepared = None if given else _prepared_trial(directory)
+    if prepared is not None:
+        cli.console.print_json(json.dumps(prepared))
+        return
 
     def go() -> dict:
-        tuner = _tuner(directory, episodes, **create)
-        trial = tuner.ask()
-        where = directory / "trials" / str(trial.id)
-        where.mkdir(parents=True, exist_ok=True)
-        data = trial.to_json()
-        (where / "trial.json").write_text(json.dumps(data, indent=1) + "\n")
-        export_casadi(trial.mpc, trial.theta, where / "controller.casadi")
-        return data
+        return _write_trial(directory, _tuner(directory, episodes, **create))
 
     data = _errors(go)
     cli.console.print_json(json.dumps(data))
+
+
+def _write_trial(directory: Path, tuner: Any) -> dict:
+    """The tuner's next trial (the pending one), written with its controller to
+    ``DIR/trials/<id>/``; its JSON."""
+    from mpcmobo.mpc.export import export_casadi
+
+    trial = tuner.ask()
+    where = directory / "trials" / str(trial.id)
+    where.mkdir(parents=True, exist_ok=True)
+    data = trial.to_json()
+    export_casadi(trial.mpc, trial.theta, where / "controller.casadi")
+    storage.atomic_write_text(where / "trial.json", json.dumps(data, indent=1) + "\n")
+    return dict(data)
+
+
+def _prepared_trial(directory: Path) -> dict | None:
+    """The pending trial as ``DIR/trials/<id>/trial.json`` holds it, where the tuner's
+    ``status.json`` is current and names it pending and its controller was written (None:
+    the tuner must be loaded to ask)."""
+    st = saved_status(directory)
+    if st is None or st["pending"] is None:
+        return None
+    where = directory / "trials" / str(st["pending"])
+    if not (where / "controller.casadi").is_file():
+        return None
+    try:
+        data = json.loads((where / "trial.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and data.get("id") == st["pending"] else None
 
 
 @app.command()
@@ -112,7 +140,8 @@ def tell(
     ),
 ) -> None:
     """Take a trial's logged episode: a row per step, the state and input names as columns.
-    The learner's long work (the twin's tuning) shows as a progress line."""
+    The learner's long work (the twin's tuning) shows as a progress line. Then the next trial
+    is prepared, so that ``ask`` prints it at once."""
     from mpcmobo.experiment.plantlog import read_log_file
 
     def read() -> Any:  # the file first, before the tuner and its learner are loaded
@@ -154,6 +183,9 @@ def tell(
         f"{tuner.settings.episodes} trials{changed}",
         highlight=False,
     )
+    if not tuner.job.done:
+        nxt = _errors(lambda: _write_trial(directory, tuner))
+        cli.console.print(f"trial {nxt['id']} is ready: mpcmobo ask {directory}", highlight=False)
 
 
 def _check_columns(directory: Path, df: Any) -> None:
