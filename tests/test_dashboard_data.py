@@ -136,6 +136,9 @@ def test_the_recorded_plant_cost_is_preferred_to_the_mean_stage_cost():
     df["plant_cost"], df["excess_cost"] = [1.0, 1.0, 2.0], [0.0, 0.5, 0.5]
     series = job_series(df, None, [])
     assert series["cum_cost"] == [1.0, 2.0, 4.0] and series["cum_excess"] == [0.0, 0.5, 1.0]
+    assert series["refused"] == []
+    df["refused"] = ["", "over the budget", ""]
+    assert job_series(df, None, [])["refused"] == [[1, "over the budget"]]
 
 
 def test_a_directory_without_a_run_or_with_a_damaged_reference_is_a_message(

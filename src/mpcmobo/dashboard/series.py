@@ -117,6 +117,7 @@ def job_series(
     J = _column(df, "J_eval_incumbent")
     ident = _matrix(df["identified"]) if "identified" in df.columns else np.zeros((len(df), 0))
     errors = df["error"].astype(str).to_numpy() if "error" in df.columns else np.array([])
+    refused = df["refused"].astype(str).to_numpy() if "refused" in df.columns else np.array([])
     return {
         "episode": df["episode"].astype(int).tolist(),
         "cost": floats(cost),
@@ -131,6 +132,7 @@ def job_series(
         "identified": floats2(ident.T) if ident.shape[1] else [],
         "objectives": _objectives(df),
         "errors": [[int(e), m] for e, m in zip(df["episode"], errors) if m not in ("", "nan")],
+        "refused": [[int(e), m] for e, m in zip(df["episode"], refused) if m not in ("", "nan")],
     }
 
 

@@ -46,11 +46,11 @@ function drawJobs(runs) {
       job.live ? "running" : (run.complete === false ? "stopped" : "recorded"),
       n ? job.cost[n - 1] : null, n ? job.cum_cost[n - 1] : null, J,
       J !== null && run.J_star ? J / run.J_star : null, run.J_star, run.J_initial,
-      job.changes.length, job.errors.length]);
+      job.changes.length, (job.refused || []).length, job.errors.length]);
   }));
   table("jobs", ["run", "learner", "seed", "episodes", "state", "last plant cost",
     "cumulative plant cost", "J_eval deployed", "J_eval / J*", "J*", "J_eval(theta0)",
-    "deployments", "failed episodes"], rows, 3);
+    "deployments", "refused candidates", "failed episodes"], rows, 3);
 }
 
 function drawChanges(runs) {
