@@ -118,10 +118,11 @@ def test_its_checkpoints_are_read_for_their_rows(old_run):
                 "excess_cost",
                 "predicted_cost",
                 "refused",
+                "refused_theta",
             }
             assert set(got) == set(d) | added
-            assert got["identified"] == [] and got["refused"] == ""
-            assert all(np.isnan(got[k]) for k in added - {"identified", "refused"})
+            assert got["identified"] == got["refused_theta"] == [] and got["refused"] == ""
+            assert all(np.isnan(got[k]) for k in added - {"identified", "refused", "refused_theta"})
             np.testing.assert_equal({k: got[k] for k in d}, d)  # NaN equal to NaN
     incumbents = run_dir.incumbents(settings)
     assert [(n, s, k) for n, s, k, _ in incumbents] == [("mpc-rl", 0, 4), ("mobo", 0, 4)]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mpcmobo.experiment.loop import LearningRun
-from mpcmobo.experiment.price import PATIENCE, ExplorationPrice
+from mpcmobo.experiment.price import PATIENCE, RECENT, ExplorationPrice
 from mpcmobo.experiment.settings import SettingsError, load_settings
 from mpcmobo.experiment.tunerstatus import recommendation
 from mpcmobo.learners.base import Learner
@@ -24,40 +24,79 @@ def _unasked():
     raise AssertionError("the saving is asked only of a costlier candidate within the budget")
 
 
-def test_a_candidate_within_the_budget_runs_one_over_it_does_not():
+def _calibrated(budget: float, errors: list[float], episodes: int = 50) -> ExplorationPrice:
+    """A gate whose model predicted past episodes with these log errors."""
+    price = ExplorationPrice(budget, episodes)
+    for e in errors:
+        price.calibrate(1.0, math.exp(e), {"cost": math.exp(e)})
+    return price
+
+
+def test_before_the_model_is_calibrated_only_the_deployed_controller_runs():
     price = ExplorationPrice(0.5, episodes=50)
-    assert price.judge(1.4, 1.0, 0, _no_saving).run  # not calibrated: the budget alone
-    assert price.judge(0.8, 1.0, 1, _unasked).run  # cheaper: always
+    assert price.error() == math.inf
+    v = price.judge(0.5, 1.0, 0, _unasked)
+    assert not v.run and "not calibrated" in v.reason
+
+
+def test_a_candidate_within_the_budget_runs_one_over_it_does_not():
+    price = _calibrated(0.5, [0.0, 0.0])
+    assert price.judge(1.4, 1.0, 0, lambda: (1.0, 1.0)).run
+    assert price.judge(0.8, 1.0, 1, _unasked).run  # cheaper: no payback to judge
     v = price.judge(1.6, 1.0, 2, _unasked)
     assert not v.run and "1.600x" in v.reason and "1.500x" in v.reason
 
 
+def test_an_uncertain_model_bounds_even_a_cheaper_prediction():
+    """A model that erred by a factor e (log error 1) trusts a prediction of 0.8x the deployed
+    controller only up to 0.8 e = 2.2x: over a budget of 1.5x."""
+    price = _calibrated(0.5, [1.0, -1.0])
+    assert price.error() == pytest.approx(1.0)
+    v = price.judge(0.8, 1.0, 0, _unasked)
+    assert not v.run and "within a factor 2.718" in v.reason
+    assert price.judge(0.5, 1.0, 1, _unasked).run  # 0.5 e = 1.36x: within it
+
+
 def test_a_failing_prediction_is_refused_and_no_basis_runs():
-    price = ExplorationPrice(0.5, episodes=50)
+    price = _calibrated(0.5, [0.0, 0.0])
     assert not price.judge(math.nan, 1.0, 0, _unasked).run
     assert price.judge(5.0, math.nan, 1, _unasked).run  # the deployed's prediction failed
     assert not price.judge(1.1, 1.0, 2, lambda: (math.nan, 1.0)).run  # fails from a start
 
 
-def test_an_excess_that_does_not_pay_back_is_refused_once_the_model_is_calibrated():
-    price = ExplorationPrice(0.5, episodes=50)
-    assert price.error() == math.inf
-    for predicted, cost in [(1.0, 1.02), (2.0, 1.96), (1.0, 1.0)]:
-        price.calibrate(predicted, cost)
-    assert price.error() == pytest.approx(np.sqrt((0.02**2 + 0.02**2) / 3))
-    # 10% more from this start, 5% worse on the fixed starts: beyond the model's 1.6% error
+def test_an_excess_that_does_not_pay_back_is_refused():
+    price = _calibrated(0.5, [0.02, -0.02, 0.0])
+    s = price.error()
+    assert s == pytest.approx(np.sqrt(2 * 0.02**2 / 3))
+    # 10% more from this start, 5% worse on the fixed starts: beyond the model's error
     v = price.judge(1.1, 1.0, 10, _no_saving)
     assert not v.run and "pay back" in v.reason
     # better on the fixed starts (a saving of 0.01 per episode): 39 episodes pay it back
     assert price.judge(1.1, 1.0, 10, lambda: (0.01, 1.0)).run
     assert not price.judge(1.1, 1.0, 46, lambda: (0.01, 1.0)).run  # but not 3 of them
     assert not price.judge(1.01, 1.0, 49, lambda: (1.0, 1.0)).run  # nor none
-    price.use_model("another model")
-    assert price.error() == math.inf  # a new model: a new calibration
+
+
+def test_a_new_model_is_calibrated_on_the_last_episodes():
+    price = ExplorationPrice(0.5, episodes=50)
+    for k in range(8):
+        price.calibrate(1.0, 2.0, {"x0": [k], "cost": 2.0})
+    assert price.error() == pytest.approx(math.log(2.0))
+    seen = []
+
+    def predict(episodes):
+        seen.extend(e["x0"][0] for e in episodes)
+        return np.full(len(episodes), 2.0)
+
+    price.use_model("the identified model", predict)
+    assert seen == list(range(8))[-RECENT:]  # the last ones, predicted by the new model
+    assert price.error() == 0.0
+    price.use_model("the identified model", predict)
+    assert len(seen) == RECENT  # the same model: no new calibration
 
 
 def test_tuning_converges_after_refusals_in_a_row_and_a_larger_budget_reopens_it():
-    price = ExplorationPrice(0.2, episodes=20)
+    price = _calibrated(0.2, [0.0, 0.0], episodes=20)
     for k in range(PATIENCE - 1):
         assert not price.judge(2.0, 1.0, k, _unasked).run
     assert price.judge(1.0, 1.0, PATIENCE, _unasked).run  # a run breaks the row
@@ -163,13 +202,21 @@ def _episode(lq, run, plan):
 
 
 def test_the_prediction_is_that_of_the_episode_on_an_exact_model(lq):
-    """With the true model, the predicted cost of an episode is its plant cost."""
-    run, _ = _run(lq, 10.0, lq.parameterization.theta0 * 1.05)
+    """With the true model, the predicted cost of an episode is its plant cost; the first two
+    episodes, before the model is calibrated, run the deployed controller."""
+    run, learner = _run(lq, 10.0, lq.parameterization.theta0 * 1.05)
     run.mpc = ParametricMPC(lq, model="perfect")
-    plan = run.plan()
-    assert not plan.refused and np.isfinite(plan.predicted_cost)
-    row, _ = run.finish(plan, _episode(lq, run, plan))
-    assert row["predicted_cost"] == pytest.approx(row["plant_cost"], rel=1e-6)
+    rows = []
+    for _ in range(3):
+        plan = run.plan()
+        rows.append(run.finish(plan, _episode(lq, run, plan))[0])
+    assert [bool(r["refused"]) for r in rows] == [True, True, False]
+    assert "not calibrated" in rows[0]["refused"]
+    np.testing.assert_array_equal(rows[0]["refused_theta"], learner.candidate)
+    np.testing.assert_array_equal(rows[2]["theta"], learner.candidate)
+    for r in rows:
+        assert r["predicted_cost"] == pytest.approx(r["plant_cost"], rel=1e-6)
+    assert run.price.error() < 1e-6
 
 
 def test_without_a_budget_nothing_is_predicted_and_the_streams_are_those_of_the_budget(lq):

@@ -41,7 +41,8 @@ class EpisodePlan:
     theta deployed when it was planned (what the episode's excess cost is measured against).
     With an exploration budget (:mod:`mpcmobo.experiment.price`): the predicted cost of the
     theta that runs and of the deployed one from ``x0`` with ``noise`` (NaN: not predicted),
-    why the learner's candidate was refused ("": it was not) and whether tuning has converged
+    why the learner's candidate was refused ("": it was not) and that candidate, and whether
+    tuning has converged
     (the deployed theta runs without noise and the learner does not observe it)."""
 
     episode: int
@@ -57,6 +58,7 @@ class EpisodePlan:
     predicted_cost: float = math.nan
     predicted_deployed: float = math.nan
     refused: str = ""
+    refused_theta: list[float] | None = None
     converged: bool = False
 
     def to_dict(self) -> dict:
@@ -245,7 +247,9 @@ class LearningRun:
         t0 = time.perf_counter()
         deployed = np.asarray(plan.deployed, float)
         params = self.prediction_params(deployed)
-        self.price.use_model(hashlib.sha1(params.tobytes()).hexdigest())
+        self.price.use_model(
+            hashlib.sha1(params.tobytes()).hexdigest(), lambda eps: self._predicted(eps, params)
+        )
         d = self.start_cost(plan.x0, deployed, params, plan.noise)
         if np.array_equal(plan.theta, deployed):
             plan.predicted_cost = plan.predicted_deployed = d
@@ -260,10 +264,20 @@ class LearningRun:
 
                 verdict = self.price.judge(c, d, plan.episode, gain)
                 if not verdict.run:
-                    plan.refused = verdict.reason
+                    plan.refused, plan.refused_theta = verdict.reason, _as_list(plan.theta)
                     plan.theta, plan.predicted_cost = deployed.copy(), d
         plan.propose_time += time.perf_counter() - t0
         return plan
+
+    def _predicted(self, episodes: list[dict], params: np.ndarray) -> np.ndarray:
+        """The costs of past ``episodes`` (their ``x0``, ``theta`` and ``noise``) predicted on
+        the model with ``params``: a new model's calibration."""
+        return np.array(
+            [
+                self.start_cost(np.asarray(e["x0"]), np.asarray(e["theta"]), params, e["noise"])
+                for e in episodes
+            ]
+        )
 
     def _saving(
         self, theta: np.ndarray, deployed: np.ndarray, params: np.ndarray
@@ -372,7 +386,10 @@ class LearningRun:
         plant_cost = mean_stage_cost(record) if record is not None else np.nan
         excess = self.excess_cost(plan, plant_cost, result, deployed_cost)
         t_mpc = mpc_time + time.perf_counter() - t1
-        self.price.calibrate(plan.predicted_cost, plant_cost)
+        if self.price.active:
+            noise = np.asarray(plan.noise, float).tolist()
+            ran = {"x0": x0.tolist(), "theta": theta.tolist(), "noise": noise}
+            self.price.calibrate(plan.predicted_cost, plant_cost, {**ran, "cost": plant_cost})
         t2 = time.perf_counter()
         if not plan.converged:  # a converged tuning's learner no longer observes
             self.learner.observe(theta, result)
@@ -407,6 +424,7 @@ class LearningRun:
             "excess_cost": float(excess),
             "predicted_cost": float(plan.predicted_cost),
             "refused": plan.refused,
+            "refused_theta": list(plan.refused_theta or []),
         }
         self.episode += 1
         return row, record

@@ -37,8 +37,13 @@ __all__ = ["PATIENCE", "ExplorationPrice", "Verdict"]
 
 # candidates refused in a row after which tuning has converged
 PATIENCE = 5
-# the model's calibration needs this many predicted episodes before it bounds a payback
+# the model's calibration needs this many predicted episodes before it bounds a prediction
 MIN_CALIBRATION = 2
+# the last episodes kept to calibrate a new model on
+RECENT = 6
+
+# one past episode as the calibration keeps it: its start, theta, noise and plant cost
+Episode = dict
 
 
 @dataclass(frozen=True)
@@ -60,8 +65,9 @@ class ExplorationPrice:
             raise ValueError(f"the exploration budget must be >= 0 (inf: none), got {budget}")
         self.budget = float(budget)
         self.episodes = int(episodes)
-        self.errors_: list[float] = []  # relative errors of the model's predictions
+        self.errors_: list[float] = []  # log errors of the model's predictions
         self.model_ = ""  # the model they are of
+        self.recent_: list[Episode] = []  # the last RECENT episodes, to calibrate a new model
         self.refused_ = 0  # candidates refused in a row
         self.converged_ = ""  # why tuning stopped exploring ("": it has not)
 
@@ -76,21 +82,35 @@ class ExplorationPrice:
         return bool(self.converged_)
 
     def error(self) -> float:
-        """The RMS relative error of the model's predictions of the episodes run so far (inf
-        before :data:`MIN_CALIBRATION` of them)."""
+        """The model's error: the RMS log error of its predictions of the episodes run so far
+        (inf before :data:`MIN_CALIBRATION` of them)."""
         if len(self.errors_) < MIN_CALIBRATION:
             return math.inf
         return float(np.sqrt(np.mean(np.square(self.errors_))))
 
-    def use_model(self, key: str) -> None:
-        """Predict with the model ``key`` names from now on (another: a new calibration)."""
-        if key != self.model_:
-            self.model_, self.errors_ = key, []
+    def use_model(self, key: str, predict: Callable[[list[Episode]], np.ndarray]) -> None:
+        """Predict with the model ``key`` names from now on; a new one is calibrated on its
+        predictions ``predict(episodes)`` of the last :data:`RECENT` episodes."""
+        if key == self.model_:
+            return
+        self.model_, self.errors_ = key, []
+        if self.recent_:
+            predicted = predict(self.recent_)
+            for p, ep in zip(predicted, self.recent_, strict=True):
+                self._add_error(float(p), float(ep["cost"]))
 
-    def calibrate(self, predicted: float, plant_cost: float) -> None:
-        """Take an episode's predicted and measured cost (ignored where either is unknown)."""
-        if math.isfinite(predicted) and math.isfinite(plant_cost) and predicted > 0:
-            self.errors_.append(float(plant_cost / predicted - 1.0))
+    def calibrate(self, predicted: float, plant_cost: float, episode: Episode) -> None:
+        """Take an episode's predicted and measured cost (an error where both are known and
+        positive), and keep the ``episode`` (``x0``, ``theta``, ``noise``, ``cost``) for the
+        next model's calibration."""
+        self._add_error(predicted, plant_cost)
+        if math.isfinite(plant_cost):
+            self.recent_ = [*self.recent_, episode][-RECENT:]
+
+    def _add_error(self, predicted: float, plant_cost: float) -> None:
+        if math.isfinite(predicted) and math.isfinite(plant_cost):
+            if predicted > 0 and plant_cost > 0:
+                self.errors_.append(math.log(plant_cost / predicted))
 
     def judge(
         self,
@@ -129,35 +149,42 @@ class ExplorationPrice:
             return Verdict(True)
         if not math.isfinite(candidate):
             return Verdict(False, "its closed loop on the model fails from this start")
+        spread = math.exp(self.error())  # inf before the model is calibrated
+        if candidate * spread > (1 + self.budget) * deployed:
+            return Verdict(
+                False,
+                f"predicted at {candidate / deployed:.3f}x the deployed controller's cost, "
+                f"{self._within()}, over the budget of {1 + self.budget:.3f}x",
+            )
         excess = candidate - deployed
         if excess <= 0:
             return Verdict(True)
-        if excess > self.budget * deployed:
-            return Verdict(
-                False,
-                f"predicted at {candidate / deployed:.3f}x the deployed controller's cost, over "
-                f"the budget of {1 + self.budget:.3f}x",
-            )
         if remaining <= 0:
             return Verdict(False, "no episode is left to pay back its predicted excess")
         saving, mean = gain()
         if not math.isfinite(saving):
             return Verdict(False, "its closed loop on the model fails from a fixed start")
-        best = saving + self.error() * mean  # inf before the model is calibrated
-        if best * remaining < excess:
+        if (saving + (spread - 1) * mean) * remaining < excess:
             return Verdict(
                 False,
                 f"its predicted excess of {100 * excess / deployed:.1f}% does not pay back in "
                 f"{remaining} remaining episodes (predicted saving {saving:.4g} per episode, "
-                f"the model's error {100 * self.error():.1f}%)",
+                f"{self._within()})",
             )
         return Verdict(True)
+
+    def _within(self) -> str:
+        """How far the model's predictions are trusted, in words."""
+        if not math.isfinite(self.error()):
+            return "the model not calibrated yet"
+        return f"the model within a factor {math.exp(self.error()):.3f}"
 
     def state_dict(self) -> dict:
         """What the gate has learned (its configuration comes from the settings)."""
         return {
             "errors": list(self.errors_),
             "model": self.model_,
+            "recent": list(self.recent_),
             "refused": self.refused_,
             "converged": self.converged_,
             "episodes": self.episodes,
@@ -170,6 +197,7 @@ class ExplorationPrice:
             return
         self.errors_ = [float(e) for e in state["errors"]]
         self.model_ = str(state["model"])
+        self.recent_ = list(state["recent"])
         self.refused_ = int(state["refused"])
         extended = int(state["episodes"]) != self.episodes
         self.converged_ = "" if extended else str(state["converged"])

@@ -58,9 +58,11 @@ class EpisodeRow:
     excess_cost: float = math.nan
     # with an exploration budget: the episode's cost predicted before it ran (on the learner's
     # model of the plant, from its start with its noise; NaN: not predicted), and why the
-    # learner's candidate was refused and the deployed theta ran instead ("": it was not)
+    # learner's candidate was refused and the deployed theta ran instead ("": it was not),
+    # and that candidate (empty: none)
     predicted_cost: float = math.nan
     refused: str = ""
+    refused_theta: list[float] = field(default_factory=list)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EpisodeRow:
