@@ -33,3 +33,14 @@ def test_cli_version_flag_prints_it_and_exits_0():
     assert result.output.strip() == f"mpcmobo {version('mpcmobo')}"
     # the flag does not get in the way of the commands
     assert CliRunner().invoke(app, ["systems"]).exit_code == 0
+
+
+def test_python_m_mpcmobo_is_the_command_line():
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", "mpcmobo", "--version"], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "mpcmobo 1.1.0"
