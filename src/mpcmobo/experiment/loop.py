@@ -42,8 +42,8 @@ class EpisodePlan:
     With an exploration budget (:mod:`mpcmobo.experiment.price`): the predicted cost of the
     theta that runs and of the deployed one from ``x0`` with ``noise`` (NaN: not predicted),
     why the learner's candidate was refused ("": it was not) and that candidate, and whether
-    tuning has converged
-    (the deployed theta runs without noise and the learner does not observe it)."""
+    tuning has converged (the deployed theta runs without noise and the learner does not
+    observe it)."""
 
     episode: int
     theta: np.ndarray
