@@ -188,12 +188,12 @@ class ExplorationSettings(Section):
     """The standard deviation is multiplied by this factor after every episode (1: constant)."""
     budget: float = Field(0.5, ge=0, allow_inf_nan=True)
     """The price an exploring episode may have: how much more than the deployed controller a
-    candidate may be predicted to cost from the coming start, as a fraction of the deployed
-    controller's predicted cost (0.5: at most 1.5x). A candidate predicted over it, or not
-    paying back its excess within the remaining episodes, does not run (the deployed controller
-    runs instead); after 5 refusals in a row tuning stops exploring (docs/real-plant.md).
-    ``inf``: every candidate runs and nothing is predicted. Costs two closed loops on the
-    model per exploring episode."""
+    candidate may cost from the coming start, as predicted on the learner's model and bounded
+    by the model's record of errors, as a fraction of the deployed controller's predicted cost
+    (0.5: at most 1.5x). A candidate over it, or not paying back its excess within the
+    remaining episodes, does not run (the deployed controller runs instead); after 5 refusals
+    in a row tuning stops exploring (docs/real-plant.md). ``inf``: every candidate runs and
+    nothing is predicted. Costs two closed loops on the model per exploring episode."""
 
     @field_validator("budget")
     @classmethod
