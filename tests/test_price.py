@@ -64,17 +64,21 @@ def test_a_failing_prediction_is_refused_and_no_basis_runs():
     assert not price.judge(1.1, 1.0, 2, lambda: (math.nan, 1.0)).run  # fails from a start
 
 
-def test_an_excess_that_does_not_pay_back_is_refused():
+def test_an_excess_that_does_not_pay_back_runs_and_counts_towards_convergence():
     price = _calibrated(0.5, [0.02, -0.02, 0.0])
     s = price.error()
     assert s == pytest.approx(np.sqrt(2 * 0.02**2 / 3))
     # 10% more from this start, 5% worse on the fixed starts: beyond the model's error
     v = price.judge(1.1, 1.0, 10, _no_saving)
-    assert not v.run and "pay back" in v.reason
+    assert v.run and not v.pays and "pay back" in v.reason and price.unpaid_ == 1
     # better on the fixed starts (a saving of 0.01 per episode): 39 episodes pay it back
-    assert price.judge(1.1, 1.0, 10, lambda: (0.01, 1.0)).run
-    assert not price.judge(1.1, 1.0, 46, lambda: (0.01, 1.0)).run  # but not 3 of them
-    assert not price.judge(1.01, 1.0, 49, lambda: (1.0, 1.0)).run  # nor none
+    assert price.judge(1.1, 1.0, 10, lambda: (0.01, 1.0)).pays and price.unpaid_ == 0
+    assert not price.judge(1.1, 1.0, 46, lambda: (0.01, 1.0)).pays  # but not 3 of them
+    assert not price.judge(1.01, 1.0, 49, lambda: (1.0, 1.0)).pays  # nor none
+    for k in range(PATIENCE - 2):
+        assert not price.converged
+        price.judge(1.1, 1.0, 20 + k, _no_saving)
+    assert price.converged and "could not pay back" in price.converged_
 
 
 def test_a_new_model_is_calibrated_on_the_last_episodes():
@@ -238,7 +242,7 @@ def test_the_gate_resumes_from_the_run_state(lq):
     other, _ = _run(lq, 0.0, _expensive(lq))
     other.load_state_dict(state)
     assert other.price.state_dict() == run.price.state_dict()
-    assert other.price.refused_ == 3
+    assert other.price.unpaid_ == 3
 
 
 def test_a_tuner_converges_hands_out_the_deployed_controller_and_says_so(tmp_path):

@@ -6,23 +6,25 @@ the plant (the identified model where the learner identifies one, else the deplo
 own model), and the deployed controller's cost from the same start with the same noise
 (:meth:`~mpcmobo.experiment.loop.LearningRun.plan`). :class:`ExplorationPrice` decides:
 
-* a candidate predicted to cost no more than the deployed controller runs;
-* a candidate predicted to cost more than ``1 + budget`` times the deployed controller is not
-  run: the deployed controller runs instead (with the same noise), and the learner observes
-  that episode;
-* a candidate predicted to cost more, within the budget, runs only if it can pay back that
-  excess within the remaining episodes: were it deployed, it would save per episode its
-  predicted gain (the deployed controller's mean cost less its own, noise-free on the model
-  from the run's fixed starts) plus, at best, the model's error (the RMS relative error of
-  its predictions of the episodes run so far, its calibration, times the deployed
-  controller's mean cost);
-* after :data:`PATIENCE` candidates in a row are refused, tuning has converged: every later
-  episode runs the deployed controller without exploration noise, the learner no longer
-  proposes nor observes, and the reason is kept (the tuner's ``status`` reports it).
+* the model's error ``s`` is its record: the RMS of ``log(plant cost / predicted cost)`` over
+  the episodes run so far (a new model is first checked on its predictions of the last
+  :data:`RECENT` episodes); a cost predicted at ``c`` may be ``c * exp(s)``;
+* a candidate whose predicted cost, so bounded, is more than ``1 + budget`` times the
+  deployed controller's prediction is **refused**: the deployed controller runs instead (with
+  the same noise), and the learner observes that episode. Before the model has a record the
+  bound is infinite: only the deployed controller runs;
+* every other candidate runs. One predicted to cost more than the deployed controller
+  **pays back** if, were it deployed, its predicted saving per episode (the deployed
+  controller's mean cost less its own, noise-free on the model from the run's fixed starts)
+  plus, at best, the model's error (``exp(s) - 1`` times the deployed controller's mean cost)
+  over the remaining episodes covers its predicted excess;
+* after :data:`PATIENCE` candidates in a row that were refused or do not pay back, tuning has
+  converged: every later episode runs the deployed controller without exploration noise, the
+  learner no longer proposes nor observes, and the reason is kept (the tuner's ``status``
+  reports it).
 
 A candidate whose predicted closed loop fails (the model's plant runs away) is refused; where
-the deployed controller's prediction fails there is no basis, and the candidate runs. A new
-model (a new identification, another deployed model) starts a new calibration.
+the deployed controller's prediction fails there is no basis, and the candidate runs.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import numpy as np
 
 __all__ = ["PATIENCE", "ExplorationPrice", "Verdict"]
 
-# candidates refused in a row after which tuning has converged
+# candidates in a row refused or not paying back after which tuning has converged
 PATIENCE = 5
 # the model's calibration needs this many predicted episodes before it bounds a prediction
 MIN_CALIBRATION = 2
@@ -48,10 +50,12 @@ Episode = dict
 
 @dataclass(frozen=True)
 class Verdict:
-    """Whether a candidate runs, and if not, why (``reason``)."""
+    """Whether a candidate runs, whether it pays back its predicted excess, and if either is
+    not so, why (``reason``)."""
 
     run: bool
     reason: str = ""
+    pays: bool = True
 
 
 class ExplorationPrice:
@@ -68,7 +72,7 @@ class ExplorationPrice:
         self.errors_: list[float] = []  # log errors of the model's predictions
         self.model_ = ""  # the model they are of
         self.recent_: list[Episode] = []  # the last RECENT episodes, to calibrate a new model
-        self.refused_ = 0  # candidates refused in a row
+        self.unpaid_ = 0  # candidates in a row refused or not paying back
         self.converged_ = ""  # why tuning stopped exploring ("": it has not)
 
     @property
@@ -124,16 +128,17 @@ class ExplorationPrice:
         ``episode``, with its noise); ``gain()``: the candidate's predicted saving per episode
         were it deployed and the deployed controller's mean cost (module docstring; NaN where
         a closed loop fails), asked only when the candidate is costlier within the budget. A
-        refusal counts towards convergence."""
+        refusal, or a candidate that does not pay back, counts towards convergence."""
         verdict = self._verdict(candidate, deployed, self.episodes - int(episode) - 1, gain)
-        if verdict.run:
-            self.refused_ = 0
+        if verdict.run and verdict.pays:
+            self.unpaid_ = 0
             return verdict
-        self.refused_ += 1
-        if self.refused_ >= PATIENCE:
+        self.unpaid_ += 1
+        if self.unpaid_ >= PATIENCE:
             self.converged_ = (
-                f"{PATIENCE} candidates in a row were refused (the last at episode {episode}: "
-                f"{verdict.reason}): exploring no longer pays"
+                f"{PATIENCE} candidates in a row were refused or could not pay back their "
+                f"predicted excess (the last at episode {episode}: {verdict.reason}): "
+                f"exploring no longer pays"
             )
         return verdict
 
@@ -160,16 +165,17 @@ class ExplorationPrice:
         if excess <= 0:
             return Verdict(True)
         if remaining <= 0:
-            return Verdict(False, "no episode is left to pay back its predicted excess")
+            return Verdict(True, "no episode is left to pay back its predicted excess", False)
         saving, mean = gain()
         if not math.isfinite(saving):
             return Verdict(False, "its closed loop on the model fails from a fixed start")
         if (saving + (spread - 1) * mean) * remaining < excess:
             return Verdict(
-                False,
+                True,
                 f"its predicted excess of {100 * excess / deployed:.1f}% does not pay back in "
                 f"{remaining} remaining episodes (predicted saving {saving:.4g} per episode, "
                 f"{self._within()})",
+                False,
             )
         return Verdict(True)
 
@@ -185,7 +191,7 @@ class ExplorationPrice:
             "errors": list(self.errors_),
             "model": self.model_,
             "recent": list(self.recent_),
-            "refused": self.refused_,
+            "unpaid": self.unpaid_,
             "converged": self.converged_,
             "episodes": self.episodes,
         }
@@ -198,8 +204,8 @@ class ExplorationPrice:
         self.errors_ = [float(e) for e in state["errors"]]
         self.model_ = str(state["model"])
         self.recent_ = list(state["recent"])
-        self.refused_ = int(state["refused"])
+        self.unpaid_ = int(state["unpaid"])
         extended = int(state["episodes"]) != self.episodes
         self.converged_ = "" if extended else str(state["converged"])
         if extended:
-            self.refused_ = 0
+            self.unpaid_ = 0
