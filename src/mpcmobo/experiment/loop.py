@@ -241,9 +241,10 @@ class LearningRun:
 
     def _priced(self, plan: EpisodePlan) -> EpisodePlan:
         """``plan`` with its predicted cost and the deployed theta's, on the learner's model of
-        the plant (:meth:`prediction_params`) from its start with its noise; an exploring
-        candidate the budget refuses (:mod:`mpcmobo.experiment.price`) is replaced by the
-        deployed theta (same noise)."""
+        the plant (:meth:`prediction_params`) from its start with its noise; a candidate the
+        budget refuses (:mod:`mpcmobo.experiment.price`; exploring or not, as MPC-RL's
+        noise-free verification of its iterate) is replaced by the deployed theta (same
+        noise)."""
         t0 = time.perf_counter()
         deployed = np.asarray(plan.deployed, float)
         params = self.prediction_params(deployed)
@@ -256,16 +257,15 @@ class LearningRun:
         else:
             c = self.start_cost(plan.x0, plan.theta, params, plan.noise)
             plan.predicted_cost, plan.predicted_deployed = c, d
-            if plan.explore:
-                theta = plan.theta
+            theta = plan.theta
 
-                def gain() -> tuple[float, float]:
-                    return self._saving(theta, deployed, params)
+            def gain() -> tuple[float, float]:
+                return self._saving(theta, deployed, params)
 
-                verdict = self.price.judge(c, d, plan.episode, gain)
-                if not verdict.run:
-                    plan.refused, plan.refused_theta = verdict.reason, _as_list(plan.theta)
-                    plan.theta, plan.predicted_cost = deployed.copy(), d
+            verdict = self.price.judge(c, d, plan.episode, gain)
+            if not verdict.run:
+                plan.refused, plan.refused_theta = verdict.reason, _as_list(plan.theta)
+                plan.theta, plan.predicted_cost = deployed.copy(), d
         plan.propose_time += time.perf_counter() - t0
         return plan
 

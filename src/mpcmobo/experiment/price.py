@@ -1,9 +1,11 @@
 """The price of exploration: which candidates run on the plant, and when tuning stops exploring.
 
-Before an exploring episode of a candidate theta runs, the loop predicts its cost from the
-coming start, with the episode's exploration noise replayed, on the learner's best model of
-the plant (the identified model where the learner identifies one, else the deployed theta's
-own model), and the deployed controller's cost from the same start with the same noise
+Before an episode of a candidate theta runs (a theta other than the deployed one, with
+exploration noise or without, as MPC-RL's verification of its iterate), the loop predicts its
+cost from the coming start, with the episode's exploration noise replayed, on the learner's
+best model of the plant (the identified model where the learner identifies one, else the
+deployed theta's own model), and the deployed controller's cost from the same start with the
+same noise
 (:meth:`~mpcmobo.experiment.loop.LearningRun.plan`). :class:`ExplorationPrice` decides:
 
 * the model's error ``s`` is its record: the RMS of ``log(plant cost / predicted cost)`` over
