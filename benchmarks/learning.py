@@ -146,9 +146,9 @@ def plant_table(outs: list[Path], only_seeds: list[int] | None = None) -> str:
             c = after["plant_cost"].to_numpy(float)
             ok = np.isfinite(e) & np.isfinite(c) & (e != 0)
             worst.append(float(np.max(c[ok] / (c[ok] - e[ok]))) if ok.any() else 1.0)
-            frozen = (ds["refused"] == "") & (ds["predicted_cost"].isna())
-            stops = ds["episode"][frozen & (ds["episode"] > 0)]
-            if "refused" in ds and (ds["refused"] != "").any() and len(stops):
+            # converged: the first episode without a prediction in a run that predicts
+            stops = ds["episode"][ds["predicted_cost"].isna() & (ds["episode"] > 0)]
+            if ds["predicted_cost"].notna().any() and len(stops):
                 conv.append(int(stops.iloc[0]))
         refused = int((d["refused"] != "").sum()) if "refused" in d else 0
         rel_col = f"{np.median(rel):.3f}, {rel.max():.3f}" if len(rel) else "-"

@@ -15,6 +15,8 @@ resume is tested in test_identify.py).
 
 from __future__ import annotations
 
+import math
+
 import pandas as pd
 import pytest
 
@@ -41,6 +43,9 @@ def _settings():
         records={"trajectory_every": 5},
         learner_options={"mobo": CHEAP, "hybrid": CHEAP},
         workers=2,
+        # every episode the GP's, past the refit (the nominal model, an exploration budget
+        # would refuse most candidates and stop the learner early)
+        exploration={"budget": math.inf},
     )
 
 
