@@ -32,6 +32,7 @@ n_starts = 1
 eval_every = 4
 [exploration]
 std = [40.0, 40.0]  # wide: the controller's input plus the noise often leaves the bounds
+budget = inf  # the loop over OPC UA, not the budget: every trial runs the learner's theta
 """
 SAFE = np.array([100.0, 110.0])
 runner = CliRunner()
