@@ -13,6 +13,7 @@ recorded is changed; an interrupted ``tell`` (exit code 130) leaves its trial pe
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -319,7 +320,8 @@ def _print_exploration(ex: dict[str, Any]) -> None:
         cli.console.print("no exploration budget: every candidate runs", highlight=False)
         return
     refused = ", ".join(map(str, ex["refused"])) or "none"
-    error = "not calibrated yet" if ex["model_error"] is None else f"{100 * ex['model_error']:.1f}%"
+    err = ex["model_error"]  # the RMS log error of its predictions: a factor exp(err)
+    error = "not calibrated yet" if err is None else f"within a factor {math.exp(err):.3f}"
     cli.console.print(
         f"exploration budget {1 + ex['budget']:.2f}x the deployed controller's predicted cost; "
         f"trials whose candidate it refused (the deployed ran): {refused}; the model's "
