@@ -92,6 +92,26 @@ def test_ctrl_c_in_a_tell_says_the_trial_is_pending(asked, tmp_path, monkeypatch
     assert Tuner.load(d).status()["pending"] == 0
 
 
+def test_ctrl_c_while_the_next_trial_is_prepared_says_the_trial_is_told(
+    asked, tmp_path, monkeypatch
+):
+    from mpcmobo.cli import plant
+
+    d, tuner, _, (X, U) = asked
+    log = write_log(tmp_path / "ep.csv", X, U, tuner.system)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(plant, "_write_trial", interrupted)
+    res = runner.invoke(app, ["tell", str(d), "0", str(log)])
+    assert res.exit_code == 130, res.output
+    assert "trial 0 is told and recorded" in _output(res) and "mpcmobo ask" in _output(res)
+    monkeypatch.undo()
+    status = Tuner.load(d).status()
+    assert status["pending"] is None and [t["id"] for t in status["trials"]] == [0]
+
+
 def test_export_names_a_pending_trial_and_force_tells_the_quarantined_log(asked, tmp_path):
     d, tuner, trial, _ = asked
     res = runner.invoke(app, ["export", str(d), "--theta", "0", "--out", str(tmp_path / "c")])

@@ -184,9 +184,18 @@ def tell(
         f"{tuner.settings.episodes} trials{changed}",
         highlight=False,
     )
-    if not tuner.job.done:
+    if tuner.job.done:
+        return
+    try:
         nxt = _errors(lambda: _write_trial(directory, tuner))
-        cli.console.print(f"trial {nxt['id']} is ready: mpcmobo ask {directory}", highlight=False)
+    except KeyboardInterrupt:
+        cli.err_console.print(
+            f"Interrupted while preparing the next trial: trial {row.episode} is told and "
+            f"recorded; mpcmobo ask {directory} prepares the next one",
+            highlight=False,
+        )
+        raise typer.Exit(130) from None
+    cli.console.print(f"trial {nxt['id']} is ready: mpcmobo ask {directory}", highlight=False)
 
 
 def _check_columns(directory: Path, df: Any) -> None:
