@@ -184,13 +184,18 @@ def tell(
         f"{tuner.settings.episodes} trials{changed}",
         highlight=False,
     )
-    if tuner.job.done:
-        return
+    if not tuner.job.done:
+        _prepare_next(directory, tuner, row.episode)
+
+
+def _prepare_next(directory: Path, tuner: Any, told: int) -> None:
+    """After trial ``told``: the next trial written for ``ask`` (Ctrl-C there loses nothing
+    and says so)."""
     try:
         nxt = _errors(lambda: _write_trial(directory, tuner))
     except KeyboardInterrupt:
         cli.err_console.print(
-            f"Interrupted while preparing the next trial: trial {row.episode} is told and "
+            f"Interrupted while preparing the next trial: trial {told} is told and "
             f"recorded; mpcmobo ask {directory} prepares the next one",
             highlight=False,
         )
@@ -329,12 +334,16 @@ def _print_exploration(ex: dict[str, Any]) -> None:
         cli.console.print("no exploration budget: every candidate runs", highlight=False)
         return
     refused = ", ".join(map(str, ex["refused"])) or "none"
+    simulated = ex.get("simulated") or []  # a status saved before simulated candidates
+    learned = (
+        f" (learned from in simulation: {', '.join(map(str, simulated))})" if simulated else ""
+    )
     err = ex["model_error"]  # the RMS log error of its predictions: a factor exp(err)
     error = "not calibrated yet" if err is None else f"within a factor {math.exp(err):.3f}"
     cli.console.print(
         f"exploration budget {1 + ex['budget']:.2f}x the deployed controller's predicted cost; "
-        f"trials whose candidate it refused (the deployed ran): {refused}; the model's "
-        f"prediction error {error}",
+        f"trials whose candidate it refused (the deployed ran): {refused}{learned}; the "
+        f"model's prediction error {error}",
         highlight=False,
     )
 
