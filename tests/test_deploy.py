@@ -112,6 +112,46 @@ def test_a_little_dearer_from_one_start_is_deployed_on_the_mean_cost(lq):
     np.testing.assert_allclose(lr.incumbent(), lr.theta_of(good))
 
 
+@pytest.mark.parametrize("name", ["bo", "mobo"])
+def test_a_simulated_episode_teaches_the_gp_but_is_no_evidence(lq, name):
+    """The same candidate as above, half the cost from every start, but simulated (the
+    exploration budget refused it): the GP fits it, the evidence has no run of it, and it is
+    neither deployed nor verified; once the plant runs it the same way, it is deployed."""
+    z0, good = _points(lq)
+    lr = make_learner(
+        name, lq[0], lq[1], seed=0, starts=Starts("cycle", 5), trust_region=False, **FAST
+    )
+    assert lr.learns_in_simulation()
+    for s in range(5):
+        _observe(lr, z0, BASE[s], s)
+    for s in range(5):
+        y = np.array([0.5 * BASE[s], 1.0, 0.0, 0.0])
+        res = EpisodeResult(y, np.zeros(lr.space.n_theta), True, start_id=s)
+        lr.observe_simulated(lr.theta_of(good), res)
+    ev = lr.evidence_
+    assert len(ev) == 10 and ev.kinds[5:] == ["simulated"] * 5
+    assert lr.policy.runs(ev, good, z0) == 0 and len(ev.rows_of(good)) == 0
+    assert _same(lr.deployed_z_, z0) and lr.verify_z_ is None
+    mean, _ = lr.surrogate.to_cost_space(*lr.surrogate.posterior_model_space(good[None, :]))
+    mean0, _ = lr.surrogate.to_cost_space(*lr.surrogate.posterior_model_space(z0[None, :]))
+    assert mean[0, 0] < mean0[0, 0]  # the GP has learned it is cheaper
+    for s in range(5):
+        _observe(lr, good, 0.5 * BASE[s], s)
+    assert _same(lr.deployed_z_, good)
+
+
+def test_the_incumbent_rule_deploys_only_a_theta_the_plant_ran(lq):
+    """The paper's rule picks the GP's best observed theta among the plant's episodes: a
+    cheaper simulated one is not deployed."""
+    z0, good = _points(lq)
+    lr = make_learner("bo", lq[0], lq[1], seed=0, deploy=IncumbentDeploy(), **FAST)
+    for _ in range(3):
+        _observe(lr, z0, 1.0)
+    y = np.array([0.1, 1.0, 0.0, 0.0])
+    lr.observe_simulated(lr.theta_of(good), EpisodeResult(y, np.zeros(lr.space.n_theta), True))
+    assert _same(lr.deployed_z_, z0)
+
+
 def test_cheaper_in_log_cost_but_dearer_on_average_is_refused(lq):
     """0.3 of theta0's cost from four starts, 4 times from the dearest: cheaper in the mean of
     the log costs, dearer in the mean cost: refused and not run again."""

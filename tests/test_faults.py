@@ -26,7 +26,10 @@ FAST_SEARCH = {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}  # a cheap a
 
 
 def small(learners, identify=False, **kw):
-    """A short study on ``lq``: the learners tune the nominal model unless ``identify``."""
+    """A short study on ``lq``: the learners tune the nominal model unless ``identify``. Every
+    candidate runs (no exploration budget): the faults are injected into the plant's episodes,
+    and the budget would add closed loops on the model."""
+    kw.setdefault("exploration", {"budget": math.inf})
     return load_settings(
         None,
         system={"name": "lq", "identify": identify},

@@ -387,6 +387,31 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     assert sw.settled() and sw.follows_fit_
 
 
+def test_an_offered_candidate_the_budget_finds_unprofitable_is_dropped_unrun(cstr):
+    """The twin's theta, simulated instead of run (the budget finds on the deployed model that
+    it does not pay for itself), is dropped without a plant episode and the switch settles;
+    another theta leaves it, as does a fitted candidate."""
+    from mpcmobo.learners.switch import MAX_DECISIONS
+
+    sw, theta0 = _switch(cstr, [])
+    sw.deployed_params_ = np.asarray(cstr.true_params, float)
+    sw.decisions_ = MAX_DECISIONS
+    offered = theta0 * 1.01
+    sw.offer(offered)
+    assert sw.offered()
+    sw.drop_offered(theta0 * 1.02)  # not the candidate
+    assert sw.offered() and not sw.settled()
+    sw.drop_offered(offered.copy())
+    assert not sw.offered() and sw.candidate_ is None and sw.settled()
+    assert sw.decisions_ == MAX_DECISIONS + 1 and len(sw.evidence_) == 0
+    fitted, _ = _switch(cstr, [])
+    fitted.identification_ = _fit_of(np.asarray(cstr.true_params, float))
+    fitted.decide()
+    assert fitted.candidate_ is not None and not fitted.offered()
+    fitted.drop_offered(fitted.candidate_.copy())
+    assert fitted.candidate_ is not None  # a fitted candidate is judged on the plant
+
+
 def test_the_twins_candidate_is_judged_by_the_deployed_models_twin_and_resumes_so(cstr):
     """A fitted candidate (a model of its own) is judged by the plain tests; the twin's theta,
     offered on the deployed identified model, by that model's twin (its simulated starts drawn

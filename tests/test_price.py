@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from mpcmobo.experiment.loop import LearningRun
-from mpcmobo.experiment.price import PATIENCE, RECENT, ExplorationPrice
+from mpcmobo.experiment.price import (
+    PATIENCE,
+    RECENT,
+    SIMULATED_PATIENCE,
+    SIMULATION_ERROR,
+    ExplorationPrice,
+)
 from mpcmobo.experiment.settings import SettingsError, load_settings
 from mpcmobo.experiment.tunerstatus import recommendation
 from mpcmobo.learners.base import Learner
@@ -114,6 +120,35 @@ def test_tuning_converges_after_refusals_in_a_row_and_a_larger_budget_reopens_it
     extended = ExplorationPrice(0.2, episodes=40)
     extended.load_state_dict(price.state_dict())
     assert not extended.converged and extended.errors_ == price.errors_
+
+
+def test_a_refusal_is_simulated_only_on_a_model_within_its_error_and_converges_later():
+    """A learner that learns in simulation sees a refused candidate, or one that does not pay
+    back, on the model where the model's error is at most SIMULATION_ERROR (it does not run);
+    tuning converges only after SIMULATED_PATIENCE of them in a row, and a candidate that runs
+    and pays back resets the count."""
+    assert ExplorationPrice(0.5, 50).judge(0.5, 1.0, 0, _unasked, True).simulated is False
+    rough = _calibrated(0.5, [2 * SIMULATION_ERROR, -2 * SIMULATION_ERROR])
+    v = rough.judge(2.0, 1.0, 0, _unasked, True)
+    assert not v.run and not v.simulated and rough.unpaid_ == 1
+    price = _calibrated(0.5, [0.01, -0.01], episodes=100)
+    assert not price.judge(2.0, 1.0, 0, _unasked, False).simulated  # a learner that does not
+    assert price.unpaid_ == 1
+    v = price.judge(1.1, 1.0, 1, _no_saving, True)  # within the budget, does not pay back
+    assert not v.run and v.simulated and "pay back" in v.reason
+    for k in range(SIMULATED_PATIENCE - 2):
+        v = price.judge(2.0, 1.0, 2 + k, _unasked, True)
+        assert not v.run and v.simulated and not price.converged
+    assert price.unpaid_ == 1 and price.simulated_ == SIMULATED_PATIENCE - 1
+    assert price.judge(0.9, 1.0, 40, _unasked, True).run  # cheaper: runs, resets both
+    assert price.unpaid_ == 0 and price.simulated_ == 0
+    for k in range(SIMULATED_PATIENCE):
+        price.judge(2.0, 1.0, 41 + k, _unasked, True)
+    assert price.converged and "on the model only" in price.converged_
+    state = price.state_dict()
+    again = ExplorationPrice(0.5, 100)
+    again.load_state_dict(state)
+    assert again.simulated_ == SIMULATED_PATIENCE and again.converged
 
 
 def test_the_budget_setting_is_checked_and_inf_means_none():
@@ -231,6 +266,61 @@ def test_without_a_budget_nothing_is_predicted_and_the_streams_are_those_of_the_
     np.testing.assert_array_equal(pa.theta, learner.candidate)
     np.testing.assert_array_equal(pa.x0, pb.x0)
     np.testing.assert_array_equal(pa.noise, pb.noise)
+
+
+class Rehearsing(FarAway):
+    """FarAway that learns in simulation, keeping what it is shown."""
+
+    name = "rehearsing"
+
+    def __init__(self, system, candidate):
+        super().__init__(system, candidate)
+        self.simulated = []
+
+    def learns_in_simulation(self):
+        return True
+
+    def observe_simulated(self, theta, result):
+        self.simulated.append((np.array(theta), result))
+
+
+def test_a_refused_candidate_is_simulated_on_the_model_for_a_learner_that_learns_there(lq):
+    """On the exact model, a refused candidate reaches the learner as its episode on the
+    model from the plan's start with its noise (the plant's own episode, there), before the
+    deployed theta's plant episode; the row records the refusal and says so."""
+    from mpcmobo.mpc import model_plant, rollout
+    from mpcmobo.rl.objectives import mean_stage_cost
+
+    run, _ = _run(lq, 0.0, _expensive(lq))
+    run.mpc = ParametricMPC(lq, model="perfect")
+    learner = Rehearsing(lq, _expensive(lq))
+    run.learner = learner
+    rows, plans = [], []
+    for _ in range(4):
+        plan = run.plan()
+        plans.append(plan)
+        rows.append(run.finish(plan, _episode(lq, run, plan))[0])
+    # the first two refusals precede the model's calibration: nothing is simulated
+    assert [p.simulated for p in plans] == [False, False, True, True]
+    assert all(r["refused"] for r in rows) and "simulated on the model" in rows[3]["refused"]
+    assert len(learner.simulated) == 2 and len(learner.observed) == 4
+    theta, result = learner.simulated[0]
+    np.testing.assert_array_equal(theta, learner.candidate)
+    plan = plans[2]
+    params = run.prediction_params(np.asarray(plan.deployed))
+    record = rollout(
+        lq,
+        run.mpc,
+        theta,
+        plan.x0,
+        run.steps,
+        noise=plan.noise,
+        plant=model_plant(lq, run.mpc, params),
+    )
+    np.testing.assert_allclose(result.stage_cost, mean_stage_cost(record), rtol=1e-9)
+    np.testing.assert_array_equal(result.x0, plan.x0)
+    assert result.start_id == plan.start_id
+    np.testing.assert_array_equal(learner.observed[2], learner.theta0)  # the plant's episode
 
 
 def test_the_gate_resumes_from_the_run_state(lq):

@@ -31,6 +31,8 @@ START_MODES = ("random", "cycle")
 # what a closed loop that fails raises (a plant that runs away or raises, a broken episode):
 # recorded as a failed episode or evaluation, never the end of a run
 EPISODE_FAILURES = (FloatingPointError, ValueError, RuntimeError)
+# how a refused candidate's row says that the learner learned from its simulation
+SIMULATED_NOTE = "the learner learns from its episode simulated on the model"
 
 
 @dataclass
@@ -41,9 +43,10 @@ class EpisodePlan:
     theta deployed when it was planned (what the episode's excess cost is measured against).
     With an exploration budget (:mod:`mpcmobo.experiment.price`): the predicted cost of the
     theta that runs and of the deployed one from ``x0`` with ``noise`` (NaN: not predicted),
-    why the learner's candidate was refused ("": it was not) and that candidate, and whether
-    tuning has converged (the deployed theta runs without noise and the learner does not
-    observe it)."""
+    why the learner's candidate was refused ("": it was not) and that candidate, whether the
+    learner learns from that candidate's episode simulated on the model (``simulated``), and
+    whether tuning has converged (the deployed theta runs without noise and the learner does
+    not observe it)."""
 
     episode: int
     theta: np.ndarray
@@ -59,6 +62,7 @@ class EpisodePlan:
     predicted_deployed: float = math.nan
     refused: str = ""
     refused_theta: list[float] | None = None
+    simulated: bool = False
     converged: bool = False
 
     def to_dict(self) -> dict:
@@ -244,7 +248,7 @@ class LearningRun:
         the plant (:meth:`prediction_params`) from its start with its noise; a candidate the
         budget refuses (:mod:`mpcmobo.experiment.price`; exploring or not, as MPC-RL's
         noise-free verification of its iterate) is replaced by the deployed theta (same
-        noise)."""
+        noise), and simulated for the learner where the price says so (:meth:`finish`)."""
         t0 = time.perf_counter()
         deployed = np.asarray(plan.deployed, float)
         params = self.prediction_params(deployed)
@@ -262,10 +266,14 @@ class LearningRun:
             def gain() -> tuple[float, float]:
                 return self._saving(theta, deployed, params)
 
-            verdict = self.price.judge(c, d, plan.episode, gain)
+            learns = self.learner.learns_in_simulation()
+            verdict = self.price.judge(c, d, plan.episode, gain, learns)
             if not verdict.run:
                 plan.refused, plan.refused_theta = verdict.reason, _as_list(plan.theta)
                 plan.theta, plan.predicted_cost = deployed.copy(), d
+                plan.simulated = verdict.simulated
+                if verdict.simulated:
+                    plan.refused += f"; {SIMULATED_NOTE}"
         plan.propose_time += time.perf_counter() - t0
         return plan
 
@@ -391,8 +399,7 @@ class LearningRun:
             ran = {"x0": x0.tolist(), "theta": theta.tolist(), "noise": noise}
             self.price.calibrate(plan.predicted_cost, plant_cost, {**ran, "cost": plant_cost})
         t2 = time.perf_counter()
-        if not plan.converged:  # a converged tuning's learner no longer observes
-            self.learner.observe(theta, result)
+        self._observe(plan, result)
         incumbent = np.asarray(self.learner.incumbent(), dtype=float)
         t_learn = plan.propose_time + time.perf_counter() - t2
         if np.isfinite(result.Vc):
@@ -428,6 +435,53 @@ class LearningRun:
         }
         self.episode += 1
         return row, record
+
+    def _observe(self, plan: EpisodePlan, result: EpisodeResult) -> None:
+        """The learner's observations of the episode: the refused candidate's simulation
+        first, where the plan has one, then the plant's episode; nothing once tuning has
+        converged."""
+        if plan.converged:
+            return
+        if plan.simulated:
+            self._observe_simulated(plan)
+        self.learner.observe(plan.theta, result)
+
+    def _observe_simulated(self, plan: EpisodePlan) -> None:
+        """The refused candidate's episode on the learner's model of the plant
+        (:meth:`prediction_params`) from the plan's start with its noise, as the learner's
+        simulated observation (:meth:`~mpcmobo.learners.Learner.observe_simulated`); a closed
+        loop that fails is observed as a failed episode."""
+        theta = np.asarray(plan.refused_theta, float)
+        params = self.prediction_params(np.asarray(plan.deployed, float))
+        record: EpisodeRecord | None
+        try:
+            record = rollout(
+                self.system,
+                self.mpc,
+                theta,
+                plan.x0,
+                self.steps,
+                noise=plan.noise,
+                plant=self._model_plant(params),
+                plant_seed=plan.plant_seed,
+            )
+        except EPISODE_FAILURES:
+            record = None
+        result, _ = self._result(theta, record)
+        result.start_id = plan.start_id
+        result.x0 = plan.x0.copy()
+        if self.learner.uses_start_cost():
+            result.start_cost = self.start_cost(plan.x0)
+        self.learner.observe_simulated(theta, result)
+
+    def _model_plant(self, params: np.ndarray) -> gymnasium.Env:
+        """The model with ``params`` as a noise-free plant (cached per parameters)."""
+        key = np.asarray(params, float).tobytes()
+        plant = self._model_plants.get(key)
+        if plant is None:
+            plant = model_plant(self.system, self.mpc, np.asarray(params, float))
+            self._model_plants[key] = plant
+        return plant
 
     def excess_cost(
         self,
@@ -496,10 +550,7 @@ class LearningRun:
             )
         key = _start_key(x0, theta, p, e)
         if key not in self._start_costs:
-            plant = self._model_plants.get(p.tobytes())
-            if plant is None:
-                plant = model_plant(self.system, self.mpc, p)
-                self._model_plants[p.tobytes()] = plant
+            plant = self._model_plant(p)
             cost = model_costs(self.system, self.mpc, theta, x0, self.steps, plant, e)
             self._start_costs[key] = float(cost[0])  # NaN if it failed: the tests fall back
         return self._start_costs[key]
@@ -521,10 +572,7 @@ class LearningRun:
             new = {_start_key(x0, th, p, e): x0 for x0 in starts}
             new = {k: x0 for k, x0 in new.items() if k not in self._start_costs}
             if len(new) > 1 and (e is None or e.shape == (self.steps, self.system.nu)):
-                plant = self._model_plants.get(p.tobytes())
-                if plant is None:
-                    plant = model_plant(self.system, self.mpc, p)
-                    self._model_plants[p.tobytes()] = plant
+                plant = self._model_plant(p)
                 costs = model_costs(
                     self.system, self.mpc, th, np.array(list(new.values())), self.steps, plant, e
                 )

@@ -20,10 +20,18 @@ same noise
   controller's mean cost less its own, noise-free on the model from the run's fixed starts)
   plus, at best, the model's error (``exp(s) - 1`` times the deployed controller's mean cost)
   over the remaining episodes covers its predicted excess;
-* after :data:`PATIENCE` candidates in a row that were refused or do not pay back, tuning has
-  converged: every later episode runs the deployed controller without exploration noise, the
-  learner no longer proposes nor observes, and the reason is kept (the tuner's ``status``
-  reports it).
+* where the model's error is at most :data:`SIMULATION_ERROR` and the learner learns in
+  simulation (:meth:`~mpcmobo.learners.Learner.learns_in_simulation`), a candidate that is
+  refused or does not pay back does not run either: the deployed controller runs, and the
+  candidate's episode is simulated on the model from the same start with the same noise for
+  the learner (:meth:`~mpcmobo.learners.Learner.observe_simulated`). The learner explores on
+  the model what the plant would pay for, and the plant runs only candidates the model
+  expects to pay for themselves; a simulated episode never deploys anything;
+* after :data:`PATIENCE` candidates in a row that were refused or do not pay back (without a
+  simulation), or :data:`SIMULATED_PATIENCE` in a row simulated (a learner that finds nothing
+  worth the plant's episode), tuning has converged: every later episode runs the deployed
+  controller without exploration noise, the learner no longer proposes nor observes, and the
+  reason is kept (the tuner's ``status`` reports it).
 
 A candidate whose predicted closed loop fails (the model's plant runs away) is refused; where
 the deployed controller's prediction fails there is no basis, and the candidate runs.
@@ -33,14 +41,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["PATIENCE", "ExplorationPrice", "Verdict"]
+__all__ = ["PATIENCE", "SIMULATED_PATIENCE", "SIMULATION_ERROR", "ExplorationPrice", "Verdict"]
 
 # candidates in a row refused or not paying back after which tuning has converged
 PATIENCE = 5
+# candidates in a row simulated instead of run after which tuning has converged
+SIMULATED_PATIENCE = 20
+# the model's largest error (RMS log) at which a candidate's simulation stands in for its run
+SIMULATION_ERROR = 0.05
 # the model's calibration needs this many predicted episodes before it bounds a prediction
 MIN_CALIBRATION = 2
 # the last episodes kept to calibrate a new model on
@@ -52,12 +64,13 @@ Episode = dict
 
 @dataclass(frozen=True)
 class Verdict:
-    """Whether a candidate runs, whether it pays back its predicted excess, and if either is
-    not so, why (``reason``)."""
+    """Whether a candidate runs, whether it pays back its predicted excess, if either is not
+    so, why (``reason``), and whether a refused candidate is simulated for the learner."""
 
     run: bool
     reason: str = ""
     pays: bool = True
+    simulated: bool = False
 
 
 class ExplorationPrice:
@@ -75,6 +88,7 @@ class ExplorationPrice:
         self.model_ = ""  # the model they are of
         self.recent_: list[Episode] = []  # the last RECENT episodes, to calibrate a new model
         self.unpaid_ = 0  # candidates in a row refused or not paying back
+        self.simulated_ = 0  # candidates in a row refused and learned from in simulation
         self.converged_ = ""  # why tuning stopped exploring ("": it has not)
 
     @property
@@ -86,6 +100,11 @@ class ExplorationPrice:
     def converged(self) -> bool:
         """Whether tuning has stopped exploring."""
         return bool(self.converged_)
+
+    def simulates(self) -> bool:
+        """Whether the model is good enough for a refused candidate's simulation to be the
+        learner's evidence: its error at most :data:`SIMULATION_ERROR`."""
+        return self.error() <= SIMULATION_ERROR
 
     def error(self) -> float:
         """The model's error: the RMS log error of its predictions of the episodes run so far
@@ -124,17 +143,29 @@ class ExplorationPrice:
         deployed: float,
         episode: int,
         gain: Callable[[], tuple[float, float]],
+        learns: bool = False,
     ) -> Verdict:
         """Whether the candidate predicted to cost ``candidate`` runs where the deployed
         controller is predicted to cost ``deployed`` (both from the coming start of episode
         ``episode``, with its noise); ``gain()``: the candidate's predicted saving per episode
         were it deployed and the deployed controller's mean cost (module docstring; NaN where
-        a closed loop fails), asked only when the candidate is costlier within the budget. A
-        refusal, or a candidate that does not pay back, counts towards convergence."""
+        a closed loop fails), asked only when the candidate is costlier within the budget;
+        ``learns``: whether the learner learns in simulation. A refusal, or a candidate that
+        does not pay back, counts towards convergence; where the learner learns in simulation
+        on a model good enough (:meth:`simulates`), neither runs: it is simulated."""
         verdict = self._verdict(candidate, deployed, self.episodes - int(episode) - 1, gain)
         if verdict.run and verdict.pays:
-            self.unpaid_ = 0
+            self.unpaid_ = self.simulated_ = 0
             return verdict
+        if learns and self.simulates():  # refused, or running without paying back
+            self.simulated_ += 1
+            if self.simulated_ >= SIMULATED_PATIENCE:
+                self.converged_ = (
+                    f"{SIMULATED_PATIENCE} candidates in a row were learned from on the model "
+                    f"only (the last at episode {episode}: {verdict.reason}): the learner "
+                    f"finds nothing worth an episode on the plant"
+                )
+            return replace(verdict, run=False, simulated=True)
         self.unpaid_ += 1
         if self.unpaid_ >= PATIENCE:
             self.converged_ = (
@@ -194,6 +225,7 @@ class ExplorationPrice:
             "model": self.model_,
             "recent": list(self.recent_),
             "unpaid": self.unpaid_,
+            "simulated": self.simulated_,
             "converged": self.converged_,
             "episodes": self.episodes,
         }
@@ -207,7 +239,8 @@ class ExplorationPrice:
         self.model_ = str(state["model"])
         self.recent_ = list(state["recent"])
         self.unpaid_ = int(state["unpaid"])
+        self.simulated_ = int(state.get("simulated", 0))  # saved before simulated refusals
         extended = int(state["episodes"]) != self.episodes
         self.converged_ = "" if extended else str(state["converged"])
         if extended:
-            self.unpaid_ = 0
+            self.unpaid_ = self.simulated_ = 0

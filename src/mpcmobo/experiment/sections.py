@@ -190,10 +190,13 @@ class ExplorationSettings(Section):
     """The price an exploring episode may have: how much more than the deployed controller a
     candidate may cost from the coming start, as predicted on the learner's model and bounded
     by the model's record of errors, as a fraction of the deployed controller's predicted cost
-    (0.5: at most 1.5x). A candidate over it, or not paying back its excess within the
-    remaining episodes, does not run (the deployed controller runs instead); after 5 refusals
-    in a row tuning stops exploring (docs/real-plant.md). ``inf``: every candidate runs and
-    nothing is predicted. Costs two closed loops on the model per exploring episode."""
+    (0.5: at most 1.5x). A candidate over it does not run (the deployed controller runs
+    instead); where the model's error is within 5%, neither does one that cannot pay back its
+    excess within the remaining episodes, and the learner learns from the candidate's episode
+    simulated on the model. After 5 refused or unpaid candidates in a row (20 simulated),
+    tuning stops exploring (docs/real-plant.md). ``inf``: every candidate runs and nothing is
+    predicted. Costs two closed loops on the model per exploring episode, and a closed loop
+    and a learner's update per simulated candidate."""
 
     @field_validator("budget")
     @classmethod

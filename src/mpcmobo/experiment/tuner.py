@@ -34,7 +34,7 @@ import numpy as np
 from mpcmobo.experiment import checks, storage, tunerstatus
 from mpcmobo.experiment.build import build_system, needs_plant
 from mpcmobo.experiment.job import Job
-from mpcmobo.experiment.loop import EpisodePlan
+from mpcmobo.experiment.loop import SIMULATED_NOTE, EpisodePlan
 from mpcmobo.experiment.plantlog import PlantLog, TunerError, parse_log, write_log
 from mpcmobo.experiment.records import EpisodeRow, Reference
 from mpcmobo.experiment.reference import compute_reference, system_info
@@ -533,13 +533,15 @@ class Tuner:
 
     def _exploration(self, rows: list[EpisodeRow]) -> dict[str, Any]:
         """The exploration budget's account: the ``budget``, the trials whose candidate it
-        ``refused`` (the deployed theta ran), the relative ``model_error`` of its predictions
-        so far (None before two) and why tuning ``converged`` (None: it has not)."""
+        ``refused`` (the deployed theta ran), those of them whose candidate the learner learned
+        from in simulation (``simulated``), the relative ``model_error`` of its predictions so
+        far (None before two) and why tuning ``converged`` (None: it has not)."""
         price = self.job.run.price
         error = price.error()
         return {
             "budget": price.budget if price.active else None,
             "refused": [int(r.episode) for r in rows if r.refused],
+            "simulated": [int(r.episode) for r in rows if SIMULATED_NOTE in r.refused],
             "model_error": error if math.isfinite(error) else None,
             "converged": price.converged_ or None,
         }

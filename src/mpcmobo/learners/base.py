@@ -77,8 +77,8 @@ class Learner(ABC):
     learner.explores() is False)...; learner.observe(theta, result)``. Work (a fit, the twin's
     tuning) happens in :meth:`propose` and :meth:`observe`, and reports through the callback of
     :meth:`use_progress` where it is long. The queries (:meth:`incumbent`, :meth:`explores`,
-    :meth:`uses_start_cost`, :meth:`start_model`, :meth:`identified`, :meth:`identification`)
-    are cheap and change nothing. :meth:`incumbent` is the deployed theta: what the plant runs
+    :meth:`learns_in_simulation`, :meth:`uses_start_cost`, :meth:`start_model`,
+    :meth:`identified`, :meth:`identification`) are cheap and change nothing. :meth:`incumbent` is the deployed theta: what the plant runs
     outside learning and what J_eval measures.
 
     ``state_dict()`` holds the whole learned state (random generators included) as plain Python
@@ -115,6 +115,14 @@ class Learner(ABC):
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
         """Take the result of the episode run with ``theta``."""
 
+    def observe_simulated(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """Take the result of an episode of ``theta`` simulated on the identified model in
+        place of a plant episode the exploration budget refused (the plant ran the deployed
+        theta, which :meth:`observe` takes next). It is evidence for the search, never for a
+        deployment or an identification. Called only where :meth:`learns_in_simulation` says
+        so; default: ignored."""
+        return
+
     # ------------------------------------------------------------------ queries
     @abstractmethod
     def incumbent(self) -> np.ndarray:
@@ -125,6 +133,11 @@ class Learner(ABC):
         True). A learner may ask for a noise-free episode to measure a theta (MPC-RL's
         verification blocks); such an episode has no critic, so no gradient."""
         return True
+
+    def learns_in_simulation(self) -> bool:
+        """Whether :meth:`observe_simulated` learns from a refused candidate's simulated
+        episode (default False: the loop does not simulate it)."""
+        return False
 
     def uses_start_cost(self) -> bool:
         """Whether the learner reads ``EpisodeResult.start_cost`` (default False): theta0's

@@ -18,7 +18,8 @@ In both evidence policies the GP names the candidate (:func:`choose_candidate`):
 theta with the lowest ``mean + kappa std`` of its posterior f1 among those the evidence does
 not rule out, which the GP must find more likely better than the deployed theta than not. A
 theta with a failed episode (a cost that is not finite: the plant diverged) is never a
-candidate. Once a twin judges (``twin``: identify-first, after the identified model is
+candidate, nor is a theta only simulated (a refused candidate's episode on the identified
+model: the GP learns from it, the deployment never rests on it). Once a twin judges (``twin``: identify-first, after the identified model is
 deployed), the test that deploys is the prediction-powered one
 (:func:`~mpcmobo.learners.confidence.twin_confidence`): the same plant episodes, each with
 the twin's prediction, and the twin's costs on its simulated starts.
@@ -181,7 +182,8 @@ class EvidencePolicy:
         again. A theta with a failed episode is never the candidate."""
         key_now = theta_key(deployed)
         ruled_out = ev.failed() - {key_now}
-        Zf = np.array([z for z in ev.Z[ev.finite()] if theta_key(z) not in ruled_out])
+        ran = ev.Z[ev.finite() & ev.plant()]  # a simulated theta is no candidate
+        Zf = np.array([z for z in ran if theta_key(z) not in ruled_out])
         if len(Zf) == 0:
             return Decision(deployed)
         Z = shortlisted(surrogate, Zf, deployed)
@@ -319,8 +321,8 @@ class Incumbent:
     def decide(
         self, ev: Evidence, surrogate: GPSurrogate, deployed: np.ndarray, seed: int
     ) -> Decision:
-        """The incumbent among the finite observations."""
-        Zf = ev.Z[ev.finite()]
+        """The incumbent among the finite observations of the plant."""
+        Zf = ev.Z[ev.finite() & ev.plant()]
         mt, st = surrogate.posterior_model_space(Zf)
         mean, _ = surrogate.to_cost_space(mt, st)
         cand = np.flatnonzero(pareto_mask(mean)) if mean.shape[1] > 1 else np.arange(len(Zf))

@@ -6,11 +6,12 @@ gradient, the index of its start in the study's cycle (-1 under random starts), 
 cost (theta0's mean stage cost from its initial state on the MPC's own model; NaN where not
 computed), its plain mean stage cost and its replay (initial state and exploration: what a
 twin predicts the cost from), what kind of proposal it was (``"design"``, ``"search"``,
-``"verify"``, ``"baseline"``, ``"gradient"``, ``"seed"``) and its group (MPC-RL's verification
+``"verify"``, ``"baseline"``, ``"gradient"``, ``"seed"``; ``"simulated"``: a candidate the
+exploration budget refused, its episode simulated on the identified model) and its group (MPC-RL's verification
 block; -1: none). Every learner that judges deployments keeps its episodes here, and the judge
 (:mod:`mpcmobo.learners.judge`) reads them. Appending is the only change; the queries answer
 what the deployment policies ask: the rows of a theta, the starts it was run from, how many
-episodes it has.
+episodes it has, all of them of plant episodes (a simulated row is the GP's, never evidence).
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ import numpy as np
 
 from mpcmobo.learners.episode import Replay, replays_from_state, replays_state
 
-__all__ = ["Evidence", "theta_key"]
+__all__ = ["SIMULATED", "Evidence", "theta_key"]
+
+SIMULATED = "simulated"  # the kind of a row simulated on the identified model
 
 
 def theta_key(z: np.ndarray) -> bytes:
@@ -75,12 +78,15 @@ class Evidence:
         """Mask of the rows whose modelled objectives are all finite."""
         return np.all(np.isfinite(self.Y), axis=1)
 
+    def plant(self) -> np.ndarray:
+        """Mask of the rows of plant episodes (not ``"simulated"``)."""
+        return np.array([k != SIMULATED for k in self.kinds], dtype=bool)
+
     def rows_of(self, z: np.ndarray) -> np.ndarray:
-        """The finite rows run with the unit-cube theta ``z``."""
+        """The finite rows of plant episodes run with the unit-cube theta ``z``."""
         key = theta_key(z)
-        return np.array(
-            [i for i in np.flatnonzero(self.finite()) if theta_key(self.Z[i]) == key], dtype=int
-        )
+        rows = np.flatnonzero(self.finite() & self.plant())
+        return np.array([i for i in rows if theta_key(self.Z[i]) == key], dtype=int)
 
     def group(self, g: int) -> np.ndarray:
         """The rows of group ``g``, finite or not, in order."""

@@ -3,7 +3,8 @@
 ``propose``: the initial design (theta0, then Sobol points in the first trust region), then
 the deployment policy's check if it wants one (a candidate run again, or the deployed theta
 run as a baseline), else the acquisition's best point in the trust region around the deployed
-theta. ``observe``: append the episode to the evidence, refit the GP (start effects under
+theta. ``observe``: append the episode to the evidence (``observe_simulated``: a refused
+candidate's episode on the identified model, for the GP alone), refit the GP (start effects under
 cycled starts; f1 relative to the start cost under the random-start policy), let the policy
 decide what is deployed, and move the trust region (a proposal that becomes the deployed
 theta is a success; a verification is neither). :class:`BOLearner` models f1 with expected
@@ -26,7 +27,7 @@ from mpcmobo.bo.acquisition import Box
 from mpcmobo.bo.trust import TrustRegion, TrustState
 from mpcmobo.learners.base import EpisodeResult, Learner, Starts
 from mpcmobo.learners.deploy import DeployPolicy, EvidencePolicy, make_policy
-from mpcmobo.learners.evidence import Evidence, theta_key
+from mpcmobo.learners.evidence import SIMULATED, Evidence, theta_key
 from mpcmobo.learners.options import BOOptions
 from mpcmobo.learners.prediction import Twin
 from mpcmobo.systems.space import SearchSpace
@@ -147,6 +148,18 @@ class GPLearner(Learner):
             kind = self.pending_[0]
         self.pending_ = None
         self._append(theta, result, kind)
+        self._fit()
+
+    def learns_in_simulation(self) -> bool:
+        """The GP learns from a refused candidate's simulated episode."""
+        return True
+
+    def observe_simulated(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """Append the simulated episode as a ``"simulated"`` row (the GP's, never a
+        deployment's evidence), refit, decide, move the trust region as for a plant episode of
+        the candidate."""
+        self.pending_ = None
+        self._append(theta, result, SIMULATED)
         self._fit()
 
     def _append(self, theta: np.ndarray, result: EpisodeResult, kind: str) -> None:

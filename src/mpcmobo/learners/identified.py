@@ -14,7 +14,11 @@
   (:class:`~mpcmobo.learners.prediction.Twin`), as the inner learner's candidates are. The
   inner learner then starts with the switch's episodes of its theta0
   (:meth:`~mpcmobo.learners.base.Learner.seed_with`) and that twin
-  (:meth:`~mpcmobo.learners.base.Learner.use_twin`).
+  (:meth:`~mpcmobo.learners.base.Learner.use_twin`); the candidates the exploration budget
+  refuses reach it as episodes simulated on the identified model
+  (:meth:`~mpcmobo.learners.base.Learner.observe_simulated`). The twin's theta itself, where
+  the budget finds on that model that it does not pay for itself on the plant, is dropped
+  without a plant episode, and the inner learner starts from the deployed theta.
 """
 
 from __future__ import annotations
@@ -183,6 +187,22 @@ class IdentifyFirst(Learner):
         self.runner_.observe(theta, result)
         self.history_.append((np.array(theta, float), result))
         self._advance()
+
+    def learns_in_simulation(self) -> bool:
+        """As the inner learner says, once it tunes; before, while the switch judges the
+        twin's theta (its offered candidate): the switch learns from the plant alone, but
+        drops that candidate where the budget finds it does not pay for itself."""
+        if self.inner_ is not None:
+            return self.inner_.learns_in_simulation()
+        return self.switch_.offered()
+
+    def observe_simulated(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """The inner learner's simulated observation; before it tunes, the twin's theta
+        simulated instead of run is dropped (module docstring)."""
+        if self.inner_ is not None:
+            self.inner_.observe_simulated(theta, result)
+        else:
+            self.switch_.drop_offered(theta)
 
     def _advance(self) -> None:
         """Once the switch has settled: the twin's tuning (once), and when the switch has

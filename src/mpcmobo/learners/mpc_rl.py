@@ -250,6 +250,21 @@ class MPCRL(Learner):
         if ok:
             self._step(theta, g)
 
+    def learns_in_simulation(self) -> bool:
+        """MPC-RL steps along a refused exploring episode's simulated gradient; a
+        verification block's episodes are the plant's."""
+        return not (self.blocks_ is not None and self.blocks_.in_block())
+
+    def observe_simulated(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """One step along the CDPG gradient of the refused candidate's episode simulated on
+        the identified model; nothing inside a verification block (its evidence is the
+        plant's). The step counts nothing towards the next block: the plant's episode does."""
+        if self.blocks_ is not None and self.blocks_.in_block():
+            return
+        g = np.asarray(result.grad, dtype=float)
+        if result.critic_ok and bool(np.all(np.isfinite(g))) and result.valid:
+            self._step(theta, g)
+
     def _step(self, theta: np.ndarray, g: np.ndarray) -> None:
         """One step of the rule from the iterate along the gradient ``g`` taken at ``theta``."""
         theta = self.space.clip(theta)

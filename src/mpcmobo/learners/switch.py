@@ -17,7 +17,8 @@ dropped candidate, once no new one has come for a verification's worth of episod
 (``min_runs``; cycled starts: a cycle); or, once an identified model is deployed, after
 ``MAX_DECISIONS`` decisions (under structural mismatch the fit moves as data come in). A
 candidate offered from elsewhere (the twin's tuning, :meth:`ModelSwitch.offer`) is judged by
-the deployed model's twin. Under random starts a fitted candidate's tests adjust each episode's
+the deployed model's twin, and dropped without a plant episode where the exploration budget
+finds it does not pay for itself on that model (:meth:`ModelSwitch.drop_offered`). Under random starts a fitted candidate's tests adjust each episode's
 cost by the identified model's prediction of it."""
 
 from __future__ import annotations
@@ -172,6 +173,18 @@ class ModelSwitch:
         self.candidate_ = np.array(theta, float)
         self.follows_fit_ = False
         self._twin(self.candidate_, self.deployed_params_)
+
+    def offered(self) -> bool:
+        """Whether the candidate is an offered one (:meth:`offer`), not yet decided."""
+        return self.candidate_ is not None and not self.follows_fit_
+
+    def drop_offered(self, theta: np.ndarray) -> None:
+        """Drop the offered candidate, if ``theta`` is it, without plant evidence: the
+        deployed model, which it was tuned on, predicts that it does not pay for itself on
+        the plant (the exploration budget refused it, or it could not pay back its predicted
+        excess)."""
+        if self.offered() and theta_key(theta) == self._candidate_key():
+            self._decided()
 
     def settled(self) -> bool:
         """Whether identification is done (module docstring): after a deployment, when the fit
