@@ -16,7 +16,7 @@ import json
 import math
 import subprocess
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import typer
@@ -166,12 +166,10 @@ def tell(
     try:
         tuner, row = _errors(go)
     except KeyboardInterrupt:
-        cli.err_console.print(
-            f"Interrupted: trial {trial} is still pending (nothing of this tell is recorded); "
-            f"tell it again: mpcmobo tell {directory} {trial} LOG",
-            highlight=False,
+        _interrupted(
+            f"trial {trial} is still pending (nothing of this tell is recorded); "
+            f"tell it again: mpcmobo tell {directory} {trial} LOG"
         )
-        raise typer.Exit(130) from None
     rows = tuner.job.rows
     before = rows[-2].incumbent if len(rows) > 1 else tuner.job.run.learner.theta0
     moved = not np.array_equal(rows[-1].incumbent, before)
@@ -194,13 +192,17 @@ def _prepare_next(directory: Path, tuner: Any, told: int) -> None:
     try:
         nxt = _errors(lambda: _write_trial(directory, tuner))
     except KeyboardInterrupt:
-        cli.err_console.print(
-            f"Interrupted while preparing the next trial: trial {told} is told and "
-            f"recorded; mpcmobo ask {directory} prepares the next one",
-            highlight=False,
+        _interrupted(
+            f"while preparing the next trial: trial {told} is told and recorded; "
+            f"mpcmobo ask {directory} prepares the next one"
         )
-        raise typer.Exit(130) from None
     cli.console.print(f"trial {nxt['id']} is ready: mpcmobo ask {directory}", highlight=False)
+
+
+def _interrupted(what: str) -> NoReturn:
+    """Ctrl-C: say what became of the work (``what``) and exit with 130."""
+    cli.err_console.print(f"Interrupted: {what}", highlight=False)
+    raise typer.Exit(130) from None
 
 
 def _check_columns(directory: Path, df: Any) -> None:

@@ -160,20 +160,27 @@ class ExplorationPrice:
         if learns and self.simulates():  # refused, or running without paying back
             self.simulated_ += 1
             if self.simulated_ >= SIMULATED_PATIENCE:
-                self.converged_ = (
-                    f"{SIMULATED_PATIENCE} candidates in a row were learned from on the model "
-                    f"only (the last at episode {episode}: {verdict.reason}): the learner "
-                    f"finds nothing worth an episode on the plant"
+                self._converge(
+                    f"{SIMULATED_PATIENCE} candidates in a row were learned from on the model only",
+                    episode,
+                    verdict,
+                    "the learner finds nothing worth an episode on the plant",
                 )
             return replace(verdict, run=False, simulated=True)
         self.unpaid_ += 1
         if self.unpaid_ >= PATIENCE:
-            self.converged_ = (
+            self._converge(
                 f"{PATIENCE} candidates in a row were refused or could not pay back their "
-                f"predicted excess (the last at episode {episode}: {verdict.reason}): "
-                f"exploring no longer pays"
+                f"predicted excess",
+                episode,
+                verdict,
+                "exploring no longer pays",
             )
         return verdict
+
+    def _converge(self, streak: str, episode: int, verdict: Verdict, why: str) -> None:
+        """Tuning has converged: ``streak`` says what came in a row, ``why`` what it means."""
+        self.converged_ = f"{streak} (the last at episode {episode}: {verdict.reason}): {why}"
 
     def _verdict(
         self,
