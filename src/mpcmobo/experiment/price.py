@@ -88,7 +88,7 @@ class ExplorationPrice:
         self.model_ = ""  # the model they are of
         self.recent_: list[Episode] = []  # the last RECENT episodes, to calibrate a new model
         self.unpaid_ = 0  # candidates in a row refused or not paying back
-        self.simulated_ = 0  # candidates in a row refused and learned from in simulation
+        self.simulated_ = 0  # candidates in a row simulated instead of run
         self.converged_ = ""  # why tuning stopped exploring ("": it has not)
 
     @property

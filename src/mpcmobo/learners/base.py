@@ -78,8 +78,9 @@ class Learner(ABC):
     tuning) happens in :meth:`propose` and :meth:`observe`, and reports through the callback of
     :meth:`use_progress` where it is long. The queries (:meth:`incumbent`, :meth:`explores`,
     :meth:`learns_in_simulation`, :meth:`uses_start_cost`, :meth:`start_model`,
-    :meth:`identified`, :meth:`identification`) are cheap and change nothing. :meth:`incumbent` is the deployed theta: what the plant runs
-    outside learning and what J_eval measures.
+    :meth:`identified`, :meth:`identification`) are cheap and change nothing.
+    :meth:`incumbent` is the deployed theta: what the plant runs outside learning and what
+    J_eval measures.
 
     ``state_dict()`` holds the whole learned state (random generators included) as plain Python
     and NumPy objects, and ``load_state_dict`` restores it into a learner built with the same

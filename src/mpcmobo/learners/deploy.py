@@ -19,8 +19,8 @@ theta with the lowest ``mean + kappa std`` of its posterior f1 among those the e
 not rule out, which the GP must find more likely better than the deployed theta than not. A
 theta with a failed episode (a cost that is not finite: the plant diverged) is never a
 candidate, nor is a theta only simulated (a refused candidate's episode on the identified
-model: the GP learns from it, the deployment never rests on it). Once a twin judges (``twin``: identify-first, after the identified model is
-deployed), the test that deploys is the prediction-powered one
+model: the GP learns from it, the deployment never rests on it). Once a twin judges
+(``twin``: identify-first, after the identified model is deployed), the test that deploys is the prediction-powered one
 (:func:`~mpcmobo.learners.confidence.twin_confidence`): the same plant episodes, each with
 the twin's prediction, and the twin's costs on its simulated starts.
 """

@@ -7,8 +7,8 @@ cost (theta0's mean stage cost from its initial state on the MPC's own model; Na
 computed), its plain mean stage cost and its replay (initial state and exploration: what a
 twin predicts the cost from), what kind of proposal it was (``"design"``, ``"search"``,
 ``"verify"``, ``"baseline"``, ``"gradient"``, ``"seed"``; ``"simulated"``: a candidate the
-exploration budget refused, its episode simulated on the identified model) and its group (MPC-RL's verification
-block; -1: none). Every learner that judges deployments keeps its episodes here, and the judge
+exploration budget refused, its episode simulated on the identified model) and its group
+(MPC-RL's verification block; -1: none). Every learner that judges deployments keeps its episodes here, and the judge
 (:mod:`mpcmobo.learners.judge`) reads them. Appending is the only change; the queries answer
 what the deployment policies ask: the rows of a theta, the starts it was run from, how many
 episodes it has, all of them of plant episodes (a simulated row is the GP's, never evidence).

@@ -4,8 +4,8 @@
 the deployment policy's check if it wants one (a candidate run again, or the deployed theta
 run as a baseline), else the acquisition's best point in the trust region around the deployed
 theta. ``observe``: append the episode to the evidence (``observe_simulated``: a refused
-candidate's episode on the identified model, for the GP alone), refit the GP (start effects under
-cycled starts; f1 relative to the start cost under the random-start policy), let the policy
+candidate's episode on the identified model, for the GP alone), refit the GP (start effects
+under cycled starts; f1 relative to the start cost under the random-start policy), let the policy
 decide what is deployed, and move the trust region (a proposal that becomes the deployed
 theta is a success; a verification is neither). :class:`BOLearner` models f1 with expected
 improvement (eq. EI); :mod:`mpcmobo.learners.mobo` adds the multi-objective learners.

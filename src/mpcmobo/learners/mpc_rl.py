@@ -170,6 +170,13 @@ class VerifiedBlocks:
         self.target_ = int(state["target"])
 
 
+def _gradient(result: EpisodeResult) -> np.ndarray | None:
+    """The episode's CDPG gradient where it is valid (a critic, finite), else None."""
+    g = np.asarray(result.grad, dtype=float)
+    ok = result.critic_ok and bool(np.all(np.isfinite(g))) and result.valid
+    return g if ok else None
+
+
 class MPCRL(Learner):
     """``theta <- theta - alpha grad_theta J`` (eq. theta) with a deployment policy (module
     docstring)."""
@@ -231,12 +238,11 @@ class MPCRL(Learner):
         """One step along the episode's CDPG gradient; a block episode adds its gradient to
         the block's, whose mean makes one step when the block ends."""
         self.n_observed += 1
-        g = np.asarray(result.grad, dtype=float)
-        ok = result.critic_ok and bool(np.all(np.isfinite(g))) and result.valid
+        g = _gradient(result)
         b = self.blocks_
         if b is not None and b.in_block():
             z = self.space.to_unit(self.space.clip(theta))
-            step, conf = b.observe(z, result, g if ok else None)
+            step, conf = b.observe(z, result, g)
             if step is not None:
                 self._step(theta, step)
             c = b.options.confidence
@@ -247,22 +253,20 @@ class MPCRL(Learner):
             return
         if b is not None:
             b.stepped()
-        if ok:
+        if g is not None:
             self._step(theta, g)
 
     def learns_in_simulation(self) -> bool:
         """MPC-RL steps along a refused exploring episode's simulated gradient; a
-        verification block's episodes are the plant's."""
-        return not (self.blocks_ is not None and self.blocks_.in_block())
+        verification block's episodes (:meth:`explores` False) are the plant's."""
+        return self.explores()
 
     def observe_simulated(self, theta: np.ndarray, result: EpisodeResult) -> None:
         """One step along the CDPG gradient of the refused candidate's episode simulated on
         the identified model; nothing inside a verification block (its evidence is the
         plant's). The step counts nothing towards the next block: the plant's episode does."""
-        if self.blocks_ is not None and self.blocks_.in_block():
-            return
-        g = np.asarray(result.grad, dtype=float)
-        if result.critic_ok and bool(np.all(np.isfinite(g))) and result.valid:
+        g = _gradient(result)
+        if self.explores() and g is not None:
             self._step(theta, g)
 
     def _step(self, theta: np.ndarray, g: np.ndarray) -> None:

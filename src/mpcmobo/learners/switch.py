@@ -18,8 +18,9 @@ dropped candidate, once no new one has come for a verification's worth of episod
 ``MAX_DECISIONS`` decisions (under structural mismatch the fit moves as data come in). A
 candidate offered from elsewhere (the twin's tuning, :meth:`ModelSwitch.offer`) is judged by
 the deployed model's twin, and dropped without a plant episode where the exploration budget
-finds it does not pay for itself on that model (:meth:`ModelSwitch.drop_offered`). Under random starts a fitted candidate's tests adjust each episode's
-cost by the identified model's prediction of it."""
+finds it does not pay for itself on that model (:meth:`ModelSwitch.drop_offered`). Under
+random starts a fitted candidate's tests adjust each episode's cost by the identified model's
+prediction of it."""
 
 from __future__ import annotations
 
@@ -191,7 +192,7 @@ class ModelSwitch:
         brings no new candidate; after a drop, when it has brought none for ``min_runs``
         episodes; or, once an identified model is deployed, after ``MAX_DECISIONS``
         decisions."""
-        if self.candidate_ is not None and not self.follows_fit_:
+        if self.offered():
             return False  # an offered candidate is decided first
         if self.decisions_ >= MAX_DECISIONS and self.deployed_params_ is not None:
             return True
@@ -237,9 +238,8 @@ class ModelSwitch:
     def _judge(self) -> None:
         """The evidence policy's judge: an offered candidate's the deployed model's twin, a
         fitted candidate's the plain tests (module docstring)."""
-        offered = self.candidate_ is not None and not self.follows_fit_
         params = self.deployed_params_
-        self.policy.twin = self.twin(params) if offered and params is not None else None
+        self.policy.twin = self.twin(params) if self.offered() and params is not None else None
 
     def twin(self, params: np.ndarray) -> Twin | None:
         """The twin of the model ``params``, or None without the loop's closed loops."""
