@@ -95,6 +95,32 @@ def test_block_makes_one_step_along_its_mean_gradient(lq):
     assert lr.rule.t == 1  # one step for the whole block
 
 
+def test_a_simulated_episode_steps_outside_blocks_only_and_starts_no_block(lq):
+    """A refused candidate's simulated episode: inside a block nothing (the block's evidence
+    is the plant's), after it one plain step along its valid gradient that does not count
+    towards the next block; an invalid gradient makes none."""
+    lr = _learner(lq, CYCLE, optimizer={"rule": "gd", "lr": 1e-3})
+    space = lq.search_space
+    assert not lr.learns_in_simulation()  # theta0's block comes first
+    z = lr.z_.copy()
+    lr.observe_simulated(lr.propose(), _result(1.0, 0))
+    np.testing.assert_array_equal(lr.z_, z)
+    for k in range(B):
+        lr.observe(lr.propose(), _result(1.0, k))
+    assert lr.learns_in_simulation()
+    theta, since, t = lr.propose(), lr.blocks_.since_, lr.rule.t
+    lr.observe_simulated(theta, _result(1.0, 0, ok=False))
+    assert lr.rule.t == t
+    grad = np.random.default_rng(1).normal(size=9)
+    lr.observe_simulated(theta, _result(1.0, 0, grad=grad))
+    expected = space.clip(theta).copy()
+    expected[space.free] -= 1e-3 * grad[space.free]
+    np.testing.assert_allclose(
+        space.from_unit(lr.z_, base=lq.parameterization.theta0), expected, atol=1e-12
+    )
+    assert lr.rule.t == t + 1 and lr.blocks_.since_ == since
+
+
 def test_an_invalid_gradient_makes_no_step_and_the_block_averages_the_valid_ones(lq):
     lr = _learner(lq, CYCLE, optimizer={"rule": "gd", "lr": 1e-3})
     space, theta0 = lq.search_space, lq.parameterization.theta0
