@@ -8,10 +8,13 @@ command line as subprocesses (``python -m mpcmobo.cli``): ``status DIR``, ``stat
 pending trial, as the first ask wrote it), ``tell`` of a missing file and of a malformed one
 (a CSV without the system's columns), ``tell`` of the trial's simulated log (a CSV; the
 episode runs between the timings, in this process; the tell then prepares the next trial),
-and ``ask`` after it (the trial the tell prepared). The baseline, measured in the same run: the interpreter's start (``python -c
-pass``). Printed: a markdown table of the median and max seconds per command against its
-target (status 1 s, ask and tell 2 s, a bad log 1 s; a tell that runs the twin's tuning is
-over 2 s and shows its progress).
+and ``ask`` after it (the trial the tell prepared). Then the same with the tuner's process
+serving the copy (``mpcmobo serve``, started before the round and not timed): ``tell`` (answered
+once the log is checked), ``ask`` right after it (it waits for the learning and the next
+proposal, and shows them), ``ask`` once the trial is prepared, ``tell`` of a malformed file. The
+baseline, measured in the same run: the interpreter's start (``python -c pass``). Printed: a
+markdown table of the median and max seconds per command against its target (status 1 s, ask
+and tell 2 s, a bad log 1 s; an ``ask`` that waits for the learning has none).
 
     .venv/bin/python benchmarks/tuner_latency.py --out /tmp/tuner50            # lq, 5 repeats
     .venv/bin/python benchmarks/tuner_latency.py --out /tmp/tuner50 --repeats 3 --system cstr
@@ -22,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -42,6 +46,10 @@ TARGETS = {
     "ask (prepared by the tell)": 2.0,
     "tell (missing file)": 1.0,
     "tell (malformed file)": 1.0,
+    "served: tell": 2.0,
+    "served: ask right after the tell (waits for the learning)": None,
+    "served: ask (prepared)": 2.0,
+    "served: tell (malformed file)": 1.0,
 }
 
 
@@ -120,6 +128,40 @@ def repeat(base: Path, work: Path, seed: int) -> dict[str, float]:
     t["tell"] = _timed([*cli, "tell", str(d), str(trial.id), str(log), "--force"], 0)
     t["ask (prepared by the tell)"] = _timed([*cli, "ask", str(d)], 0)
     shutil.rmtree(d, ignore_errors=True)
+    shutil.copytree(base, d)
+    t.update(_served(d, work, seed))
+    shutil.rmtree(d, ignore_errors=True)
+    return t
+
+
+def _served(d: Path, work: Path, seed: int) -> dict[str, float]:
+    """The commands with ``mpcmobo serve d`` running (its start not timed)."""
+    from mpcmobo.cli.resident import request
+    from mpcmobo.experiment.tuner import Tuner, write_log
+
+    cli = [sys.executable, "-m", "mpcmobo.cli"]
+    proc = subprocess.Popen([*cli, "serve", str(d)], stdout=subprocess.DEVNULL)
+    t: dict[str, float] = {}
+    try:
+        while not request(d, "ping")[0]:
+            if proc.poll() is not None:
+                raise SystemExit(f"mpcmobo serve {d} exited with {proc.returncode}")
+            time.sleep(0.2)
+        tid = int(request(d, "ask")[1]["id"])  # the pending trial, as the process prepared it
+        tuner = Tuner.load(d)
+        trial = tuner.ask()
+        log = write_log(work / f"served-{seed}.csv", *_episode(tuner, trial, seed), tuner.system)
+        t["served: tell (malformed file)"] = _timed(
+            [*cli, "tell", str(d), str(tid), str(work / "malformed.csv")], 2
+        )
+        t["served: tell"] = _timed([*cli, "tell", str(d), str(tid), str(log), "--force"], 0)
+        t["served: ask right after the tell (waits for the learning)"] = _timed(
+            [*cli, "ask", str(d)], 0
+        )
+        t["served: ask (prepared)"] = _timed([*cli, "ask", str(d)], 0)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=120)
     return t
 
 

@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
+import time
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -23,14 +25,14 @@ import typer
 from rich.table import Table
 
 from mpcmobo import cli
-from mpcmobo.cli.progress import WorkProgress, fmt
+from mpcmobo.cli.progress import Waiting, WorkProgress, fmt
 from mpcmobo.experiment import storage
 from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError
 from mpcmobo.experiment.settings import SettingsError
 from mpcmobo.experiment.tunerstatus import saved_status
 
-__all__ = ["ask", "export", "retract", "status", "tell"]
+__all__ = ["ask", "export", "retract", "serve", "status", "tell"]
 
 app: typer.Typer = cli.app
 
@@ -90,6 +92,11 @@ def ask(
     if prepared is not None:
         cli.console.print_json(json.dumps(prepared))
         return
+    if not any(v is not None for v in create.values()):
+        served, data = _served(directory, "ask", episodes=episodes)
+        if served:
+            cli.console.print_json(json.dumps(data))
+            return
 
     def go() -> dict:
         return _write_trial(directory, _tuner(directory, episodes, **create))
@@ -117,7 +124,7 @@ def _prepared_trial(directory: Path) -> dict | None:
     ``status.json`` is current and names it pending and its controller was written (None:
     the tuner must be loaded to ask)."""
     st = saved_status(directory)
-    if st is None or st["pending"] is None:
+    if st is None or st["pending"] is None or st.get("learning") is not None:
         return None
     where = directory / "trials" / str(st["pending"])
     if not (where / "controller.casadi").is_file():
@@ -155,6 +162,8 @@ def tell(
         return df
 
     df = _errors(read)
+    if _told_by_the_process(directory, trial, log, force):
+        return
 
     def go() -> Any:
         from mpcmobo.experiment.tuner import Tuner
@@ -186,6 +195,21 @@ def tell(
         _prepare_next(directory, tuner, row.episode)
 
 
+def _told_by_the_process(directory: Path, trial: int, log: Path | None, force: bool) -> bool:
+    """The tell sent to the tuner's process where one serves ``directory`` (False: none
+    does); it answers once the log is checked and goes on learning."""
+    where = None if log is None else str(log.resolve())
+    served, answer = _served(directory, "tell", trial=trial, log=where, force=force)
+    if served:
+        cli.console.print(
+            f"trial {trial} told: plant cost {fmt(answer['plant_cost'])}, {trial + 1} of "
+            f"{answer['budget']} trials; the tuner's process learns from it and prepares the "
+            f"next trial: mpcmobo ask {directory} prints it",
+            highlight=False,
+        )
+    return bool(served)
+
+
 def _prepare_next(directory: Path, tuner: Any, told: int) -> None:
     """After trial ``told``: the next trial written for ``ask`` (Ctrl-C there loses nothing
     and says so)."""
@@ -197,6 +221,46 @@ def _prepare_next(directory: Path, tuner: Any, told: int) -> None:
             f"mpcmobo ask {directory} prepares the next one"
         )
     cli.console.print(f"trial {nxt['id']} is ready: mpcmobo ask {directory}", highlight=False)
+
+
+def _served(directory: Path, op: str, **kwargs: Any) -> tuple[bool, Any]:
+    """``op`` answered by the tuner's process where one serves ``directory`` (``mpcmobo
+    serve``): ``(True, answer)``; ``(False, None)`` where none does."""
+    from mpcmobo.cli.resident import ResidentError, request
+
+    with Waiting(cli.err_console) as show:
+        try:
+            return request(directory, op, progress=show, **kwargs)
+        except ResidentError as err:
+            cli._fail(str(err), err.code)
+
+
+@app.command()
+def serve(directory: Path = typer.Argument(..., help="the tuner's directory")) -> None:
+    """Keep the tuner in memory and answer ask, tell and retract from it until Ctrl-C: a tell
+    returns once its log is checked, the learning and the next trial's proposal go on here."""
+    from mpcmobo.cli.resident import Resident, ResidentError
+
+    if not RunDirectory(directory).holds_run():
+        cli._fail(f"{directory} holds no tuner: make one with mpcmobo ask {directory} --system", 2)
+
+    def log(text: str) -> None:
+        cli.console.print(f"{time.strftime('%H:%M:%S')} {text}", highlight=False, markup=False)
+
+    resident = Resident(directory, log)
+    try:
+        _errors(resident.open)
+    except ResidentError as err:
+        cli._fail(str(err), err.code)
+    log(
+        f"serving the tuner in {directory} (pid {os.getpid()}): mpcmobo ask, tell and retract "
+        "answer from memory; Ctrl-C stops"
+    )
+    try:
+        resident.serve()
+    except KeyboardInterrupt:
+        log("stopped; an accepted log not learned from yet is learned at the next load")
+        raise typer.Exit(130) from None
 
 
 def _interrupted(what: str) -> NoReturn:
@@ -239,7 +303,9 @@ def retract(
     """Take a told trial back: the tuner as before its tell, the trial pending again."""
     from mpcmobo.experiment.tuner import Tuner
 
-    ids = _errors(lambda: Tuner.load(directory).retract(trial, later=with_later))
+    served, ids = _served(directory, "retract", trial=trial, later=with_later)
+    if not served:
+        ids = _errors(lambda: Tuner.load(directory).retract(trial, later=with_later))
     listed = ", ".join(map(str, ids))
     cli.console.print(
         f"retracted trial{'s' if len(ids) > 1 else ''} {listed} (kept in "

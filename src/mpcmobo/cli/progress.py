@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 from rich.console import Console
 from rich.progress import (
@@ -155,3 +156,34 @@ class WorkProgress:
         if self.shown.get(what) != tenth:
             self.shown[what] = tenth
             self.console.print(f"{what}: {done}/{total}", markup=False, highlight=False)
+
+
+class Waiting:
+    """What a command waits for (the tuner's process learning, ``mpcmobo serve``): a spinner
+    with the latest text on a terminal, else a plain line each time the text changes; a
+    context manager, called with the text."""
+
+    def __init__(self, console: Console) -> None:
+        self.console = console
+        self.status: Any = None
+        self.last = ""
+
+    def __enter__(self) -> Waiting:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.status is not None:
+            self.status.stop()
+
+    def __call__(self, text: str) -> None:
+        """Show that the process is doing ``text``."""
+        if text == self.last:
+            return
+        self.last = text
+        if not self.console.is_terminal:
+            self.console.print(f"waiting: {text}", markup=False, highlight=False)
+        elif self.status is None:
+            self.status = self.console.status(text)
+            self.status.start()
+        else:
+            self.status.update(text)

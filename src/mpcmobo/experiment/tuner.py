@@ -45,6 +45,7 @@ from mpcmobo.experiment.tunerfiles import TunerFiles, history_errors, told_twin
 from mpcmobo.experiment.usersystem import recorded_system, restore_system
 from mpcmobo.learners.base import Progress
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
+from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import is_factory_path
 
@@ -198,6 +199,7 @@ class Tuner:
             settings = run_dir.reopen(settings.model_copy(update={"episodes": int(episodes)}))
         tuner = cls.__new__(cls)
         tuner._open(run_dir, settings, new=False)
+        tuner._learn_accepted()
         if episodes is not None and episodes > tuner.files.status_budget():
             tuner._write_status()  # the larger budget, for `mpcmobo status`
         return tuner
@@ -220,6 +222,7 @@ class Tuner:
         self._policy_mpc = ParametricMPC(self.system, model="imperfect", **settings.mpc.options())
         self.files = TunerFiles(run_dir.path)
         self._errors: dict = {}  # one-step errors of told logs, per (trial, model)
+        self._accepted: dict | None = None  # a log accepted and not learned from yet
 
     def _reference(self, settings: Settings) -> Reference:
         """J* and J_eval(theta0) where the plant can be simulated; else neither."""
@@ -246,7 +249,10 @@ class Tuner:
         return self.job.run.episode
 
     def ask(self) -> Trial:
-        """The next trial (the pending one again if it has not been told)."""
+        """The next trial (the pending one again if it has not been told; after an
+        :meth:`accept`, the learner learns first)."""
+        if self._accepted is not None:
+            self.learn()
         if self.job.done:
             raise TunerError(
                 f"the tuner's budget of {self.settings.episodes} trials is spent; give it a "
@@ -293,26 +299,106 @@ class Tuner:
         believe is kept in ``quarantine/`` and :class:`LogQuarantined` names the problems: the
         trial stays pending. ``force=True`` tells it all the same (without ``states``: the
         trial's quarantined log). ``progress(what, done, total)`` hears the learner's long work
-        (the twin's tuning, :meth:`~mpcmobo.learners.base.Learner.use_progress`)."""
+        (the twin's tuning, :meth:`~mpcmobo.learners.base.Learner.use_progress`).
+
+        A tell is :meth:`accept` then :meth:`learn`; a tell that fails or is interrupted in
+        between leaves its trial pending."""
+        self.accept(trial, states, inputs, stage_costs, violations, force=force)
+        return self.learn(progress=progress)
+
+    def accept(
+        self,
+        trial: Trial | int,
+        states: Any = None,
+        inputs: Any | None = None,
+        stage_costs: Any | None = None,
+        violations: Any | None = None,
+        *,
+        force: bool = False,
+    ) -> float:
+        """The first half of :meth:`tell` (the same arguments): the log checked, and kept in
+        ``accepted/`` until :meth:`learn` learns from it (or, after a crash, the next
+        :meth:`load`). Quick: what a tuner's process (``mpcmobo serve``) answers a tell with
+        before the learner's long work. Returns the episode's plant cost (its mean stage
+        cost)."""
+        if self._accepted is not None:
+            raise TunerError(
+                f"trial {self._accepted['plan']['episode']} is told and being learned from: "
+                "ask for the next trial"
+            )
+        plan, record, mpc_time, log, problems = self._checked(
+            _trial_id(trial), states, inputs, stage_costs, violations, force
+        )
+        entry = {
+            "plan": plan.to_dict(),
+            "record": record,
+            "mpc_time": mpc_time,
+            "log": log,
+            "problems": problems,
+            "force": force,
+        }
+        self.files.save_accepted(plan.episode, entry)
+        self._accepted = entry
+        self._write_status()
+        return float(mean_stage_cost(record))
+
+    def learn(self, *, progress: Progress | None = None) -> EpisodeRow:
+        """The second half of :meth:`tell`: the learner learns from the accepted log and the
+        episode is recorded; its row. Where that fails (or is interrupted) the trial is pending
+        again and nothing of it is recorded."""
+        entry = self._accepted
+        if entry is None:
+            raise TunerError("no told log waits to be learned from: tell a trial first")
+        self._accepted = None  # the status written with the record: nothing waits
         learner = self.job.run.learner
         learner.use_progress(progress)
         try:
-            return self._tell(trial, states, inputs, stage_costs, violations, force)
+            row = self._complete(
+                EpisodePlan.from_dict(entry["plan"]),
+                entry["record"],
+                entry["mpc_time"],
+                entry["log"],
+                entry["problems"],
+                entry["force"],
+            )
+        except BaseException:
+            self.files.drop_accepted()
+            self._write_status()
+            raise
         finally:
             learner.use_progress(None)
             self.job.run.learner.use_progress(None)  # a learner reloaded by an interrupted tell
+        self.files.drop_accepted()
+        return row
 
-    def _tell(
+    def _learn_accepted(self) -> None:
+        """After a crash between :meth:`accept` and :meth:`learn`: the pending trial's
+        accepted log learned from now (an accepted log of no pending trial is dropped)."""
+        pending = self.job.pending
+        entry = None if pending is None else self.files.accepted(int(pending["episode"]))
+        if entry is None:
+            self.files.drop_accepted()
+            return
+        self._accepted = entry
+        self.learn()
+
+    @property
+    def learning(self) -> int | None:
+        """The trial whose log is accepted and not learned from yet (None: none)."""
+        return None if self._accepted is None else int(self._accepted["plan"]["episode"])
+
+    def _checked(
         self,
-        trial: Trial | int,
+        tid: int,
         states: Any,
         inputs: Any | None,
         stage_costs: Any | None,
         violations: Any | None,
         force: bool,
-    ) -> EpisodeRow:
-        """:meth:`tell` with the learner's progress in place."""
-        tid = _trial_id(trial)
+    ) -> tuple[EpisodePlan, EpisodeRecord, float, PlantLog, list[checks.Problem]]:
+        """The checks of :meth:`accept`: the plan as the episode started, its record, the MPC's
+        time, the parsed log and the problems found (a log they do not believe, without
+        ``force``, is quarantined: :class:`LogQuarantined`)."""
         plan = self._pending(tid)
         steps = self.job.run.steps
         if states is None and force:
@@ -341,7 +427,7 @@ class Tuner:
             t0 = time.perf_counter()
             record = replay(self.system, self.job.run.mpc, plan.theta, *_arrays(log))
             mpc_time = time.perf_counter() - t0
-        return self._complete(started, record, mpc_time, log, problems, force)
+        return started, record, mpc_time, log, problems
 
     def _complete(
         self,
@@ -376,6 +462,8 @@ class Tuner:
         told after it were proposed by a learner that had seen it: ``later=True`` retracts
         them with it, else they are a :class:`TunerError`. The retracted records and logs are
         kept in ``retracted/``. Returns the retracted trials' ids."""
+        if self._accepted is not None:
+            self.learn()
         tid = _trial_id(trial)
         if not 0 <= tid < self.episodes:
             raise TunerError(
@@ -473,7 +561,8 @@ class Tuner:
         episode's mean stage cost), ``excess_cost`` over the deployed controller (None while
         unknown) and ``verdict`` (:mod:`mpcmobo.experiment.tunerstatus`); ``plant_cost`` and
         ``excess_cost`` summed over them; ``quarantined``: the trials whose log is
-        quarantined; ``recommendation``: ``action`` (continue or stop) and ``reason``;
+        quarantined; ``learning``: the told trial whose log the learner has not learned from
+        yet (:meth:`accept`; None: none); ``recommendation``: ``action`` (continue or stop) and ``reason``;
         ``exploration``: the exploration budget's account (:meth:`_exploration`); the
         ``deployed`` theta, the trials that ran it and its ``evidence``, how often it changed
         from theta0, its last ``J_eval`` (a simulated plant; None until it is evaluated), and
@@ -512,7 +601,9 @@ class Tuner:
                 quarantined,
                 str(self.run_dir.path),
                 self.job.run.price.converged_,
+                self.learning,
             ),
+            "learning": self.learning,
             "exploration": self._exploration(rows),
             "deployed": dict(zip(self._policy_mpc.theta_names, map(float, deployed))),
             "deployed_episodes": len(ran),

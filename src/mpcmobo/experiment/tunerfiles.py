@@ -5,6 +5,8 @@ Layout in the tuner's directory ``DIR``::
     told/trial-<id>.pkl          a told trial: its plan, its log, the problems the checks found
                                  (told with --force)
     told/trial-<id>.checkpoint.pkl  the job's checkpoint before its tell (what a retract restores)
+    accepted/trial-<id>.pkl      a log the checks believed (or --force), not learned from yet:
+                                 ``Tuner.learn`` takes it, or the next ``Tuner.load``
     quarantine/trial-<id>.parquet a log the checks did not believe (the trial stays pending)
     quarantine/trial-<id>.json   why, and its status: quarantined, accepted (--force), replaced
     quarantine/trial-<id>-<n>.*  an earlier quarantined log of the trial
@@ -43,6 +45,7 @@ class TunerFiles:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.told_dir = self.path / "told"
+        self.accepted_dir = self.path / "accepted"
         self.quarantine_dir = self.path / "quarantine"
         self.retracted_dir = self.path / "retracted"
         self.status_path = self.path / "status.json"
@@ -87,6 +90,25 @@ class TunerFiles:
             snap = self.told_dir / f"trial-{tid}.checkpoint.pkl"
             entry["checkpoint"] = snap.read_bytes() if snap.exists() else None
         return entry
+
+    # ------------------------------------------------------------------ accepted logs
+    def save_accepted(self, tid: int, entry: dict) -> None:
+        """Keep trial ``tid``'s accepted log (``entry``: what ``Tuner.learn`` needs) until the
+        learner has learned from it."""
+        storage.write_pickle(self.accepted_dir / f"trial-{tid}.pkl", dict(entry, trial=tid))
+
+    def accepted(self, tid: int) -> dict | None:
+        """Trial ``tid``'s accepted log not learned from yet (None: there is none)."""
+        path = self.accepted_dir / f"trial-{tid}.pkl"
+        if not path.exists():
+            return None
+        entry: dict = storage.read_pickle(path)
+        return entry
+
+    def drop_accepted(self) -> None:
+        """No accepted log waits any more (learned from, or its learning failed)."""
+        for path in self.accepted_dir.glob("trial-*.pkl"):
+            path.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ quarantine
     def quarantine(self, tid: int, log: PlantLog, problems: list[Problem], system: System) -> Path:

@@ -87,9 +87,19 @@ def recommendation(
     quarantined: list[int],
     directory: str,
     converged: str = "",
+    learning: int | None = None,
 ) -> dict[str, str]:
     """``action`` (``continue`` or ``stop``) and ``reason``; ``converged``: why tuning stopped
-    exploring ("": it has not; :mod:`mpcmobo.experiment.price`)."""
+    exploring ("": it has not; :mod:`mpcmobo.experiment.price`); ``learning``: the told trial
+    the learner is learning from (``mpcmobo serve``), None if none."""
+    if learning is not None:
+        return {
+            "action": "continue",
+            "reason": (
+                f"trial {learning} is told and the tuner's process is learning from it: "
+                f"mpcmobo ask {directory} prints the next trial when it is ready"
+            ),
+        }
     if converged and (pending is None or pending not in quarantined):
         return {
             "action": "stop",
@@ -166,6 +176,12 @@ def saved_status(directory: str | Path) -> dict[str, Any] | None:
         return None
     converged = (st["exploration"] or {}).get("converged") or ""
     st["recommendation"] = recommendation(
-        st["told"], st["budget"], st["pending"], st["quarantined"], str(path), converged
+        st["told"],
+        st["budget"],
+        st["pending"],
+        st["quarantined"],
+        str(path),
+        converged,
+        st.get("learning"),
     )
     return st

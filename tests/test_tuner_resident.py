@@ -1,0 +1,203 @@
+"""The tuner's process (``mpcmobo serve``): ask, tell and retract answered from memory; a tell
+answered once its log is checked, the learning after it; what it records equals a tuner told
+directly; a crash between the check and the learning loses nothing; a failed learning is
+reported and the trial is pending again; the commands work without it."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from test_tuner_checks import episode
+from typer.testing import CliRunner
+
+from mpcmobo.cli import app
+from mpcmobo.cli.resident import ADDRESS_FILE, KEY_FILE, Resident, ResidentError, request
+from mpcmobo.experiment.tuner import Tuner, write_log
+
+SETTINGS = {"episodes": 4, "steps": 8, "start_mode": "cycle", "n_cycle_starts": 2}
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+runner = CliRunner()
+
+
+def _records(path):
+    """episodes.parquet without the wall times."""
+    df = pd.read_parquet(path / "episodes.parquet")
+    return df.drop(columns=[c for c in df.columns if c.endswith("time_s")])
+
+
+def _log_of(directory: Path, trial: dict, out: Path) -> Path:
+    """The episode of the asked ``trial`` (its JSON) on the simulated plant, as a CSV."""
+    tuner = Tuner.load(directory)
+    asked = tuner.ask()
+    assert asked.id == trial["id"]
+    return write_log(out, *episode(tuner, asked), tuner.system)
+
+
+class Served:
+    """A :class:`Resident` answering in a thread of this process; ``heard``: its log."""
+
+    def __init__(self, directory: Path) -> None:
+        self.heard: list[str] = []
+        self.resident = Resident(directory, self.heard.append)
+        self.resident.open()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        try:
+            self.resident.serve()
+        except OSError:  # the listener closed by stop()
+            pass
+
+    def stop(self) -> None:
+        with self.resident.lock:  # the background work done
+            pass
+        self.resident.close()
+
+
+@pytest.fixture
+def made(tmp_path):
+    """A new lq tuner (mpc-rl) with no trial asked yet."""
+    Tuner("lq", "mpc-rl", tmp_path / "t", **SETTINGS)
+    return tmp_path / "t"
+
+
+def _ask(d: Path) -> dict:
+    res = runner.invoke(app, ["ask", str(d)])
+    assert res.exit_code == 0, res.output
+    return json.loads(res.stdout[res.stdout.index("{") :])
+
+
+def test_a_served_tuner_records_what_a_tuner_told_directly_records(made, tmp_path):
+    """Three trials through ask and tell with the process serving: each tell answers before
+    the learning (status says which trial is learned from), ask waits for it and prints the
+    next trial, and the records equal those of a tuner told the same logs in Python."""
+    direct = Tuner("lq", "mpc-rl", tmp_path / "direct", **SETTINGS)
+    served = Served(made)
+    try:
+        for k in range(3):
+            trial = _ask(made)
+            assert trial["id"] == k
+            log = _log_of(made, trial, tmp_path / f"trial-{k}.csv")
+            gate = threading.Event()
+            learn = served.resident.tuner.learn
+
+            def held(*a, _learn=learn, _gate=gate, **kw):
+                _gate.wait(30)  # the learning waits until the tell has answered
+                return _learn(*a, **kw)
+
+            served.resident.tuner.learn = held
+            res = runner.invoke(app, ["tell", str(made), str(k), str(log)])
+            assert res.exit_code == 0, res.output
+            assert f"trial {k} told: plant cost" in res.output, res.output
+            st = json.loads(runner.invoke(app, ["status", str(made), "--json"]).stdout)
+            assert st["learning"] == k and f"trial {k} is told" in st["recommendation"]["reason"]
+            gate.set()
+            d = direct.ask()
+            direct.tell(d, *episode(direct, d))
+        assert _ask(made)["id"] == 3
+    finally:
+        served.stop()
+    assert any("trial 2 learned from" in h for h in served.heard)
+    pd.testing.assert_frame_equal(_records(made), _records(tmp_path / "direct"))
+    assert not (made / ADDRESS_FILE).exists() and not (made / KEY_FILE).exists()
+
+
+def test_a_crash_between_the_check_and_the_learning_loses_nothing(made, tmp_path):
+    """A log accepted (Tuner.accept) by a process that then dies is learned from at the next
+    load: the same records as a tell."""
+    direct = Tuner("lq", "mpc-rl", tmp_path / "direct", **SETTINGS)
+    d = direct.ask()
+    direct.tell(d, *episode(direct, d))
+    tuner = Tuner.load(made)
+    trial = tuner.ask()
+    tuner.accept(trial, *episode(tuner, trial))
+    assert tuner.status()["learning"] == 0 and (made / "accepted" / "trial-0.pkl").exists()
+    del tuner  # the process is gone before it learned
+    again = Tuner.load(made)
+    assert again.episodes == 1 and again.learning is None
+    assert not list((made / "accepted").glob("*.pkl"))
+    pd.testing.assert_frame_equal(_records(made), _records(tmp_path / "direct"))
+
+
+def test_a_failed_learning_is_reported_and_the_trial_is_pending_again(made, tmp_path):
+    """The learner fails in the background: the next command says so and the trial can be
+    told again; a retract goes through the process too."""
+    served = Served(made)
+    try:
+        trial = _ask(made)
+        log = _log_of(made, trial, tmp_path / "trial-0.csv")
+        learner = served.resident.tuner.job.run.learner
+
+        def broken(*a, **k):
+            raise RuntimeError("the GP fit diverged")
+
+        learner.observe = broken
+        assert runner.invoke(app, ["tell", str(made), "0", str(log)]).exit_code == 0
+        res = runner.invoke(app, ["ask", str(made)])
+        assert res.exit_code == 1, res.output
+        assert "learning from trial 0 failed" in res.output and "diverged" in res.output
+        assert "pending again" in res.output
+        assert _ask(made)["id"] == 0  # reloaded: the learner as saved, the trial pending
+        assert runner.invoke(app, ["tell", str(made), "0", str(log)]).exit_code == 0
+        assert _ask(made)["id"] == 1
+        res = runner.invoke(app, ["retract", str(made), "0"])
+        assert res.exit_code == 0 and "trial 0 is pending again" in res.output, res.output
+        res = runner.invoke(app, ["tell", str(made), "5", str(log)])
+        assert res.exit_code == 2 and "the pending trial is 0" in res.output, res.output
+    finally:
+        served.stop()
+
+
+def test_one_process_per_tuner_and_the_commands_work_without_it(made, tmp_path):
+    """A second process on the same tuner is refused; files left by a killed process do not
+    stop the commands (they load the tuner themselves)."""
+    served = Served(made)
+    try:
+        with pytest.raises(ResidentError, match="serves .* already"):
+            Resident(made, print).open()
+        assert request(made, "ping")[1]["pid"] == os.getpid()
+    finally:
+        served.stop()
+    (made / ADDRESS_FILE).write_text(json.dumps({"socket": str(made / "gone.sock")}))
+    (made / KEY_FILE).write_bytes(b"k" * 32)
+    assert request(made, "ping") == (False, None)
+    assert _ask(made)["id"] == 0
+
+
+def test_mpcmobo_serve_answers_the_command_line_until_ctrl_c(made, tmp_path):
+    """``mpcmobo serve DIR`` as its own process: a tell on the command line reaches it, and
+    Ctrl-C stops it and removes the files that name it."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([SRC, os.environ.get("PYTHONPATH", "")]))
+    cli = [sys.executable, "-m", "mpcmobo.cli"]
+    proc = subprocess.Popen(
+        [*cli, "serve", str(made)], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
+    try:
+        for _ in range(600):
+            if request(made, "ping")[0]:
+                break
+            assert proc.poll() is None, proc.stdout.read().decode()  # type: ignore[union-attr]
+            time.sleep(0.1)
+        trial = request(made, "ask")[1]
+        log = _log_of(made, trial, tmp_path / "trial-0.csv")
+        tell = subprocess.run(
+            [*cli, "tell", str(made), "0", str(log)], env=env, capture_output=True, text=True
+        )
+        assert tell.returncode == 0 and "the tuner's process learns" in tell.stdout, tell.stderr
+        assert request(made, "ask")[1]["id"] == 1
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out = proc.communicate(timeout=60)[0].decode()
+    assert proc.returncode == 130, out
+    assert "serving the tuner" in out and "trial 0 learned from" in out
+    assert not (made / ADDRESS_FILE).exists()
