@@ -198,8 +198,9 @@ def test_an_interrupted_tell_leaves_the_trial_pending(lq_tuner, monkeypatch):
 def test_the_episode_starts_where_the_log_does(tmp_path):
     """Random starts: a log that starts away from the trial's x0 is recorded from its own
     first state (x0, and the start covariate of the learners' tests, are that state's); one
-    within START_TOLERANCE of x0 keeps x0. Cycled starts compare thetas from the same starts:
-    a log that starts elsewhere is refused."""
+    within START_TOLERANCE of x0 keeps x0; the episode's predicted cost (the exploration
+    budget's) is from the logged start. Cycled starts compare thetas from the same starts: a
+    log that starts elsewhere is refused."""
     for mode in ("random", "cycle"):
         tuner = Tuner("lq", "bo", tmp_path / mode, episodes=3, steps=6, start_mode=mode)
         trial = tuner.ask()
@@ -211,8 +212,16 @@ def test_the_episode_starts_where_the_log_does(tmp_path):
             row = tuner.tell(trial, near, U)
             np.testing.assert_array_equal(row.x0, trial.x0)
             continue
+        run = tuner.job.run
+        deployed = np.asarray(tuner.job.pending["deployed"], float)
+        # the budget's prediction of the episode, from where it started
+        expected = run.start_cost(
+            elsewhere[0], trial.theta, run.prediction_params(deployed), trial.noise
+        )
+        planned = tuner.job.pending["predicted_cost"]
         row = tuner.tell(trial, elsewhere, U_elsewhere)
         np.testing.assert_array_equal(row.x0, elsewhere[0])
+        assert row.predicted_cost == pytest.approx(expected) and expected != planned
         trial = tuner.ask()
         near, U = _episode(tuner, trial, trial.x0 + 0.01 * tuner.system.x_scale)
         row = tuner.tell(trial, near, U)

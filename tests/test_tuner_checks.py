@@ -126,7 +126,8 @@ def test_a_state_in_the_wrong_unit_is_named(tmp_path, mode):
 
 def test_force_accepts_the_quarantined_log(tmp_path):
     """``force=True`` without a log tells the quarantined one; the quarantine keeps it, marked
-    accepted; a trial without a quarantined log has nothing to force."""
+    accepted, and the status's trial says what it was accepted despite; a trial without a
+    quarantined log has nothing to force."""
     tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=3, steps=20, start_mode="random")
     trial = tuner.ask()
     with pytest.raises(TunerError, match="no quarantined log"):
@@ -142,6 +143,9 @@ def test_force_accepts_the_quarantined_log(tmp_path):
     assert reloaded.episodes == 1 and reloaded.status()["quarantined"] == []
     np.testing.assert_array_equal(reloaded.files.told(0)["log"].inputs, U)
     assert reloaded.files.told(0)["forced"]
+    (told,) = reloaded.status()["trials"]
+    found = sorted({p.check for p in err.value.problems})
+    assert told["forced"] == found and "accepted with --force despite" in told["verdict"]
 
 
 def test_an_episode_the_model_cannot_explain_is_quarantined(tmp_path):

@@ -150,8 +150,10 @@ def test_a_failed_learning_is_reported_and_the_trial_is_pending_again(made, tmp_
         assert _ask(made)["id"] == 0  # reloaded: the learner as saved, the trial pending
         assert runner.invoke(app, ["tell", str(made), "0", str(log)]).exit_code == 0
         assert _ask(made)["id"] == 1
+        assert (made / "trials" / "1" / "trial.json").exists()
         res = runner.invoke(app, ["retract", str(made), "0"])
         assert res.exit_code == 0 and "trial 0 is pending again" in res.output, res.output
+        assert not (made / "trials" / "1").exists()  # proposed by a learner that saw trial 0
         res = runner.invoke(app, ["tell", str(made), "5", str(log)])
         assert res.exit_code == 2 and "the pending trial is 0" in res.output, res.output
     finally:

@@ -31,6 +31,11 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module 'mpcmobo' has no attribute {name!r}")
 
 
+def __dir__() -> list[str]:
+    """The module's names, ``Tuner`` with them (it is imported on first use)."""
+    return sorted({*globals(), *__all__})
+
+
 for _id, _name, _steps in (("mpcmobo/CSTR-v0", "cstr", 60), ("mpcmobo/LQ-v0", "lq", 30)):
     if _id not in _gymnasium.registry:
         _gymnasium.register(

@@ -150,20 +150,19 @@ def tell(
     """Take a trial's logged episode: a row per step, the state and input names as columns.
     The learner's long work (the twin's tuning) shows as a progress line. Then the next trial
     is prepared, so that ``ask`` prints it at once."""
-    from mpcmobo.experiment.plantlog import read_log_file
+    from mpcmobo.experiment.plantlog import log_columns, read_log_file
 
-    def read() -> Any:  # the file first, before the tuner and its learner are loaded
+    def header() -> None:  # the file first, before the tuner and its learner are loaded
         if log is None:
             if not force:
                 raise TunerError("give the log file (or --force to accept the quarantined log)")
-            return None
-        df = read_log_file(log)
-        _check_columns(directory, df)
-        return df
+            return
+        _check_columns(directory, log_columns(log))
 
-    df = _errors(read)
+    _errors(header)
     if _told_by_the_process(directory, trial, log, force):
         return
+    df = None if log is None else _errors(lambda: read_log_file(log))
 
     def go() -> Any:
         from mpcmobo.experiment.tuner import Tuner
@@ -269,9 +268,9 @@ def _interrupted(what: str) -> NoReturn:
     raise typer.Exit(130) from None
 
 
-def _check_columns(directory: Path, df: Any) -> None:
-    """The log's columns against the system's state and input names, from the tuner's saved
-    reference (no learner loaded); nothing is checked if the directory has none."""
+def _check_columns(directory: Path, columns: list[str]) -> None:
+    """The log's ``columns`` against the system's state and input names, from the tuner's
+    saved reference (no learner loaded); nothing is checked if the directory has none."""
     run_dir = RunDirectory(directory)
     if not run_dir.holds_run():
         raise TunerError(f"{directory} holds no tuner (no config.toml)")
@@ -282,9 +281,9 @@ def _check_columns(directory: Path, df: Any) -> None:
     if info is None:
         return
     names = [*info.system["state_names"], *info.system["input_names"]]
-    missing = [n for n in names if n not in df.columns]
+    missing = [n for n in names if n not in columns]
     if missing:
-        found = [str(c) for c in df.columns]
+        found = list(columns)
         raise TunerError(
             f"the log has no column {missing[0]!r}; it needs the states "
             f"{list(info.system['state_names'])} and the inputs "

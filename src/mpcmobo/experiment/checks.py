@@ -111,7 +111,8 @@ def box_problems(system: System, states: np.ndarray) -> list[Problem]:
                     "range",
                     (
                         f"{where}; {fix}, the column lies in its box: a unit error? (the log's {name} "
-                        f"looks {times}, e.g. mm for cm; far outside its bounds as logged)"
+                        f"looks {times}, e.g. mm for cm, or in another unit or with an offset, "
+                        "e.g. kelvin or Fahrenheit for Celsius; far outside its bounds as logged)"
                     ),
                     steps,
                 )

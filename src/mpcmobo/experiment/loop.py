@@ -6,7 +6,7 @@ import hashlib
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gymnasium
 import numpy as np
@@ -275,6 +275,25 @@ class LearningRun:
                 if verdict.simulated:
                     plan.refused += f"; {SIMULATED_NOTE}"
         plan.propose_time += time.perf_counter() - t0
+        return plan
+
+    def restarted(self, plan: EpisodePlan, x0: np.ndarray) -> EpisodePlan:
+        """``plan`` as its episode ran from ``x0`` (a real plant starts where it is, under random
+        starts): its predicted costs (:meth:`_priced`) from there, on the same model, so that
+        the excess cost and the budget's calibration compare costs from the same start. Its
+        verdict stays as it was made."""
+        plan = replace(plan, x0=np.array(x0, float))
+        if plan.deployed is None or not np.isfinite(plan.predicted_deployed):
+            return plan
+        deployed = np.asarray(plan.deployed, float)
+        params = self.prediction_params(deployed)
+        d = self.start_cost(plan.x0, deployed, params, plan.noise)
+        plan.predicted_deployed = d
+        plan.predicted_cost = (
+            d
+            if np.array_equal(plan.theta, deployed)
+            else self.start_cost(plan.x0, plan.theta, params, plan.noise)
+        )
         return plan
 
     def _predicted(self, episodes: list[dict], params: np.ndarray) -> np.ndarray:

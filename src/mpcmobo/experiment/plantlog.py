@@ -184,28 +184,55 @@ def _time(df: Any, names: tuple[str, ...]) -> np.ndarray | None:
         return None
 
 
-def read_log_file(path: str | Path) -> Any:
-    """A log file as a DataFrame: Parquet, or a CSV whose delimiter (comma, semicolon, tab)
-    is sniffed; a file that does not exist, is empty or cannot be read is a
-    :class:`TunerError`."""
+def _existing(path: str | Path) -> Path:
+    """``path``, a file that exists (else a :class:`TunerError`)."""
     path = Path(path)
     if not path.exists():
         raise TunerError(f"the log {path} does not exist")
     if path.is_dir():
         raise TunerError(f"the log {path} is a directory, not a CSV or Parquet file")
+    return path
+
+
+def _csv_delimiter(path: Path) -> str:
+    """The delimiter of a CSV file (comma, semicolon, tab or bar), sniffed from its start."""
+    with path.open(newline="") as fh:
+        head = fh.read(4096)
+    try:
+        return csv.Sniffer().sniff(head, delimiters=",;\t|").delimiter
+    except csv.Error:
+        return ","
+
+
+def log_columns(path: str | Path) -> list[str]:
+    """The column names of a log file, read from its header alone (no pandas: what a command
+    checks before anything heavy is imported); a file that does not exist or cannot be read
+    is a :class:`TunerError`."""
+    path = _existing(path)
+    try:
+        if path.suffix == ".parquet":
+            import pyarrow.parquet as pq  # type: ignore[import-untyped]  # no stubs
+
+            return [str(n) for n in pq.read_schema(path).names]
+        with path.open(newline="") as fh:
+            header = next(csv.reader(fh, delimiter=_csv_delimiter(path)), [])
+    except Exception as err:  # noqa: BLE001 - any unreadable file is reported the same way
+        raise TunerError(f"the log {path} cannot be read: {type(err).__name__}: {err}") from None
+    return [name.strip() for name in header]
+
+
+def read_log_file(path: str | Path) -> Any:
+    """A log file as a DataFrame: Parquet, or a CSV whose delimiter (comma, semicolon, tab)
+    is sniffed; a file that does not exist, is empty or cannot be read is a
+    :class:`TunerError`."""
+    path = _existing(path)
     import pandas as pd  # after the checks that need none: a missing file is refused at once
 
     try:
         if path.suffix == ".parquet":
             df = pd.read_parquet(path)
         else:
-            with path.open(newline="") as fh:
-                head = fh.read(4096)
-            try:
-                sep = csv.Sniffer().sniff(head, delimiters=",;\t|").delimiter
-            except csv.Error:
-                sep = ","
-            df = pd.read_csv(path, sep=sep)
+            df = pd.read_csv(path, sep=_csv_delimiter(path))
     except Exception as err:  # noqa: BLE001 - any unreadable file is reported the same way
         raise TunerError(f"the log {path} cannot be read: {type(err).__name__}: {err}") from None
     if len(df) == 0:

@@ -196,11 +196,7 @@ class ExplorationPrice:
             return Verdict(False, "its closed loop on the model fails from this start")
         spread = math.exp(self.error())  # inf before the model is calibrated
         if candidate * spread > (1 + self.budget) * deployed:
-            return Verdict(
-                False,
-                f"predicted at {candidate / deployed:.3f}x the deployed controller's cost, "
-                f"{self._within()}, over the budget of {1 + self.budget:.3f}x",
-            )
+            return Verdict(False, self._over_budget(candidate / deployed, spread))
         excess = candidate - deployed
         if excess <= 0:
             return Verdict(True)
@@ -218,6 +214,21 @@ class ExplorationPrice:
                 False,
             )
         return Verdict(True)
+
+    def _over_budget(self, ratio: float, spread: float) -> str:
+        """Why a candidate predicted at ``ratio`` times the deployed controller's cost is
+        refused, with the model's error a factor ``spread`` (inf: not calibrated)."""
+        budget = f"the budget of {1 + self.budget:.3f}x"
+        if not math.isfinite(spread):
+            return (
+                f"predicted at {ratio:.3f}x the deployed controller's cost, but the model is "
+                f"not calibrated yet (fewer than {MIN_CALIBRATION} of its predictions checked "
+                f"against plant episodes): no prediction is trusted within {budget}"
+            )
+        return (
+            f"predicted at {ratio:.3f}x the deployed controller's cost, up to "
+            f"{ratio * spread:.3f}x with {self._within()}: over {budget}"
+        )
 
     def _within(self) -> str:
         """How far the model's predictions are trusted, in words."""

@@ -25,7 +25,7 @@ import pickle
 import shutil
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -537,7 +537,7 @@ class Tuner:
                 f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "
                 "start_mode = 'random'"
             )
-        return replace(plan, x0=np.array(x_first, float))
+        return self.job.run.restarted(plan, x_first)
 
     def _pending(self, tid: int) -> EpisodePlan:
         """The pending trial's plan, if ``tid`` is its id."""
@@ -559,7 +559,8 @@ class Tuner:
         ``told`` trials of the ``budget``, the ``pending`` one; ``trials``: per told trial its
         ``id``, ``role`` (candidate, verification or deployed), ``start``, ``plant_cost`` (the
         episode's mean stage cost), ``excess_cost`` over the deployed controller (None while
-        unknown) and ``verdict`` (:mod:`mpcmobo.experiment.tunerstatus`); ``plant_cost`` and
+        unknown), ``verdict`` and ``forced`` (the checks its log was told despite, with
+        ``force``; :mod:`mpcmobo.experiment.tunerstatus`); ``plant_cost`` and
         ``excess_cost`` summed over them; ``quarantined``: the trials whose log is
         quarantined; ``learning``: the told trial whose log the learner has not learned from
         yet (:meth:`accept`; None: none); ``recommendation``: ``action`` (continue or stop) and ``reason``;
@@ -580,7 +581,7 @@ class Tuner:
         incumbents = [self.job.run.learner.theta0, *(np.asarray(r.incumbent) for r in rows)]
         s = self.settings
         trials = tunerstatus.trial_table(
-            rows, self.job.run.learner.theta0, s.start_mode, s.n_cycle_starts
+            rows, self.job.run.learner.theta0, s.start_mode, s.n_cycle_starts, self.files.forced()
         )
         pending = None if self.job.pending is None else int(self.job.pending["episode"])
         quarantined = self.files.quarantined()

@@ -13,6 +13,7 @@ Layout in the tuner's directory ``DIR``::
     retracted/trial-<id>.parquet a retracted trial's log, and .json: its record and when
     retracted/episodes.parquet   the records of every retracted trial, ``retracted_at`` added
     status.json                  ``Tuner.status()``, rewritten after every ask, tell, retract
+    trials/<id>/                 a trial as ``mpcmobo ask`` wrote it (trial.json, its controller)
     system.pkl                   a ``System`` given as an object (registered again on load)
 
 Every file is written atomically (:mod:`mpcmobo.experiment.storage`).
@@ -21,6 +22,7 @@ Every file is written atomically (:mod:`mpcmobo.experiment.storage`).
 from __future__ import annotations
 
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -90,6 +92,18 @@ class TunerFiles:
             snap = self.told_dir / f"trial-{tid}.checkpoint.pkl"
             entry["checkpoint"] = snap.read_bytes() if snap.exists() else None
         return entry
+
+    def forced(self) -> dict[int, list[str]]:
+        """Per told trial whose log was told with ``--force`` despite problems, the checks
+        that found them."""
+        out = {}
+        for path in self.told_dir.glob("trial-*.pkl"):
+            if path.name.endswith(".checkpoint.pkl"):
+                continue
+            entry = self.told(int(path.stem.split("-")[1]))
+            if entry is not None and entry.get("forced") and entry.get("problems"):
+                out[int(entry["trial"])] = sorted({p["check"] for p in entry["problems"]})
+        return out
 
     # ------------------------------------------------------------------ accepted logs
     def save_accepted(self, tid: int, entry: dict) -> None:
@@ -204,6 +218,10 @@ class TunerFiles:
             tid = int(entry["trial"])
             (self.told_dir / f"trial-{tid}.pkl").unlink(missing_ok=True)
             (self.told_dir / f"trial-{tid}.checkpoint.pkl").unlink(missing_ok=True)
+        first = min(int(e["trial"]) for e in entries)
+        for path in (self.path / "trials").glob("*"):  # proposed after the first: gone with it
+            if path.name.isdigit() and int(path.name) > first:
+                shutil.rmtree(path, ignore_errors=True)
 
     # ------------------------------------------------------------------ status
     def status_budget(self) -> int:

@@ -3,8 +3,9 @@
 :func:`trial_table` gives one entry per told trial: its ``role`` (``deployed``: it ran the
 theta deployed before it; ``verification``: it ran a theta an earlier trial ran, to measure it
 again; ``candidate``: a new theta), its start, its plant cost (the episode's mean stage cost),
-its excess over the deployed controller from the same start (``None`` until it is predicted)
-and its verdict (whether its theta was deployed). :func:`recommendation` says whether to go on.
+its excess over the deployed controller from the same start (``None`` until it is predicted),
+its verdict (whether its theta was deployed) and the checks its log was told despite
+(``forced``, with ``--force``). :func:`recommendation` says whether to go on.
 :func:`saved_status` reads ``status.json`` (what the tuner wrote after its last ask, tell or
 retract) without loading the tuner, if it is as new as the tuner's checkpoint and settings.
 """
@@ -32,9 +33,16 @@ def _finite(v: float) -> float | None:
 
 
 def trial_table(
-    rows: Sequence[EpisodeRow], theta0: np.ndarray, start_mode: str, n_cycle_starts: int
+    rows: Sequence[EpisodeRow],
+    theta0: np.ndarray,
+    start_mode: str,
+    n_cycle_starts: int,
+    forced: dict[int, list[str]] | None = None,
 ) -> list[dict[str, Any]]:
-    """One entry per told trial (module docstring)."""
+    """One entry per told trial (module docstring); ``forced``: per trial whose log was told
+    with ``--force``, the checks it was accepted despite (``forced`` in its entry, and said in
+    its verdict)."""
+    forced = forced or {}
     out = []
     before = np.asarray(theta0, float)
     for i, row in enumerate(rows):
@@ -57,6 +65,9 @@ def trial_table(
             verdict = "not deployed"
         if row.error:
             verdict = f"{verdict}; error: {row.error}"
+        despite = forced.get(int(row.episode), [])
+        if despite:
+            verdict = f"{verdict}; its log accepted with --force despite: {', '.join(despite)}"
         out.append(
             {
                 "id": int(row.episode),
@@ -66,6 +77,7 @@ def trial_table(
                 "plant_cost": _finite(row.plant_cost),
                 "excess_cost": _finite(row.excess_cost),
                 "verdict": verdict,
+                "forced": list(despite),
             }
         )
         before = after
