@@ -160,7 +160,7 @@ def _served(d: Path, work: Path, seed: int) -> dict[str, float]:
         )
         t["served: ask (prepared)"] = _timed([*cli, "ask", str(d)], 0)
     finally:
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGTERM)  # SIGINT may be ignored in a background job
         proc.wait(timeout=120)
     return t
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -27,6 +28,7 @@ from rich.table import Table
 from mpcmobo import cli
 from mpcmobo.cli.progress import Waiting, WorkProgress, fmt
 from mpcmobo.experiment import storage
+from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError
 from mpcmobo.experiment.settings import SettingsError
@@ -236,8 +238,9 @@ def _served(directory: Path, op: str, **kwargs: Any) -> tuple[bool, Any]:
 
 @app.command()
 def serve(directory: Path = typer.Argument(..., help="the tuner's directory")) -> None:
-    """Keep the tuner in memory and answer ask, tell and retract from it until Ctrl-C: a tell
-    returns once its log is checked, the learning and the next trial's proposal go on here."""
+    """Keep the tuner in memory and answer ask, tell and retract from it until Ctrl-C or SIGTERM
+    (exit code 130 or 143): a tell returns once its log is checked, the learning and the next
+    trial's proposal go on here."""
     from mpcmobo.cli.resident import Resident, ResidentError
 
     if not RunDirectory(directory).holds_run():
@@ -255,11 +258,16 @@ def serve(directory: Path = typer.Argument(..., help="the tuner's directory")) -
         f"serving the tuner in {directory} (pid {os.getpid()}): mpcmobo ask, tell and retract "
         "answer from memory; Ctrl-C stops"
     )
+
+    def stop(signum: int, frame: Any) -> None:
+        raise Interrupted(signum)
+
+    signal.signal(signal.SIGTERM, stop)  # a service manager stops it so
     try:
         resident.serve()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
         log("stopped; an accepted log not learned from yet is learned at the next load")
-        raise typer.Exit(130) from None
+        raise typer.Exit(getattr(err, "exit_code", 130)) from None
 
 
 def _interrupted(what: str) -> NoReturn:
