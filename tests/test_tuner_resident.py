@@ -161,13 +161,20 @@ def test_a_failed_learning_is_reported_and_the_trial_is_pending_again(made, tmp_
 
 
 def test_one_process_per_tuner_and_the_commands_work_without_it(made, tmp_path):
-    """A second process on the same tuner is refused; files left by a killed process do not
-    stop the commands (they load the tuner themselves)."""
+    """A second process on the same tuner is refused, as is a command with another key (the
+    process goes on); files left by a killed process do not stop the commands (they load the
+    tuner themselves)."""
     served = Served(made)
     try:
         with pytest.raises(ResidentError, match="serves .* already"):
             Resident(made, print).open()
         assert request(made, "ping")[1]["pid"] == os.getpid()
+        key = (made / KEY_FILE).read_bytes()
+        (made / KEY_FILE).write_bytes(b"x" * 32)  # another key: refused, the process goes on
+        with pytest.raises(ResidentError, match="refused this command's key"):
+            request(made, "ping")
+        (made / KEY_FILE).write_bytes(key)
+        assert request(made, "ping")[0]
     finally:
         served.stop()
     (made / ADDRESS_FILE).write_text(json.dumps({"socket": str(made / "gone.sock")}))

@@ -234,6 +234,11 @@ def _served(directory: Path, op: str, **kwargs: Any) -> tuple[bool, Any]:
             return request(directory, op, progress=show, **kwargs)
         except ResidentError as err:
             cli._fail(str(err), err.code)
+        except KeyboardInterrupt:
+            _interrupted(
+                f"the tuner's process goes on with the {op}; mpcmobo status {directory} "
+                "shows where it is"
+            )
 
 
 @app.command()

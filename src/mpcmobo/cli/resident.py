@@ -30,6 +30,7 @@ import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
+from multiprocessing import AuthenticationError
 from multiprocessing.connection import Client, Connection, Listener
 from pathlib import Path
 from typing import Any
@@ -75,6 +76,13 @@ def _connect(directory: Path) -> Connection | None:
         return Client(socket, family="AF_UNIX", authkey=key)
     except (OSError, EOFError):
         return None  # a process that stopped (its socket gone, or refused)
+    except AuthenticationError:
+        raise ResidentError(
+            f"the tuner's process serving {directory} refused this command's key "
+            f"({directory / KEY_FILE}): the files were changed while it ran; stop it and "
+            f"start mpcmobo serve {directory} again",
+            1,
+        ) from None
 
 
 def request(
@@ -327,7 +335,7 @@ class Resident:
             while True:
                 try:
                     conn = self.listener.accept()
-                except (OSError, EOFError):  # a client that failed to authenticate
+                except (OSError, EOFError, AuthenticationError):  # a client without the key
                     continue
                 with conn:
                     try:
