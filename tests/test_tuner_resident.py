@@ -211,3 +211,18 @@ def test_mpcmobo_serve_answers_the_command_line_until_it_is_stopped(made, tmp_pa
     assert proc.returncode == 143, out
     assert "serving the tuner" in out and "trial 0 learned from" in out
     assert not (made / ADDRESS_FILE).exists()
+
+
+def test_the_process_reloads_a_tuner_changed_under_it(made):
+    """A trial told with the Python ``Tuner`` while the process serves the directory: the
+    process sees the files change and answers from them, not from its stale tuner."""
+    served = Served(made)
+    try:
+        assert _ask(made)["id"] == 0
+        tuner = Tuner.load(made)
+        trial = tuner.ask()
+        tuner.tell(trial, *episode(tuner, trial))
+        assert _ask(made)["id"] == 1
+    finally:
+        served.stop()
+    assert any("reloading" in h for h in served.heard)

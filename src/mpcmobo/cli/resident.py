@@ -260,8 +260,10 @@ class Resident:
             "ask": self._ask,
             "tell": self._tell,
             "retract": self._retract,
-            "ping": lambda: {"pid": os.getpid()},
         }
+        if op == "ping":  # whether the process answers: the tuner is not needed
+            conn.send(("ok", {"pid": os.getpid(), "working": self.work.what}))
+            return
         if op not in ops:
             conn.send(("error", {"message": f"unknown request {op!r}", "code": 1}))
             return
@@ -270,7 +272,7 @@ class Resident:
         self.handed_over = False
         try:
             failure, self.work.failure = self.work.failure, ""
-            if failure and op != "ping":
+            if failure:
                 raise ResidentError(failure, 1)
             answer = ops[op](**kwargs)
         except ResidentError as err:
@@ -281,6 +283,7 @@ class Resident:
             conn.send(("ok", answer))
         finally:
             if not self.handed_over:
+                self._written()  # what the request wrote (a quarantine too) is this process's
                 self.lock.release()
         self.log(f"{op} {kwargs or ''}".rstrip())
 
