@@ -8,8 +8,7 @@
   multipliers (``warm_start``); the linear solves are CasADi's sparse QR, generated as plain C;
 - ``controller.c`` / ``.h``: the solve, the paths of :mod:`mpcmobo.mpc.solve` without IPOPT:
   with a warm start, at most ``newton_steps`` Newton steps, then the interior-point
-  continuation of :mod:`mpcmobo.mpc.interior` from the re-centred shifted plan (a step that
-  would leave the interior shortened by the fraction-to-the-boundary rule); without one
+  continuation of :mod:`mpcmobo.mpc.interior` from the re-centred shifted plan; without one
   (the first call, or after a failure), the continuation from the cold guess of
   :meth:`~mpcmobo.mpc.transcription.Transcription.cold_guess`, re-centred, on the central path
   at ``m`` = 1, then 0.1; where no path gets there, the fallback input: the previous plan's
@@ -35,12 +34,6 @@ from mpcmobo.mpc.embedded_source import CONTROLLER_C, CONTROLLER_H, MAIN_C
 from mpcmobo.mpc.parametric import ParametricMPC
 
 __all__ = ["embedded_compile_command", "export_embedded", "warm_start_function"]
-
-# a continuation step that leaves the interior is shortened to keep every multiplier and row at
-# least this fraction of its distance from the boundary, halving the step at most DAMP_HALVINGS
-# times (the fraction-to-the-boundary rule of interior-point methods)
-FRACTION_TO_BOUNDARY = 0.01
-DAMP_HALVINGS = 20
 
 
 def warm_start_function(mpc: ParametricMPC) -> ca.Function:
@@ -110,7 +103,6 @@ def _constants(mpc: ParametricMPC, theta: np.ndarray, functions: list[ca.Functio
         f"#define DELTA {(interior.delta if interior else 1e-2)!r}\n",
         f"#define M0 {(interior.m0 if interior else 1e-3)!r}\n",
         f"#define KAPPA {(interior.kappa if interior else 10.0)!r}\n",
-        f"#define FTB {FRACTION_TO_BOUNDARY!r}\n#define DAMP_HALVINGS {DAMP_HALVINGS}\n",
         _c_array("double", "THETA", theta),
         _c_array("int", "SLACK_VAR", np.unique(slack[slack >= 0])),
         _c_array("int", "SLACK_PTR", ptr),

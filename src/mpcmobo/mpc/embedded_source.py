@@ -116,39 +116,12 @@ static int recentre(double m0) { /* raise the slacks of rows that are not strict
   return 1;
 }
 
-static int damped(void) {
-  /* A step Y1 that leaves the interior, shortened: Y + a (Y1 - Y) with the largest a of
-   * 1, 1/2, 1/4, ... (at most DAMP_HALVINGS halvings) that keeps every multiplier and every
-   * row at least FTB of its distance away from the boundary (fraction to the boundary);
-   * Y moves there. 0 if no such a. */
-  static double Y0[NY], H0[NH];
-  double a = 1.0;
-  int i, j, t;
-  eval_rows();
-  memcpy(H0, H, sizeof H0);
-  memcpy(Y0, Y, sizeof Y0);
-  for (j = NW + NEQ; j < NY; j++)
-    if (Y1[j] < Y0[j]) a = fmin(a, (1.0 - FTB) * Y0[j] / (Y0[j] - Y1[j]));
-  for (t = 0; t <= DAMP_HALVINGS; t++, a *= 0.5) {
-    int inside = 1;
-    for (i = 0; i < NY; i++) Y[i] = Y0[i] + a * (Y1[i] - Y0[i]);
-    eval_rows();
-    for (j = 0; j < NH && inside; j++) inside = H[j] <= FTB * H0[j] && isfinite(H[j]);
-    if (inside) return 1;
-  }
-  memcpy(Y, Y0, sizeof Y0);
-  return 0;
-}
-
 static int continuation(double m0) { /* the central path from Y: the steps taken, 0 if none */
   int k;
   double m = fmax(m0, TAU);
   for (k = 1; k <= MAX_STEPS; k++) {
     step(m > TAU ? m : -1.0);
-    if (!accepted()) {
-      if (!isfinite(S[1]) || !damped()) return 0;
-      continue; /* the same m from the shorter step */
-    }
+    if (!accepted()) return 0;
     memcpy(Y, Y1, sizeof Y);
     if (m <= TAU) {
       if (S[1] <= TOL) return k;
