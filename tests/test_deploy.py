@@ -198,9 +198,10 @@ def test_verification_runs_from_the_next_start_or_the_deployed_theta_first(lq):
     for s in (0, 1):
         _observe(lr, z0, cost(z0, s), s)
     _observe(lr, bad, cost(bad, 0), 0)
-    assert lr.trust_.failures == 1 and lr.verify_z_ is None
+    assert lr.trust_.failures == 1 and lr.verify_z_ is None and lr.verifying() is None
     _observe(lr, good, cost(good, 1), 1)
     assert _same(lr.verify_z_, good) and _same(lr.deployed_z_, z0)
+    np.testing.assert_array_equal(lr.verifying(), lr.theta_of(good))  # what status names
     assert lr.trust_.failures == 1  # it earned a verification: not a failure
     for s in (2, 3):  # start 2 (then 3) next: the deployed theta has no episode there
         kind, z = lr.policy.next_check(lr.evidence_, lr.deployed_z_, lr.verify_z_)

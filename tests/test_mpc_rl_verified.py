@@ -12,6 +12,7 @@ confidently worse block, exact resume, the options, and the noise-free episodes 
 from __future__ import annotations
 
 import copy
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -440,3 +441,38 @@ def test_the_loop_runs_a_noise_free_episode_on_the_same_random_stream(lq):
     np.testing.assert_array_equal(q1.u, n1.u)  # the stream is the same afterwards
     assert ql.results[0].stage_cost == mean_stage_cost(q0)
     assert not ql.results[0].critic_ok and nl.results[0].critic_ok  # no noise, no critic
+
+
+def test_the_open_blocks_candidate_is_under_verification(lq):
+    """``verifying()`` is the open block's candidate while the block gathers its episodes,
+    None between blocks and without blocks; the tuner's status calls its trials so."""
+    from mpcmobo.experiment.tunerstatus import trial_table
+
+    lr = _learner(lq, CYCLE)
+    seen = []
+    for k in range(B + EVERY + 2):
+        th = lr.propose()
+        lr.observe(th, _result(1.0 + 0.1 * (k % B), k % B))
+        v = lr.verifying()
+        seen.append(v is not None)
+        if v is not None:
+            np.testing.assert_array_equal(v, th)
+    # theta0's block, then steps outside blocks, then the next block's first episodes
+    assert seen == [True] * (B - 1) + [False] * (EVERY + 1) + [True] * 2
+    iterate = make_learner("mpc-rl", lq.search_space, lq.parameterization.theta0, deploy="iterate")
+    assert iterate.verifying() is None
+    theta0 = lq.parameterization.theta0
+    rows = [
+        SimpleNamespace(
+            episode=k,
+            theta=th,
+            incumbent=theta0,
+            x0=[0.0],
+            error="",
+            plant_cost=1.0,
+            excess_cost=0.0,
+        )
+        for k, th in enumerate([theta0, lr.propose()])
+    ]
+    table = trial_table(rows, theta0, "cycle", B, None, lr.verifying())
+    assert [t["verdict"] for t in table] == ["ran the deployed theta", "under verification"]

@@ -580,8 +580,14 @@ class Tuner:
         ]
         incumbents = [self.job.run.learner.theta0, *(np.asarray(r.incumbent) for r in rows)]
         s = self.settings
+        learner = self.job.run.learner
         trials = tunerstatus.trial_table(
-            rows, self.job.run.learner.theta0, s.start_mode, s.n_cycle_starts, self.files.forced()
+            rows,
+            learner.theta0,
+            s.start_mode,
+            s.n_cycle_starts,
+            self.files.forced(),
+            learner.verifying(),
         )
         pending = None if self.job.pending is None else int(self.job.pending["episode"])
         quarantined = self.files.quarantined()

@@ -4,7 +4,8 @@
 theta deployed before it; ``verification``: it ran a theta an earlier trial ran, to measure it
 again; ``candidate``: a new theta), its start, its plant cost (the episode's mean stage cost),
 its excess over the deployed controller from the same start (``None`` until it is predicted),
-its verdict (whether its theta was deployed) and the checks its log was told despite
+its verdict (whether its theta was deployed, or is still under verification) and the checks
+its log was told despite
 (``forced``, with ``--force``). :func:`recommendation` says whether to go on.
 :func:`saved_status` reads ``status.json`` (what the tuner wrote after its last ask, tell or
 retract) without loading the tuner, if it is as new as the tuner's checkpoint and settings.
@@ -38,10 +39,12 @@ def trial_table(
     start_mode: str,
     n_cycle_starts: int,
     forced: dict[int, list[str]] | None = None,
+    verifying: np.ndarray | None = None,
 ) -> list[dict[str, Any]]:
     """One entry per told trial (module docstring); ``forced``: per trial whose log was told
     with ``--force``, the checks it was accepted despite (``forced`` in its entry, and said in
-    its verdict)."""
+    its verdict); ``verifying``: the candidate the learner is still gathering episodes of (its
+    trials' verdict: under verification)."""
     forced = forced or {}
     out = []
     before = np.asarray(theta0, float)
@@ -61,6 +64,8 @@ def trial_table(
             verdict = "deployed"
         elif later is not None:
             verdict = f"deployed after trial {later}"
+        elif verifying is not None and _same(theta, verifying):
+            verdict = "under verification"
         else:
             verdict = "not deployed"
         if row.error:

@@ -129,6 +129,12 @@ class Learner(ABC):
     def incumbent(self) -> np.ndarray:
         """The deployed theta."""
 
+    def verifying(self) -> np.ndarray | None:
+        """The candidate theta whose episodes the learner is gathering before it decides to
+        deploy it or not (default None: none); what ``Tuner.status`` calls *under
+        verification*."""
+        return None
+
     def explores(self) -> bool:
         """Whether the episode of the last proposal runs with the exploration noise (default
         True). A learner may ask for a noise-free episode to measure a theta (MPC-RL's

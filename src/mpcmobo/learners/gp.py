@@ -100,6 +100,10 @@ class GPLearner(Learner):
         """The deployed theta."""
         return self.theta_of(self.deployed_z_)
 
+    def verifying(self) -> np.ndarray | None:
+        """The candidate the deployment policy wants run again (None: none)."""
+        return None if self.verify_z_ is None else self.theta_of(self.verify_z_)
+
     def uses_start_cost(self) -> bool:
         """Whether the policy reads the episodes' start costs (the evidence policies)."""
         return self.policy.uses_start_cost

@@ -107,6 +107,11 @@ class IdentifyLearner(Learner):
         """The deployed theta."""
         return self.switch_.deployed_.copy()
 
+    def verifying(self) -> np.ndarray | None:
+        """The switch's candidate (the identified model's theta, or the twin's) while it
+        judges one."""
+        return self.switch_.verifying()
+
     def uses_start_cost(self) -> bool:
         """The evidence rule reads the episodes' start costs."""
         return True
@@ -266,6 +271,12 @@ class IdentifyFirst(Learner):
         if self.inner_ is None:
             return self.switch_.deployed_.copy()
         return self.inner_.incumbent()
+
+    def verifying(self) -> np.ndarray | None:
+        """The switch's candidate, then the inner learner's."""
+        if self.inner_ is None:
+            return self.switch_.verifying()
+        return self.inner_.verifying()
 
     def explores(self) -> bool:
         """The switch's episodes explore; then as the inner learner says."""

@@ -221,6 +221,12 @@ class MPCRL(Learner):
             return self.theta_of(self.space.to_unit(self.theta0))
         return self.theta_of(b.deployed_point())
 
+    def verifying(self) -> np.ndarray | None:
+        """The candidate of the open verification block (None: none is open)."""
+        if self.blocks_ is None or not self.blocks_.is_open():
+            return None
+        return self.theta_of(self.blocks_.candidates_[-1])
+
     def use_twin(self, twin: Twin) -> None:
         """Let ``twin`` judge the verification blocks (``deploy = "verified"``)."""
         if self.blocks_ is not None:

@@ -179,6 +179,10 @@ class ModelSwitch:
         """Whether the candidate is an offered one (:meth:`offer`), not yet decided."""
         return self.candidate_ is not None and not self.follows_fit_
 
+    def verifying(self) -> np.ndarray | None:
+        """The candidate being judged (None: none)."""
+        return None if self.candidate_ is None else self.candidate_.copy()
+
     def drop_offered(self, theta: np.ndarray) -> None:
         """Drop the offered candidate, if ``theta`` is it, without plant evidence: the
         deployed model, which it was tuned on, predicts that it does not pay for itself on
