@@ -54,13 +54,27 @@ def test_a_candidate_within_the_budget_runs_one_over_it_does_not():
 
 
 def test_an_uncertain_model_bounds_even_a_cheaper_prediction():
-    """A model that erred by a factor e (log error 1) trusts a prediction of 0.8x the deployed
-    controller only up to 0.8 e = 2.2x: over a budget of 1.5x."""
+    """A model whose log errors spread by a standard deviation of sqrt(2) (errors +-1) trusts
+    a prediction of 0.8x the deployed controller only up to 0.8 e^sqrt(2) = 3.3x: over a
+    budget of 1.5x."""
     price = _calibrated(0.5, [1.0, -1.0])
     assert price.error() == pytest.approx(1.0)
+    assert price.ratio_error() == pytest.approx(math.sqrt(2))
     v = price.judge(0.8, 1.0, 0, _unasked)
-    assert not v.run and "within a factor 2.718" in v.reason
-    assert price.judge(0.5, 1.0, 1, _unasked).run  # 0.5 e = 1.36x: within it
+    assert not v.run and "within a factor 4.113" in v.reason
+    assert price.judge(0.35, 1.0, 1, _unasked).run  # 0.35 e^sqrt(2) = 1.44x: within it
+
+
+def test_a_bias_common_to_both_predictions_does_not_refuse():
+    """A structurally wrong model that under-predicts every closed loop by about a factor 4
+    (log errors near 1.4): its RMS error is large and it simulates nothing, but a candidate it
+    predicts at 0.8x the deployed controller runs, since the ratio of two of its predictions
+    is as good as the spread of its errors (a common bias cancels)."""
+    price = _calibrated(0.5, [1.3, 1.5, 1.4, 1.35])
+    assert price.error() > 1.3 and not price.simulates()
+    assert price.ratio_error() == pytest.approx(np.std([1.3, 1.5, 1.4, 1.35], ddof=1))
+    assert price.judge(0.8, 1.0, 0, _unasked).run
+    assert not price.judge(1.4, 1.0, 1, _unasked).run  # 1.4 e^0.087 = 1.53x: over 1.5x
 
 
 def test_a_failing_prediction_is_refused_and_no_basis_runs():

@@ -8,11 +8,14 @@ deployed theta's own model), and the deployed controller's cost from the same st
 same noise
 (:meth:`~mpcmobo.experiment.loop.LearningRun.plan`). :class:`ExplorationPrice` decides:
 
-* the model's error ``s`` is its record: the RMS of ``log(plant cost / predicted cost)`` over
-  the episodes run so far (a new model is first checked on its predictions of the last
-  :data:`RECENT` episodes); a cost predicted at ``c`` may be ``c * exp(s)``;
-* a candidate whose predicted cost, so bounded, is more than ``1 + budget`` times the
-  deployed controller's prediction is **refused**: the deployed controller runs instead (with
+* the model's record is ``log(plant cost / predicted cost)`` over the episodes run so far (a
+  new model is first checked on its predictions of the last :data:`RECENT` episodes); its
+  error (:meth:`ExplorationPrice.error`) is their RMS, its *ratio error* ``s``
+  (:meth:`ExplorationPrice.ratio_error`) their standard deviation: the rule compares two
+  predictions of the same model from the same start, where a bias common to both (a
+  structurally wrong model that under-predicts every closed loop by a factor) cancels; a
+  candidate predicted at ``r`` times the deployed controller's cost may be ``r * exp(s)``;
+* a candidate whose predicted ratio, so bounded, is more than ``1 + budget`` is **refused**: the deployed controller runs instead (with
   the same noise), and the learner observes that episode. Before the model has a record the
   bound is infinite: only the deployed controller runs;
 * every other candidate runs. One predicted to cost more than the deployed controller
@@ -113,6 +116,14 @@ class ExplorationPrice:
             return math.inf
         return float(np.sqrt(np.mean(np.square(self.errors_))))
 
+    def ratio_error(self) -> float:
+        """The model's error on the ratio of two of its predictions from one start: the
+        standard deviation (one degree of freedom for the mean) of its log errors, inf before
+        :data:`MIN_CALIBRATION` of them (module docstring)."""
+        if len(self.errors_) < MIN_CALIBRATION:
+            return math.inf
+        return float(np.std(self.errors_, ddof=1))
+
     def use_model(self, key: str, predict: Callable[[list[Episode]], np.ndarray]) -> None:
         """Predict with the model ``key`` names from now on; a new one is calibrated on its
         predictions ``predict(episodes)`` of the last :data:`RECENT` episodes."""
@@ -194,7 +205,7 @@ class ExplorationPrice:
             return Verdict(True)
         if not math.isfinite(candidate):
             return Verdict(False, "its closed loop on the model fails from this start")
-        spread = math.exp(self.error())  # inf before the model is calibrated
+        spread = math.exp(self.ratio_error())  # inf before the model is calibrated
         if candidate * spread > (1 + self.budget) * deployed:
             return Verdict(False, self._over_budget(candidate / deployed, spread))
         excess = candidate - deployed
@@ -234,7 +245,7 @@ class ExplorationPrice:
         """How far the model's predictions are trusted, in words."""
         if not math.isfinite(self.error()):
             return "the model not calibrated yet"
-        return f"the model within a factor {math.exp(self.error()):.3f}"
+        return f"the model's ratios within a factor {math.exp(self.ratio_error()):.3f}"
 
     def state_dict(self) -> dict:
         """What the gate has learned (its configuration comes from the settings)."""
