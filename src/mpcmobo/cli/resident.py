@@ -137,7 +137,6 @@ class Resident:
         self.tuner: Any = None
         self.stamp: tuple = ()
         self.listener: Listener | None = None
-        self.worker: threading.Thread | None = None
         self.handed_over = False  # the lock went to the background thread
 
     # ---------------------------------------------------------------- the tuner
@@ -198,8 +197,6 @@ class Resident:
         """In the background: the learner learns from the accepted log, then the next trial is
         prepared (unless the budget is spent; a proposal that fails there is only logged: the
         next ``ask`` proposes again and reports it)."""
-        from mpcmobo.cli.plant import _write_trial
-
         tuner = self.tuner
         trial = tuner.learning
 
@@ -221,12 +218,10 @@ class Resident:
             return
         self.work.what = f"preparing trial {row.episode + 1}"
         try:
-            data = _write_trial(self.directory, tuner)
+            self._prepare()
         except Exception as err:  # noqa: BLE001 - the next ask proposes again
             self.log(f"preparing the next trial failed: {type(err).__name__}: {err}")
-        else:
-            self.log(f"trial {data['id']} is ready")
-        self._written()
+            self._written()  # what the failed proposal wrote is this process's
 
     def _hand_over(self, fn: Callable[[], None], what: str) -> None:
         """``fn`` in the background thread. The caller holds the tuner's lock and hands it
@@ -244,8 +239,7 @@ class Resident:
                 self.work.what = ""
                 self.lock.release()
 
-        self.worker = threading.Thread(target=run, name="mpcmobo-learner", daemon=True)
-        self.worker.start()
+        threading.Thread(target=run, name="mpcmobo-learner", daemon=True).start()
 
     def _reload_after_failure(self) -> None:
         try:
@@ -324,7 +318,8 @@ class Resident:
             self._hand_over(self._prepare, "preparing the next trial")
 
     def _prepare(self) -> None:
-        """The next trial prepared in the background, so that the first ``ask`` is quick."""
+        """The next trial prepared (in the background: at the start, and after a learning), so
+        that the next ``ask`` is quick."""
         from mpcmobo.cli.plant import _write_trial
 
         data = _write_trial(self.directory, self.tuner)

@@ -15,8 +15,9 @@ same noise
   predictions of the same model from the same start, where a bias common to both (a
   structurally wrong model that under-predicts every closed loop by a factor) cancels; a
   candidate predicted at ``r`` times the deployed controller's cost may be ``r * exp(s)``;
-* a candidate whose predicted ratio, so bounded, is more than ``1 + budget`` is **refused**: the deployed controller runs instead (with
-  the same noise), and the learner observes that episode. Before the model has a record the
+* a candidate whose predicted ratio, so bounded, is more than ``1 + budget`` is **refused**:
+  the deployed controller runs instead (with the same noise), and the learner observes that
+  episode. Before the model has a record the
   bound is infinite: only the deployed controller runs;
 * every other candidate runs. One predicted to cost more than the deployed controller
   **pays back** if, were it deployed, its predicted saving per episode (the deployed

@@ -362,13 +362,12 @@ class Tuner:
                 entry["force"],
             )
         except BaseException:
-            self.files.drop_accepted()
-            self._write_status()
+            self._write_status()  # the trial is pending again
             raise
         finally:
+            self.files.drop_accepted()
             learner.use_progress(None)
             self.job.run.learner.use_progress(None)  # a learner reloaded by an interrupted tell
-        self.files.drop_accepted()
         return row
 
     def _learn_accepted(self) -> None:
@@ -563,7 +562,8 @@ class Tuner:
         ``force``; :mod:`mpcmobo.experiment.tunerstatus`); ``plant_cost`` and
         ``excess_cost`` summed over them; ``quarantined``: the trials whose log is
         quarantined; ``learning``: the told trial whose log the learner has not learned from
-        yet (:meth:`accept`; None: none); ``recommendation``: ``action`` (continue or stop) and ``reason``;
+        yet (:meth:`accept`; None: none); ``recommendation``: ``action`` (continue or stop)
+        and ``reason``;
         ``exploration``: the exploration budget's account (:meth:`_exploration`); the
         ``deployed`` theta, the trials that ran it and its ``evidence``, how often it changed
         from theta0, its last ``J_eval`` (a simulated plant; None until it is evaluated), and
@@ -634,8 +634,8 @@ class Tuner:
         ``refused`` (the deployed theta ran), those of them whose candidate the learner learned
         from in simulation (``simulated``), the relative ``model_error`` of its predictions so
         far and its ``ratio_error`` on a candidate's cost over the deployed controller's (the
-        budget's bound; :mod:`mpcmobo.experiment.price`) so
-        far (None before two) and why tuning ``converged`` (None: it has not)."""
+        budget's bound; :mod:`mpcmobo.experiment.price`; both None before two), and why tuning
+        ``converged`` (None: it has not)."""
         price = self.job.run.price
         error, ratio = price.error(), price.ratio_error()
         return {

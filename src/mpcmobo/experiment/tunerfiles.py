@@ -51,6 +51,7 @@ class TunerFiles:
         self.quarantine_dir = self.path / "quarantine"
         self.retracted_dir = self.path / "retracted"
         self.status_path = self.path / "status.json"
+        self._forced: dict[str, tuple[int, list[str]]] = {}  # told file: (mtime, checks)
 
     # ------------------------------------------------------------------ told trials
     def save_told(
@@ -95,14 +96,21 @@ class TunerFiles:
 
     def forced(self) -> dict[int, list[str]]:
         """Per told trial whose log was told with ``--force`` despite problems, the checks
-        that found them."""
+        that found them. Each told entry is read once (``status`` asks after every ask and
+        tell), again only when its file changes."""
         out = {}
         for path in self.told_dir.glob("trial-*.pkl"):
             if path.name.endswith(".checkpoint.pkl"):
                 continue
-            entry = self.told(int(path.stem.split("-")[1]))
-            if entry is not None and entry.get("forced") and entry.get("problems"):
-                out[int(entry["trial"])] = sorted({p["check"] for p in entry["problems"]})
+            stamp = path.stat().st_mtime_ns
+            cached = self._forced.get(path.name)
+            if cached is None or cached[0] != stamp:
+                entry = self.told(int(path.stem.split("-")[1])) or {}
+                found = entry.get("problems") if entry.get("forced") else None
+                cached = (stamp, sorted({p["check"] for p in found or []}))
+                self._forced[path.name] = cached
+            if cached[1]:
+                out[int(path.stem.split("-")[1])] = cached[1]
         return out
 
     # ------------------------------------------------------------------ accepted logs

@@ -5,8 +5,8 @@ theta deployed before it; ``verification``: it ran a theta an earlier trial ran,
 again; ``candidate``: a new theta), its start, its plant cost (the episode's mean stage cost),
 its excess over the deployed controller from the same start (``None`` until it is predicted),
 its verdict (whether its theta was deployed, or is still under verification) and the checks
-its log was told despite
-(``forced``, with ``--force``). :func:`recommendation` says whether to go on.
+its log was told despite (``forced``, with ``--force``). :func:`recommendation` says whether
+to go on.
 :func:`saved_status` reads ``status.json`` (what the tuner wrote after its last ask, tell or
 retract) without loading the tuner, if it is as new as the tuner's checkpoint and settings.
 """
