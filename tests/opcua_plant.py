@@ -1,11 +1,14 @@
 """A simulated plant behind a real OPC UA server (asyncua) on localhost, for the tests of
 ``mpcmobo connect`` and benchmarks/connect_latency.py.
 
-The server runs in a thread of its own with its own event loop. Every ``period`` seconds the
-plant takes one step of the system's true model (``System.plant_step``, its sampling time
-``dt`` played ``dt / period`` times faster) with the inputs its nodes hold, and publishes the
-states with a new source timestamp (the temperature ``T`` in degrees Celsius, as a plant's
-historian would). Every write a client makes is recorded (``writes``). Faults to inject:
+The server runs in a thread of its own with its own event loop. Every ``period`` seconds it
+publishes the states with a new source timestamp (the temperature ``T`` in degrees Celsius, as
+a plant's historian would). The plant takes one step of the system's true model
+(``System.plant_step``, its sampling time ``dt`` played ``dt / period`` times faster) with the
+inputs its nodes hold either on that clock too (``lockstep=False``: a real-time plant, whose
+step and the client's write race when the machine is busy) or at each write of the inputs
+(``lockstep=True``: every period's input acts for exactly one step however late the client
+runs, for the tests whose subject is not the timing). Every write a client makes is recorded (``writes``). Faults to inject:
 ``freeze`` (the states stop updating: stale), ``fail_sensor`` (a bad status code), ``set_enable(False)``, ``refuse_writes`` (the
 inputs become read-only), ``outage(seconds)`` (the network goes away: the
 connections close, the port refuses new ones, the plant runs on), and ``interrupt_after`` (a Ctrl-C in the main thread at a given write).
@@ -96,11 +99,14 @@ class SimPlant:
         period: float,
         password: str | None = None,
         certificates: Path | None = None,
+        lockstep: bool = False,
     ) -> None:
         """``password``: only the user ``operator`` with it may connect; ``certificates``: a
         directory for the server's certificate (made there): only Basic256Sha256 with
-        SignAndEncrypt is offered."""
+        SignAndEncrypt is offered; ``lockstep``: the plant steps at each write of the inputs
+        instead of on the clock (module docstring)."""
         self.system, self.period, self.password = system, period, password
+        self.lockstep = lockstep
         self.certificates = certificates
         self.x0 = np.asarray(x0, float).copy()
         self.x = self.x0.copy()
@@ -115,6 +121,7 @@ class SimPlant:
         self.read_only = False
         self.interrupt_at: int | None = None
         self.steps = 0
+        self.published = 0
         self._server: Server | None = None
         self._ready = threading.Event()
         self._stop: asyncio.Event | None = None
@@ -148,7 +155,7 @@ class SimPlant:
         self.frozen = frozen
 
     def fail_sensor(self, failed: bool = True) -> None:
-        """The volume's sensor reports BadSensorFailure (from the plant's next step)."""
+        """The volume's sensor reports BadSensorFailure (from its next publication)."""
         self.sensor_failed = failed
 
     def set_enable(self, on: bool) -> None:
@@ -184,9 +191,10 @@ class SimPlant:
     def input_writes(self, name: str) -> np.ndarray:
         return np.array([v for node, v in self.writes if node == f"CSTR.{name}"], float)
 
-    def wait_steps(self, n: int, timeout: float = 10.0) -> None:
-        end, target = time.monotonic() + timeout, self.steps + n
-        while self.steps < target and time.monotonic() < end:
+    def wait_published(self, n: int, timeout: float = 10.0) -> None:
+        """Wait until the states have been published ``n`` more times."""
+        end, target = time.monotonic() + timeout, self.published + n
+        while self.published < target and time.monotonic() < end:
             time.sleep(0.01)
 
     # ------------------------------------------------------------------ server side
@@ -265,6 +273,7 @@ class SimPlant:
             value = self.x[j] - KELVIN if name == "T" else self.x[j]
             await self._set(name, float(value))
         await self._set("Enable", self.enable, ua.VariantType.Boolean)
+        self.published += 1
 
     async def _step_loop(self) -> None:
         t0 = time.monotonic()
@@ -274,18 +283,28 @@ class SimPlant:
             await asyncio.sleep(max(0.0, t0 + k * self.period - time.monotonic()))
             if self._server is None or self.frozen:
                 continue
-            for j, name in enumerate(self.system.input_names):
-                self.u[j] = await self._nodes[name].read_value()
-            self.x = np.asarray(self.system.plant_step(self.x, self.u), float)
-            self.steps += 1
+            if not self.lockstep:
+                await self._step()
             await self._publish()
+
+    async def _step(self) -> None:
+        """One step of the plant with the inputs its nodes hold."""
+        for j, name in enumerate(self.system.input_names):
+            self.u[j] = await self._nodes[name].read_value()
+        self.x = np.asarray(self.system.plant_step(self.x, self.u), float)
+        self.steps += 1
 
     async def _written(self, event: Any, dispatcher: Any) -> None:
         if not event.is_external:  # the server's own writes (its status, the plant's states)
             return
+        written = [wv.NodeId.Identifier for wv in event.request_params.NodesToWrite]
         for wv in event.request_params.NodesToWrite:
             self.writes.append((wv.NodeId.Identifier, wv.Value.Value.Value))
         self.requests += 1
+        inputs = {f"CSTR.{name}" for name in self.system.input_names}
+        if self.lockstep and not self.frozen and inputs & set(written):
+            await self._step()
+            await self._publish()
         if self.interrupt_at is not None and self.requests >= self.interrupt_at:
             self.interrupt_at = None
             _thread.interrupt_main()

@@ -1,5 +1,6 @@
 """mpcmobo connect against a real OPC UA server (asyncua) whose nodes are the simulated CSTR on
-an accelerated clock (tests/opcua_plant.py): three trials are asked, run and told; each fault
+an accelerated clock, stepping at each write of the inputs so that a busy machine's late
+period does not change the plant's response (tests/opcua_plant.py): three trials are asked, run and told; each fault
 (stale data, the enable withdrawn, a refused write, a lost connection, Ctrl-C) aborts the trial,
 keeps its log, tells nothing and hands the plant back with the safe input; the next connect runs
 the aborted trial again. No input outside the bounds is ever written."""
@@ -60,7 +61,7 @@ def tuner_dir(made, tmp_path):
 
 @pytest.fixture(scope="module")
 def server(cstr_system):
-    p = SimPlant(cstr_system, cstr_system.x_ref, PERIOD)
+    p = SimPlant(cstr_system, cstr_system.x_ref, PERIOD, lockstep=True)
     yield p
     p.close()
 
@@ -116,7 +117,7 @@ def test_three_trials_are_asked_run_and_told(plant, tmp_path, cstr_system):
 
 def _repaired(plant):
     plant.fail_sensor(False)
-    plant.wait_steps(2)  # a good value published
+    plant.wait_published(2)  # a good value published
 
 
 def _fault_run(plant, tuner_dir, tmp_path, fault, requests=3):
@@ -221,7 +222,7 @@ def test_credentials_come_from_the_environment_and_are_never_recorded(
     cstr_system, tuner_dir, tmp_path, monkeypatch
 ):
     secret = "s3cret-Pa55word"
-    plant = SimPlant(cstr_system, cstr_system.x_ref, PERIOD, password=secret)
+    plant = SimPlant(cstr_system, cstr_system.x_ref, PERIOD, password=secret, lockstep=True)
     try:
         nodes = _nodes(tmp_path, password_env=True)
         monkeypatch.setenv("MPCMOBO_OPCUA_PASSWORD", "wrong")
@@ -264,7 +265,7 @@ def test_a_certificate_signs_and_encrypts_the_channel(
 
     from opcua_plant import make_certificate
 
-    plant = SimPlant(cstr_system, cstr_system.x_ref, PERIOD, certificates=tmp_path)
+    plant = SimPlant(cstr_system, cstr_system.x_ref, PERIOD, certificates=tmp_path, lockstep=True)
     try:
         nodes = _nodes(tmp_path)
         with pytest.raises(ConnectError, match="No matching endpoints"):
