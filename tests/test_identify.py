@@ -387,10 +387,11 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     assert sw.settled() and sw.follows_fit_
 
 
-def test_an_offered_candidate_the_budget_finds_unprofitable_is_dropped_unrun(cstr):
-    """The twin's theta, simulated instead of run (the budget finds on the deployed model that
-    it does not pay for itself), is dropped without a plant episode and the switch settles;
-    another theta leaves it, as does a fitted candidate."""
+def test_an_offered_candidate_the_budget_keeps_off_the_plant_is_dropped_unrun(cstr):
+    """The twin's theta, simulated instead of run (refused from a start, or not paying for
+    itself on the deployed model) from a verification's worth of starts, is dropped without a
+    plant episode and the switch settles; one refusal is a verdict on one start, and the count
+    survives a resume; another theta leaves it, as does a fitted candidate."""
     from mpcmobo.learners.switch import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
@@ -401,6 +402,15 @@ def test_an_offered_candidate_the_budget_finds_unprofitable_is_dropped_unrun(cst
     assert sw.offered()
     sw.drop_offered(theta0 * 1.02)  # not the candidate
     assert sw.offered() and not sw.settled()
+    runs = sw.policy.min_runs
+    assert runs > 1
+    for _ in range(runs - 1):
+        sw.drop_offered(offered.copy())
+    assert sw.offered() and not sw.settled()  # refused from some starts, not from enough
+    again, _ = _switch(cstr, [])
+    again.load_state_dict(sw.state_dict())
+    again.drop_offered(offered.copy())
+    assert not again.offered() and again.settled()
     sw.drop_offered(offered.copy())
     assert not sw.offered() and sw.candidate_ is None and sw.settled()
     assert sw.decisions_ == MAX_DECISIONS + 1 and len(sw.evidence_) == 0

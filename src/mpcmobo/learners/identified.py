@@ -17,8 +17,10 @@
   (:meth:`~mpcmobo.learners.base.Learner.use_twin`); the candidates the exploration budget
   refuses reach it as episodes simulated on the identified model
   (:meth:`~mpcmobo.learners.base.Learner.observe_simulated`). The twin's theta itself, where
-  the budget finds on that model that it does not pay for itself on the plant, is dropped
-  without a plant episode, and the inner learner starts from the deployed theta.
+  the budget keeps it off the plant from a verification's worth of starts (refused from each,
+  or not paying for itself on that model), is dropped without a plant episode
+  (:meth:`~mpcmobo.learners.switch.ModelSwitch.drop_offered`), and the inner learner starts
+  from the deployed theta.
 """
 
 from __future__ import annotations
@@ -203,7 +205,7 @@ class IdentifyFirst(Learner):
 
     def observe_simulated(self, theta: np.ndarray, result: EpisodeResult) -> None:
         """The inner learner's simulated observation; before it tunes, the twin's theta
-        simulated instead of run is dropped (module docstring)."""
+        simulated instead of run counts towards its drop (module docstring)."""
         if self.inner_ is not None:
             self.inner_.observe_simulated(theta, result)
         else:

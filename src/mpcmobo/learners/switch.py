@@ -18,7 +18,9 @@ dropped candidate, once no new one has come for a verification's worth of episod
 ``MAX_DECISIONS`` decisions (under structural mismatch the fit moves as data come in). A
 candidate offered from elsewhere (the twin's tuning, :meth:`ModelSwitch.offer`) is judged by
 the deployed model's twin, and dropped without a plant episode where the exploration budget
-finds it does not pay for itself on that model (:meth:`ModelSwitch.drop_offered`). Under
+keeps it off the plant from a verification's worth of starts (``min_runs``; cycled starts:
+every start of the cycle), refused from each or not paying for itself on that model
+(:meth:`ModelSwitch.drop_offered`): a refusal is a verdict on one start. Under
 random starts a fitted candidate's tests adjust each episode's cost by the identified model's
 prediction of it."""
 
@@ -68,6 +70,7 @@ class ModelSwitch:
         self.follows_fit_ = True  # the candidate is the fit's (not one offered: :meth:`offer`)
         self.decisions_ = 0  # candidates deployed or dropped
         self.waiting_ = 0  # episodes since the last decision without a new candidate
+        self.kept_off_ = 0  # episodes the offered candidate was simulated instead of run
         # fitted candidates the test left unsure since the last deployment (their episodes
         # count as the candidate's: :meth:`_judged`)
         self.pool_: list[np.ndarray] = []
@@ -165,6 +168,7 @@ class ModelSwitch:
         self.follows_fit_ = True
         self.decisions_ += 1
         self.waiting_ = 0
+        self.kept_off_ = 0
 
     def offer(self, theta: np.ndarray) -> None:
         """A candidate from elsewhere (the twin's tuning) on the deployed model, judged by that
@@ -173,6 +177,7 @@ class ModelSwitch:
             raise ValueError("offer needs a deployed identified model to judge the candidate on")
         self.candidate_ = np.array(theta, float)
         self.follows_fit_ = False
+        self.kept_off_ = 0
         self._twin(self.candidate_, self.deployed_params_)
 
     def offered(self) -> bool:
@@ -184,12 +189,14 @@ class ModelSwitch:
         return None if self.candidate_ is None else self.candidate_.copy()
 
     def drop_offered(self, theta: np.ndarray) -> None:
-        """Drop the offered candidate, if ``theta`` is it, without plant evidence: the
-        deployed model, which it was tuned on, predicts that it does not pay for itself on
-        the plant (the exploration budget refused it, or it could not pay back its predicted
-        excess)."""
+        """The offered candidate, if ``theta`` is it, was simulated instead of run: the
+        exploration budget refused it from this episode's start, or the deployed model, which
+        it was tuned on, predicts that it does not pay back its excess. It is dropped without
+        plant evidence once this has happened ``min_runs`` times (module docstring)."""
         if self.offered() and theta_key(theta) == self._candidate_key():
-            self._decided()
+            self.kept_off_ += 1
+            if self.kept_off_ >= self.policy.min_runs:
+                self._decided()
 
     def settled(self) -> bool:
         """Whether identification is done (module docstring): after a deployment, when the fit
@@ -279,6 +286,7 @@ class ModelSwitch:
             "follows_fit": self.follows_fit_,
             "decisions": self.decisions_,
             "waiting": self.waiting_,
+            "kept_off": self.kept_off_,
             "pool": [t.copy() for t in self.pool_],
             "identification": None if ident is None else asdict(ident),
             "twin": None if self.twin_ is None else (self.twin_[0].copy(), self.twin_[1].copy()),
@@ -295,6 +303,7 @@ class ModelSwitch:
         self.follows_fit_ = bool(state["follows_fit"])
         self.decisions_ = int(state["decisions"])
         self.waiting_ = int(state["waiting"])
+        self.kept_off_ = int(state.get("kept_off", 0))  # saved before refusals were counted
         self.pool_ = [np.array(t, float) for t in state["pool"]]
         twin = state["twin"]
         self.twin_ = None if twin is None else (np.array(twin[0], float), np.array(twin[1], float))
