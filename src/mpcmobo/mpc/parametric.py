@@ -76,7 +76,8 @@ class ParametricMPC:
         step, compiled once per machine and problem and cached on disk (``mpcmobo.mpc.codegen``):
         the first build compiles (tens of seconds), later builds of the same problem load the
         library. Same numbers as without it, faster steps (``docs/benchmarks.md``, step time).
-        Needs a C compiler (``$CC`` or ``cc``).
+        With fatrop (``fatrop_iterations``), its NLP functions in a second library (about 5 s
+        more on the CSTR). Needs a C compiler (``$CC`` or ``cc``).
     cache_dir:
         Directory of the compiled libraries (default: ``mpcmobo.mpc.codegen.cache_directory()``).
     newton_steps:
