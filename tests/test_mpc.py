@@ -298,6 +298,34 @@ def test_fatrop_starts_an_episode_and_keeps_ipopt_away(cstr):
     assert ParametricMPC(cstr, newton_steps=0).solver.fatrop is None
 
 
+def test_a_state_far_outside_its_box_is_not_handed_to_fatrop(cstr, monkeypatch):
+    """fatrop never returns once the model's numbers overflow (the concentration at ten times
+    its reference, 2.4 widths of its box above it): such a state goes to IPOPT, which stops
+    with an error; a state within a width of its box still goes to fatrop."""
+    from mpcmobo.mpc.structured import within_reach
+
+    mpc = ParametricMPC(cstr)
+    calls = []
+
+    def solve(w0, p):
+        calls.append(p[: cstr.nx].copy())
+        return None
+
+    monkeypatch.setattr(mpc.solver.fatrop, "solve", solve)
+    far = np.array(cstr.x_ref, float) * np.array([1.0, 10.0, 1.0])
+    assert not within_reach(cstr.x_lb, cstr.x_ub, far)
+    sol = mpc.solve(far, mpc.theta0, sensitivities=False)
+    assert calls == [] and sol.status != "Fatrop_Succeeded"
+    near = np.array(cstr.x_ref, float) * np.array([1.0, 2.0, 1.0])
+    assert within_reach(cstr.x_lb, cstr.x_ub, near)
+    mpc.reset()
+    mpc.solve(near, mpc.theta0, sensitivities=False)
+    assert len(calls) == 1
+    assert not within_reach(cstr.x_lb, cstr.x_ub, np.array([np.nan, 0.1, 430.0]))
+    lb, ub = np.array([0.0, -np.inf]), np.array([1.0, np.inf])
+    assert within_reach(lb, ub, np.array([1.9, 1e9])) and not within_reach(lb, ub, [2.1, 0.0])
+
+
 def test_stagewise_rows_are_the_transcription_rows(cstr_mpc):
     from mpcmobo.mpc.structured import Stagewise
 

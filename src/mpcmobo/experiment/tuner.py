@@ -417,11 +417,14 @@ class Tuner:
         problems, record, mpc_time = checks.review(
             self.system, self.job.run.mpc, plan, log, params, model, history
         )
-        started = self._started(plan, log.states[0], problems)
+        if self.settings.start_mode == "cycle":  # a log from another start is refused
+            self._started(plan, log.states[0], problems)
         if problems and not force:
             path = self.files.quarantine(tid, log, problems, self.system)
             self._write_status()
             raise LogQuarantined(_quarantine_message(tid, problems, path), problems, path)
+        # re-priced from where it started (random starts), once the log is believed
+        started = self._started(plan, log.states[0], problems)
         if record is None:  # a log the checks stopped at, told with force
             t0 = time.perf_counter()
             record = replay(self.system, self.job.run.mpc, plan.theta, *_arrays(log))

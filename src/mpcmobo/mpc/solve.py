@@ -34,7 +34,7 @@ import numpy as np
 
 from mpcmobo.mpc.interior import Continuation, continuation, recentre
 from mpcmobo.mpc.kkt import KKTSystem
-from mpcmobo.mpc.structured import Fatrop
+from mpcmobo.mpc.structured import Fatrop, within_reach
 from mpcmobo.mpc.transcription import Transcription
 
 SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
@@ -277,8 +277,12 @@ class Solver:
         """fatrop (:mod:`mpcmobo.mpc.structured`) from the shifted previous solution (``warm``)
         or the cold guess, polished by :meth:`newton`: the arguments of :meth:`solution`, as
         :meth:`newton` returns them (the steps: fatrop's iterations plus the Newton steps), or
-        None when fatrop or the polish fails (IPOPT then solves)."""
+        None when fatrop or the polish fails, or the state is out of fatrop's reach
+        (:func:`~mpcmobo.mpc.structured.within_reach`; IPOPT then solves)."""
         if self.fatrop is None:
+            return None
+        system = self.problem.system
+        if not within_reach(system.x_lb, system.x_ub, x):
             return None
         w0 = self.prev["w_shift"] if warm else self.problem.cold_guess(x)  # type: ignore[index]  # warm: prev is set
         got = self.fatrop.solve(w0, p)

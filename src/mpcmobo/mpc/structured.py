@@ -17,6 +17,13 @@ distance from it, the rows relaxed by a slack by :func:`~mpcmobo.mpc.interior.re
 the Newton steps of the barrier KKT system (:meth:`mpcmobo.mpc.solve.Solver.newton`) take it to
 the root IPOPT stops at: the same policy and sensitivities, where both reach the same local
 optimum (from the same warm start they can reach different ones; ``docs/benchmarks.md``).
+
+fatrop (1.1.8, the wheel's) has no bound on its inertia correction: once its KKT matrix holds a
+number that is not finite, it raises the regularisation forever and never returns. The model's
+equations produce such numbers far outside the state box (the CSTR's concentration at ten times
+its reference, 2.4 widths of its box above it, overflows the model's exponential), so a state
+further than :data:`REACH` widths of its box outside it (:func:`within_reach`) is not handed to
+fatrop: IPOPT solves it, and stops with an error where the model cannot be evaluated.
 """
 
 from __future__ import annotations
@@ -28,6 +35,9 @@ from mpcmobo.mpc.interior import Continuation, recentre
 from mpcmobo.mpc.kkt import KKTSystem
 from mpcmobo.mpc.transcription import Transcription
 
+#: how far outside its box (in widths of the box) a state may be for fatrop to solve from it
+REACH = 1.0
+
 #: CasADi's options of the fatrop solver besides its structure (no lam_p: the sensitivities
 #: come from the KKT system; no bound consistency: it would put variables on their bounds)
 FATROP_OPTIONS = {
@@ -36,6 +46,16 @@ FATROP_OPTIONS = {
     "calc_lam_p": False,
     "bound_consistency": False,
 }
+
+
+def within_reach(lb: np.ndarray, ub: np.ndarray, x: np.ndarray) -> bool:
+    """Whether every state of ``x`` is finite and, where its box ``[lb, ub]`` is finite, at
+    most :data:`REACH` widths of the box outside it (module docstring)."""
+    x, lb, ub = (np.asarray(v, float) for v in (x, lb, ub))
+    if not np.all(np.isfinite(x)):
+        return False
+    width = np.where(np.isfinite(ub - lb), ub - lb, np.inf)
+    return bool(np.all((x >= lb - REACH * width) & (x <= ub + REACH * width)))
 
 
 class Stagewise:
