@@ -419,12 +419,10 @@ def _print_exploration(ex: dict[str, Any]) -> None:
         f" (learned from in simulation: {', '.join(map(str, simulated))})" if simulated else ""
     )
     err = ex["model_error"]  # the RMS log error of its predictions: a factor exp(err)
-    bound = ex.get("ratio_bound")  # a status saved before the ratio bound
-    if bound is None and ex.get("ratio_error") is not None:
-        bound = math.exp(ex["ratio_error"])
+    ratio = ex.get("ratio_error")  # a status saved before the ratio error
     error = "not calibrated yet" if err is None else f"within a factor {math.exp(err):.3f}"
-    if err is not None and bound is not None:
-        error += f", its ratios of two controllers' costs bounded by a factor {bound:.3f}"
+    if err is not None and ratio is not None:
+        error += f", its ratios of two controllers' costs within {math.exp(ratio):.3f}"
     cli.console.print(
         f"exploration budget {1 + ex['budget']:.2f}x the deployed controller's predicted cost; "
         f"trials whose candidate it refused (the deployed ran): {refused}{learned}; the "

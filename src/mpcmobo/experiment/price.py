@@ -14,10 +14,7 @@ same noise
   (:meth:`ExplorationPrice.ratio_error`) their standard deviation: the rule compares two
   predictions of the same model from the same start, where a bias common to both (a
   structurally wrong model that under-predicts every closed loop by a factor) cancels; a
-  candidate predicted at ``r`` times the deployed controller's cost may be up to ``r`` times
-  the model's *ratio bound* (:meth:`ExplorationPrice.ratio_bound`): ``exp(t s sqrt(1 + 1/n))``,
-  the one-sided :data:`RATIO_CONFIDENCE` prediction bound of the next log error from ``n``
-  past ones (Student's t with ``n - 1`` degrees of freedom), wide while the record is short;
+  candidate predicted at ``r`` times the deployed controller's cost may be ``r * exp(s)``;
 * a candidate whose predicted ratio, so bounded, is more than ``1 + budget`` is **refused**:
   the deployed controller runs instead (with the same noise), and the learner observes that
   episode. Before the model has a record the
@@ -52,14 +49,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = [
-    "PATIENCE",
-    "RATIO_CONFIDENCE",
-    "SIMULATED_PATIENCE",
-    "SIMULATION_ERROR",
-    "ExplorationPrice",
-    "Verdict",
-]
+__all__ = ["PATIENCE", "SIMULATED_PATIENCE", "SIMULATION_ERROR", "ExplorationPrice", "Verdict"]
 
 # candidates in a row refused or not paying back after which tuning has converged
 PATIENCE = 5
@@ -71,8 +61,6 @@ SIMULATION_ERROR = 0.05
 MIN_CALIBRATION = 2
 # the last episodes kept to calibrate a new model on
 RECENT = 6
-# the one-sided confidence of the ratio bound: a candidate's cost ratio is over it once in 20
-RATIO_CONFIDENCE = 0.95
 
 # one past episode as the calibration keeps it: its start, theta, noise and plant cost
 Episode = dict
@@ -136,20 +124,6 @@ class ExplorationPrice:
         if len(self.errors_) < MIN_CALIBRATION:
             return math.inf
         return float(np.std(self.errors_, ddof=1))
-
-    def ratio_bound(self) -> float:
-        """The factor by which a candidate's cost ratio to the deployed controller may exceed
-        its prediction: ``exp(t s sqrt(1 + 1/n))`` from the ``n`` log errors so far, with
-        ``s`` the :meth:`ratio_error` and ``t`` Student's :data:`RATIO_CONFIDENCE` quantile
-        with ``n - 1`` degrees of freedom (the prediction bound of the next error); inf
-        before :data:`MIN_CALIBRATION` errors."""
-        s = self.ratio_error()
-        if not math.isfinite(s):
-            return math.inf
-        from scipy.stats import t as student_t
-
-        n = len(self.errors_)
-        return math.exp(float(student_t.ppf(RATIO_CONFIDENCE, n - 1)) * s * math.sqrt(1 + 1 / n))
 
     def use_model(self, key: str, predict: Callable[[list[Episode]], np.ndarray]) -> None:
         """Predict with the model ``key`` names from now on; a new one is calibrated on its
@@ -232,9 +206,9 @@ class ExplorationPrice:
             return Verdict(True)
         if not math.isfinite(candidate):
             return Verdict(False, "its closed loop on the model fails from this start")
-        bound = self.ratio_bound()  # inf before the model is calibrated
-        if candidate * bound > (1 + self.budget) * deployed:
-            return Verdict(False, self._over_budget(candidate / deployed, bound))
+        spread = math.exp(self.ratio_error())  # inf before the model is calibrated
+        if candidate * spread > (1 + self.budget) * deployed:
+            return Verdict(False, self._over_budget(candidate / deployed, spread))
         excess = candidate - deployed
         if excess <= 0:
             return Verdict(True)
@@ -243,7 +217,6 @@ class ExplorationPrice:
         saving, mean = gain()
         if not math.isfinite(saving):
             return Verdict(False, "its closed loop on the model fails from a fixed start")
-        spread = math.exp(self.ratio_error())
         if (saving + (spread - 1) * mean) * remaining < excess:
             return Verdict(
                 True,
@@ -254,11 +227,11 @@ class ExplorationPrice:
             )
         return Verdict(True)
 
-    def _over_budget(self, ratio: float, bound: float) -> str:
+    def _over_budget(self, ratio: float, spread: float) -> str:
         """Why a candidate predicted at ``ratio`` times the deployed controller's cost is
-        refused, with the model's ratio bound ``bound`` (inf: not calibrated)."""
+        refused, with the model's error a factor ``spread`` (inf: not calibrated)."""
         budget = f"the budget of {1 + self.budget:.3f}x"
-        if not math.isfinite(bound):
+        if not math.isfinite(spread):
             return (
                 f"predicted at {ratio:.3f}x the deployed controller's cost, but the model is "
                 f"not calibrated yet (fewer than {MIN_CALIBRATION} of its predictions checked "
@@ -266,15 +239,14 @@ class ExplorationPrice:
             )
         return (
             f"predicted at {ratio:.3f}x the deployed controller's cost, up to "
-            f"{ratio * bound:.3f}x with the model's ratios within a factor {bound:.3f} "
-            f"({100 * RATIO_CONFIDENCE:.0f}% bound of its record): over {budget}"
+            f"{ratio * spread:.3f}x with {self._within()}: over {budget}"
         )
 
     def _within(self) -> str:
         """How far the model's predictions are trusted, in words."""
         if not math.isfinite(self.error()):
             return "the model not calibrated yet"
-        return f"the model's ratio error a factor {math.exp(self.ratio_error()):.3f}"
+        return f"the model's ratios within a factor {math.exp(self.ratio_error()):.3f}"
 
     def state_dict(self) -> dict:
         """What the gate has learned (its configuration comes from the settings)."""

@@ -636,19 +636,17 @@ class Tuner:
         """The exploration budget's account: the ``budget``, the trials whose candidate it
         ``refused`` (the deployed theta ran), those of them whose candidate the learner learned
         from in simulation (``simulated``), the relative ``model_error`` of its predictions so
-        far, its ``ratio_error`` on a candidate's cost over the deployed controller's and the
-        ``ratio_bound`` the budget multiplies a predicted ratio by
-        (:mod:`mpcmobo.experiment.price`; all three None before two), and why tuning
+        far and its ``ratio_error`` on a candidate's cost over the deployed controller's (the
+        budget's bound; :mod:`mpcmobo.experiment.price`; both None before two), and why tuning
         ``converged`` (None: it has not)."""
         price = self.job.run.price
-        error, ratio, bound = price.error(), price.ratio_error(), price.ratio_bound()
+        error, ratio = price.error(), price.ratio_error()
         return {
             "budget": price.budget if price.active else None,
             "refused": [int(r.episode) for r in rows if r.refused],
             "simulated": [int(r.episode) for r in rows if SIMULATED_NOTE in r.refused],
             "model_error": error if math.isfinite(error) else None,
             "ratio_error": ratio if math.isfinite(ratio) else None,
-            "ratio_bound": bound if math.isfinite(bound) else None,
             "converged": price.converged_ or None,
         }
 
