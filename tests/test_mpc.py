@@ -242,20 +242,27 @@ def _continuation_state(cstr, mpc, theta, status="Continuation_Succeeded"):
     raise AssertionError(f"no warm step ended with {status}")
 
 
+def _same_root_as_ipopt(mpc, ipopt, x, prev, status):
+    """From the warm start ``prev`` at ``x``, ``mpc`` solves by the path ``status`` and IPOPT
+    alone (``ipopt``) by IPOPT: the same policy, value and sensitivities, the latter also
+    against finite differences."""
+    mpc.solver.prev, ipopt.solver.prev = copy.deepcopy(prev), copy.deepcopy(prev)
+    a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
+    assert a.status == status and b.status == "Solve_Succeeded"
+    np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a.value, b.value, rtol=1e-7)
+    assert np.all(np.abs(a.dpi_dtheta - b.dpi_dtheta) <= 1e-4 * np.abs(b.dpi_dtheta).max(axis=0))
+    mpc.solver.prev = prev
+    assert_warm_sensitivities_match_fd(mpc, x, mpc.theta0, status)
+
+
 def test_continuation_reaches_the_root_ipopt_stops_at(cstr, monkeypatch):
     # where the Newton steps cannot start (the new state violates the shifted plan), the
     # continuation solves: the same policy, value and sensitivities as IPOPT from that start
     mpc = ParametricMPC(cstr, continuation_steps=30, fatrop_iterations=0)
     ipopt = ParametricMPC(cstr, fatrop_iterations=0)
     x, prev = _continuation_state(cstr, mpc, mpc.theta0)
-    mpc.solver.prev, ipopt.solver.prev = copy.deepcopy(prev), copy.deepcopy(prev)
-    a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
-    assert a.status == "Continuation_Succeeded" and b.status == "Solve_Succeeded"
-    np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
-    np.testing.assert_allclose(a.value, b.value, rtol=1e-7)
-    assert np.all(np.abs(a.dpi_dtheta - b.dpi_dtheta) <= 1e-4 * np.abs(b.dpi_dtheta).max(axis=0))
-    mpc.solver.prev = prev
-    assert_warm_sensitivities_match_fd(mpc, x, mpc.theta0, "Continuation_Succeeded")
+    _same_root_as_ipopt(mpc, ipopt, x, prev, "Continuation_Succeeded")
     # a continuation that does not get there hands over to IPOPT
     mpc.solver.prev = copy.deepcopy(prev)
     monkeypatch.setattr(mpc.solver, "interior", Continuation(max_steps=1))
@@ -267,14 +274,7 @@ def test_fatrop_polished_is_the_root_ipopt_stops_at(cstr, monkeypatch):
     # Newton steps polish its solution: the policy, value and sensitivities of IPOPT's solve
     mpc, ipopt = ParametricMPC(cstr), ParametricMPC(cstr, fatrop_iterations=0)
     x, prev = _continuation_state(cstr, mpc, mpc.theta0, "Fatrop_Succeeded")
-    mpc.solver.prev, ipopt.solver.prev = copy.deepcopy(prev), copy.deepcopy(prev)
-    a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
-    assert a.status == "Fatrop_Succeeded" and b.status == "Solve_Succeeded"
-    np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
-    np.testing.assert_allclose(a.value, b.value, rtol=1e-7)
-    assert np.all(np.abs(a.dpi_dtheta - b.dpi_dtheta) <= 1e-4 * np.abs(b.dpi_dtheta).max(axis=0))
-    mpc.solver.prev = prev
-    assert_warm_sensitivities_match_fd(mpc, x, mpc.theta0, "Fatrop_Succeeded")
+    _same_root_as_ipopt(mpc, ipopt, x, prev, "Fatrop_Succeeded")
     # fatrop failing, or its polish, hands over to IPOPT
     for name, seam in (("fatrop", None), ("newton", lambda p, start=None: None)):
         mpc.solver.prev = copy.deepcopy(prev)
