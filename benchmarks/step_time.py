@@ -23,7 +23,7 @@ For every state of a few 60-step closed-loop CSTR episodes, this times
   dpi/dtheta per step.
 
 For our variants the step is split into components: the solver (Newton steps, the
-interior-point continuation, fatrop and IPOPT calls; of the IPOPT calls, IPOPT's own function-evaluation
+interior-point continuation and IPOPT calls; of the IPOPT calls, IPOPT's own function-evaluation
 time from its statistics), the two
 sensitivities, and the rest (Python); ``build_s`` is the construction time of the MPC (with
 ``codegen``, the first build in a run compiles into an empty cache directory, the second one
@@ -32,8 +32,7 @@ loads the library: set ``MPCMOBO_CACHE_DIR`` to a new directory to see both).
 policy gives about 1e-7, a different local solution in the constraint-violating phases tens.
 ``du_ipopt`` compares with the ``ipopt`` variant (IPOPT alone on the same barrier problem, so
 the same policy; the baselines solve the problem without the barrier, about 1e-4 away).
-``paths`` counts the steps solved by the Newton steps, the continuation, fatrop (polished by
-the Newton steps) and IPOPT.
+``paths`` counts the steps solved by the Newton steps, the continuation and IPOPT.
 
 The measurements of all variants and the baseline are interleaved state by state (in a new
 random order each step), so load from other processes on the shared machine hits them alike. The
@@ -44,7 +43,7 @@ same against ``baseline_mx``.
 
     .venv/bin/python benchmarks/step_time.py            # 4 episodes x 60 steps
     .venv/bin/python benchmarks/step_time.py --quick    # 1 episode x 20 steps
-    .venv/bin/python benchmarks/step_time.py --variants codegen codegen_fatrop_150 codegen_no_fatrop ipopt --no-peers
+    .venv/bin/python benchmarks/step_time.py --variants codegen_continuation continuation ipopt codegen --no-peers
 """
 
 from __future__ import annotations
@@ -402,11 +401,6 @@ VARIANTS: dict[str, dict] = {
     # with the interior-point continuation between the Newton steps and IPOPT
     "continuation": {"continuation_steps": 30},
     "codegen_continuation": {"codegen": True, "continuation_steps": 30},
-    # without fatrop between the Newton steps and IPOPT (the default before it)
-    "codegen_no_fatrop": {"codegen": True, "fatrop_iterations": 0},
-    "no_fatrop": {"fatrop_iterations": 0},
-    # fatrop with IPOPT's iteration limit instead of the default 20
-    "codegen_fatrop_150": {"codegen": True, "fatrop_iterations": 150},
 }
 DEFAULT_VARIANTS = list(VARIANTS)
 
@@ -434,7 +428,6 @@ class _Components:
         solver = mpc.solver
         run_solver, sensitivities = solver.ipopt, solver.sensitivities
         newton, interior_point = solver.newton, solver.interior_point
-        fatrop = solver.fatrop
 
         def timed_run(x, p, warm):
             t0 = time.perf_counter()
@@ -464,8 +457,6 @@ class _Components:
         # the solver's path methods, replaced on this instance by timed wrappers
         solver.ipopt, solver.sensitivities = timed_run, timed_sens
         solver.newton, solver.interior_point = timed(newton), timed(interior_point)
-        if fatrop is not None:  # fatrop itself (its polish: the Newton steps, timed above)
-            fatrop.solve = timed(fatrop.solve)
 
     def take(self) -> tuple[float, float, float]:
         out = (self.solver, self.sens, self.fun)
@@ -496,13 +487,8 @@ def run(
     du = {n: [] for n in mpcs}  # |action - baseline action|, a sanity check of "same problem"
     du_first = {n: [] for n in names}  # |action - first variant's action|: "same policy"
     du_ipopt: dict[str, list] = {n: [] for n in mpcs}  # |action - the "ipopt" variant's action|
-    path_names = {
-        "Newton_Succeeded": "newton",
-        "Continuation_Succeeded": "continuation",
-        "Fatrop_Succeeded": "fatrop",
-    }
-    # which path solved
-    paths = {n: {"newton": 0, "continuation": 0, "fatrop": 0, "ipopt": 0} for n in mpcs}
+    path_names = {"Newton_Succeeded": "newton", "Continuation_Succeeded": "continuation"}
+    paths = {n: {"newton": 0, "continuation": 0, "ipopt": 0} for n in mpcs}  # which path solved
     path_times = {n: {k: [] for k in paths[n]} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
@@ -655,12 +641,12 @@ def main(argv=None) -> None:
         "IPOPT only); >1e-7, >1e-4: steps beyond. components "
         "(medians, ms): solver = Newton steps, continuation and IPOPT calls, sens = both "
         "sensitivities, other = the rest of the step (Python). paths: steps solved by "
-        "Newton / continuation / fatrop / IPOPT"
+        "Newton / continuation / IPOPT"
     )
     hdr = (
         f"{'variant':<24} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
         f"{'ratio':>6} {'ratio_fat':>9} {'du_ipopt':>8} {'>1e-7':>5} {'>1e-4':>5} "
-        f"{'solver':>6} {'sens':>6} {'other':>6} {'build s':>7} {'paths':>16}"
+        f"{'solver':>6} {'sens':>6} {'other':>6} {'build s':>7} {'paths':>12}"
     )
     print(hdr)
     for n, r in res.items():
@@ -674,7 +660,7 @@ def main(argv=None) -> None:
         comp = (
             f"{r['median_solver_ms']:>6.2f} {r['median_sens_ms']:>6.2f} "
             f"{r['median_other_ms']:>6.2f} {r['build_s']:>7.2f} "
-            f"{'/'.join(str(v) for v in r['paths'].values()):>16}"
+            f"{'/'.join(str(v) for v in r['paths'].values()):>12}"
             if "build_s" in r
             else ""
         )
@@ -683,7 +669,7 @@ def main(argv=None) -> None:
             f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rf} "
             f"{dub_s} {comp}"
         )
-    print("median step [ms] by the path that solved it (Newton / continuation / fatrop / IPOPT):")
+    print("median step [ms] by the path that solved it (Newton / continuation / IPOPT):")
     for n, r in res.items():
         if "median_ms_by_path" in r:
             by = r["median_ms_by_path"].values()

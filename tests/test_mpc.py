@@ -2,7 +2,6 @@
 
 import copy
 
-import casadi
 import numpy as np
 import pytest
 import scipy.sparse.linalg
@@ -94,7 +93,6 @@ def test_fallback_on_forced_solver_failure(cstr, monkeypatch):
     monkeypatch.setattr(good.solver, "ipopt", lambda *a, **k: (False, "forced", 0, None, None))
     monkeypatch.setattr(good.solver, "newton", lambda p: None)  # the Newton steps fail too
     monkeypatch.setattr(good.solver, "interior_point", lambda p: None)  # and the continuation
-    monkeypatch.setattr(good.solver, "structured", lambda x, p, warm: None)  # and fatrop
     failed = good.solve(x, good.theta0)
     assert not failed.success
     np.testing.assert_allclose(failed.action, first.plan_u[1])
@@ -225,121 +223,38 @@ def test_newton_steps_must_be_a_count(cstr):
         ParametricMPC(cstr, newton_steps=-1)
     with pytest.raises(ValueError, match="continuation_steps must be an integer >= 0, got 1.5"):
         ParametricMPC(cstr, continuation_steps=1.5)
-    with pytest.raises(ValueError, match="fatrop_iterations must be an integer >= 0, got -2"):
-        ParametricMPC(cstr, fatrop_iterations=-2)
 
 
-def _continuation_state(cstr, mpc, theta, status="Continuation_Succeeded"):
-    """A closed-loop state of ``mpc`` whose warm solve takes the continuation (the path of
-    ``status``), with the warm start it takes it from (the shifted plan of the solve before)."""
+def _continuation_state(cstr, mpc, theta):
+    """A closed-loop state of ``mpc`` whose warm solve takes the continuation, with the warm
+    start it takes it from (the shifted plan of the solve before)."""
     x = cstr.sample_initial_state(np.random.default_rng(0))
     for _ in range(10):
         prev = copy.deepcopy(mpc.solver.prev)
         sol = mpc.solve(x, theta, False)
-        if sol.status == status and prev is not None:
+        if sol.status == "Continuation_Succeeded":
             return x, prev
         x = cstr.plant_step(x, sol.action)
-    raise AssertionError(f"no warm step ended with {status}")
-
-
-def _same_root_as_ipopt(mpc, ipopt, x, prev, status):
-    """From the warm start ``prev`` at ``x``, ``mpc`` solves by the path ``status`` and IPOPT
-    alone (``ipopt``) by IPOPT: the same policy, value and sensitivities, the latter also
-    against finite differences."""
-    mpc.solver.prev, ipopt.solver.prev = copy.deepcopy(prev), copy.deepcopy(prev)
-    a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
-    assert a.status == status and b.status == "Solve_Succeeded"
-    np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
-    np.testing.assert_allclose(a.value, b.value, rtol=1e-7)
-    assert np.all(np.abs(a.dpi_dtheta - b.dpi_dtheta) <= 1e-4 * np.abs(b.dpi_dtheta).max(axis=0))
-    mpc.solver.prev = prev
-    assert_warm_sensitivities_match_fd(mpc, x, mpc.theta0, status)
+    raise AssertionError("no step took the continuation")
 
 
 def test_continuation_reaches_the_root_ipopt_stops_at(cstr, monkeypatch):
     # where the Newton steps cannot start (the new state violates the shifted plan), the
     # continuation solves: the same policy, value and sensitivities as IPOPT from that start
-    mpc = ParametricMPC(cstr, continuation_steps=30, fatrop_iterations=0)
-    ipopt = ParametricMPC(cstr, fatrop_iterations=0)
+    mpc, ipopt = ParametricMPC(cstr, continuation_steps=30), ParametricMPC(cstr)
     x, prev = _continuation_state(cstr, mpc, mpc.theta0)
-    _same_root_as_ipopt(mpc, ipopt, x, prev, "Continuation_Succeeded")
+    mpc.solver.prev, ipopt.solver.prev = copy.deepcopy(prev), copy.deepcopy(prev)
+    a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
+    assert a.status == "Continuation_Succeeded" and b.status == "Solve_Succeeded"
+    np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(a.value, b.value, rtol=1e-7)
+    assert np.all(np.abs(a.dpi_dtheta - b.dpi_dtheta) <= 1e-4 * np.abs(b.dpi_dtheta).max(axis=0))
+    mpc.solver.prev = prev
+    assert_warm_sensitivities_match_fd(mpc, x, mpc.theta0, "Continuation_Succeeded")
     # a continuation that does not get there hands over to IPOPT
     mpc.solver.prev = copy.deepcopy(prev)
     monkeypatch.setattr(mpc.solver, "interior", Continuation(max_steps=1))
     assert mpc.solve(x, mpc.theta0).status == "Solve_Succeeded"
-
-
-def test_fatrop_polished_is_the_root_ipopt_stops_at(cstr, monkeypatch):
-    # where the Newton steps do not get there, fatrop solves the stage-ordered NLP and the
-    # Newton steps polish its solution: the policy, value and sensitivities of IPOPT's solve
-    mpc, ipopt = ParametricMPC(cstr), ParametricMPC(cstr, fatrop_iterations=0)
-    x, prev = _continuation_state(cstr, mpc, mpc.theta0, "Fatrop_Succeeded")
-    _same_root_as_ipopt(mpc, ipopt, x, prev, "Fatrop_Succeeded")
-    # fatrop failing, or its polish, hands over to IPOPT
-    for name, seam in (("fatrop", None), ("newton", lambda p, start=None: None)):
-        mpc.solver.prev = copy.deepcopy(prev)
-        with monkeypatch.context() as m:
-            if seam is None:
-                m.setattr(mpc.solver.fatrop, "solve", lambda w0, p: None)
-            else:
-                m.setattr(mpc.solver, name, seam)
-            assert mpc.solve(x, mpc.theta0).status == "Solve_Succeeded"
-
-
-def test_fatrop_starts_an_episode_and_keeps_ipopt_away(cstr):
-    # the first solve of an episode: fatrop from the cold guess, IPOPT's solution
-    mpc, ipopt = ParametricMPC(cstr), ParametricMPC(cstr, newton_steps=0)
-    x = np.array([100.0, 0.15, 430.0])
-    a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
-    assert a.status == "Fatrop_Succeeded" and b.status == "Solve_Succeeded"
-    np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
-    # no fatrop without a warm start (each solve is IPOPT's cold one) or the Newton steps
-    assert ParametricMPC(cstr, warm_start=False).solver.fatrop is None
-    assert ParametricMPC(cstr, newton_steps=0).solver.fatrop is None
-
-
-def test_a_state_far_outside_its_box_is_not_handed_to_fatrop(cstr, monkeypatch):
-    """fatrop never returns once the model's numbers overflow (the concentration at ten times
-    its reference, 2.4 widths of its box above it): such a state goes to IPOPT, which stops
-    with an error; a state within a width of its box still goes to fatrop."""
-    from mpcmobo.mpc.structured import within_reach
-
-    mpc = ParametricMPC(cstr)
-    calls = []
-
-    def solve(w0, p):
-        calls.append(p[: cstr.nx].copy())
-        return None
-
-    monkeypatch.setattr(mpc.solver.fatrop, "solve", solve)
-    far = np.array(cstr.x_ref, float) * np.array([1.0, 10.0, 1.0])
-    assert not within_reach(cstr.x_lb, cstr.x_ub, far)
-    sol = mpc.solve(far, mpc.theta0, sensitivities=False)
-    assert calls == [] and sol.status != "Fatrop_Succeeded"
-    near = np.array(cstr.x_ref, float) * np.array([1.0, 2.0, 1.0])
-    assert within_reach(cstr.x_lb, cstr.x_ub, near)
-    mpc.reset()
-    mpc.solve(near, mpc.theta0, sensitivities=False)
-    assert len(calls) == 1
-    assert not within_reach(cstr.x_lb, cstr.x_ub, np.array([np.nan, 0.1, 430.0]))
-    lb, ub = np.array([0.0, -np.inf]), np.array([1.0, np.inf])
-    assert within_reach(lb, ub, np.array([1.9, 1e9])) and not within_reach(lb, ub, [2.1, 0.0])
-
-
-def test_stagewise_rows_are_the_transcription_rows(cstr_mpc):
-    from mpcmobo.mpc.structured import Stagewise
-
-    pr = cstr_mpc.problem
-    sw = Stagewise(pr)
-    rng = np.random.default_rng(3)
-    w, p = rng.normal(size=pr.nw), np.concatenate([[100.0, 0.15, 430.0], cstr_mpc.theta0])
-    g = casadi.Function("g", [pr.w, pr.p], [pr.nlp["g"]])(w, p).full().ravel()
-    gs = casadi.Function("gs", [pr.w, pr.p], [sw.nlp["g"]])(w, p).full().ravel()
-    np.testing.assert_allclose(gs, sw.sign * g[sw.perm], rtol=1e-14, atol=1e-12)
-    assert sorted(sw.perm) == list(range(pr.neq + pr.nin))
-    assert sw.equality == list(sw.perm < pr.neq)
-    lam = rng.normal(size=len(sw.perm))  # multipliers of the new rows, back in the old order
-    np.testing.assert_array_equal(sw.original_multipliers(lam)[sw.perm], sw.sign * lam)
 
 
 def test_numpy_call_gives_the_function_outputs_bit_for_bit():

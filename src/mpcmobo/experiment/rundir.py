@@ -55,11 +55,9 @@ class OlderRunError(StudyError):
 READ_ONLY_DROPS = {"mpc": ("barrier_steps", "barrier_mu0", "barrier_push")}
 
 # settings a run saved before they existed ran without: their value then, where today's default
-# differs (the MPC's Newton steps: IPOPT only; no fatrop; identification: none; exploration:
-# no budget)
+# differs (the MPC's Newton steps: IPOPT only; identification: none; exploration: no budget)
 SAVED_BEFORE = {
     ("mpc", "newton_steps"): 0,
-    ("mpc", "fatrop_iterations"): 0,
     ("system", "identify"): False,
     ("exploration", "budget"): math.inf,
 }

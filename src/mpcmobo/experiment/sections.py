@@ -168,10 +168,6 @@ class MPCSettings(Section):
     """Warm solves first try this many Newton steps on the barrier KKT system and accept them
     only at IPOPT's solution (to its tolerance); else IPOPT solves. 0: IPOPT always (a step about
     twice as slow)."""
-    fatrop_iterations: int = Field(20, ge=0, le=10_000)
-    """Where the Newton steps do not get there, fatrop solves the same problem in at most this
-    many iterations and the Newton steps polish its solution into IPOPT's; else IPOPT solves.
-    0: no fatrop (IPOPT solves six times as many steps on the CSTR)."""
     codegen: bool = False
     """Generated C code of the MPC's functions, compiled once per machine and problem and cached
     (``$MPCMOBO_CACHE_DIR``, else ``~/.cache/mpcmobo``): the same numbers, faster steps; needs a

@@ -8,8 +8,7 @@
   policy and the value, and the Newton step of warm solves;
 - :mod:`mpcmobo.mpc.codegen` (option ``codegen``): those functions as compiled C, cached;
 - :mod:`mpcmobo.mpc.solve`: the solve paths (Newton steps, the interior-point continuation of
-  :mod:`mpcmobo.mpc.interior`, fatrop polished by the Newton steps of
-  :mod:`mpcmobo.mpc.structured`, IPOPT warm and cold, the fallback input) and their result,
+  :mod:`mpcmobo.mpc.interior`, IPOPT warm and cold, the fallback input) and their result,
   :class:`~mpcmobo.mpc.solve.MPCSolution`.
 
 The parts are public attributes of the MPC: ``mpc.problem`` (the
@@ -33,7 +32,6 @@ from mpcmobo.mpc.codegen import compiled_library
 from mpcmobo.mpc.interior import Continuation
 from mpcmobo.mpc.kkt import KKTSystem
 from mpcmobo.mpc.solve import MPCSolution, Solver
-from mpcmobo.mpc.structured import Fatrop, Stagewise
 from mpcmobo.mpc.transcription import Transcription
 from mpcmobo.systems.base import System
 from mpcmobo.systems.parameterization import Parameterization
@@ -76,8 +74,7 @@ class ParametricMPC:
         step, compiled once per machine and problem and cached on disk (``mpcmobo.mpc.codegen``):
         the first build compiles (tens of seconds), later builds of the same problem load the
         library. Same numbers as without it, faster steps (``docs/benchmarks.md``, step time).
-        With fatrop (``fatrop_iterations``), its NLP functions in a second library (about 5 s
-        more on the CSTR). Needs a C compiler (``$CC`` or ``cc``).
+        Needs a C compiler (``$CC`` or ``cc``).
     cache_dir:
         Directory of the compiled libraries (default: ``mpcmobo.mpc.codegen.cache_directory()``).
     newton_steps:
@@ -94,14 +91,6 @@ class ParametricMPC:
         halves the median closed-loop step on the CSTR (IPOPT then solves 8% of the steps
         instead of 43%, docs/benchmarks.md), but on a few states it ends at another local
         optimum than IPOPT from the same warm start, most of them dearer.
-    fatrop_iterations:
-        When the Newton steps (and the continuation) do not get there, fatrop solves the same
-        NLP (:mod:`mpcmobo.mpc.structured`: its rows in stage order, from the warm start, or
-        the cold guess at an episode's first solve) in at most this many iterations, and the
-        Newton steps polish its solution into the barrier root IPOPT stops at; IPOPT solves
-        when it fails or the polish does. 0: no fatrop. Needs ``newton_steps`` and
-        ``warm_start``; not on systems with path constraints ``h`` (their last stage's rows
-        use the input of the stage before, which fatrop's stages cannot hold).
 
     Attributes
     ----------
@@ -130,7 +119,6 @@ class ParametricMPC:
         cache_dir: str | os.PathLike | None = None,
         newton_steps: int = 6,
         continuation_steps: int = 0,
-        fatrop_iterations: int = 20,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
@@ -139,7 +127,6 @@ class ParametricMPC:
         N = int(spec.horizon if horizon is None else horizon)
         gamma = float(spec.gamma if gamma is None else gamma)
         _check_options(N, gamma, tau, linsol, newton_steps, continuation_steps)
-        _check_count("fatrop_iterations", fatrop_iterations)
         self.param: Parameterization = system.parameterization
         self.theta0 = self.param.theta0.copy()
         if "model" in self.param.blocks:  # learnable model parameters: this MPC's own model
@@ -159,9 +146,6 @@ class ParametricMPC:
             lib = self._compiled_library(cache_dir)
             nlp = str(lib)
             self.kkt.load(lib)
-        fatrop = None
-        if fatrop_iterations and newton_steps and warm_start and not system.nh:
-            fatrop = self._fatrop(tol, int(fatrop_iterations), codegen, cache_dir)
         self.solver = Solver(
             self.problem,
             self.kkt,
@@ -176,7 +160,6 @@ class ParametricMPC:
             if continuation_steps
             else None,
         )
-        self.solver.fatrop = fatrop
 
     def _compiled_library(self, cache_dir: str | os.PathLike | None) -> Path:
         """The NLP functions IPOPT calls, the sensitivity function and the Newton step,
@@ -195,25 +178,6 @@ class ParametricMPC:
         functions = [nlp, *(probe.get_function(n) for n in names), kkt.sens, kkt.newton]
         functions += [kkt.newton_mu, kkt.rows]
         return compiled_library(functions, directory=cache_dir, info=self.build_info)
-
-    def _fatrop(
-        self, tol: float, max_iter: int, codegen: bool, cache_dir: str | os.PathLike | None
-    ) -> Fatrop:
-        """fatrop on the stage-ordered NLP; with ``codegen``, its functions compiled (or loaded
-        from the cache) into a library of their own (``build_info["fatrop"]``)."""
-        stagewise = Stagewise(self.problem)
-        nlp: dict | str = stagewise.nlp
-        if codegen:
-            opts = stagewise.options(tol, max_iter)
-            probe = ca.nlpsol("probe_fatrop", "fatrop", stagewise.nlp, opts)
-            names = ("nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l", "nlp_grad")
-            d = stagewise.nlp
-            oracle = ca.Function("nlp", [d["x"], d["p"]], [d["f"], d["g"]], ["x", "p"], ["f", "g"])
-            functions = [oracle, *(probe.get_function(n) for n in names)]
-            info: dict = {}
-            nlp = str(compiled_library(functions, directory=cache_dir, info=info))
-            self.build_info["fatrop"] = info
-        return Fatrop(self.kkt, stagewise, nlp, tol=tol, max_iter=max_iter)
 
     @property
     def N(self) -> int:
@@ -284,10 +248,7 @@ def _check_options(
         raise ValueError(f"tau must be positive, got {tau}")
     if not ca.has_linsol(linsol):
         raise ValueError(f"linsol '{linsol}' is not a linear solver plugin of this CasADi")
-    _check_count("newton_steps", newton_steps)
-    _check_count("continuation_steps", continuation)
-
-
-def _check_count(name: str, value: int) -> None:
-    if int(value) != value or value < 0:
-        raise ValueError(f"{name} must be an integer >= 0, got {value}")
+    if int(newton_steps) != newton_steps or newton_steps < 0:
+        raise ValueError(f"newton_steps must be an integer >= 0, got {newton_steps}")
+    if int(continuation) != continuation or continuation < 0:
+        raise ValueError(f"continuation_steps must be an integer >= 0, got {continuation}")

@@ -10,12 +10,9 @@
 2. when they cannot start or do not converge (typically because the new state violates a
    state bound of the shifted plan), the interior-point continuation of
    :mod:`mpcmobo.mpc.interior` on the same Newton system, ending at the same root;
-3. fatrop on the same NLP, its rows in stage order, from the warm start (from the cold guess at
-   an episode's first solve), its solution polished by the Newton steps of 1. into the root of
-   ``R`` (:mod:`mpcmobo.mpc.structured`);
-4. IPOPT from the warm start (when none of them gets there);
-5. IPOPT from a cold start (when the warm start misled it, or there is none);
-6. the fallback input when IPOPT fails: the shifted previous plan, else ``u_r``, with NaN value
+3. IPOPT from the warm start (when the continuation does not get there either);
+4. IPOPT from a cold start (when the warm start misled it, or there is none);
+5. the fallback input when IPOPT fails: the shifted previous plan, else ``u_r``, with NaN value
    and gradients.
 
 A solution gives the policy ``pi_theta(x)``, the first input of the plan clipped to the input
@@ -34,7 +31,6 @@ import numpy as np
 
 from mpcmobo.mpc.interior import Continuation, continuation, recentre
 from mpcmobo.mpc.kkt import KKTSystem
-from mpcmobo.mpc.structured import Fatrop, within_reach
 from mpcmobo.mpc.transcription import Transcription
 
 SUCCESS = frozenset({"Solve_Succeeded", "Solved_To_Acceptable_Level"})
@@ -139,14 +135,10 @@ class Solver:
     ``tol``: the acceptance test of the Newton steps (``|R|_inf``) and IPOPT's tolerance;
     ``newton_steps``: the most Newton steps of a warm solve (0: IPOPT only);
     ``interior``: the settings of the continuation after them (None: IPOPT right away);
-    the attribute ``fatrop``: the structured path after them (a
-    :class:`~mpcmobo.mpc.structured.Fatrop`, None: none), used with ``newton_steps`` and
-    ``warm_start``;
     ``max_iter``, ``solver_options``, ``warm_options``: see :func:`ipopt_options`.
 
     :meth:`solve` reaches its paths through the instance's methods :meth:`newton`,
-    :meth:`interior_point`, :meth:`structured`, :meth:`ipopt` and :meth:`sensitivities`, so a
-    test injects a failure or a benchmark a timer
+    :meth:`interior_point`, :meth:`ipopt` and :meth:`sensitivities`, so a test injects a failure or a benchmark a timer
     by replacing one of them on the instance (their signatures and returns are documented).
     """
 
@@ -165,7 +157,6 @@ class Solver:
         interior: Continuation | None = None,
     ) -> None:
         self.problem, self.kkt, self.interior = problem, kkt, interior
-        self.fatrop: Fatrop | None = None  # the structured path, set by the solver's owner
         self.tol, self.newton_steps, self.warm_start = float(tol), newton_steps, bool(warm_start)
         cold, warm = ipopt_options(
             tol, kkt.tau, max_iter, options=solver_options, warm=warm_options
@@ -190,11 +181,14 @@ class Solver:
         t0 = time.perf_counter()
         p = np.concatenate([x, theta])
         warm = self.warm_start and self.prev is not None
-        found = self.fast_paths(x, p, warm, newton)
-        if found is not None:
-            sol = self.solution(x, p, *found, sensitivities=sensitivities)
-            sol.solve_time = time.perf_counter() - t0
-            return sol
+        if warm and self.newton_steps:
+            found = self.newton(p) if newton else None
+            if found is None and self.interior is not None:
+                found = self.interior_point(p)
+            if found is not None:
+                sol = self.solution(x, p, *found, sensitivities=sensitivities)
+                sol.solve_time = time.perf_counter() - t0
+                return sol
         ok, status, iters, out, wopt = self.ipopt(x, p, warm)
         if not ok and warm:  # a warm start can mislead IPOPT: retry once from a cold start
             ok, status, iters2, out, wopt = self.ipopt(x, p, False)
@@ -206,52 +200,31 @@ class Solver:
         sol.solve_time = time.perf_counter() - t0
         return sol
 
-    def fast_paths(self, x: np.ndarray, p: np.ndarray, warm: bool, newton: bool) -> Found | None:
-        """The paths before IPOPT (with ``newton_steps``): the Newton steps (``newton``) and the
-        continuation from a warm start, then the structured path (with ``warm_start``)."""
-        if not self.newton_steps:
-            return None
-        found = None
-        if warm:
-            found = self.newton(p) if newton else None
-            if found is None and self.interior is not None:
-                found = self.interior_point(p)
-        if found is None and self.warm_start and self.fatrop is not None:
-            found = self.structured(x, p, warm)
-        return found
-
-    def newton(self, p: np.ndarray, start: np.ndarray | None = None) -> Found | None:
-        """Newton steps on R(y, p) = 0 (at most ``newton_steps``) from ``start`` (a point
-        ``y = (w, lambda, mu)`` with ``mu > 0``), by default from the shifted previous solution.
+    def newton(self, p: np.ndarray) -> Found | None:
+        """Newton steps on R(y, p) = 0 from the shifted previous solution (``newton_steps``).
 
         Returns the arguments of :meth:`solution` (IPOPT-style outputs, w, status, steps, and
         the multipliers (lambda, mu)) when ``|R|_inf <= tol`` at a point with ``H < 0``,
-        ``mu > 0``; None when the steps do not get there (IPOPT then solves). From the 2nd step
-        on the residual must fall tenfold per step, from a given ``start`` (a solution without
-        the barrier, whose first steps re-centre it) twofold."""
-        rate = 0.1 if start is None else 0.5
-        if start is None:
-            prev = self.prev
-            if prev is None:
-                return None
-            w = prev["w_shift"]
-            lam, mu = self.kkt.multipliers(w, prev["lam_g"], prev["lam_x"])
-            if not np.all(mu > 0):
-                return None
-            y = np.concatenate([w, lam, mu])
-        else:
-            y = start
+        ``mu > 0``; None when the steps do not get there (IPOPT then solves)."""
+        prev = self.prev
+        if prev is None:
+            return None
+        w = prev["w_shift"]
+        lam, mu = self.kkt.multipliers(w, prev["lam_g"], prev["lam_x"])
+        y = np.concatenate([w, lam, mu])
+        if not np.all(mu > 0):
+            return None
         for k in range(1, self.newton_steps + 1):
             y_next, *scalars = self.kkt.newton_call(y, p)
             res0, res, f, h_max, mu_min, h0_max = (float(v) for v in scalars)
             # not interior (the new state violates a row of the old plan), not converging
-            # (from the 2nd step on, the residual must fall by ``rate`` per step), or out of steps
+            # (from the 2nd step on, the residual must fall tenfold per step), or out of steps
             if not (h0_max < 0 and h_max < 0 and mu_min > 0 and np.isfinite(res)):
                 return None
             y = np.asarray(y_next).reshape(-1)
             if res <= self.tol:
                 break
-            if k == self.newton_steps or (k >= 2 and res > rate * res0):
+            if k == self.newton_steps or (k >= 2 and res > 0.1 * res0):
                 return None
         out, w, mult = self.kkt.solver_outputs(y, f)
         return out, w, "Newton_Succeeded", k, mult
@@ -272,28 +245,6 @@ class Solver:
         y, f, steps = got
         out, w, mult = self.kkt.solver_outputs(y, f)
         return out, w, "Continuation_Succeeded", steps, mult
-
-    def structured(self, x: np.ndarray, p: np.ndarray, warm: bool) -> Found | None:
-        """fatrop (:mod:`mpcmobo.mpc.structured`) from the shifted previous solution (``warm``)
-        or the cold guess, polished by :meth:`newton`: the arguments of :meth:`solution`, as
-        :meth:`newton` returns them (the steps: fatrop's iterations plus the Newton steps), or
-        None when fatrop or the polish fails, or the state is out of fatrop's reach
-        (:func:`~mpcmobo.mpc.structured.within_reach`; IPOPT then solves)."""
-        if self.fatrop is None:
-            return None
-        system = self.problem.system
-        if not within_reach(system.x_lb, system.x_ub, x):
-            return None
-        w0 = self.prev["w_shift"] if warm else self.problem.cold_guess(x)  # type: ignore[index]  # warm: prev is set
-        got = self.fatrop.solve(w0, p)
-        if got is None:
-            return None
-        y, iters = got
-        found = self.newton(p, y)
-        if found is None:
-            return None
-        out, w, _, steps, mult = found
-        return out, w, "Fatrop_Succeeded", iters + steps, mult
 
     def ipopt(self, x: np.ndarray, p: np.ndarray, warm: bool) -> tuple[bool, str, int, Any, Any]:
         """IPOPT from the warm start (``warm``) or the cold guess: (ok, status, iterations,
