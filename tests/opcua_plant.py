@@ -8,10 +8,11 @@ a plant's historian would). The plant takes one step of the system's true model
 inputs its nodes hold either on that clock too (``lockstep=False``: a real-time plant, whose
 step and the client's write race when the machine is busy) or at each write of the inputs
 (``lockstep=True``: every period's input acts for exactly one step however late the client
-runs, for the tests whose subject is not the timing). Every write a client makes is recorded (``writes``). Faults to inject:
-``freeze`` (the states stop updating: stale), ``fail_sensor`` (a bad status code), ``set_enable(False)``, ``refuse_writes`` (the
-inputs become read-only), ``outage(seconds)`` (the network goes away: the
-connections close, the port refuses new ones, the plant runs on), and ``interrupt_after`` (a Ctrl-C in the main thread at a given write).
+runs, for the tests whose subject is not the timing). Every write a client makes is recorded
+(``writes``). Faults to inject: ``freeze`` (the states stop updating: stale), ``fail_sensor``
+(a bad status code), ``set_enable(False)``, ``refuse_writes`` (the inputs become read-only),
+``outage(seconds)`` (the network goes away: the connections close, the port refuses new ones,
+the plant runs on), and ``interrupt_after`` (a Ctrl-C in the main thread at a given write).
 """
 
 from __future__ import annotations
@@ -120,7 +121,6 @@ class SimPlant:
         self.enable = True
         self.read_only = False
         self.interrupt_at: int | None = None
-        self.steps = 0
         self.published = 0
         self._server: Server | None = None
         self._ready = threading.Event()
@@ -292,17 +292,17 @@ class SimPlant:
         for j, name in enumerate(self.system.input_names):
             self.u[j] = await self._nodes[name].read_value()
         self.x = np.asarray(self.system.plant_step(self.x, self.u), float)
-        self.steps += 1
 
     async def _written(self, event: Any, dispatcher: Any) -> None:
         if not event.is_external:  # the server's own writes (its status, the plant's states)
             return
-        written = [wv.NodeId.Identifier for wv in event.request_params.NodesToWrite]
-        for wv in event.request_params.NodesToWrite:
-            self.writes.append((wv.NodeId.Identifier, wv.Value.Value.Value))
+        written = [
+            (wv.NodeId.Identifier, wv.Value.Value.Value) for wv in event.request_params.NodesToWrite
+        ]
+        self.writes.extend(written)
         self.requests += 1
         inputs = {f"CSTR.{name}" for name in self.system.input_names}
-        if self.lockstep and not self.frozen and inputs & set(written):
+        if self.lockstep and not self.frozen and inputs & {node for node, _ in written}:
             await self._step()
             await self._publish()
         if self.interrupt_at is not None and self.requests >= self.interrupt_at:

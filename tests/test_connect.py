@@ -1,9 +1,10 @@
 """mpcmobo connect against a real OPC UA server (asyncua) whose nodes are the simulated CSTR on
 an accelerated clock, stepping at each write of the inputs so that a busy machine's late
-period does not change the plant's response (tests/opcua_plant.py): three trials are asked, run and told; each fault
-(stale data, the enable withdrawn, a refused write, a lost connection, Ctrl-C) aborts the trial,
-keeps its log, tells nothing and hands the plant back with the safe input; the next connect runs
-the aborted trial again. No input outside the bounds is ever written."""
+period does not change the plant's response (tests/opcua_plant.py): three trials are asked,
+run and told; each fault (stale data, the enable withdrawn, a refused write, a lost
+connection, Ctrl-C) aborts the trial, keeps its log, tells nothing and hands the plant back
+with the safe input; the next connect runs the aborted trial again. No input outside the
+bounds is ever written."""
 
 from __future__ import annotations
 

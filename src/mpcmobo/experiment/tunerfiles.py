@@ -102,15 +102,15 @@ class TunerFiles:
         for path in self.told_dir.glob("trial-*.pkl"):
             if path.name.endswith(".checkpoint.pkl"):
                 continue
-            stamp = path.stat().st_mtime_ns
+            tid, stamp = int(path.stem.split("-")[1]), path.stat().st_mtime_ns
             cached = self._forced.get(path.name)
             if cached is None or cached[0] != stamp:
-                entry = self.told(int(path.stem.split("-")[1])) or {}
+                entry = self.told(tid) or {}
                 found = entry.get("problems") if entry.get("forced") else None
                 cached = (stamp, sorted({p["check"] for p in found or []}))
                 self._forced[path.name] = cached
             if cached[1]:
-                out[int(path.stem.split("-")[1])] = cached[1]
+                out[tid] = cached[1]
         return out
 
     # ------------------------------------------------------------------ accepted logs
