@@ -257,6 +257,33 @@ def test_continuation_reaches_the_root_ipopt_stops_at(cstr, monkeypatch):
     assert mpc.solve(x, mpc.theta0).status == "Solve_Succeeded"
 
 
+def test_cold_continuation_reaches_the_root_ipopt_stops_at(cstr, monkeypatch):
+    # without a warm start the continuation starts from the cold guess on the central path:
+    # the policy, value and sensitivities of IPOPT's cold solve, on most states of the box
+    mpc, ipopt = ParametricMPC(cstr, continuation_steps=30), ParametricMPC(cstr)
+    rng = np.random.default_rng(3)
+    taken = 0
+    for _ in range(8):
+        x = cstr.sample_initial_state(rng)
+        mpc.reset()
+        ipopt.reset()
+        a, b = mpc.solve(x, mpc.theta0), ipopt.solve(x, mpc.theta0)
+        assert a.success and b.success
+        if a.status != "Cold_Continuation_Succeeded":
+            continue
+        taken += 1
+        np.testing.assert_allclose(a.action, b.action, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(a.value, b.value, rtol=1e-7)
+        scale = np.abs(b.dpi_dtheta).max(axis=0)
+        assert np.all(np.abs(a.dpi_dtheta - b.dpi_dtheta) <= 1e-4 * scale)
+        np.testing.assert_allclose(a.dV_dtheta, b.dV_dtheta, rtol=1e-4, atol=1e-6)
+    assert taken >= 6
+    # without the continuation settings, or where it does not get there, IPOPT solves cold
+    mpc.reset()
+    monkeypatch.setattr(mpc.solver, "interior", Continuation(max_steps=1))
+    assert mpc.solve(x, mpc.theta0).status == "Solve_Succeeded"
+
+
 def test_numpy_call_gives_the_function_outputs_bit_for_bit():
     # the buffer-based call of the Newton and sensitivity functions: the numbers of
     # the CasADi call itself, in its shapes (a matrix, a scalar, a structurally sparse output)

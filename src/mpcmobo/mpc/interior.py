@@ -18,14 +18,20 @@ plan would (:func:`recentre`, then :func:`continuation`):
    ``|R|_inf <= tol`` at a strictly interior point: the root the Newton path and IPOPT stop at,
    so the policy and its sensitivities are the ones of eq. nabla_pi.
 
-Every step is one call of a (generated) CasADi function, at most ``max_steps`` of them. There
-is no line search: a step that leaves the interior, or running out of steps, ends the path
-(None), and IPOPT solves.
+Without a warm start (the first step of an episode), or when the path from the warm start does
+not get there, :func:`cold_start` puts the cold guess on the central path at a larger barrier
+parameter (``COLD_BARRIERS``: 1, then 0.1): every multiplier 1, re-centred, then every ``mu`` at
+``m / -H``, and the same continuation follows from there (the embedded controller's cold path,
+:mod:`mpcmobo.mpc.embedded`, step for step).
+
+Every step is one call of a (generated) CasADi function, at most ``max_steps`` of them per path.
+There is no line search: a step that leaves the interior, or running out of steps, ends the
+path (None), and IPOPT solves.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -44,6 +50,10 @@ class Continuation:
     gap: float = 1e-3
     m0: float = 1e-3
     kappa: float = 10.0
+
+
+#: the barrier parameters at which the continuation from the cold guess starts, in turn
+COLD_BARRIERS = (1.0, 0.1)
 
 
 def recentre(
@@ -102,4 +112,34 @@ def continuation(
                 return y, f, k
         elif res <= settings.kappa * m:
             m = max(tau, min(m / 5, m**1.5))
+    return None
+
+
+def cold_start(
+    kkt: KKTSystem, w0: np.ndarray, p: np.ndarray, settings: Continuation
+) -> np.ndarray | None:
+    """The start ``y`` of the continuation from the cold guess ``w0`` on the central path at
+    ``settings.m0``: multipliers 1 (equalities 0), re-centred by :func:`recentre`, then every
+    ``mu = m0 / -H``; None when a row that no slack relaxes is not strictly interior."""
+    lam, mu = np.zeros(kkt.neq), np.ones(kkt.nH)
+    y = recentre(kkt, w0, lam, mu, p, settings)
+    if y is None:
+        return None
+    H = kkt.rows_call(y[: kkt.nw], p)[0].reshape(-1)
+    y[kkt.nw + kkt.neq :] = settings.m0 / np.maximum(-H, 1e-300)
+    return y
+
+
+def cold_continuation(
+    kkt: KKTSystem, w0: np.ndarray, p: np.ndarray, tol: float, settings: Continuation
+) -> tuple[np.ndarray, float, int] | None:
+    """The continuation from the cold guess ``w0`` (:func:`cold_start`) at each barrier
+    parameter of ``COLD_BARRIERS`` in turn: the first root found, as :func:`continuation`
+    returns it (the steps of that attempt); None when none gets there."""
+    for m0 in COLD_BARRIERS:
+        at = replace(settings, m0=m0)
+        y = cold_start(kkt, w0, p, at)
+        got = None if y is None else continuation(kkt, y, p, tol, at)
+        if got is not None:
+            return got
     return None

@@ -10,9 +10,11 @@
 2. when they cannot start or do not converge (typically because the new state violates a
    state bound of the shifted plan), the interior-point continuation of
    :mod:`mpcmobo.mpc.interior` on the same Newton system, ending at the same root;
-3. IPOPT from the warm start (when the continuation does not get there either);
-4. IPOPT from a cold start (when the warm start misled it, or there is none);
-5. the fallback input when IPOPT fails: the shifted previous plan, else ``u_r``, with NaN value
+3. without a warm start, or when the continuation from it does not get there, the same
+   continuation from the cold guess (these two paths with a ``Continuation``, the default);
+4. IPOPT from the warm start (when the continuations do not get there either);
+5. IPOPT from a cold start (when the warm start misled it, or there is none);
+6. the fallback input when IPOPT fails: the shifted previous plan, else ``u_r``, with NaN value
    and gradients.
 
 A solution gives the policy ``pi_theta(x)``, the first input of the plan clipped to the input
@@ -29,7 +31,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from mpcmobo.mpc.interior import Continuation, continuation, recentre
+from mpcmobo.mpc.interior import Continuation, cold_continuation, continuation, recentre
 from mpcmobo.mpc.kkt import KKTSystem
 from mpcmobo.mpc.transcription import Transcription
 
@@ -134,12 +136,14 @@ class Solver:
 
     ``tol``: the acceptance test of the Newton steps (``|R|_inf``) and IPOPT's tolerance;
     ``newton_steps``: the most Newton steps of a warm solve (0: IPOPT only);
-    ``interior``: the settings of the continuation after them (None: IPOPT right away);
+    ``interior``: the settings of the continuations after them and from the cold guess
+    (None: IPOPT right away);
     ``max_iter``, ``solver_options``, ``warm_options``: see :func:`ipopt_options`.
 
     :meth:`solve` reaches its paths through the instance's methods :meth:`newton`,
-    :meth:`interior_point`, :meth:`ipopt` and :meth:`sensitivities`, so a test injects a failure or a benchmark a timer
-    by replacing one of them on the instance (their signatures and returns are documented).
+    :meth:`interior_point`, :meth:`cold_interior_point`, :meth:`ipopt` and
+    :meth:`sensitivities`, so a test injects a failure or a benchmark a timer by replacing one
+    of them on the instance (their signatures and returns are documented).
     """
 
     def __init__(
@@ -181,14 +185,17 @@ class Solver:
         t0 = time.perf_counter()
         p = np.concatenate([x, theta])
         warm = self.warm_start and self.prev is not None
+        found = None
         if warm and self.newton_steps:
             found = self.newton(p) if newton else None
             if found is None and self.interior is not None:
                 found = self.interior_point(p)
-            if found is not None:
-                sol = self.solution(x, p, *found, sensitivities=sensitivities)
-                sol.solve_time = time.perf_counter() - t0
-                return sol
+        if found is None and self.interior is not None:
+            found = self.cold_interior_point(x, p)
+        if found is not None:
+            sol = self.solution(x, p, *found, sensitivities=sensitivities)
+            sol.solve_time = time.perf_counter() - t0
+            return sol
         ok, status, iters, out, wopt = self.ipopt(x, p, warm)
         if not ok and warm:  # a warm start can mislead IPOPT: retry once from a cold start
             ok, status, iters2, out, wopt = self.ipopt(x, p, False)
@@ -245,6 +252,19 @@ class Solver:
         y, f, steps = got
         out, w, mult = self.kkt.solver_outputs(y, f)
         return out, w, "Continuation_Succeeded", steps, mult
+
+    def cold_interior_point(self, x: np.ndarray, p: np.ndarray) -> Found | None:
+        """The continuation from the cold guess at ``x`` (:func:`~mpcmobo.mpc.interior.
+        cold_continuation`): the arguments of :meth:`solution`, or None (IPOPT then solves)."""
+        if self.interior is None:
+            return None
+        w0 = self.problem.cold_guess(x)
+        got = cold_continuation(self.kkt, w0, p, self.tol, self.interior)
+        if got is None:
+            return None
+        y, f, steps = got
+        out, w, mult = self.kkt.solver_outputs(y, f)
+        return out, w, "Cold_Continuation_Succeeded", steps, mult
 
     def ipopt(self, x: np.ndarray, p: np.ndarray, warm: bool) -> tuple[bool, str, int, Any, Any]:
         """IPOPT from the warm start (``warm``) or the cold guess: (ok, status, iterations,
