@@ -387,39 +387,71 @@ def test_an_offered_candidate_is_judged_before_the_switch_settles(cstr):
     assert sw.settled() and sw.follows_fit_
 
 
-def test_an_offered_candidate_the_budget_keeps_off_the_plant_is_dropped_unrun(cstr):
-    """The twin's theta, simulated instead of run (refused from a start, or not paying for
-    itself on the deployed model) from a verification's worth of starts, is dropped without a
-    plant episode and the switch settles; one refusal is a verdict on one start, and the count
-    survives a resume; another theta leaves it, as does a fitted candidate."""
+def _offered_switch(cstr):
+    """A settled switch (cycle of 3 starts) whose deployed theta ran from every start at cost
+    10, with the twin's theta offered; (switch, deployed theta, offered theta)."""
     from mpcmobo.learners.switch import MAX_DECISIONS
 
     sw, theta0 = _switch(cstr, [])
     sw.deployed_params_ = np.asarray(cstr.true_params, float)
     sw.decisions_ = MAX_DECISIONS
+    for start in range(3):
+        sw.observe(theta0.copy(), _cost(10.0, start), "deployed")
     offered = theta0 * 1.01
     sw.offer(offered)
-    assert sw.offered()
-    sw.drop_offered(theta0 * 1.02)  # not the candidate
-    assert sw.offered() and not sw.settled()
-    runs = sw.policy.min_runs
-    assert runs > 1
-    for _ in range(runs - 1):
-        sw.drop_offered(offered.copy())
-    assert sw.offered() and not sw.settled()  # refused from some starts, not from enough
-    again, _ = _switch(cstr, [])
-    again.load_state_dict(sw.state_dict())
-    again.drop_offered(offered.copy())
-    assert not again.offered() and again.settled()
-    sw.drop_offered(offered.copy())
-    assert not sw.offered() and sw.candidate_ is None and sw.settled()
-    assert sw.decisions_ == MAX_DECISIONS + 1 and len(sw.evidence_) == 0
+    return sw, theta0, offered
+
+
+def _cost(f1, start, spread=float("nan")):
+    return EpisodeResult(
+        np.array([f1, 0, 0, 0]),
+        np.zeros(1),  # the switch keeps no gradient
+        True,
+        start_id=start,
+        stage_cost=f1 / 60,
+        spread=spread,
+    )
+
+
+def test_an_offered_candidate_kept_off_a_start_is_judged_there_on_its_bounded_simulation(cstr):
+    """The twin's theta, simulated instead of run from a start (refused there, or not paying
+    for itself), is judged from that start on its simulated cost times the model's spread (a
+    "bounded" row): with the plant episodes of the other starts it is deployed where the
+    bound still shows it cheaper, and not where the spread makes it dearer. Kept off from more
+    than a third of the starts, or without a finite spread, it is dropped unrun; the count
+    survives a resume; another theta leaves it, as does a fitted candidate."""
+    from mpcmobo.learners.evidence import BOUNDED
+    from mpcmobo.learners.switch import MAX_DECISIONS
+
+    for spread, deployed in ((1.5, True), (3.0, False)):
+        sw, theta0, offered = _offered_switch(cstr)
+        sw.kept_off(theta0 * 1.02, _cost(6.0, 0, spread))  # not the candidate
+        assert sw.offered() and len(sw.evidence_) == 3
+        for start in (1, 2):
+            sw.observe(offered.copy(), _cost(5.0, start), "verify")
+        assert sw.offered()  # two of three starts: not judged yet
+        sw.kept_off(offered.copy(), _cost(6.0, 0, spread))
+        assert sw.evidence_.kinds[-1] == BOUNDED and sw.evidence_.Y[-1, 0] == 6.0 * spread
+        assert sw.evidence_.costs[-1] == pytest.approx(6.0 / 60 * spread)
+        if deployed:  # 10 - 9 = 1, 5, 5 cheaper from every start
+            assert theta_key(sw.deployed_) == theta_key(offered) and not sw.offered()
+            continue
+        assert sw.offered() and theta_key(sw.deployed_) == theta_key(theta0)  # 10 - 18 = -8
+        again, _ = _switch(cstr, [])
+        again.load_state_dict(sw.state_dict())
+        again.kept_off(offered.copy(), _cost(6.0, 0, spread))  # a second start of three
+        assert not again.offered() and again.settled()
+        assert again.decisions_ == MAX_DECISIONS + 1
+        assert theta_key(again.deployed_) == theta_key(theta0)
+    sw, theta0, offered = _offered_switch(cstr)
+    sw.kept_off(offered.copy(), _cost(6.0, 0, float("inf")))  # the model not calibrated
+    assert not sw.offered() and sw.settled() and len(sw.evidence_) == 3
     fitted, _ = _switch(cstr, [])
     fitted.identification_ = _fit_of(np.asarray(cstr.true_params, float))
     fitted.decide()
     assert fitted.candidate_ is not None and not fitted.offered()
-    fitted.drop_offered(fitted.candidate_.copy())
-    assert fitted.candidate_ is not None  # a fitted candidate is judged on the plant
+    fitted.kept_off(fitted.candidate_.copy(), _cost(6.0, 0, 1.0))
+    assert fitted.candidate_ is not None and len(fitted.evidence_) == 0  # judged on the plant
 
 
 def test_the_twins_candidate_is_judged_by_the_deployed_models_twin_and_resumes_so(cstr):

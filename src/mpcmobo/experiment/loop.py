@@ -33,6 +33,9 @@ START_MODES = ("random", "cycle")
 EPISODE_FAILURES = (FloatingPointError, ValueError, RuntimeError)
 # how a refused candidate's row says that the learner learned from its simulation
 SIMULATED_NOTE = "the learner learns from its episode simulated on the model"
+# a simulated episode's spread (EpisodeResult.spread): the model's predictions of plant costs
+# trusted within this many RMS log errors (ExplorationPrice.error)
+SPREAD_ERRORS = 2.0
 
 
 @dataclass
@@ -468,8 +471,10 @@ class LearningRun:
     def _observe_simulated(self, plan: EpisodePlan) -> None:
         """The refused candidate's episode on the learner's model of the plant
         (:meth:`prediction_params`) from the plan's start with its noise, as the learner's
-        simulated observation (:meth:`~mpcmobo.learners.Learner.observe_simulated`); a closed
-        loop that fails is observed as a failed episode."""
+        simulated observation (:meth:`~mpcmobo.learners.Learner.observe_simulated`), with the
+        factor within which the model's costs are trusted (``spread``: ``SPREAD_ERRORS`` RMS
+        log errors of its predictions so far); a closed loop that fails is observed as a
+        failed episode."""
         theta = np.asarray(plan.refused_theta, float)
         params = self.prediction_params(np.asarray(plan.deployed, float))
         record: EpisodeRecord | None
@@ -489,6 +494,7 @@ class LearningRun:
         result, _ = self._result(theta, record)
         result.start_id = plan.start_id
         result.x0 = plan.x0.copy()
+        result.spread = math.exp(SPREAD_ERRORS * self.price.error())
         if self.learner.uses_start_cost():
             result.start_cost = self.start_cost(plan.x0)
         self.learner.observe_simulated(theta, result)

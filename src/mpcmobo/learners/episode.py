@@ -72,6 +72,10 @@ class EpisodeResult:
     states: np.ndarray | None = None  # (T+1, nx) the plant's states (None: the episode failed)
     inputs: np.ndarray | None = None  # (T, nu) the inputs applied
     exploration: np.ndarray | None = None  # (T, nu) the inputs applied minus the MPC's
+    # an episode simulated on the identified model in place of a refused one: the factor (>= 1)
+    # within which the model's cost ratios are trusted (the exploration budget's calibration;
+    # inf: not calibrated); NaN: a plant episode
+    spread: float = float("nan")
 
     @property
     def replay(self) -> Replay | None:

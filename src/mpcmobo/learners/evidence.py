@@ -7,11 +7,14 @@ cost (theta0's mean stage cost from its initial state on the MPC's own model; Na
 computed), its plain mean stage cost and its replay (initial state and exploration: what a
 twin predicts the cost from), what kind of proposal it was (``"design"``, ``"search"``,
 ``"verify"``, ``"baseline"``, ``"gradient"``, ``"seed"``; ``"simulated"``: a candidate the
-exploration budget refused, its episode simulated on the identified model) and its group
-(MPC-RL's verification block; -1: none). Every learner that judges deployments keeps its episodes here, and the judge
+exploration budget refused, its episode simulated on the identified model; ``"bounded"``: the
+model switch's stand-in for a plant episode of the twin's theta that the budget kept off the
+plant, its simulated cost times the model's spread) and its group (MPC-RL's verification
+block; -1: none). Every learner that judges deployments keeps its episodes here, and the judge
 (:mod:`mpcmobo.learners.judge`) reads them. Appending is the only change; the queries answer
 what the deployment policies ask: the rows of a theta, the starts it was run from, how many
-episodes it has, all of them of plant episodes (a simulated row is the GP's, never evidence).
+episodes it has, all of them of plant episodes and their bounded stand-ins (a simulated row
+is the GP's, never evidence).
 """
 
 from __future__ import annotations
@@ -20,9 +23,12 @@ import numpy as np
 
 from mpcmobo.learners.episode import Replay, replays_from_state, replays_state
 
-__all__ = ["SIMULATED", "Evidence", "theta_key"]
+__all__ = ["BOUNDED", "SIMULATED", "Evidence", "theta_key"]
 
 SIMULATED = "simulated"  # the kind of a row simulated on the identified model
+# the kind of a pessimistic stand-in for a plant episode the exploration budget refused: the
+# episode simulated on the identified model, its costs times the model's spread
+BOUNDED = "bounded"
 
 
 def theta_key(z: np.ndarray) -> bytes:
@@ -79,7 +85,8 @@ class Evidence:
         return np.all(np.isfinite(self.Y), axis=1)
 
     def plant(self) -> np.ndarray:
-        """Mask of the rows of plant episodes (not ``"simulated"``)."""
+        """Mask of the rows of plant episodes and their ``"bounded"`` stand-ins (not
+        ``"simulated"``)."""
         return np.array([k != SIMULATED for k in self.kinds], dtype=bool)
 
     def rows_of(self, z: np.ndarray) -> np.ndarray:

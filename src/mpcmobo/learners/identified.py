@@ -17,10 +17,11 @@
   (:meth:`~mpcmobo.learners.base.Learner.use_twin`); the candidates the exploration budget
   refuses reach it as episodes simulated on the identified model
   (:meth:`~mpcmobo.learners.base.Learner.observe_simulated`). The twin's theta itself, where
-  the budget keeps it off the plant from a verification's worth of starts (refused from each,
-  or not paying for itself on that model), is dropped without a plant episode
-  (:meth:`~mpcmobo.learners.switch.ModelSwitch.drop_offered`), and the inner learner starts
-  from the deployed theta.
+  the budget keeps it off the plant from a start (refused, or not paying for itself on that
+  model), is judged there on its simulated episode made pessimistic by the model's spread;
+  kept off from more than a third of a verification's starts, it is dropped
+  (:meth:`~mpcmobo.learners.switch.ModelSwitch.kept_off`), and the inner learner starts from
+  the deployed theta.
 """
 
 from __future__ import annotations
@@ -204,12 +205,12 @@ class IdentifyFirst(Learner):
         return self.switch_.offered()
 
     def observe_simulated(self, theta: np.ndarray, result: EpisodeResult) -> None:
-        """The inner learner's simulated observation; before it tunes, the twin's theta
-        simulated instead of run counts towards its drop (module docstring)."""
+        """The inner learner's simulated observation; before it tunes, the switch's, of the
+        twin's theta simulated instead of run (module docstring)."""
         if self.inner_ is not None:
             self.inner_.observe_simulated(theta, result)
         else:
-            self.switch_.drop_offered(theta)
+            self.switch_.kept_off(theta, result)
 
     def _advance(self) -> None:
         """Once the switch has settled: the twin's tuning (once), and when the switch has

@@ -17,10 +17,12 @@ dropped candidate, once no new one has come for a verification's worth of episod
 (``min_runs``; cycled starts: a cycle); or, once an identified model is deployed, after
 ``MAX_DECISIONS`` decisions (under structural mismatch the fit moves as data come in). A
 candidate offered from elsewhere (the twin's tuning, :meth:`ModelSwitch.offer`) is judged by
-the deployed model's twin, and dropped without a plant episode where the exploration budget
-keeps it off the plant from a verification's worth of starts (``min_runs``; cycled starts:
-every start of the cycle), refused from each or not paying for itself on that model
-(:meth:`ModelSwitch.drop_offered`): a refusal is a verdict on one start. Under
+the deployed model's twin. Where the exploration budget keeps it off the plant from a start
+(refused there, or not paying for itself on that model), its episode simulated on that model,
+its costs times the model's spread (``EpisodeResult.spread``), stands in for the plant episode
+from that start (``"bounded"`` evidence: pessimistic by the model's own record); kept off
+from more than ``BOUNDED_SHARE`` of a verification's starts (``min_runs``; cycled starts: the
+cycle), it is dropped without a deployment (:meth:`ModelSwitch.kept_off`). Under
 random starts a fitted candidate's tests adjust each episode's cost by the identified model's
 prediction of it."""
 
@@ -33,16 +35,19 @@ import numpy as np
 from mpcmobo.identify import Identification, ModelFit, Transitions
 from mpcmobo.learners.base import EpisodeResult, Starts
 from mpcmobo.learners.deploy import RandomEvidence, evidence_policy
-from mpcmobo.learners.evidence import Evidence, theta_key
+from mpcmobo.learners.evidence import BOUNDED, Evidence, theta_key
 from mpcmobo.learners.options import EvidenceDeploy
 from mpcmobo.learners.prediction import StartCosts, Twin
 
-__all__ = ["MAX_DECISIONS", "MOVED", "REFIT_GROWTH", "RESOLUTION", "ModelSwitch"]
+__all__ = ["BOUNDED_SHARE", "MAX_DECISIONS", "MOVED", "REFIT_GROWTH", "RESOLUTION", "ModelSwitch"]
 
 MOVED = 2.0  # a new candidate once the fit moves this many standard deviations
 RESOLUTION = 1e-3  # ... and by more than this fraction of a value (noise-free data: std ~ 0)
 REFIT_GROWTH = 0.1  # a refit once the transitions have grown by 10% since the last fit
 MAX_DECISIONS = 2  # identify-first tuning starts after this many decisions (a model deployed)
+# the share of a verification's starts an offered candidate may be judged on by its bounded
+# simulations; kept off the plant more often, it is dropped
+BOUNDED_SHARE = 1 / 3
 
 
 class ModelSwitch:
@@ -188,15 +193,33 @@ class ModelSwitch:
         """The candidate being judged (None: none)."""
         return None if self.candidate_ is None else self.candidate_.copy()
 
-    def drop_offered(self, theta: np.ndarray) -> None:
-        """The offered candidate, if ``theta`` is it, was simulated instead of run: the
-        exploration budget refused it from this episode's start, or the deployed model, which
-        it was tuned on, predicts that it does not pay back its excess. It is dropped without
-        plant evidence once this has happened ``min_runs`` times (module docstring)."""
-        if self.offered() and theta_key(theta) == self._candidate_key():
-            self.kept_off_ += 1
-            if self.kept_off_ >= self.policy.min_runs:
-                self._decided()
+    def kept_off(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """The offered candidate, if ``theta`` is it, was simulated instead of run (``result``):
+        the exploration budget refused it from this episode's start, or the deployed model,
+        which it was tuned on, predicts that it does not pay back its excess. The simulation,
+        its costs times ``result.spread``, stands in for its plant episode from that start
+        (``"bounded"`` evidence), then the candidate is decided as after a plant episode;
+        kept off from more than ``BOUNDED_SHARE`` of ``min_runs`` starts, or without a finite
+        bound, it is dropped (module docstring)."""
+        if not (self.offered() and theta_key(theta) == self._candidate_key()):
+            return
+        self.kept_off_ += 1
+        spread = float(result.spread)
+        bounded = result.valid and np.isfinite(spread) and spread >= 1
+        if not bounded or self.kept_off_ > BOUNDED_SHARE * self.policy.min_runs:
+            self._decided()
+            return
+        self.evidence_.append(
+            theta,
+            np.array([result.f1 * spread]),
+            np.zeros(len(theta)),
+            result.start_id,
+            result.start_cost,
+            BOUNDED,
+            cost=result.stage_cost * spread,
+            replay=result.replay,
+        )
+        self.decide()
 
     def settled(self) -> bool:
         """Whether identification is done (module docstring): after a deployment, when the fit
