@@ -418,13 +418,12 @@ class Tuner:
             self.system, self.job.run.mpc, plan, log, params, model, history
         )
         if self.settings.start_mode == "cycle":  # a log from another start is refused
-            self._started(plan, log.states[0], problems)
+            self._check_start(plan, log.states[0], problems)
         if problems and not force:
             path = self.files.quarantine(tid, log, problems, self.system)
             self._write_status()
             raise LogQuarantined(_quarantine_message(tid, problems, path), problems, path)
-        # re-priced from where it started (random starts), once the log is believed
-        started = self._started(plan, log.states[0], problems)
+        started = self._started(plan, log.states[0])  # once the log is believed
         if record is None:  # a log the checks stopped at, told with force
             t0 = time.perf_counter()
             record = replay(self.system, self.job.run.mpc, plan.theta, *_arrays(log))
@@ -519,26 +518,36 @@ class Tuner:
             return np.asarray(fit.params, float), "identified"
         return np.asarray(self.job.run.mpc.model_params, float), "nominal"
 
-    def _started(
-        self, plan: EpisodePlan, x_first: np.ndarray, problems: list[checks.Problem]
-    ) -> EpisodePlan:
-        """The plan with the episode's logged initial state: the trial's ``x0`` if the log
-        starts within ``START_TOLERANCE`` x_scale of it (a measurement of that start), else
-        the logged state; under cycled starts an episode must start at its trial's ``x0``
-        (else a :class:`TunerError`, with the ``problems`` the checks found)."""
+    def _at_start(self, plan: EpisodePlan, x_first: np.ndarray) -> bool:
+        """Whether the log starts at the trial's ``x0``: within ``START_TOLERANCE`` x_scale of
+        it (a measurement of that start)."""
         scale = np.asarray(self.system.x_scale, float)
-        if np.all(np.abs(x_first - plan.x0) <= START_TOLERANCE * scale):
+        return bool(np.all(np.abs(x_first - plan.x0) <= START_TOLERANCE * scale))
+
+    def _check_start(
+        self, plan: EpisodePlan, x_first: np.ndarray, problems: list[checks.Problem]
+    ) -> None:
+        """Under cycled starts an episode must start at its trial's ``x0`` (:meth:`_at_start`);
+        else a :class:`TunerError`, with the ``problems`` the checks found."""
+        if self._at_start(plan, x_first):
+            return
+        scale = np.asarray(self.system.x_scale, float)
+        j = int(np.argmax(np.abs(x_first - plan.x0) / scale))
+        found = "".join(f"{p.message}; " for p in problems)
+        raise TunerError(
+            f"{found}the log starts at {self.system.state_names[j]} = {x_first[j]:.6g}, "
+            f"the trial at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared "
+            "from the same starts, so an episode must start at its trial's x0 (within "
+            f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "
+            "start_mode = 'random'"
+        )
+
+    def _started(self, plan: EpisodePlan, x_first: np.ndarray) -> EpisodePlan:
+        """The plan as its episode started: the trial's own where the log starts at its
+        ``x0`` (:meth:`_at_start`), else re-priced from the logged initial state (random
+        starts: a real plant starts where it is)."""
+        if self._at_start(plan, x_first):
             return plan
-        if self.settings.start_mode == "cycle":
-            j = int(np.argmax(np.abs(x_first - plan.x0) / scale))
-            found = "".join(f"{p.message}; " for p in problems)
-            raise TunerError(
-                f"{found}the log starts at {self.system.state_names[j]} = {x_first[j]:.6g}, "
-                f"the trial at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared "
-                "from the same starts, so an episode must start at its trial's x0 (within "
-                f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "
-                "start_mode = 'random'"
-            )
         return self.job.run.restarted(plan, x_first)
 
     def _pending(self, tid: int) -> EpisodePlan:
