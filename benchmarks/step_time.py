@@ -32,7 +32,8 @@ loads the library: set ``MPCMOBO_CACHE_DIR`` to a new directory to see both).
 policy gives about 1e-7, a different local solution in the constraint-violating phases tens.
 ``du_ipopt`` compares with the ``ipopt`` variant (IPOPT alone on the same barrier problem, so
 the same policy; the baselines solve the problem without the barrier, about 1e-4 away).
-``paths`` counts the steps solved by the Newton steps, the continuation and IPOPT.
+``paths`` counts the steps solved by the Newton steps, the continuation from the warm start,
+the continuation from the cold guess and IPOPT.
 
 The measurements of all variants and the baseline are interleaved state by state (in a new
 random order each step), so load from other processes on the shared machine hits them alike. The
@@ -487,8 +488,13 @@ def run(
     du = {n: [] for n in mpcs}  # |action - baseline action|, a sanity check of "same problem"
     du_first = {n: [] for n in names}  # |action - first variant's action|: "same policy"
     du_ipopt: dict[str, list] = {n: [] for n in mpcs}  # |action - the "ipopt" variant's action|
-    path_names = {"Newton_Succeeded": "newton", "Continuation_Succeeded": "continuation"}
-    paths = {n: {"newton": 0, "continuation": 0, "ipopt": 0} for n in mpcs}  # which path solved
+    path_names = {
+        "Newton_Succeeded": "newton",
+        "Continuation_Succeeded": "continuation",
+        "Cold_Continuation_Succeeded": "cold",
+    }
+    # which path solved
+    paths = {n: {"newton": 0, "continuation": 0, "cold": 0, "ipopt": 0} for n in mpcs}
     path_times = {n: {k: [] for k in paths[n]} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
@@ -641,12 +647,12 @@ def main(argv=None) -> None:
         "IPOPT only); >1e-7, >1e-4: steps beyond. components "
         "(medians, ms): solver = Newton steps, continuation and IPOPT calls, sens = both "
         "sensitivities, other = the rest of the step (Python). paths: steps solved by "
-        "Newton / continuation / IPOPT"
+        "Newton / continuation / cold continuation / IPOPT"
     )
     hdr = (
         f"{'variant':<24} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
         f"{'ratio':>6} {'ratio_fat':>9} {'du_ipopt':>8} {'>1e-7':>5} {'>1e-4':>5} "
-        f"{'solver':>6} {'sens':>6} {'other':>6} {'build s':>7} {'paths':>12}"
+        f"{'solver':>6} {'sens':>6} {'other':>6} {'build s':>7} {'paths':>14}"
     )
     print(hdr)
     for n, r in res.items():
@@ -660,7 +666,7 @@ def main(argv=None) -> None:
         comp = (
             f"{r['median_solver_ms']:>6.2f} {r['median_sens_ms']:>6.2f} "
             f"{r['median_other_ms']:>6.2f} {r['build_s']:>7.2f} "
-            f"{'/'.join(str(v) for v in r['paths'].values()):>12}"
+            f"{'/'.join(str(v) for v in r['paths'].values()):>14}"
             if "build_s" in r
             else ""
         )
@@ -669,7 +675,7 @@ def main(argv=None) -> None:
             f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rf} "
             f"{dub_s} {comp}"
         )
-    print("median step [ms] by the path that solved it (Newton / continuation / IPOPT):")
+    print("median step [ms] by the path that solved it (Newton / continuation / cold / IPOPT):")
     for n, r in res.items():
         if "median_ms_by_path" in r:
             by = r["median_ms_by_path"].values()

@@ -8,7 +8,7 @@ import scipy.sparse.linalg
 from cstr_reference import assert_warm_sensitivities_match_fd, fd_sensitivities
 
 from mpcmobo.mpc import ParametricMPC, rollout
-from mpcmobo.mpc.interior import Continuation
+from mpcmobo.mpc.interior import Continuation, continuation, recentre
 from mpcmobo.rl import GaussianExploration
 
 
@@ -255,6 +255,36 @@ def test_continuation_reaches_the_root_ipopt_stops_at(cstr, monkeypatch):
     mpc.solver.prev = copy.deepcopy(prev)
     monkeypatch.setattr(mpc.solver, "interior", Continuation(max_steps=1))
     assert mpc.solve(x, mpc.theta0).status == "Solve_Succeeded"
+
+
+def test_a_continuation_that_ends_at_a_saddle_point_hands_over_to_ipopt(cstr):
+    # from a re-centred warm start the continuation can end at a saddle point of the barrier
+    # problem (on this hot start of the CSTR, at four steps), dearer than the minimum IPOPT
+    # finds from the same warm start: refused, IPOPT solves; every root accepted is a minimum
+    mpc, ipopt = ParametricMPC(cstr, continuation_steps=30), ParametricMPC(cstr)
+    rng = np.random.default_rng(2025)
+    x = [cstr.sample_initial_state(rng) for _ in range(4)][3]  # J_eval's fourth start
+    saddles = 0
+    for _ in range(45):
+        prev = copy.deepcopy(mpc.solver.prev)
+        p = np.concatenate([x, mpc.theta0])
+        raw = None
+        if prev is not None and mpc.solver.newton(p) is None:  # the unchecked continuation
+            lam, mu = mpc.kkt.multipliers(prev["w_shift"], prev["lam_g"], prev["lam_x"])
+            y = recentre(mpc.kkt, prev["w_shift"], lam, mu, p, mpc.solver.interior)
+            raw = continuation(mpc.kkt, y, p, 1e-8, mpc.solver.interior)
+        sol = mpc.solve(x, mpc.theta0, False)
+        if sol.status == "Continuation_Succeeded":
+            assert raw is not None and mpc.kkt.is_minimum(raw[0], p)
+        elif raw is not None and not mpc.kkt.is_minimum(raw[0], p):
+            saddles += 1
+            ipopt.solver.prev = prev
+            ref = ipopt.solve(x, mpc.theta0, False)
+            assert sol.status == ref.status == "Solve_Succeeded"
+            np.testing.assert_allclose(sol.action, ref.action, rtol=0, atol=1e-6)
+            assert ref.value < raw[1] * mpc.problem.cost_scale  # the saddle is dearer
+        x = cstr.plant_step(x, sol.action)
+    assert saddles >= 2
 
 
 def test_cold_continuation_reaches_the_root_ipopt_stops_at(cstr, monkeypatch):

@@ -18,11 +18,15 @@ plan would (:func:`recentre`, then :func:`continuation`):
    ``|R|_inf <= tol`` at a strictly interior point: the root the Newton path and IPOPT stop at,
    so the policy and its sensitivities are the ones of eq. nabla_pi.
 
-Without a warm start (the first step of an episode), or when the path from the warm start does
-not get there, :func:`cold_start` puts the cold guess on the central path at a larger barrier
-parameter (``COLD_BARRIERS``: 1, then 0.1): every multiplier 1, re-centred, then every ``mu`` at
-``m / -H``, and the same continuation follows from there (the embedded controller's cold path,
-:mod:`mpcmobo.mpc.embedded`, step for step).
+Without a warm start (the first step of an episode), :func:`cold_start` puts the cold guess on
+the central path at a larger barrier parameter (``COLD_BARRIERS``: 1, then 0.1): every
+multiplier 1, re-centred, then every ``mu`` at ``m / -H``, and the same continuation follows
+from there (the embedded controller's cold path, :mod:`mpcmobo.mpc.embedded`, step for step;
+without IPOPT, the embedded controller takes it also where the path from its warm start fails).
+
+A root is a minimum or a saddle point of the barrier problem: the paths have no merit function.
+The solver accepts a root of theirs only at a minimum
+(:meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`); a saddle point, dearer, goes to IPOPT.
 
 Every step is one call of a (generated) CasADi function, at most ``max_steps`` of them per path.
 There is no line search: a step that leaves the interior, or running out of steps, ends the

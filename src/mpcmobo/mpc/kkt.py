@@ -134,6 +134,7 @@ class KKTSystem:
         R_m = ca.vertcat(R[: self.nw + self.neq], mu * H + m)
         self.newton_mu = self._newton_function(wv, y, p, R_m, Jy, H, f, m)
         self.rows = ca.Function("rows", [wv, p], [H])
+        self.curvature = _curvature_function(wv, y, p, lagr, geq, H, mu)
         self.slack_of_row = _slack_of_row(H, wv, problem.ie_flat)
         self._wrap()
 
@@ -144,6 +145,7 @@ class KKTSystem:
         self.newton = ca.external("newton", str(library))
         self.newton_mu = ca.external("newton_mu", str(library))
         self.rows = ca.external("rows", str(library))
+        self.curvature = ca.external("curvature", str(library))
         self._wrap()
 
     def _wrap(self) -> None:
@@ -152,6 +154,23 @@ class KKTSystem:
         self.newton_call = NumpyCall(self.newton)
         self.newton_mu_call = NumpyCall(self.newton_mu)
         self.rows_call = NumpyCall(self.rows)
+        self.curvature_call = NumpyCall(self.curvature)
+
+    def is_minimum(self, y: np.ndarray, p: np.ndarray) -> bool:
+        """Whether the root ``y`` of ``R(., p)`` is a strict local minimum of the barrier
+        problem and not a saddle point: the condensed Hessian ``K = W + A_H^T diag(mu / -H)
+        A_H`` positive definite on the null space of the equalities' Jacobian (a Cholesky
+        factorisation), that is the Newton matrix's inertia that of a minimum. Newton steps
+        without a merit function converge to either; IPOPT's inertia correction steers to
+        minima."""
+        K, A = self.curvature_call(y, p)
+        Q, _ = np.linalg.qr(A.T, mode="complete")
+        Z = Q[:, A.shape[0] :]
+        try:
+            np.linalg.cholesky(Z.T @ K @ Z)
+        except np.linalg.LinAlgError:
+            return False
+        return True
 
     def _newton_function(
         self,
@@ -264,6 +283,17 @@ class KKTSystem:
         if not (np.all(np.isfinite(dpi)) and np.all(np.isfinite(dV))):
             raise ValueError("non-finite sensitivity (singular KKT matrix)")
         return dpi, dV
+
+
+def _curvature_function(
+    wv: ca.SX, y: ca.SX, p: ca.SX, lagr: ca.SX, geq: ca.SX, H: ca.SX, mu: ca.SX
+) -> ca.Function:
+    """``curvature``: (y, p) -> (the barrier Lagrangian's Hessian condensed on the
+    inequalities, ``W + A_H^T diag(mu / -H) A_H``, the equalities' Jacobian): whether a root is
+    a minimum or a saddle point (:meth:`KKTSystem.is_minimum`)."""
+    A_H = ca.jacobian(H, wv)
+    K = ca.hessian(lagr, wv)[0] + ca.mtimes([A_H.T, ca.diag(mu / -H), A_H])
+    return ca.Function("curvature", [y, p], [K, ca.jacobian(geq, wv)])
 
 
 def _slack_of_row(H: ca.SX, w: ca.SX, slacks: np.ndarray) -> np.ndarray:

@@ -9,9 +9,11 @@
    point IPOPT stops at;
 2. when they cannot start or do not converge (typically because the new state violates a
    state bound of the shifted plan), the interior-point continuation of
-   :mod:`mpcmobo.mpc.interior` on the same Newton system, ending at the same root;
-3. without a warm start, or when the continuation from it does not get there, the same
-   continuation from the cold guess (these two paths with a ``Continuation``, the default);
+   :mod:`mpcmobo.mpc.interior` on the same Newton system, ending at the same root, accepted
+   only at a minimum (:meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`: from a re-centred start
+   the path can end at a saddle point, dearer, where IPOPT finds the minimum);
+3. without a warm start, the same continuation from the cold guess, accepted at a minimum
+   (these two paths with a ``Continuation``; none of the three with ``newton_steps = 0``);
 4. IPOPT from the warm start (when the continuations do not get there either);
 5. IPOPT from a cold start (when the warm start misled it, or there is none);
 6. the fallback input when IPOPT fails: the shifted previous plan, else ``u_r``, with NaN value
@@ -190,7 +192,7 @@ class Solver:
             found = self.newton(p) if newton else None
             if found is None and self.interior is not None:
                 found = self.interior_point(p)
-        if found is None and self.interior is not None:
+        elif self.newton_steps and self.interior is not None:
             found = self.cold_interior_point(x, p)
         if found is not None:
             sol = self.solution(x, p, *found, sensitivities=sensitivities)
@@ -247,7 +249,7 @@ class Solver:
         lam, mu = self.kkt.multipliers(w, prev["lam_g"], prev["lam_x"])
         y = recentre(self.kkt, w, lam, mu, p, settings)
         got = None if y is None else continuation(self.kkt, y, p, self.tol, settings)
-        if got is None:
+        if got is None or not self.kkt.is_minimum(got[0], p):
             return None
         y, f, steps = got
         out, w, mult = self.kkt.solver_outputs(y, f)
@@ -260,7 +262,7 @@ class Solver:
             return None
         w0 = self.problem.cold_guess(x)
         got = cold_continuation(self.kkt, w0, p, self.tol, self.interior)
-        if got is None:
+        if got is None or not self.kkt.is_minimum(got[0], p):
             return None
         y, f, steps = got
         out, w, mult = self.kkt.solver_outputs(y, f)
