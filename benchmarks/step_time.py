@@ -44,7 +44,7 @@ same against ``baseline_mx``.
 
     .venv/bin/python benchmarks/step_time.py            # 4 episodes x 60 steps
     .venv/bin/python benchmarks/step_time.py --quick    # 1 episode x 20 steps
-    .venv/bin/python benchmarks/step_time.py --variants codegen_continuation continuation ipopt codegen --no-peers
+    .venv/bin/python benchmarks/step_time.py --variants codegen default ipopt codegen_no_continuation --no-peers
 """
 
 from __future__ import annotations
@@ -398,10 +398,11 @@ VARIANTS: dict[str, dict] = {
     },
     # generated C, compiled once per machine and problem, cached on disk
     "codegen_ipopt": {"codegen": True, "newton_steps": 0},
-    "codegen": {"codegen": True},  # generated C, the Newton steps, then IPOPT (the default)
-    # with the interior-point continuation between the Newton steps and IPOPT
-    "continuation": {"continuation_steps": 30},
-    "codegen_continuation": {"codegen": True, "continuation_steps": 30},
+    # generated C, the Newton steps, the continuation, then IPOPT (the default paths)
+    "codegen": {"codegen": True},
+    # without the continuation: IPOPT where the Newton steps do not get there
+    "codegen_no_continuation": {"codegen": True, "continuation_steps": 0},
+    "no_continuation": {"continuation_steps": 0},
 }
 DEFAULT_VARIANTS = list(VARIANTS)
 

@@ -166,8 +166,9 @@ class MPCSettings(Section):
     """Start each solve from the previous solution shifted by one step."""
     newton_steps: int = Field(6, ge=0, le=100)
     """Warm solves first try this many Newton steps on the barrier KKT system and accept them
-    only at IPOPT's solution (to its tolerance); else IPOPT solves. 0: IPOPT always (a step about
-    twice as slow)."""
+    only at IPOPT's solution (to its tolerance); else the interior-point continuation on the
+    same system (from the cold guess without a warm start), accepted at a minimum; else IPOPT
+    solves. 0: IPOPT always (no Newton steps, no continuation: a step several times slower)."""
     codegen: bool = False
     """Generated C code of the MPC's functions, compiled once per machine and problem and cached
     (``$MPCMOBO_CACHE_DIR``, else ``~/.cache/mpcmobo``): the same numbers, faster steps; needs a

@@ -86,11 +86,12 @@ class ParametricMPC:
     continuation_steps:
         When the Newton steps cannot start or do not converge, at most this many steps of the
         interior-point continuation of :mod:`mpcmobo.mpc.interior` on the same Newton system
-        (re-centred shifted plan, barrier parameter 1e-3 down to ``tau``), accepted by the same
-        test; IPOPT solves when it does not get there. 0 (the default): IPOPT right away. 30
-        halves the median closed-loop step on the CSTR (IPOPT then solves 8% of the steps
-        instead of 43%, docs/benchmarks.md), but on a few states it ends at another local
-        optimum than IPOPT from the same warm start, most of them dearer.
+        (re-centred shifted plan, barrier parameter 1e-3 down to ``tau``), and without a warm
+        start as many from the cold guess, each accepted by the same test and only at a
+        minimum; IPOPT solves where they do not get there. On the CSTR IPOPT then solves a few
+        percent of the closed-loop steps instead of 43%, and a study runs in half the time
+        (docs/benchmarks.md); on a few states the path ends at another local minimum than
+        IPOPT's from the same warm start. 0: IPOPT right away.
 
     Attributes
     ----------
@@ -118,7 +119,7 @@ class ParametricMPC:
         codegen: bool = False,
         cache_dir: str | os.PathLike | None = None,
         newton_steps: int = 6,
-        continuation_steps: int = 0,
+        continuation_steps: int = 30,
     ) -> None:
         spec = system.mpc_spec
         self.system = system
