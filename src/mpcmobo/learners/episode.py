@@ -73,8 +73,8 @@ class EpisodeResult:
     inputs: np.ndarray | None = None  # (T, nu) the inputs applied
     exploration: np.ndarray | None = None  # (T, nu) the inputs applied minus the MPC's
     # an episode simulated on the identified model in place of a refused one: the factor (>= 1)
-    # within which the model's cost ratios are trusted (the exploration budget's calibration;
-    # inf: not calibrated); NaN: a plant episode
+    # within which its costs are trusted as the plant's (exp of twice the RMS log error of the
+    # model's predictions of plant episodes; inf: not calibrated); NaN: a plant episode
     spread: float = float("nan")
 
     @property

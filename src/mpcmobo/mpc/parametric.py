@@ -249,7 +249,10 @@ def _check_options(
         raise ValueError(f"tau must be positive, got {tau}")
     if not ca.has_linsol(linsol):
         raise ValueError(f"linsol '{linsol}' is not a linear solver plugin of this CasADi")
-    if int(newton_steps) != newton_steps or newton_steps < 0:
-        raise ValueError(f"newton_steps must be an integer >= 0, got {newton_steps}")
-    if int(continuation) != continuation or continuation < 0:
-        raise ValueError(f"continuation_steps must be an integer >= 0, got {continuation}")
+    _check_count("newton_steps", newton_steps)
+    _check_count("continuation_steps", continuation)
+
+
+def _check_count(name: str, value: int) -> None:
+    if int(value) != value or value < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {value}")

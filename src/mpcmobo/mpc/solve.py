@@ -249,11 +249,7 @@ class Solver:
         lam, mu = self.kkt.multipliers(w, prev["lam_g"], prev["lam_x"])
         y = recentre(self.kkt, w, lam, mu, p, settings)
         got = None if y is None else continuation(self.kkt, y, p, self.tol, settings)
-        if got is None or not self.kkt.is_minimum(got[0], p):
-            return None
-        y, f, steps = got
-        out, w, mult = self.kkt.solver_outputs(y, f)
-        return out, w, "Continuation_Succeeded", steps, mult
+        return self._at_minimum(got, p, "Continuation_Succeeded")
 
     def cold_interior_point(self, x: np.ndarray, p: np.ndarray) -> Found | None:
         """The continuation from the cold guess at ``x`` (:func:`~mpcmobo.mpc.interior.
@@ -262,11 +258,19 @@ class Solver:
             return None
         w0 = self.problem.cold_guess(x)
         got = cold_continuation(self.kkt, w0, p, self.tol, self.interior)
+        return self._at_minimum(got, p, "Cold_Continuation_Succeeded")
+
+    def _at_minimum(
+        self, got: tuple[np.ndarray, float, int] | None, p: np.ndarray, status: str
+    ) -> Found | None:
+        """A continuation's root ``got`` (its point, cost and steps) as the arguments of
+        :meth:`solution` with ``status``, if it is a minimum
+        (:meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`); else None (IPOPT then solves)."""
         if got is None or not self.kkt.is_minimum(got[0], p):
             return None
         y, f, steps = got
         out, w, mult = self.kkt.solver_outputs(y, f)
-        return out, w, "Cold_Continuation_Succeeded", steps, mult
+        return out, w, status, steps, mult
 
     def ipopt(self, x: np.ndarray, p: np.ndarray, warm: bool) -> tuple[bool, str, int, Any, Any]:
         """IPOPT from the warm start (``warm``) or the cold guess: (ok, status, iterations,
