@@ -54,6 +54,7 @@ def test_paper_config_loads_with_the_papers_protocol(paper):
     assert s.learners == ["mpc-rl", "bo", "mobo"] and s.system.name == "cstr"
     assert s.exploration.std == [1.7, 1.7] and not s.system.learn_model
     assert s.system.identify is False  # the paper tunes the imperfect model; the default fits it
+    assert s.exploration.budget == float("inf")  # every candidate runs: no exploration budget
 
 
 def test_paper_config_learner_options_are_the_papers_rules(paper):
