@@ -32,8 +32,8 @@ loads the library: set ``MPCMOBO_CACHE_DIR`` to a new directory to see both).
 policy gives about 1e-7, a different local solution in the constraint-violating phases tens.
 ``du_ipopt`` compares with the ``ipopt`` variant (IPOPT alone on the same barrier problem, so
 the same policy; the baselines solve the problem without the barrier, about 1e-4 away).
-``paths`` counts the steps solved by the Newton steps, the continuation from the warm start,
-the continuation from the cold guess and IPOPT.
+``paths`` counts the steps solved by the Newton steps, the continuation from the warm start, the
+one restarted from the shifted plan, the continuation from the cold guess and IPOPT.
 
 The measurements of all variants and the baseline are interleaved state by state (in a new
 random order each step), so load from other processes on the shared machine hits them alike. The
@@ -492,10 +492,11 @@ def run(
     path_names = {
         "Newton_Succeeded": "newton",
         "Continuation_Succeeded": "continuation",
+        "Restart_Continuation_Succeeded": "restart",
         "Cold_Continuation_Succeeded": "cold",
     }
     # which path solved
-    paths = {n: {"newton": 0, "continuation": 0, "cold": 0, "ipopt": 0} for n in mpcs}
+    paths = {n: {"newton": 0, "continuation": 0, "restart": 0, "cold": 0, "ipopt": 0} for n in mpcs}
     path_times = {n: {k: [] for k in paths[n]} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]
@@ -648,7 +649,7 @@ def main(argv=None) -> None:
         "IPOPT only); >1e-7, >1e-4: steps beyond. components "
         "(medians, ms): solver = Newton steps, continuation and IPOPT calls, sens = both "
         "sensitivities, other = the rest of the step (Python). paths: steps solved by "
-        "Newton / continuation / cold continuation / IPOPT"
+        "Newton / continuation / restarted continuation / cold continuation / IPOPT"
     )
     hdr = (
         f"{'variant':<24} {'median':>7} {'mean':>7} {'p95':>7} {'iters':>6} {'fail':>4} "
@@ -676,7 +677,9 @@ def main(argv=None) -> None:
             f"{r['mean_iters']:>6.1f} {r['failures']:>4d} {r['ratio']:>6.2f} {rf} "
             f"{dub_s} {comp}"
         )
-    print("median step [ms] by the path that solved it (Newton / continuation / cold / IPOPT):")
+    print(
+        "median step [ms] by the path that solved it (Newton / continuation / restart / cold / IPOPT):"
+    )
     for n, r in res.items():
         if "median_ms_by_path" in r:
             by = r["median_ms_by_path"].values()

@@ -18,6 +18,11 @@ plan would (:func:`recentre`, then :func:`continuation`):
    ``|R|_inf <= tol`` at a strictly interior point: the root the Newton path and IPOPT stop at,
    so the policy and its sensitivities are the ones of eq. nabla_pi.
 
+Where the path from the re-centred shifted plan fails or ends at a saddle point, the previous
+solution's multipliers are what misled it: the continuation restarts from the shifted plan
+itself put on the central path at ``m = 1e-2`` (``RESTART_BARRIERS``: every multiplier 1,
+re-centred, then every ``mu`` at ``m / -H``, as :func:`cold_start` does with the cold guess).
+
 Without a warm start (the first step of an episode), :func:`cold_start` puts the cold guess on
 the central path at a larger barrier parameter (``COLD_BARRIERS``: 1, then 0.1): every
 multiplier 1, re-centred, then every ``mu`` at ``m / -H``, and the same continuation follows
@@ -58,6 +63,9 @@ class Continuation:
 
 #: the barrier parameters at which the continuation from the cold guess starts, in turn
 COLD_BARRIERS = (1.0, 0.1)
+#: the barrier parameter at which the continuation restarts from the shifted plan on the
+#: central path (:func:`cold_continuation` from the shifted plan)
+RESTART_BARRIERS = (1e-2,)
 
 
 def recentre(
@@ -135,12 +143,18 @@ def cold_start(
 
 
 def cold_continuation(
-    kkt: KKTSystem, w0: np.ndarray, p: np.ndarray, tol: float, settings: Continuation
+    kkt: KKTSystem,
+    w0: np.ndarray,
+    p: np.ndarray,
+    tol: float,
+    settings: Continuation,
+    barriers: tuple[float, ...] = COLD_BARRIERS,
 ) -> tuple[np.ndarray, float, int] | None:
-    """The continuation from the cold guess ``w0`` (:func:`cold_start`) at each barrier
-    parameter of ``COLD_BARRIERS`` in turn: the first root found, as :func:`continuation`
-    returns it (the steps of that attempt); None when none gets there."""
-    for m0 in COLD_BARRIERS:
+    """The continuation from the primal point ``w0`` (the cold guess; or the shifted plan,
+    with ``RESTART_BARRIERS``) put on the central path (:func:`cold_start`) at each barrier
+    parameter of ``barriers`` in turn: the first root found, as :func:`continuation` returns
+    it (the steps of that attempt); None when none gets there."""
+    for m0 in barriers:
         at = replace(settings, m0=m0)
         y = cold_start(kkt, w0, p, at)
         got = None if y is None else continuation(kkt, y, p, tol, at)

@@ -11,7 +11,9 @@
    state bound of the shifted plan), the interior-point continuation of
    :mod:`mpcmobo.mpc.interior` on the same Newton system, ending at the same root, accepted
    only at a minimum (:meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`: from a re-centred start
-   the path can end at a saddle point, dearer, where IPOPT finds the minimum);
+   the path can end at a saddle point, dearer, where IPOPT finds the minimum); where it
+   fails or ends at a saddle, the same continuation restarted from the shifted plan on the
+   central path (the previous multipliers dropped), accepted at a minimum too;
 3. without a warm start, the same continuation from the cold guess, accepted at a minimum
    (these two paths with a ``Continuation``; none of the three with ``newton_steps = 0``);
 4. IPOPT from the warm start (when the continuations do not get there either);
@@ -33,7 +35,13 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from mpcmobo.mpc.interior import Continuation, cold_continuation, continuation, recentre
+from mpcmobo.mpc.interior import (
+    RESTART_BARRIERS,
+    Continuation,
+    cold_continuation,
+    continuation,
+    recentre,
+)
 from mpcmobo.mpc.kkt import KKTSystem
 from mpcmobo.mpc.transcription import Transcription
 
@@ -143,9 +151,9 @@ class Solver:
     ``max_iter``, ``solver_options``, ``warm_options``: see :func:`ipopt_options`.
 
     :meth:`solve` reaches its paths through the instance's methods :meth:`newton`,
-    :meth:`interior_point`, :meth:`cold_interior_point`, :meth:`ipopt` and
-    :meth:`sensitivities`, so a test injects a failure or a benchmark a timer by replacing one
-    of them on the instance (their signatures and returns are documented).
+    :meth:`interior_point`, :meth:`restarted_interior_point`, :meth:`cold_interior_point`,
+    :meth:`ipopt` and :meth:`sensitivities`, so a test injects a failure or a benchmark a timer
+    by replacing one of them on the instance (their signatures and returns are documented).
     """
 
     def __init__(
@@ -192,6 +200,8 @@ class Solver:
             found = self.newton(p) if newton else None
             if found is None and self.interior is not None:
                 found = self.interior_point(p)
+            if found is None and self.interior is not None:
+                found = self.restarted_interior_point(p)
         elif self.newton_steps and self.interior is not None:
             found = self.cold_interior_point(x, p)
         if found is not None:
@@ -250,6 +260,19 @@ class Solver:
         y = recentre(self.kkt, w, lam, mu, p, settings)
         got = None if y is None else continuation(self.kkt, y, p, self.tol, settings)
         return self._at_minimum(got, p, "Continuation_Succeeded")
+
+    def restarted_interior_point(self, p: np.ndarray) -> Found | None:
+        """The continuation restarted from the shifted previous plan on the central path,
+        without the previous multipliers (:func:`~mpcmobo.mpc.interior.cold_continuation` with
+        ``RESTART_BARRIERS``): the arguments of :meth:`solution`, or None (IPOPT then
+        solves)."""
+        prev, settings = self.prev, self.interior
+        if prev is None or settings is None:
+            return None
+        got = cold_continuation(
+            self.kkt, prev["w_shift"], p, self.tol, settings, barriers=RESTART_BARRIERS
+        )
+        return self._at_minimum(got, p, "Restart_Continuation_Succeeded")
 
     def cold_interior_point(self, x: np.ndarray, p: np.ndarray) -> Found | None:
         """The continuation from the cold guess at ``x`` (:func:`~mpcmobo.mpc.interior.
