@@ -9,9 +9,9 @@ each step with ``clock_gettime``:
 * warm: the states of 4 closed-loop episodes of 60 steps of ``ParametricMPC`` (its own closed
   loop), fed in order, against its actions.
 
-Reported: the linked libraries (``ldd``), the paths (Newton steps, continuation, cold
-continuation, fallback), the steps whose input is within 1e-6 of the MPC's, and the median,
-95th percentile and largest step time in microseconds.
+Reported: the linked libraries (``ldd``), the paths (Newton steps, continuation, continuation
+restarted from the shifted plan, cold continuation, fallback), the steps whose input is within
+1e-6 of the MPC's, and the median, 95th percentile and largest step time in microseconds.
 
     .venv/bin/python benchmarks/embedded_time.py
 """
@@ -30,7 +30,7 @@ from mpcmobo.mpc import ParametricMPC
 from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
 from mpcmobo.systems import get_system
 
-PATHS = ("fallback", "Newton", "continuation", "cold")
+PATHS = ("fallback", "Newton", "continuation", "cold", "restart")
 
 
 def run_controller(program: Path, states, *args: str) -> np.ndarray:
@@ -41,11 +41,11 @@ def run_controller(program: Path, states, *args: str) -> np.ndarray:
 
 def report(name: str, rows: np.ndarray, actions: np.ndarray, nu: int) -> None:
     du = np.max(np.abs(rows[:, :nu] - actions), axis=1)
-    paths = np.bincount(rows[:, nu].astype(int), minlength=4)
+    paths = np.bincount(rows[:, nu].astype(int), minlength=len(PATHS))
     t = rows[:, nu + 1]
     print(
         f"{name:<5} {len(rows):>5} {int(np.sum(du <= 1e-6)):>9} "
-        f"{' / '.join(f'{PATHS[i]} {paths[i]}' for i in (1, 2, 3, 0)):<52} "
+        f"{' / '.join(f'{PATHS[i]} {paths[i]}' for i in (1, 2, 4, 3, 0)):<64} "
         f"{np.median(t):>8.1f} {np.percentile(t, 95):>8.1f} {t.max():>8.1f}"
     )
 
@@ -85,7 +85,7 @@ def main(argv=None) -> None:
             rows.append(run_controller(d / "controller", states))
         rows_warm = np.vstack(rows)
         print(
-            f"{'':<5} {'steps':>5} {'u <= 1e-6':>9} {'paths':<52} {'median':>8} {'p95':>8} {'max':>8}"
+            f"{'':<5} {'steps':>5} {'u <= 1e-6':>9} {'paths':<64} {'median':>8} {'p95':>8} {'max':>8}"
         )
         report("cold", rows_cold, np.array(acts), s.nu)
         report("warm", rows_warm, np.array(warm_acts), s.nu)

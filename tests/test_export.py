@@ -103,6 +103,14 @@ def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     assert res.exit_code == 2 and "is a directory; the CasADi function is one file" in res.output
 
 
+OWN_PATHS = {
+    "Newton_Succeeded",
+    "Continuation_Succeeded",
+    "Restart_Continuation_Succeeded",
+    "Cold_Continuation_Succeeded",
+}
+
+
 def _run_embedded(program, states, *args):
     """The embedded controller's rows (u..., path, microseconds) for ``states``, one run."""
     text = "".join(" ".join(repr(float(v)) for v in x) + "\n" for x in states)
@@ -116,7 +124,7 @@ def test_the_embedded_controller_needs_libc_and_libm_only_and_gives_the_mpcs_inp
     """Compiled (-O0 for a fast test; benchmarks/embedded_time.py times -O2 on 100 states), it
     links nothing but libc and libm, and its input equals ParametricMPC.solve's within 1e-6:
     cold on 20 states of the box (after a reset: IPOPT from the cold guess) wherever it
-    converges, which is on 17 of them at least, and warm along a closed loop of the MPC."""
+    converges, which is on 17 of them at least, and warm along closed loops of the MPC."""
     mpc = ParametricMPC(cstr)
     d = export_embedded(mpc, None, tmp_path / "emb")
     proc = subprocess.run(embedded_compile_command(d, optimize="-O0"), capture_output=True)
@@ -149,6 +157,26 @@ def test_the_embedded_controller_needs_libc_and_libm_only_and_gives_the_mpcs_inp
     rows = _run_embedded(d / "controller", loop)
     np.testing.assert_allclose(rows[:, : cstr.nu], np.array(actions), rtol=0, atol=1e-6)
     assert np.sum(rows[:, cstr.nu] == 1) >= 15  # the warm steps take the Newton path
+    # from a hot start the closed loop takes every path but the cold one; a root that is a
+    # saddle point is refused as the MPC refuses it (here at step 31, where both restart), so
+    # the inputs agree until the MPC hands a step to IPOPT, which the controller does not have
+    rng = np.random.default_rng(2025)
+    x = [cstr.sample_initial_state(rng) for _ in range(4)][3]
+    mpc.reset()
+    loop, actions, paths = [], [], []
+    while len(loop) < 60:
+        sol = mpc.solve(x, sensitivities=False)
+        if sol.status not in OWN_PATHS:  # IPOPT's
+            break
+        loop.append(x)
+        actions.append(sol.action)
+        paths.append(sol.status)
+        x = cstr.plant_step(x, sol.action)
+    rows = _run_embedded(d / "controller", loop)
+    np.testing.assert_allclose(rows[:, : cstr.nu], np.array(actions), rtol=0, atol=1e-6)
+    assert "Restart_Continuation_Succeeded" in paths and len(loop) >= 30
+    restarted = [k for k, st in enumerate(paths) if st == "Restart_Continuation_Succeeded"]
+    assert np.all(rows[restarted, cstr.nu] == 4)
 
 
 @pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")

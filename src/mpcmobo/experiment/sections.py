@@ -167,7 +167,8 @@ class MPCSettings(Section):
     newton_steps: int = Field(6, ge=0, le=100)
     """Warm solves first try this many Newton steps on the barrier KKT system and accept them
     only at IPOPT's solution (to its tolerance); else the interior-point continuation on the
-    same system (from the cold guess without a warm start), accepted at a minimum; else IPOPT
+    same system (from the re-centred warm start, then restarted from the shifted plan on the
+    central path; from the cold guess without a warm start), accepted at a minimum; else IPOPT
     solves. 0: IPOPT always (no Newton steps, no continuation: a step several times slower)."""
     codegen: bool = False
     """Generated C code of the MPC's functions, compiled once per machine and problem and cached

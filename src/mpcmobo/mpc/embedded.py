@@ -4,16 +4,20 @@
 
 - ``mpc_functions.c`` / ``.h``: CasADi-generated code of the MPC's Newton step on the barrier KKT
   system at ``tau`` (``newton``) and at a barrier parameter ``m`` (``newton_mu``), the rows
-  ``H(w, p)`` (``rows``) and the one-stage shift of a root into the next warm start with its
-  multipliers (``warm_start``); the linear solves are CasADi's sparse QR, generated as plain C;
+  ``H(w, p)`` (``rows``), the pivots of the reduced Hessian that tell a minimum from a saddle
+  point (``pivots``, :meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`) and the one-stage shift
+  of a root into the next warm start with its multipliers (``warm_start``); the linear solves
+  are CasADi's sparse QR, generated as plain C;
 - ``controller.c`` / ``.h``: the solve, the paths of :mod:`mpcmobo.mpc.solve` without IPOPT:
   with a warm start, at most ``newton_steps`` Newton steps, then the interior-point
-  continuation of :mod:`mpcmobo.mpc.interior` from the re-centred shifted plan; without one
-  (the first call, or after a failure), the continuation from the cold guess of
+  continuation of :mod:`mpcmobo.mpc.interior` from the re-centred shifted plan, then the same
+  restarted from the shifted plan on the central path; without one (the first call, or after
+  a failure), and where those do not get there, the continuation from the cold guess of
   :meth:`~mpcmobo.mpc.transcription.Transcription.cold_guess`, re-centred, on the central path
-  at ``m`` = 1, then 0.1; where no path gets there, the fallback input: the previous plan's
-  next input, else ``u_r`` (return value 1). theta is fixed; every array is static (no
-  ``malloc``), every loop bounded;
+  at ``m`` = 1, then 0.1; a continuation's root is taken only at a minimum, as the MPC takes
+  it; where no path gets there, the fallback input: the previous plan's next input, else
+  ``u_r`` (return value 1). theta is fixed; every array is static (no ``malloc``), every loop
+  bounded;
 - ``main.c``: reads one state per line from the standard input, prints the input and the
   step's wall time in microseconds (``clock_gettime``).
 
@@ -31,6 +35,7 @@ import numpy as np
 
 from mpcmobo.mpc.codegen import compiler_command
 from mpcmobo.mpc.embedded_source import CONTROLLER_C, CONTROLLER_H, MAIN_C
+from mpcmobo.mpc.interior import RESTART_BARRIER
 from mpcmobo.mpc.parametric import ParametricMPC
 
 __all__ = ["embedded_compile_command", "export_embedded", "warm_start_function"]
@@ -93,6 +98,7 @@ def _constants(mpc: ParametricMPC, theta: np.ndarray, functions: list[ca.Functio
         f"#define NX {pr.nx}\n#define NU {pr.nu}\n#define NW {pr.nw}\n#define NEQ {pr.neq}\n",
         f"#define NH {kkt.nH}\n#define NY {kkt.ny}\n#define NP {pr.nx + pr.n_theta}\n",
         f"#define NSLACK {len(groups)}\n#define NSTAGE {pr.N}\n",
+        f"#define NPIV {pr.nw - pr.neq}\n",
         f"#define SZ_ARG {max(f.sz_arg() for f in functions)}\n",
         f"#define SZ_RES {max(f.sz_res() for f in functions)}\n",
         f"#define SZ_IW {max(f.sz_iw() for f in functions)}\n#define SZ_W {max(sz)}\n",
@@ -102,6 +108,7 @@ def _constants(mpc: ParametricMPC, theta: np.ndarray, functions: list[ca.Functio
         f"#define GAP {(interior.gap if interior else 1e-3)!r}\n",
         f"#define DELTA {(interior.delta if interior else 1e-2)!r}\n",
         f"#define M0 {(interior.m0 if interior else 1e-3)!r}\n",
+        f"#define RESTART_M0 {RESTART_BARRIER!r}\n",
         f"#define KAPPA {(interior.kappa if interior else 10.0)!r}\n",
         _c_array("double", "THETA", theta),
         _c_array("int", "SLACK_VAR", np.unique(slack[slack >= 0])),
@@ -129,7 +136,7 @@ def export_embedded(
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     kkt = mpc.kkt
-    functions = [kkt.newton, kkt.newton_mu, kkt.rows, warm_start_function(mpc)]
+    functions = [kkt.newton, kkt.newton_mu, kkt.rows, kkt.pivots, warm_start_function(mpc)]
     if not all(isinstance(f, ca.Function) and not f.is_a("external") for f in functions):
         raise ValueError("export_embedded needs the MPC's own functions (build it without codegen)")
     gen = ca.CodeGenerator("mpc_functions.c", {"with_header": True})

@@ -15,8 +15,8 @@ extern "C" {
 int controller_step(const double* x, double* u);
 /* Forget the warm start: the next step starts cold (call between episodes). */
 void controller_reset(void);
-/* How the last step was solved: 1 Newton steps, 2 continuation, 3 cold continuation,
- * 0 fallback; and the Newton steps it took. */
+/* How the last step was solved: 1 Newton steps, 2 continuation, 4 continuation restarted
+ * from the shifted plan, 3 cold continuation, 0 fallback; and the Newton steps it took. */
 int controller_path(void);
 int controller_iterations(void);
 int controller_nx(void);
@@ -30,7 +30,9 @@ int controller_nu(void);
 
 CONTROLLER_C = r"""/* The solve of the embedded controller: Newton steps on the barrier KKT system from the
  * shifted previous root, the interior-point continuation from the re-centred shifted plan, the
- * continuation from the cold guess, the fallback input (mpcmobo.mpc.embedded). */
+ * same restarted from the shifted plan on the central path, the continuation from the cold
+ * guess (a continuation's root taken only at a minimum), the fallback input
+ * (mpcmobo.mpc.embedded). */
 #include <math.h>
 #include <string.h>
 #include "mpc_functions.h"
@@ -41,7 +43,7 @@ static const casadi_real* ARG[SZ_ARG];
 static casadi_real* RES[SZ_RES];
 static casadi_int IW[SZ_IW];
 static casadi_real WORK[SZ_W];
-static double Y[NY], Y1[NY], YPREV[NY], P[NP], H[NH], PLAN[NSTAGE * NU];
+static double Y[NY], Y1[NY], YPREV[NY], P[NP], H[NH], PLAN[NSTAGE * NU], PIV[NPIV];
 static double S[6]; /* |R(y)|, |R(y+)|, f(y+), max H(y+), min mu+, max H(y) */
 static int HAVE_WARM = 0, HAVE_PLAN = 0, AGE = 0, PATH = 0, ITERS = 0;
 
@@ -56,6 +58,14 @@ static void step(double m) { /* one Newton step from Y into Y1, S; m <= 0: at ta
 static void eval_rows(void) {
   ARG[0] = Y; ARG[1] = P; RES[0] = H;
   rows(ARG, RES, IW, WORK, 0);
+}
+
+static int minimum(void) { /* whether the root Y is a minimum: every pivot positive */
+  int j;
+  ARG[0] = Y; ARG[1] = P; RES[0] = PIV;
+  pivots(ARG, RES, IW, WORK, 0);
+  for (j = 0; j < NPIV; j++) if (!(PIV[j] > 0) || !isfinite(PIV[j])) return 0;
+  return 1;
 }
 
 static int accepted(void) {
@@ -137,16 +147,27 @@ static void warm(void) {
   warm_start(ARG, RES, IW, WORK, 0);
 }
 
-static int cold(double m0) { /* the continuation from the cold guess, central at m0 */
-  int i, j;
-  memset(Y, 0, sizeof Y);
-  for (i = 0; i < NSTAGE; i++)
-    for (j = 0; j < NX; j++) Y[IX[i * NX + j]] = (P[j] - X_REF[j]) / SX_[j];
+static int central(double m0) { /* the continuation from Y's primal point, central at m0 */
+  int j;
+  memset(Y + NW, 0, NEQ * sizeof(double));
   for (j = 0; j < NH; j++) Y[NW + NEQ + j] = 1.0;
   if (!recentre(m0)) return 0;
   eval_rows();
   for (j = 0; j < NH; j++) Y[NW + NEQ + j] = m0 / fmax(-H[j], 1e-300);
   return continuation(m0);
+}
+
+static int cold(double m0) { /* the continuation from the cold guess, central at m0 */
+  int i, j;
+  memset(Y, 0, sizeof Y);
+  for (i = 0; i < NSTAGE; i++)
+    for (j = 0; j < NX; j++) Y[IX[i * NX + j]] = (P[j] - X_REF[j]) / SX_[j];
+  return central(m0);
+}
+
+static int restart(double m0) { /* the continuation from the shifted plan, central at m0 */
+  warm();
+  return central(m0);
 }
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
@@ -161,11 +182,16 @@ int controller_step(const double* x, double* u) {
     if ((k = newton_path())) PATH = 1;
     else {
       warm();
-      if (recentre(M0) && (k = continuation(M0))) PATH = 2;
+      if (recentre(M0) && (k = continuation(M0)) && minimum()) PATH = 2;
+      else if ((k = restart(RESTART_M0)) && minimum()) PATH = 4;
     }
   }
-  if (!PATH && ((k = cold(1.0)) || (k = cold(0.1)))) PATH = 3;
-  ITERS = k;
+  if (!PATH) { /* a root of the continuation is taken only at a minimum, as the MPC does */
+    k = cold(1.0);
+    if (!k) k = cold(0.1);
+    if (k && minimum()) PATH = 3;
+  }
+  ITERS = PATH ? k : 0;
   if (!PATH) { /* the fallback input: the previous plan's next input, else u_r */
     int stage = AGE + 1 < NSTAGE ? AGE + 1 : NSTAGE - 1;
     for (i = 0; i < NU; i++)
@@ -190,7 +216,8 @@ int controller_nu(void) { return NU; }
 
 MAIN_C = r"""/* Example: the embedded controller in closed loop with your own code.
  * Reads one state per line (nx numbers) from stdin and prints the input (nu numbers), the
- * path (1 Newton, 2 continuation, 3 cold, 0 fallback) and the step's wall time in microseconds.
+ * path (1 Newton, 2 continuation, 4 restart, 3 cold, 0 fallback) and the step's wall time in
+ * microseconds.
  * With the argument --cold every step starts cold (controller_reset before each one). */
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>

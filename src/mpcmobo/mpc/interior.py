@@ -20,7 +20,7 @@ plan would (:func:`recentre`, then :func:`continuation`):
 
 Where the path from the re-centred shifted plan fails or ends at a saddle point, the previous
 solution's multipliers are what misled it: the continuation restarts from the shifted plan
-itself put on the central path at ``m = 1e-2`` (``RESTART_BARRIERS``: every multiplier 1,
+itself put on the central path at ``m = 1e-2`` (``RESTART_BARRIER``: every multiplier 1,
 re-centred, then every ``mu`` at ``m / -H``, as :func:`cold_start` does with the cold guess).
 
 Without a warm start (the first step of an episode), :func:`cold_start` puts the cold guess on
@@ -65,7 +65,7 @@ class Continuation:
 COLD_BARRIERS = (1.0, 0.1)
 #: the barrier parameter at which the continuation restarts from the shifted plan on the
 #: central path (:func:`cold_continuation` from the shifted plan)
-RESTART_BARRIERS = (1e-2,)
+RESTART_BARRIER = 1e-2
 
 
 def recentre(
@@ -151,7 +151,7 @@ def cold_continuation(
     barriers: tuple[float, ...] = COLD_BARRIERS,
 ) -> tuple[np.ndarray, float, int] | None:
     """The continuation from the primal point ``w0`` (the cold guess; or the shifted plan,
-    with ``RESTART_BARRIERS``) put on the central path (:func:`cold_start`) at each barrier
+    with ``(RESTART_BARRIER,)``) put on the central path (:func:`cold_start`) at each barrier
     parameter of ``barriers`` in turn: the first root found, as :func:`continuation` returns
     it (the steps of that attempt); None when none gets there."""
     for m0 in barriers:

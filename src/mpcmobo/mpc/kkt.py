@@ -134,7 +134,7 @@ class KKTSystem:
         R_m = ca.vertcat(R[: self.nw + self.neq], mu * H + m)
         self.newton_mu = self._newton_function(wv, y, p, R_m, Jy, H, f, m)
         self.rows = ca.Function("rows", [wv, p], [H])
-        self.curvature = _curvature_function(wv, y, p, lagr, geq, H, mu)
+        self.pivots = _pivots_function(wv, y, p, lagr, geq, H, mu, problem.ix_flat)
         self.slack_of_row = _slack_of_row(H, wv, problem.ie_flat)
         self._wrap()
 
@@ -145,7 +145,7 @@ class KKTSystem:
         self.newton = ca.external("newton", str(library))
         self.newton_mu = ca.external("newton_mu", str(library))
         self.rows = ca.external("rows", str(library))
-        self.curvature = ca.external("curvature", str(library))
+        self.pivots = ca.external("pivots", str(library))
         self._wrap()
 
     def _wrap(self) -> None:
@@ -154,23 +154,17 @@ class KKTSystem:
         self.newton_call = NumpyCall(self.newton)
         self.newton_mu_call = NumpyCall(self.newton_mu)
         self.rows_call = NumpyCall(self.rows)
-        self.curvature_call = NumpyCall(self.curvature)
+        self.pivots_call = NumpyCall(self.pivots)
 
     def is_minimum(self, y: np.ndarray, p: np.ndarray) -> bool:
         """Whether the root ``y`` of ``R(., p)`` is a strict local minimum of the barrier
         problem and not a saddle point: the condensed Hessian ``K = W + A_H^T diag(mu / -H)
-        A_H`` positive definite on the null space of the equalities' Jacobian (a Cholesky
-        factorisation), that is the Newton matrix's inertia that of a minimum. Newton steps
-        without a merit function converge to either; IPOPT's inertia correction steers to
-        minima."""
-        K, A = self.curvature_call(y, p)
-        Q, _ = np.linalg.qr(A.T, mode="complete")
-        Z = Q[:, A.shape[0] :]
-        try:
-            np.linalg.cholesky(Z.T @ K @ Z)
-        except np.linalg.LinAlgError:
-            return False
-        return True
+        A_H`` positive definite on the null space of the equalities' Jacobian, that is the
+        Newton matrix's inertia that of a minimum: every pivot of :func:`_pivots_function`
+        finite and positive. Newton steps without a merit function converge to either; IPOPT's
+        inertia correction steers to minima. The embedded controller runs the same function."""
+        d = np.asarray(self.pivots_call(y, p)[0], float).reshape(-1)
+        return bool(np.all(np.isfinite(d)) and np.all(d > 0))
 
     def _newton_function(
         self,
@@ -285,15 +279,33 @@ class KKTSystem:
         return dpi, dV
 
 
-def _curvature_function(
-    wv: ca.SX, y: ca.SX, p: ca.SX, lagr: ca.SX, geq: ca.SX, H: ca.SX, mu: ca.SX
+def _pivots_function(
+    wv: ca.SX,
+    y: ca.SX,
+    p: ca.SX,
+    lagr: ca.SX,
+    geq: ca.SX,
+    H: ca.SX,
+    mu: ca.SX,
+    states: np.ndarray,
 ) -> ca.Function:
-    """``curvature``: (y, p) -> (the barrier Lagrangian's Hessian condensed on the
-    inequalities, ``W + A_H^T diag(mu / -H) A_H``, the equalities' Jacobian): whether a root is
-    a minimum or a saddle point (:meth:`KKTSystem.is_minimum`)."""
+    """``pivots``: (y, p) -> the pivots of the LDL^T factorisation (without pivoting) of the
+    reduced Hessian ``Z^T K Z``: ``K = W + A_H^T diag(mu / -H) A_H``, the barrier Lagrangian's
+    Hessian condensed on the inequalities, and ``Z`` the basis of the equalities' null space
+    that eliminates the predicted ``states`` (positions in ``w``) through the model's defects,
+    ``Z_states = -A_states^{-1} A_free`` (``A_states`` is triangular: stage by stage). ``Z^T K
+    Z`` is positive definite, the root a minimum (:meth:`KKTSystem.is_minimum`), exactly when
+    every pivot is positive. One function of plain arithmetic, so generated C runs it too."""
     A_H = ca.jacobian(H, wv)
     K = ca.hessian(lagr, wv)[0] + ca.mtimes([A_H.T, ca.diag(mu / -H), A_H])
-    return ca.Function("curvature", [y, p], [K, ca.jacobian(geq, wv)])
+    A = ca.jacobian(geq, wv)
+    dep = [int(i) for i in states]
+    free = sorted(set(range(wv.numel())) - set(dep))
+    Z = ca.SX(wv.numel(), len(free))
+    Z[free, :] = ca.SX.eye(len(free))
+    Z[dep, :] = -ca.solve(A[:, dep], A[:, free])
+    D, _, _ = ca.ldl(ca.mtimes([Z.T, K, Z]), False)
+    return ca.Function("pivots", [y, p], [D])
 
 
 def _slack_of_row(H: ca.SX, w: ca.SX, slacks: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ import casadi as ca
 import numpy as np
 
 from mpcmobo.mpc.interior import (
-    RESTART_BARRIERS,
+    RESTART_BARRIER,
     Continuation,
     cold_continuation,
     continuation,
@@ -264,13 +264,13 @@ class Solver:
     def restarted_interior_point(self, p: np.ndarray) -> Found | None:
         """The continuation restarted from the shifted previous plan on the central path,
         without the previous multipliers (:func:`~mpcmobo.mpc.interior.cold_continuation` with
-        ``RESTART_BARRIERS``): the arguments of :meth:`solution`, or None (IPOPT then
+        ``RESTART_BARRIER``): the arguments of :meth:`solution`, or None (IPOPT then
         solves)."""
         prev, settings = self.prev, self.interior
         if prev is None or settings is None:
             return None
         got = cold_continuation(
-            self.kkt, prev["w_shift"], p, self.tol, settings, barriers=RESTART_BARRIERS
+            self.kkt, prev["w_shift"], p, self.tol, settings, barriers=(RESTART_BARRIER,)
         )
         return self._at_minimum(got, p, "Restart_Continuation_Succeeded")
 
