@@ -73,6 +73,12 @@ def _own_share(
         mpc.solve = solve  # type: ignore[method-assign]
 
 
+def steps_of(mpc: ParametricMPC) -> int:
+    """The continuation's most steps per path in ``mpc``'s solver (0: none)."""
+    interior = mpc.solver.interior
+    return 0 if interior is None else interior.max_steps
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default="benchmarks/configs/ident.toml")
@@ -120,7 +126,7 @@ def main() -> None:
     tuned = tune_on_twin(space, start, true, costs, tuned_on, args.seed, args.tune_episodes)
     print(
         f"{system.name}, {len(twin.starts)} starts x {steps} steps, codegen "
-        f"{settings.mpc.codegen}, continuation_steps {options.get('continuation_steps', 0)} "
+        f"{settings.mpc.codegen}, continuation_steps {steps_of(mpc)} "
         f"(MPC built in {build:.1f} s), {args.repeats} repeats; tuned "
         f"theta: {tuned.cost / tuned.base_cost:.3f} of theta0's cost on its {TWIN_STARTS} starts"
     )
