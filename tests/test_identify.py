@@ -448,6 +448,14 @@ def test_an_offered_candidate_kept_off_a_start_is_judged_there_on_its_bounded_si
     sw, theta0, offered = _offered_switch(cstr)
     sw.kept_off(offered.copy(), _cost(6.0, 0, float("inf")))  # the model not calibrated
     assert not sw.offered() and sw.settled() and len(sw.evidence_) == 3
+    sw, theta0, offered = _offered_switch(cstr)
+    gradless = _cost(6.0, 0, 1.5)
+    gradless.objectives[1:] = np.nan  # no critic on the simulation: the cost still bounds it
+    sw.kept_off(offered.copy(), gradless)
+    assert sw.offered() and sw.evidence_.kinds[-1] == BOUNDED and len(sw.evidence_) == 4
+    sw, theta0, offered = _offered_switch(cstr)
+    sw.kept_off(offered.copy(), _cost(float("nan"), 0, 1.5))  # no cost: dropped unrun
+    assert not sw.offered() and len(sw.evidence_) == 3
     fitted, _ = _switch(cstr, [])
     fitted.identification_ = _fit_of(np.asarray(cstr.true_params, float))
     fitted.decide()

@@ -205,7 +205,9 @@ class ModelSwitch:
             return
         self.kept_off_ += 1
         spread = float(result.spread)
-        bounded = result.valid and np.isfinite(spread) and spread >= 1
+        # the bound needs the simulation's cost (f1 and the stage cost), not f2..f4
+        costs = np.isfinite(result.f1) and np.isfinite(result.stage_cost)
+        bounded = costs and np.isfinite(spread) and spread >= 1
         if not bounded or self.kept_off_ > BOUNDED_SHARE * self.policy.min_runs:
             self._decided()
             return
