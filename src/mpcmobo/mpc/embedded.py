@@ -4,8 +4,9 @@
 
 - ``mpc_functions.c`` / ``.h``: CasADi-generated code of the MPC's Newton step on the barrier KKT
   system at ``tau`` (``newton``) and at a barrier parameter ``m`` (``newton_mu``), the rows
-  ``H(w, p)`` (``rows``), the pivots of the reduced Hessian that tell a minimum from a saddle
-  point (``pivots``, :meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`) and the one-stage shift
+  ``H(w, p)`` (``rows``), the reduced Hessian whose Cholesky factorisation tells a minimum
+  from a saddle point (``reduced_hessian``, :meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`)
+  and the one-stage shift
   of a root into the next warm start with its multipliers (``warm_start``); the linear solves
   are CasADi's sparse QR, generated as plain C;
 - ``controller.c`` / ``.h``: the solve, the paths of :mod:`mpcmobo.mpc.solve` without IPOPT:
@@ -98,7 +99,7 @@ def _constants(mpc: ParametricMPC, theta: np.ndarray, functions: list[ca.Functio
         f"#define NX {pr.nx}\n#define NU {pr.nu}\n#define NW {pr.nw}\n#define NEQ {pr.neq}\n",
         f"#define NH {kkt.nH}\n#define NY {kkt.ny}\n#define NP {pr.nx + pr.n_theta}\n",
         f"#define NSLACK {len(groups)}\n#define NSTAGE {pr.N}\n",
-        f"#define NPIV {pr.nw - pr.neq}\n",
+        f"#define NRED {pr.nw - pr.neq}\n",
         f"#define SZ_ARG {max(f.sz_arg() for f in functions)}\n",
         f"#define SZ_RES {max(f.sz_res() for f in functions)}\n",
         f"#define SZ_IW {max(f.sz_iw() for f in functions)}\n#define SZ_W {max(sz)}\n",
@@ -136,7 +137,13 @@ def export_embedded(
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     kkt = mpc.kkt
-    functions = [kkt.newton, kkt.newton_mu, kkt.rows, kkt.pivots, warm_start_function(mpc)]
+    functions = [
+        kkt.newton,
+        kkt.newton_mu,
+        kkt.rows,
+        kkt.reduced_hessian,
+        warm_start_function(mpc),
+    ]
     if not all(isinstance(f, ca.Function) and not f.is_a("external") for f in functions):
         raise ValueError("export_embedded needs the MPC's own functions (build it without codegen)")
     gen = ca.CodeGenerator("mpc_functions.c", {"with_header": True})

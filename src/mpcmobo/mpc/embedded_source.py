@@ -43,7 +43,7 @@ static const casadi_real* ARG[SZ_ARG];
 static casadi_real* RES[SZ_RES];
 static casadi_int IW[SZ_IW];
 static casadi_real WORK[SZ_W];
-static double Y[NY], Y1[NY], YPREV[NY], P[NP], H[NH], PLAN[NSTAGE * NU], PIV[NPIV];
+static double Y[NY], Y1[NY], YPREV[NY], P[NP], H[NH], PLAN[NSTAGE * NU], MRED[NRED * NRED];
 static double S[6]; /* |R(y)|, |R(y+)|, f(y+), max H(y+), min mu+, max H(y) */
 static int HAVE_WARM = 0, HAVE_PLAN = 0, AGE = 0, PATH = 0, ITERS = 0;
 
@@ -60,11 +60,24 @@ static void eval_rows(void) {
   rows(ARG, RES, IW, WORK, 0);
 }
 
-static int minimum(void) { /* whether the root Y is a minimum: every pivot positive */
-  int j;
-  ARG[0] = Y; ARG[1] = P; RES[0] = PIV;
-  pivots(ARG, RES, IW, WORK, 0);
-  for (j = 0; j < NPIV; j++) if (!(PIV[j] > 0) || !isfinite(PIV[j])) return 0;
+static int minimum(void) { /* whether the root Y is a minimum: a Cholesky factorisation of
+                              * the reduced Hessian succeeds (in place, column by column) */
+  int i, j, k;
+  double d, s;
+  ARG[0] = Y; ARG[1] = P; RES[0] = MRED;
+  reduced_hessian(ARG, RES, IW, WORK, 0);
+  for (j = 0; j < NRED; j++) {
+    d = MRED[j + j * NRED];
+    for (k = 0; k < j; k++) d -= MRED[j + k * NRED] * MRED[j + k * NRED];
+    if (!(d > 0) || !isfinite(d)) return 0;
+    d = sqrt(d);
+    MRED[j + j * NRED] = d;
+    for (i = j + 1; i < NRED; i++) {
+      s = MRED[i + j * NRED];
+      for (k = 0; k < j; k++) s -= MRED[i + k * NRED] * MRED[j + k * NRED];
+      MRED[i + j * NRED] = s / d;
+    }
+  }
   return 1;
 }
 

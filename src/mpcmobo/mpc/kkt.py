@@ -134,7 +134,9 @@ class KKTSystem:
         R_m = ca.vertcat(R[: self.nw + self.neq], mu * H + m)
         self.newton_mu = self._newton_function(wv, y, p, R_m, Jy, H, f, m)
         self.rows = ca.Function("rows", [wv, p], [H])
-        self.pivots = _pivots_function(wv, y, p, lagr, geq, H, mu, problem.ix_flat)
+        self.reduced_hessian = _reduced_hessian_function(
+            wv, y, p, lagr, geq, H, mu, problem.ix_flat, linsol
+        )
         self.slack_of_row = _slack_of_row(H, wv, problem.ie_flat)
         self._wrap()
 
@@ -145,7 +147,7 @@ class KKTSystem:
         self.newton = ca.external("newton", str(library))
         self.newton_mu = ca.external("newton_mu", str(library))
         self.rows = ca.external("rows", str(library))
-        self.pivots = ca.external("pivots", str(library))
+        self.reduced_hessian = ca.external("reduced_hessian", str(library))
         self._wrap()
 
     def _wrap(self) -> None:
@@ -154,17 +156,24 @@ class KKTSystem:
         self.newton_call = NumpyCall(self.newton)
         self.newton_mu_call = NumpyCall(self.newton_mu)
         self.rows_call = NumpyCall(self.rows)
-        self.pivots_call = NumpyCall(self.pivots)
+        self.reduced_hessian_call = NumpyCall(self.reduced_hessian)
 
     def is_minimum(self, y: np.ndarray, p: np.ndarray) -> bool:
         """Whether the root ``y`` of ``R(., p)`` is a strict local minimum of the barrier
         problem and not a saddle point: the condensed Hessian ``K = W + A_H^T diag(mu / -H)
         A_H`` positive definite on the null space of the equalities' Jacobian, that is the
-        Newton matrix's inertia that of a minimum: every pivot of :func:`_pivots_function`
-        finite and positive. Newton steps without a merit function converge to either; IPOPT's
-        inertia correction steers to minima. The embedded controller runs the same function."""
-        d = np.asarray(self.pivots_call(y, p)[0], float).reshape(-1)
-        return bool(np.all(np.isfinite(d)) and np.all(d > 0))
+        Newton matrix's inertia that of a minimum: a Cholesky factorisation of the reduced
+        Hessian (:func:`_reduced_hessian_function`) succeeds. Newton steps without a merit
+        function converge to either; IPOPT's inertia correction steers to minima. The embedded
+        controller runs the same function and the same factorisation."""
+        M = np.asarray(self.reduced_hessian_call(y, p)[0], float)
+        if not np.all(np.isfinite(M)):
+            return False
+        try:
+            np.linalg.cholesky(M)
+        except np.linalg.LinAlgError:
+            return False
+        return True
 
     def _newton_function(
         self,
@@ -279,7 +288,7 @@ class KKTSystem:
         return dpi, dV
 
 
-def _pivots_function(
+def _reduced_hessian_function(
     wv: ca.SX,
     y: ca.SX,
     p: ca.SX,
@@ -288,24 +297,29 @@ def _pivots_function(
     H: ca.SX,
     mu: ca.SX,
     states: np.ndarray,
+    linsol: str,
 ) -> ca.Function:
-    """``pivots``: (y, p) -> the pivots of the LDL^T factorisation (without pivoting) of the
-    reduced Hessian ``Z^T K Z``: ``K = W + A_H^T diag(mu / -H) A_H``, the barrier Lagrangian's
-    Hessian condensed on the inequalities, and ``Z`` the basis of the equalities' null space
-    that eliminates the predicted ``states`` (positions in ``w``) through the model's defects,
-    ``Z_states = -A_states^{-1} A_free`` (``A_states`` is triangular: stage by stage). ``Z^T K
-    Z`` is positive definite, the root a minimum (:meth:`KKTSystem.is_minimum`), exactly when
-    every pivot is positive. One function of plain arithmetic, so generated C runs it too."""
+    """``reduced_hessian``: (y, p) -> the reduced Hessian ``Z^T K Z`` (dense): ``K = W + A_H^T
+    diag(mu / -H) A_H``, the barrier Lagrangian's Hessian condensed on the inequalities, and
+    ``Z`` the basis of the equalities' null space that eliminates the predicted ``states``
+    (positions in ``w``) through the model's defects, ``Z_states = -A_states^{-1} A_free``
+    (``A_states`` is triangular: stage by stage; solved with ``linsol``). It is positive
+    definite, the root a minimum (:meth:`KKTSystem.is_minimum`), exactly when a Cholesky
+    factorisation of it succeeds. K and A are expressions (SX), the elimination and the
+    products matrix operations (MX), so that the generated code stays small."""
     A_H = ca.jacobian(H, wv)
     K = ca.hessian(lagr, wv)[0] + ca.mtimes([A_H.T, ca.diag(mu / -H), A_H])
-    A = ca.jacobian(geq, wv)
+    curvature = ca.Function("curvature", [y, p], [K, ca.jacobian(geq, wv)])
+    nw = wv.numel()
     dep = [int(i) for i in states]
-    free = sorted(set(range(wv.numel())) - set(dep))
-    Z = ca.SX(wv.numel(), len(free))
-    Z[free, :] = ca.SX.eye(len(free))
-    Z[dep, :] = -ca.solve(A[:, dep], A[:, free])
-    D, _, _ = ca.ldl(ca.mtimes([Z.T, K, Z]), False)
-    return ca.Function("pivots", [y, p], [D])
+    free = sorted(set(range(nw)) - set(dep))
+    Y, P = ca.MX.sym("y", y.numel()), ca.MX.sym("p", p.numel())
+    K_m, A_m = curvature(Y, P)
+    Z_dep = -ca.solve(A_m[:, dep], A_m[:, free], linsol)
+    select_free = ca.DM(ca.Sparsity.triplet(nw, len(free), free, list(range(len(free)))), 1.0)
+    select_dep = ca.DM(ca.Sparsity.triplet(nw, len(dep), dep, list(range(len(dep)))), 1.0)
+    Z = select_free + ca.mtimes(select_dep, Z_dep)
+    return ca.Function("reduced_hessian", [Y, P], [ca.densify(ca.mtimes([Z.T, K_m, Z]))])
 
 
 def _slack_of_row(H: ca.SX, w: ca.SX, slacks: np.ndarray) -> np.ndarray:

@@ -177,7 +177,7 @@ class ParametricMPC:
         names = ("nlp_f", "nlp_g", "nlp_grad_f", "nlp_jac_g", "nlp_hess_l", "nlp_grad")
         kkt = self.kkt
         functions = [nlp, *(probe.get_function(n) for n in names), kkt.sens, kkt.newton]
-        functions += [kkt.newton_mu, kkt.rows, kkt.pivots]
+        functions += [kkt.newton_mu, kkt.rows, kkt.reduced_hessian]
         return compiled_library(functions, directory=cache_dir, info=self.build_info)
 
     @property
