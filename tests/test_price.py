@@ -178,6 +178,10 @@ def test_a_converged_tuning_recommends_to_stop_and_says_why():
     assert rec["action"] == "stop" and "converged" in rec["reason"]
     assert "5 candidates" in rec["reason"] and "mpcmobo export tuning" in rec["reason"]
     assert recommendation(12, 50, None, [], "tuning")["action"] == "continue"
+    spent = recommendation(8, 8, None, [], "tuning")["reason"]
+    assert "budget of 8 trials is spent: the deployed theta is the result" in spent
+    verifying = recommendation(8, 8, None, [], "tuning", verifying=True)["reason"]
+    assert "under verification" in verifying and "--episodes N" in verifying
 
 
 # ---------------------------------------------------------------------- in the loop

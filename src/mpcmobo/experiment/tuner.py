@@ -574,8 +574,8 @@ class Tuner:
         ``force``; :mod:`mpcmobo.experiment.tunerstatus`); ``plant_cost`` and
         ``excess_cost`` summed over them; ``quarantined``: the trials whose log is
         quarantined; ``learning``: the told trial whose log the learner has not learned from
-        yet (:meth:`accept`; None: none); ``recommendation``: ``action`` (continue or stop)
-        and ``reason``;
+        yet (:meth:`accept`; None: none); ``verifying``: whether a candidate is under
+        verification; ``recommendation``: ``action`` (continue or stop) and ``reason``;
         ``exploration``: the exploration budget's account (:meth:`_exploration`); the
         ``deployed`` theta, the trials that ran it and its ``evidence``, how often it changed
         from theta0, its last ``J_eval`` (a simulated plant; None until it is evaluated), and
@@ -601,6 +601,7 @@ class Tuner:
             self.files.forced(),
             learner.verifying(),
         )
+        verifying = learner.verifying() is not None
         pending = None if self.job.pending is None else int(self.job.pending["episode"])
         quarantined = self.files.quarantined()
         costs = [r.mean_stage_cost for r in ran if math.isfinite(r.mean_stage_cost)]
@@ -621,8 +622,10 @@ class Tuner:
                 str(self.run_dir.path),
                 self.job.run.price.converged_,
                 self.learning,
+                verifying,
             ),
             "learning": self.learning,
+            "verifying": verifying,
             "exploration": self._exploration(rows),
             "deployed": dict(zip(self._policy_mpc.theta_names, map(float, deployed))),
             "deployed_episodes": len(ran),

@@ -105,10 +105,12 @@ def recommendation(
     directory: str,
     converged: str = "",
     learning: int | None = None,
+    verifying: bool = False,
 ) -> dict[str, str]:
     """``action`` (``continue`` or ``stop``) and ``reason``; ``converged``: why tuning stopped
     exploring ("": it has not; :mod:`mpcmobo.experiment.price`); ``learning``: the told trial
-    the learner is learning from (``mpcmobo serve``), None if none."""
+    the learner is learning from (``mpcmobo serve``), None if none; ``verifying``: a candidate
+    is under verification (not yet deployed or dropped)."""
     if learning is not None:
         return {
             "action": "continue",
@@ -123,6 +125,16 @@ def recommendation(
             "reason": (
                 f"tuning has converged: {converged}. The deployed theta is the result (mpcmobo "
                 f"export {directory}); further trials run it without exploration"
+            ),
+        }
+    if told >= budget and verifying:
+        return {
+            "action": "stop",
+            "reason": (
+                f"the budget of {budget} trials is spent while a candidate is under "
+                f"verification: it is not deployed yet, and a larger budget lets its "
+                f"verification finish (mpcmobo ask {directory} --episodes N); without it the "
+                f"deployed theta is the result (mpcmobo export {directory})"
             ),
         }
     if told >= budget:
@@ -200,5 +212,6 @@ def saved_status(directory: str | Path) -> dict[str, Any] | None:
         str(path),
         converged,
         st.get("learning"),
+        bool(st.get("verifying")),
     )
     return st
