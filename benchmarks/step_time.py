@@ -496,7 +496,7 @@ def run(
         "Cold_Continuation_Succeeded": "cold",
     }
     # which path solved
-    paths = {n: {"newton": 0, "continuation": 0, "restart": 0, "cold": 0, "ipopt": 0} for n in mpcs}
+    paths = {n: {k: 0 for k in [*path_names.values(), "ipopt"]} for n in mpcs}
     path_times = {n: {k: [] for k in paths[n]} for n in mpcs}  # step times by path
     rng = np.random.default_rng(seed)
     x0s = [s.sample_initial_state(rng) for _ in range(episodes)]

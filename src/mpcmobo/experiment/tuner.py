@@ -593,15 +593,16 @@ class Tuner:
         incumbents = [self.job.run.learner.theta0, *(np.asarray(r.incumbent) for r in rows)]
         s = self.settings
         learner = self.job.run.learner
+        candidate = learner.verifying()
         trials = tunerstatus.trial_table(
             rows,
             learner.theta0,
             s.start_mode,
             s.n_cycle_starts,
             self.files.forced(),
-            learner.verifying(),
+            candidate,
         )
-        verifying = learner.verifying() is not None
+        verifying = candidate is not None
         pending = None if self.job.pending is None else int(self.job.pending["episode"])
         quarantined = self.files.quarantined()
         costs = [r.mean_stage_cost for r in ran if math.isfinite(r.mean_stage_cost)]

@@ -6,9 +6,8 @@
   system at ``tau`` (``newton``) and at a barrier parameter ``m`` (``newton_mu``), the rows
   ``H(w, p)`` (``rows``), the reduced Hessian whose Cholesky factorisation tells a minimum
   from a saddle point (``reduced_hessian``, :meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`)
-  and the one-stage shift
-  of a root into the next warm start with its multipliers (``warm_start``); the linear solves
-  are CasADi's sparse QR, generated as plain C;
+  and the one-stage shift of a root into the next warm start with its multipliers
+  (``warm_start``); the linear solves are CasADi's sparse QR, generated as plain C;
 - ``controller.c`` / ``.h``: the solve, the paths of :mod:`mpcmobo.mpc.solve` without IPOPT:
   with a warm start, at most ``newton_steps`` Newton steps, then the interior-point
   continuation of :mod:`mpcmobo.mpc.interior` from the re-centred shifted plan, then the same

@@ -198,9 +198,9 @@ class Solver:
         found = None
         if warm and self.newton_steps:
             found = self.newton(p) if newton else None
-            if found is None and self.interior is not None:
+            if found is None:  # both continuations give None without their settings
                 found = self.interior_point(p)
-            if found is None and self.interior is not None:
+            if found is None:
                 found = self.restarted_interior_point(p)
         elif self.newton_steps and self.interior is not None:
             found = self.cold_interior_point(x, p)
