@@ -43,6 +43,15 @@ def test_every_benchmark_config_loads_and_the_benchmark_page_names_only_those():
     assert {n.removeprefix("benchmarks/configs/") for n in named} <= set(names)
 
 
+def test_the_configs_without_identification_explore_without_a_price():
+    """Without identification the only model is the MPC's own wrong one, which cannot price a
+    candidate: every benchmark config that turns identification off runs every candidate."""
+    off = [p for p in sorted(CONFIGS.glob("*.toml")) if load_settings(p).system.identify is False]
+    assert {p.name for p in off} >= {"default_noident.toml", "noident.toml", "paper.toml"}
+    for p in off:
+        assert load_settings(p).resolved().exploration.budget == float("inf"), p.name
+
+
 def test_paper_config_loads_with_the_papers_protocol(paper):
     s = paper[0].resolved()
     assert (s.episodes, s.steps, s.start_mode, s.mpc.horizon) == (600, 60, "random", 10)

@@ -136,6 +136,29 @@ def test_tuning_converges_after_refusals_in_a_row_and_a_larger_budget_reopens_it
     assert not extended.converged and extended.errors_ == price.errors_
 
 
+def test_a_model_too_wrong_to_price_a_candidate_says_so_when_tuning_stops():
+    """The MPC's own model without identification: its errors vary between starts by more than
+    the budget, so every candidate is refused; tuning stops exploring, and the reason says the
+    model cannot price a candidate and what to do, not that exploring no longer pays."""
+    price = _calibrated(0.5, [0.0, 2.9, 0.1, 2.0])  # e.g. the CSTR's wrong model, 19x off
+    for k in range(PATIENCE):
+        assert not price.judge(1.0, 1.0, k, _unasked).run
+    assert price.converged
+    assert "cannot price a candidate" in price.converged_
+    assert "[system] identify" in price.converged_ and "[exploration] budget" in price.converged_
+    assert "no longer pays" not in price.converged_
+    rec = recommendation(6, 50, None, [], "tuning", price.converged_)["reason"]
+    assert rec.startswith("tuning has stopped exploring") and "theta is kept" in rec
+    fresh = ExplorationPrice(0.5, episodes=50)  # never calibrated: no prediction is trusted
+    for k in range(PATIENCE):
+        fresh.judge(1.0, 1.0, k, _unasked)
+    assert "it is not calibrated" in fresh.converged_
+    priced = _calibrated(0.5, [0.0, 0.0])  # a model that prices: the refusals are verdicts
+    for k in range(PATIENCE):
+        priced.judge(2.0, 1.0, k, _unasked)
+    assert "exploring no longer pays" in priced.converged_
+
+
 def test_a_refusal_is_simulated_only_on_a_model_within_its_error_and_converges_later():
     """A learner that learns in simulation sees a refused candidate, or one that does not pay
     back, on the model where the model's error is at most SIMULATION_ERROR (it does not run);
@@ -387,5 +410,32 @@ def test_a_tuner_converges_hands_out_the_deployed_controller_and_says_so(tmp_pat
     assert st["exploration"]["refused"] == refused and len(refused) >= PATIENCE
     assert st["exploration"]["converged"] and st["recommendation"]["action"] == "stop"
     res = CliRunner().invoke(app, ["status", str(out)])
-    assert res.exit_code == 0 and "tuning has converged" in res.output
+    # a budget of 0 leaves no room for the model's error: the reason says it cannot price one
+    assert res.exit_code == 0 and "tuning has stopped exploring" in res.output
     assert "refused" in res.output
+
+
+def test_a_run_that_could_not_price_its_candidates_warns_at_its_end():
+    """The summary keeps why each job stopped exploring; ``mpcmobo run`` warns of the jobs
+    that stopped because the model could not price a candidate, not of the others."""
+    from mpcmobo.cli import unpriced_warnings
+    from mpcmobo.experiment.summary import stopped_exploring
+
+    wrong = _calibrated(0.5, [0.0, 2.9, 0.1, 2.0])
+    right = _calibrated(0.5, [0.0, 0.0])
+    for k in range(PATIENCE):
+        wrong.judge(1.0, 1.0, k, _unasked)
+        right.judge(2.0, 1.0, k, _unasked)
+    ckpts = [
+        {"learner": "bo", "seed": 0, "state": {"price": wrong.state_dict()}},
+        {"learner": "bo", "seed": 1, "state": {"price": right.state_dict()}},
+        {"learner": "mobo", "seed": 0, "state": {"price": ExplorationPrice(0.5, 50).state_dict()}},
+        {"learner": "identify", "seed": 0, "state": {}},
+    ]
+    stops = stopped_exploring(ckpts)
+    assert sorted(stops) == ["bo"] and [s["seed"] for s in stops["bo"]] == [0, 1]
+    (line,) = unpriced_warnings({"stopped_exploring": stops})
+    assert line.startswith("1 job(s) stopped exploring") and "bo seed 0" in line
+    assert "bo seed 1" not in line and "[system] identify" in line
+    assert unpriced_warnings({"stopped_exploring": {"bo": stops["bo"][1:]}}) == []
+    assert unpriced_warnings({}) == []  # a summary written before the key existed

@@ -24,6 +24,7 @@ from rich.table import Table
 from mpcmobo import __version__
 from mpcmobo.cli.progress import Bars, Lines, fmt, progress_bars
 from mpcmobo.experiment.interrupts import Interrupted
+from mpcmobo.experiment.price import UNPRICED
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError, read_run_file
 from mpcmobo.experiment.settings import DEFAULT_LEARNERS, Settings, SettingsError, load_settings
 from mpcmobo.learners.registry import LEARNER_SPECS
@@ -263,9 +264,29 @@ def bound_warnings(summary: dict) -> list[str]:
     ]
 
 
-def warn_bounds(summary: dict) -> None:
-    """Print :func:`bound_warnings` of ``summary`` to standard error."""
-    for line in bound_warnings(summary):
+def unpriced_warnings(summary: dict) -> list[str]:
+    """One line for the jobs whose tuning stopped exploring because the model could not price
+    a candidate (``stopped_exploring`` of the summary): they kept what they had deployed."""
+    jobs = [
+        (f"{learner} seed {stop['seed']}", stop["reason"])
+        for learner, stops in (summary.get("stopped_exploring") or {}).items()
+        for stop in stops
+        if UNPRICED in stop["reason"]
+    ]
+    if not jobs:
+        return []
+    who = [name for name, _ in jobs]
+    return [
+        f"{len(who)} job(s) stopped exploring because {UNPRICED} within the exploration "
+        f"budget ({', '.join(who[:3])}{', ...' if len(who) > 3 else ''}; the first: "
+        f"{jobs[0][1]})"
+    ]
+
+
+def warn_summary(summary: dict) -> None:
+    """Print :func:`bound_warnings` and :func:`unpriced_warnings` of ``summary`` to standard
+    error."""
+    for line in [*bound_warnings(summary), *unpriced_warnings(summary)]:
         err_console.print(f"warning: {line}", highlight=False, soft_wrap=True)
 
 
@@ -321,7 +342,7 @@ def _resumed_settings(
 def _report(summary: dict, out: Path, seconds: float, no_plot: bool) -> None:
     """The summary table, where the records are, and the figures of a complete run."""
     console.print(_summary_table(summary))
-    warn_bounds(summary)
+    warn_summary(summary)
     console.print(f"records in [bold]{out}[/] ({seconds:.1f} s)")
     if not summary["complete"]:
         console.print(f"incomplete; continue with: mpcmobo run --resume --out {out}")

@@ -361,7 +361,7 @@ def status(
         _print_identification(st["identification"])
     summary = directory / "summary.json"
     if summary.exists():  # an identified parameter held by its bounds
-        cli.warn_bounds(storage.read_json(summary))
+        cli.warn_summary(storage.read_json(summary))
     rec = st["recommendation"]
     cli.console.print(f"next: {rec['action']}: {rec['reason']}", highlight=False)
 

@@ -35,7 +35,11 @@ same noise
   simulation), or :data:`SIMULATED_PATIENCE` in a row simulated (a learner that finds nothing
   worth the plant's episode), tuning has converged: every later episode runs the deployed
   controller without exploration noise, the learner no longer proposes nor observes, and the
-  reason is kept (the tuner's ``status`` reports it).
+  reason is kept (the tuner's ``status`` reports it). Where the model's ratio error alone
+  exceeds the budget (``exp(s) >= 1 + budget``: the MPC's own wrong model, without
+  identification, is off by a factor that depends on the start), the reason says that the
+  model cannot price a candidate, and what to do: tune again with the model identified or with
+  a larger budget (a run's or a tuner's budget is its settings').
 
 A candidate whose predicted closed loop fails (the model's plant runs away) is refused; where
 the deployed controller's prediction fails there is no basis, and the candidate runs.
@@ -49,7 +53,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["PATIENCE", "SIMULATED_PATIENCE", "SIMULATION_ERROR", "ExplorationPrice", "Verdict"]
+__all__ = [
+    "PATIENCE",
+    "SIMULATED_PATIENCE",
+    "SIMULATION_ERROR",
+    "UNPRICED",
+    "ExplorationPrice",
+    "Verdict",
+]
 
 # candidates in a row refused or not paying back after which tuning has converged
 PATIENCE = 5
@@ -61,6 +72,9 @@ SIMULATION_ERROR = 0.05
 MIN_CALIBRATION = 2
 # the last episodes kept to calibrate a new model on
 RECENT = 6
+# how the reason of a tuning that stopped exploring begins where the model cannot price a
+# candidate (its error alone exceeds the budget)
+UNPRICED = "the model cannot price a candidate"
 
 # one past episode as the calibration keeps it: its start, theta, noise and plant cost
 Episode = dict
@@ -186,9 +200,27 @@ class ExplorationPrice:
                 f"predicted excess",
                 episode,
                 verdict,
-                "exploring no longer pays",
+                self._why_unpaid(),
             )
         return verdict
+
+    def _why_unpaid(self) -> str:
+        """What :data:`PATIENCE` unpaid candidates in a row mean: exploring no longer pays, or,
+        where the model's error alone exceeds the budget (a candidate predicted to cost what
+        the deployed controller costs would be refused), that the model cannot price one."""
+        spread = math.exp(self.ratio_error())
+        if spread < 1 + self.budget:
+            return "exploring no longer pays"
+        within = (
+            "it is not calibrated"
+            if not math.isfinite(spread)
+            else f"its cost ratios vary within a factor {spread:.3g}"
+        )
+        return (
+            f"{UNPRICED} within the budget of {1 + self.budget:.3f}x "
+            f"({within}): tune again with the model identified ([system] identify) or with "
+            f"a larger budget ([exploration] budget; inf runs every candidate)"
+        )
 
     def _converge(self, streak: str, episode: int, verdict: Verdict, why: str) -> None:
         """Tuning has converged: ``streak`` says what came in a row, ``why`` what it means."""

@@ -226,5 +226,19 @@ def write_records(
     summary["reference_wall_time_s"] = reference.wall_time_s
     summary.update(training_summary(reference))
     summary["warnings"] = count_warnings(out)
+    summary["stopped_exploring"] = stopped_exploring(ckpts)
     storage.write_json(out / "summary.json", summary)
     return summary
+
+
+def stopped_exploring(ckpts: list[dict]) -> dict[str, list[dict]]:
+    """Per learner, the jobs whose tuning stopped exploring (:mod:`mpcmobo.experiment.price`)
+    with why: ``{"seed", "reason"}`` each."""
+    stops: dict[str, list[dict]] = {}
+    for c in ckpts:
+        price = (c.get("state") or {}).get("price") or {}
+        if price.get("converged"):
+            stops.setdefault(c["learner"], []).append(
+                {"seed": int(c["seed"]), "reason": str(price["converged"])}
+            )
+    return stops

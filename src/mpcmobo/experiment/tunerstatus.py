@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from mpcmobo.experiment.price import UNPRICED
 from mpcmobo.experiment.records import EpisodeRow
 
 
@@ -117,6 +118,14 @@ def recommendation(
             "reason": (
                 f"trial {learning} is told and the tuner's process is learning from it: "
                 f"mpcmobo ask {directory} prints the next trial when it is ready"
+            ),
+        }
+    if converged and UNPRICED in converged and (pending is None or pending not in quarantined):
+        return {
+            "action": "stop",
+            "reason": (
+                f"tuning has stopped exploring: {converged}. The deployed theta is kept "
+                f"(mpcmobo export {directory}); further trials run it without exploration"
             ),
         }
     if converged and (pending is None or pending not in quarantined):
