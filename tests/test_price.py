@@ -412,6 +412,7 @@ def test_a_tuner_converges_hands_out_the_deployed_controller_and_says_so(tmp_pat
     res = CliRunner().invoke(app, ["status", str(out)])
     # a budget of 0 leaves no room for the model's error: the reason says it cannot price one
     assert res.exit_code == 0 and "tuning has stopped exploring" in res.output
+    assert "([system] identify)" in " ".join(res.output.split())  # printed, not taken for markup
     assert "refused" in res.output
 
 
@@ -435,7 +436,7 @@ def test_a_run_that_could_not_price_its_candidates_warns_at_its_end():
     stops = stopped_exploring(ckpts)
     assert sorted(stops) == ["bo"] and [s["seed"] for s in stops["bo"]] == [0, 1]
     (line,) = unpriced_warnings({"stopped_exploring": stops})
-    assert line.startswith("1 job(s) stopped exploring") and "bo seed 0" in line
+    assert line.startswith("1 job(s) stopped exploring (bo seed 0): the model cannot price")
     assert "bo seed 1" not in line and "[system] identify" in line
     assert unpriced_warnings({"stopped_exploring": {"bo": stops["bo"][1:]}}) == []
     assert unpriced_warnings({}) == []  # a summary written before the key existed

@@ -276,10 +276,10 @@ def unpriced_warnings(summary: dict) -> list[str]:
     if not jobs:
         return []
     who = [name for name, _ in jobs]
+    first = jobs[0][1]
     return [
-        f"{len(who)} job(s) stopped exploring because {UNPRICED} within the exploration "
-        f"budget ({', '.join(who[:3])}{', ...' if len(who) > 3 else ''}; the first: "
-        f"{jobs[0][1]})"
+        f"{len(who)} job(s) stopped exploring ({', '.join(who[:3])}"
+        f"{', ...' if len(who) > 3 else ''}): {first[first.index(UNPRICED) :]}"
     ]
 
 
@@ -287,7 +287,7 @@ def warn_summary(summary: dict) -> None:
     """Print :func:`bound_warnings` and :func:`unpriced_warnings` of ``summary`` to standard
     error."""
     for line in [*bound_warnings(summary), *unpriced_warnings(summary)]:
-        err_console.print(f"warning: {line}", highlight=False, soft_wrap=True)
+        err_console.print(f"warning: {escape(line)}", highlight=False, soft_wrap=True)
 
 
 def _system_override(system: str | None) -> dict[str, Any] | None:

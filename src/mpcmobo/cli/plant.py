@@ -23,6 +23,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from mpcmobo import cli
@@ -363,7 +364,7 @@ def status(
     if summary.exists():  # an identified parameter held by its bounds
         cli.warn_summary(storage.read_json(summary))
     rec = st["recommendation"]
-    cli.console.print(f"next: {rec['action']}: {rec['reason']}", highlight=False)
+    cli.console.print(f"next: {rec['action']}: {escape(rec['reason'])}", highlight=False)
 
 
 def _status_of(directory: Path) -> dict[str, Any]:
