@@ -435,8 +435,34 @@ def test_a_run_that_could_not_price_its_candidates_warns_at_its_end():
     ]
     stops = stopped_exploring(ckpts)
     assert sorted(stops) == ["bo"] and [s["seed"] for s in stops["bo"]] == [0, 1]
+    assert [s["episode"] for s in stops["bo"]] == [PATIENCE - 1] * 2
     (line,) = unpriced_warnings({"stopped_exploring": stops})
-    assert line.startswith("1 job(s) stopped exploring (bo seed 0): the model cannot price")
+    assert line.startswith(
+        f"1 job(s) stopped exploring (bo seed 0 at episode {PATIENCE - 1}): the model cannot price"
+    )
     assert "bo seed 1" not in line and "[system] identify" in line
     assert unpriced_warnings({"stopped_exploring": {"bo": stops["bo"][1:]}}) == []
     assert unpriced_warnings({}) == []  # a summary written before the key existed
+
+
+def test_the_progress_lines_say_when_a_job_stops_exploring():
+    """A run's progress lines (and bars) show that a job has stopped exploring, from its run's
+    saved state, so a user does not wait for a run that no longer learns."""
+    import io
+
+    from rich.console import Console
+
+    from mpcmobo.cli.progress import Lines
+    from mpcmobo.experiment.job import explores, progress_event
+
+    stopped = _calibrated(0.5, [0.0, 0.0])
+    for k in range(PATIENCE):
+        stopped.judge(2.0, 1.0, k, _unasked)
+    assert not explores({"price": stopped.state_dict()})
+    assert explores({"price": ExplorationPrice(0.5, 50).state_dict()}) and explores({})
+    out = io.StringIO()
+    lines = Lines(Console(file=out, width=200), every=1)
+    lines(progress_event("bo", 0, [], 10, exploring=True) | {"episode": 1})
+    lines(progress_event("bo", 0, [], 10, exploring=False) | {"episode": 2})
+    first, second = out.getvalue().splitlines()
+    assert "exploring stopped" not in first and second.endswith("exploring stopped")

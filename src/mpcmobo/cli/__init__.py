@@ -268,7 +268,11 @@ def unpriced_warnings(summary: dict) -> list[str]:
     """One line for the jobs whose tuning stopped exploring because the model could not price
     a candidate (``stopped_exploring`` of the summary): they kept what they had deployed."""
     jobs = [
-        (f"{learner} seed {stop['seed']}", stop["reason"])
+        (
+            f"{learner} seed {stop['seed']}"
+            + ("" if stop.get("episode") is None else f" at episode {stop['episode']}"),
+            stop["reason"],
+        )
         for learner, stops in (summary.get("stopped_exploring") or {}).items()
         for stop in stops
         if UNPRICED in stop["reason"]
@@ -283,10 +287,11 @@ def unpriced_warnings(summary: dict) -> list[str]:
     ]
 
 
-def warn_summary(summary: dict) -> None:
-    """Print :func:`bound_warnings` and :func:`unpriced_warnings` of ``summary`` to standard
-    error."""
-    for line in [*bound_warnings(summary), *unpriced_warnings(summary)]:
+def warn_summary(summary: dict, unpriced: bool = True) -> None:
+    """Print :func:`bound_warnings` and (``unpriced``) :func:`unpriced_warnings` of
+    ``summary`` to standard error."""
+    lines = bound_warnings(summary) + (unpriced_warnings(summary) if unpriced else [])
+    for line in lines:
         err_console.print(f"warning: {escape(line)}", highlight=False, soft_wrap=True)
 
 

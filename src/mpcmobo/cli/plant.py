@@ -361,8 +361,9 @@ def status(
     if st["identification"] is not None:
         _print_identification(st["identification"])
     summary = directory / "summary.json"
-    if summary.exists():  # an identified parameter held by its bounds
-        cli.warn_summary(storage.read_json(summary))
+    if summary.exists():  # an identified parameter held by its bounds (the recommendation
+        # below says why tuning stopped exploring)
+        cli.warn_summary(storage.read_json(summary), unpriced=False)
     rec = st["recommendation"]
     cli.console.print(f"next: {rec['action']}: {escape(rec['reason'])}", highlight=False)
 

@@ -79,9 +79,10 @@ class Lines:
             if n == last or not due:
                 return
             self.printed[job] = n
+            stopped = "" if event.get("exploring", True) else ", exploring stopped"
             self._print(
                 f"{event['learner']} s{event['seed']}: episode {n}/{event['episodes']}, "
-                f"f1 {fmt(event['f1'])}, best J_eval {fmt(event['best_J_eval'])}"
+                f"f1 {fmt(event['f1'])}, best J_eval {fmt(event['best_J_eval'])}{stopped}"
             )
 
 
@@ -109,11 +110,13 @@ class Bars:
         elif kind == "episode":
             task = self.tasks.get((event["learner"], event["seed"]))
             if task is not None:
+                name = f"{event['learner']} s{event['seed']}"
                 self.progress.update(
                     task,
                     completed=event["episode"],
                     f1=fmt(event["f1"]),
                     best=fmt(event["best_J_eval"]),
+                    description=name if event.get("exploring", True) else f"{name} (stopped)",
                 )
 
 

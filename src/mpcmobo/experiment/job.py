@@ -269,7 +269,9 @@ class Job:
 
     def progress(self) -> dict:
         """The job's progress event (what the progress bars and lines show)."""
-        return progress_event(self.learner, self.seed, self.rows, self.settings.episodes)
+        return progress_event(
+            self.learner, self.seed, self.rows, self.settings.episodes, not self.run.price.converged
+        )
 
     def result(self) -> dict:
         """The job's result entry of ``summary.json``."""
@@ -324,8 +326,17 @@ def _learning_run(
     )
 
 
-def progress_event(learner: str, seed: int, rows: list[EpisodeRow], total: int) -> dict:
-    """The progress event of a job after ``rows``: its last f1 and best evaluated J_eval."""
+def explores(state: dict | None) -> bool:
+    """Whether the job whose saved run state (:meth:`LearningRun.state_dict`) is ``state``
+    still explores (its tuning has not stopped exploring, :mod:`mpcmobo.experiment.price`)."""
+    return not ((state or {}).get("price") or {}).get("converged")
+
+
+def progress_event(
+    learner: str, seed: int, rows: list[EpisodeRow], total: int, exploring: bool = True
+) -> dict:
+    """The progress event of a job after ``rows``: its last f1, best evaluated J_eval and
+    whether it still explores."""
     J = [r.J_eval_incumbent for r in rows if math.isfinite(r.J_eval_incumbent)]
     return {
         "kind": "episode",
@@ -335,6 +346,7 @@ def progress_event(learner: str, seed: int, rows: list[EpisodeRow], total: int) 
         "episodes": total,
         "f1": float(rows[-1].f1) if rows else math.nan,
         "best_J_eval": float(min(J)) if J else math.nan,
+        "exploring": bool(exploring),
     }
 
 

@@ -108,6 +108,7 @@ class ExplorationPrice:
         self.unpaid_ = 0  # candidates in a row refused or not paying back
         self.simulated_ = 0  # candidates in a row simulated instead of run
         self.converged_ = ""  # why tuning stopped exploring ("": it has not)
+        self.converged_at_: int | None = None  # the episode of the last refusal before it
 
     @property
     def active(self) -> bool:
@@ -225,6 +226,7 @@ class ExplorationPrice:
     def _converge(self, streak: str, episode: int, verdict: Verdict, why: str) -> None:
         """Tuning has converged: ``streak`` says what came in a row, ``why`` what it means."""
         self.converged_ = f"{streak} (the last at episode {episode}: {verdict.reason}): {why}"
+        self.converged_at_ = int(episode)
 
     def _verdict(
         self,
@@ -289,6 +291,7 @@ class ExplorationPrice:
             "unpaid": self.unpaid_,
             "simulated": self.simulated_,
             "converged": self.converged_,
+            "converged_at": self.converged_at_,
             "episodes": self.episodes,
         }
 
@@ -304,5 +307,7 @@ class ExplorationPrice:
         self.simulated_ = int(state.get("simulated", 0))  # saved before simulated refusals
         extended = int(state["episodes"]) != self.episodes
         self.converged_ = "" if extended else str(state["converged"])
+        at = None if extended else state.get("converged_at")  # saved before it was kept
+        self.converged_at_ = None if at is None else int(at)
         if extended:
             self.unpaid_ = self.simulated_ = 0

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from mpcmobo.experiment import interrupts
 from mpcmobo.experiment.build import build_plant, build_system
-from mpcmobo.experiment.job import Progress, make_study_learner, progress_event
+from mpcmobo.experiment.job import Progress, explores, make_study_learner, progress_event
 from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.records import Reference
 from mpcmobo.experiment.reference import compute_reference
@@ -152,7 +152,7 @@ def _pending(
     for n, s in jobs:
         ckpt = run_dir.checkpoint(n, s)
         if ckpt is not None:
-            emit(progress_event(n, s, ckpt.rows, settings.episodes))
+            emit(progress_event(n, s, ckpt.rows, settings.episodes, explores(ckpt.state)))
         if ckpt is None or len(ckpt.rows) < settings.episodes:
             pending.append((n, s))
     pending.sort(key=lambda job: -JOB_COST.get(job[0], LEARNER_SPECS[job[0]].job_cost))

@@ -233,12 +233,17 @@ def write_records(
 
 def stopped_exploring(ckpts: list[dict]) -> dict[str, list[dict]]:
     """Per learner, the jobs whose tuning stopped exploring (:mod:`mpcmobo.experiment.price`)
-    with why: ``{"seed", "reason"}`` each."""
+    with when and why: ``{"seed", "episode", "reason"}`` each (``episode``: that of the last
+    refused candidate; None in a run saved before it was kept)."""
     stops: dict[str, list[dict]] = {}
     for c in ckpts:
         price = (c.get("state") or {}).get("price") or {}
         if price.get("converged"):
             stops.setdefault(c["learner"], []).append(
-                {"seed": int(c["seed"]), "reason": str(price["converged"])}
+                {
+                    "seed": int(c["seed"]),
+                    "episode": price.get("converged_at"),
+                    "reason": str(price["converged"]),
+                }
             )
     return stops

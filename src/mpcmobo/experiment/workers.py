@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mpcmobo.experiment import interrupts, storage
-from mpcmobo.experiment.job import Progress, progress_event, run_job
+from mpcmobo.experiment.job import Progress, explores, progress_event, run_job
 from mpcmobo.experiment.rundir import RunDirectory, StudyError
 from mpcmobo.experiment.sections import SettingsError
 from mpcmobo.experiment.settings import Settings
@@ -73,7 +73,7 @@ class _Watch:
             except Exception:  # noqa: BLE001 - being replaced right now; next poll
                 continue
             if ckpt is not None:
-                self.emit(progress_event(n, s, ckpt.rows, self.total))
+                self.emit(progress_event(n, s, ckpt.rows, self.total, explores(ckpt.state)))
 
 
 def _sendable(factory: Callable[..., System]) -> None:
