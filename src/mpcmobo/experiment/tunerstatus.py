@@ -120,19 +120,15 @@ def recommendation(
                 f"mpcmobo ask {directory} prints the next trial when it is ready"
             ),
         }
-    if converged and UNPRICED in converged and (pending is None or pending not in quarantined):
-        return {
-            "action": "stop",
-            "reason": (
-                f"tuning has stopped exploring: {converged}. The deployed theta is kept "
-                f"(mpcmobo export {directory}); further trials run it without exploration"
-            ),
-        }
     if converged and (pending is None or pending not in quarantined):
+        # a model that cannot price a candidate stopped exploring; it did not converge
+        stopped, theta = (
+            ("stopped exploring", "kept") if UNPRICED in converged else ("converged", "the result")
+        )
         return {
             "action": "stop",
             "reason": (
-                f"tuning has converged: {converged}. The deployed theta is the result (mpcmobo "
+                f"tuning has {stopped}: {converged}. The deployed theta is {theta} (mpcmobo "
                 f"export {directory}); further trials run it without exploration"
             ),
         }
