@@ -4,6 +4,9 @@ Replays the recorded episodes of one job of a run (``episodes.parquet``: theta, 
 into a fresh learner built with the run's settings, so that the learner is timed alone, without
 MPC episodes. One episode of a study's learner is ``propose()``, then ``observe()`` of the
 episode's outcome and ``incumbent()`` (``mpcmobo.experiment.loop``); this is what is timed.
+The job must learn from its plant episodes alone: a run without identification and without an
+exploration budget, as the paper's protocol (``benchmarks/configs/paper.toml``); another job
+is refused with the reason.
 
 1. States: the learner's state before each sampled episode ``i`` (every ``--stride``-th from
    ``--offset``, from ``--first`` on) is the job's final checkpoint with its data cut to the
@@ -17,7 +20,7 @@ episode's outcome and ``incumbent()`` (``mpcmobo.experiment.loop``); this is wha
    in a study's worker: ``mpcmobo.experiment.job.single_threaded``) and in wall time, and
    returns its proposal, so the proposals of the trees are compared bit for bit.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/learner_time.py /tmp/default_s5 \\
+    PYTHONPATH=src .venv/bin/python benchmarks/learner_time.py runs/paper \\
         --src /path/to/old/src --src src --stride 10
 
 Ratios are of the sums over the sampled episodes (the first tree against each other one).
@@ -81,33 +84,41 @@ def _result(row: dict, n_cycle: int, start_mode: str, n_theta: int):  # noqa: AN
     )
 
 
-_PER_EPISODE = ("Z", "Y", "grads", "starts", "start_costs", "kinds")
-
-
 def record(args: argparse.Namespace) -> dict:
     """The learner's state before each sampled episode ``i``: the job's final checkpoint with
-    its data cut to the first ``i`` episodes; the GPs' hyperparameters and start offsets are
-    the final ones (a conditioning fit is due, not a full refit)."""
-    ckpt = pickle.loads(
-        (args.run / "jobs" / f"{args.learner}-s{args.seed}" / "checkpoint.pkl").read_bytes()
-    )
+    its evidence cut to the first ``i`` episodes; the GPs' hyperparameters
+    and start offsets are the final ones (a conditioning fit is due, not a full refit)."""
+    from mpcmobo.experiment.storage import read_pickle
+
+    ckpt = read_pickle(args.run / "jobs" / f"{args.learner}-s{args.seed}" / "checkpoint.pkl")
     final = ckpt["state"]["learner"]
+    if "evidence" not in final:
+        raise SystemExit(
+            f"{args.run}: the job {args.learner}-s{args.seed} identifies its model first; "
+            f"replay a run without identification ([system] identify = false)"
+        )
     n = len(final["evidence"]["Z"])
+    episodes = len(_rows(args.run, args.learner, args.seed))
+    if n != episodes:
+        raise SystemExit(
+            f"{args.run}: the job {args.learner}-s{args.seed} learned from {n} episodes, "
+            f"{episodes} ran on the plant (the exploration budget's simulated candidates); "
+            f"replay a run without the budget ([exploration] budget = inf)"
+        )
     states = {}
     for i in range(args.offset, n, args.stride):
         if i < args.first:
             continue
         st = dict(final)
-        ev = dict(final["evidence"])
-        for key in _PER_EPISODE:
-            ev[key] = list(ev[key][:i]) if key == "kinds" else np.asarray(ev[key])[:i].copy()
-        st["evidence"] = ev
-        pre = dict(final["pre_fit"])
-        sur = dict(pre["surrogate"])
+        st["evidence"] = {
+            key: (v[:i] if len(v) == n else v) if isinstance(v, list | np.ndarray) else v
+            for key, v in final["evidence"].items()
+        }
+        sur = dict(final["surrogate"])
         sur["calls_since_refit"] = 0  # the replayed fit and the timed one only condition
-        pre["surrogate"] = sur
-        st["pre_fit"] = pre
+        st["surrogate"] = sur
         st["pending"] = None
+        st["n_observed"] = i
         states[i] = pickle.dumps(st)
     return {"states": states, "n": n}
 
