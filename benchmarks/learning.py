@@ -1,4 +1,4 @@
-"""Learning benchmark: mpc-rl, bo, mobo (and hybrid) on the CSTR, several seeds, one budget.
+"""Learning benchmark: the learners on one system (the CSTR by default), several seeds.
 
 Runs the real study runner (``mpcmobo.experiment.run_study``) and prints a markdown table:
 episodes until the evaluated incumbent is within 5% and 2% of J*, the final J_eval/J*, the
@@ -6,7 +6,7 @@ worst J_eval/J* of the deployed theta over the run, the number of evaluations of
 theta above J_eval(theta0) ("regressions"), constraint violation during learning (mean per
 episode, and the largest episode per seed), and wall time per episode split into MPC and
 learner. ``--system`` and ``--config`` (a settings file, e.g. learner options) are passed to
-the study.
+the study. While it runs, a progress line per job every 10 episodes goes to standard error.
 
 Peer rows: ``--learners optuna-tpe optuna-gp`` runs Optuna's TPE and GP
 samplers through the same study (``benchmarks/optuna_learners.py``; needs the ``bench`` extra,
@@ -29,7 +29,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from rich.console import Console
 
+from mpcmobo.cli.progress import Lines
 from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 
@@ -268,7 +270,8 @@ def main() -> None:
             **({} if args.budget is None else {"exploration": {"budget": args.budget}}),
         )
         resume = (args.out[0] / "config.toml").exists()
-        run_study(None if resume else settings, args.out[0], resume=resume)
+        progress = Lines(Console(stderr=True), every=10)
+        run_study(None if resume else settings, args.out[0], resume=resume, progress=progress)
     print(table(args.out, args.only_seeds))
     print()
     print(plant_table(args.out, args.only_seeds))

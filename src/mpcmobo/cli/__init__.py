@@ -109,8 +109,8 @@ RUN_HELP = (
     "Run a study (learners x seeds): records, summary and, once complete, the figures.\n\n"
     "Ctrl-C (SIGINT) or SIGTERM stops the run at the end of the current MPC step (exit code "
     "130 or 143) with every finished episode recorded; --resume continues it. Library "
-    "warnings go to DIR/run.log; with its output redirected, the run prints a progress line "
-    "per job every few episodes."
+    "warnings go to DIR/run.log (written at the first one); with its output redirected, the "
+    "run prints a progress line per job every few episodes."
 )
 
 
