@@ -12,16 +12,22 @@ from typer.testing import CliRunner
 from mpcmobo.cli import app
 
 
-@pytest.fixture(scope="module")
-def mobo_run(tmp_path_factory):
-    """A finished mobo job on lq without identification nor budget, 4 episodes of 8 steps."""
-    out = tmp_path_factory.mktemp("learner_time")
+def _mobo_run(out, budget: str):
+    """A finished mobo job on lq without identification, 4 episodes of 8 steps."""
     config = out / "lq.toml"
-    config.write_text('[system]\nname = "lq"\nidentify = false\n[exploration]\nbudget = inf\n')
+    config.write_text(
+        f'[system]\nname = "lq"\nidentify = false\n[exploration]\nbudget = {budget}\n'
+    )
     args = ["run", "-c", str(config), "-l", "mobo", "-n", "4", "--steps", "8", "--seeds", "0"]
     res = CliRunner().invoke(app, [*args, "-q", "--no-plot", "--out", str(out / "run")])
     assert res.exit_code == 0, res.output
     return out / "run"
+
+
+@pytest.fixture(scope="module")
+def mobo_run(tmp_path_factory):
+    """Without an exploration budget: the learner's evidence is the run's episodes."""
+    return _mobo_run(tmp_path_factory.mktemp("learner_time"), "inf")
 
 
 def test_the_states_are_the_checkpoint_cut_to_each_sampled_episode(mobo_run, benchmark_script):
@@ -53,4 +59,14 @@ def test_a_job_that_identifies_its_model_is_named(dashboard_run, benchmark_scrip
         run=dashboard_run, learner="mobo", seed=0, offset=1, stride=1, first=1
     )
     with pytest.raises(SystemExit, match="mobo-s0 identifies its model first"):
+        lt.record(args)
+
+
+def test_a_job_that_learned_from_simulated_candidates_is_named(tmp_path, benchmark_script):
+    """With the default budget the learner also learns from refused candidates simulated on
+    the model: its evidence is not the run's episodes, and the replay says so."""
+    lt = benchmark_script("learner_time")
+    run = _mobo_run(tmp_path, "0.5")
+    args = argparse.Namespace(run=run, learner="mobo", seed=0, offset=1, stride=1, first=1)
+    with pytest.raises(SystemExit, match="4 ran on the plant .* budget = inf"):
         lt.record(args)
