@@ -86,8 +86,8 @@ def _result(row: dict, n_cycle: int, start_mode: str, n_theta: int):  # noqa: AN
 
 def record(args: argparse.Namespace) -> dict:
     """The learner's state before each sampled episode ``i``: the job's final checkpoint with
-    its evidence cut to the first ``i`` episodes; the GPs' hyperparameters
-    and start offsets are the final ones (a conditioning fit is due, not a full refit)."""
+    its evidence cut to the first ``i`` episodes; the GPs' hyperparameters and start offsets
+    are the final ones (a conditioning fit is due, not a full refit)."""
     from mpcmobo.experiment.storage import read_pickle
 
     ckpt = read_pickle(args.run / "jobs" / f"{args.learner}-s{args.seed}" / "checkpoint.pkl")
