@@ -23,6 +23,7 @@ from mpcmobo.learners import EpisodeResult, Replay, Starts
 from mpcmobo.learners.confidence import adjusted_confidence
 from mpcmobo.learners.evidence import theta_key
 from mpcmobo.learners.options import EvidenceDeploy
+from mpcmobo.learners.prediction import JUDGE_STARTS
 from mpcmobo.learners.switch import REFIT_GROWTH, ModelSwitch
 from mpcmobo.mpc import PlantDiverged, rollout
 from mpcmobo.systems import get_system
@@ -610,21 +611,27 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
         sw.deployed_params_ = np.asarray(lq.true_params, float)
         sw.decisions_ = 1  # a deployed model the fit has not left: settled
         assert sw.settled()
+        assert learner.judge_starts() is None  # the plant's episodes judge the switch's models
         learner._advance()
         inner = learner.inner_
         if service is None:
             assert inner is not None and learner.twin_ is None and len(built) == 1
+            assert learner.judge_starts() is None  # no twin without the loop's closed loops
             continue
         assert inner is None and not built and learner.twin_ is not None
         assert learner.twin_.better
         assert theta_key(sw.candidate_) == theta_key(learner.twin_.theta)
         assert sw.policy.twin is not None  # the offered candidate is judged by the twin
+        # ... on its simulated starts, where the budget's payback is judged too
+        np.testing.assert_array_equal(learner.judge_starts(), sw.policy.twin.starts)
+        assert learner.judge_starts().shape == (JUDGE_STARTS, lq.nx)
         sw._decided()  # the plant's evidence decides the twin's theta
         learner._advance()
         inner = learner.inner_
         assert inner is not None and len(built) == 1
         assert inner.blocks_.twin is not None
         np.testing.assert_array_equal(inner.blocks_.twin.params, sw.deployed_params_)
+        np.testing.assert_array_equal(learner.judge_starts(), inner.blocks_.twin.starts)
 
 
 def test_a_fit_held_by_its_bounds_is_reported_and_drawn(tmp_path):

@@ -255,6 +255,37 @@ def _expensive(lq):
     return lq.search_space.clip(theta)
 
 
+class Judging(FarAway):
+    """FarAway whose deployment test measures a theta on ``starts``."""
+
+    name = "judging"
+
+    def __init__(self, system, candidate, starts):
+        super().__init__(system, candidate)
+        self.starts = starts
+
+    def judge_starts(self):
+        return self.starts.copy()
+
+
+def test_the_payback_is_judged_on_the_starts_where_the_deployment_is_decided(lq):
+    """A candidate's saving were it deployed is its mean over the starts of the learner's
+    deployment test (the twin's), not over the run's fixed starts, where it may differ."""
+    run, learner = _run(lq, 0.5, _expensive(lq))
+    deployed, candidate = learner.theta0, learner.candidate
+    params = run.prediction_params(deployed)
+    on_cycle = run._saving(candidate, deployed, params)
+    d, c = (run.start_costs(run.cycle_starts, t, params) for t in (deployed, candidate))
+    assert on_cycle == pytest.approx((np.mean(d - c), np.mean(d)))
+    rng = np.random.default_rng(5)
+    starts = np.array([lq.sample_initial_state(rng) for _ in range(7)])
+    run.learner = Judging(lq, candidate, starts)
+    judged = run._saving(candidate, deployed, params)
+    d, c = (run.start_costs(starts, t, params) for t in (deployed, candidate))
+    assert judged == pytest.approx((np.mean(d - c), np.mean(d)))
+    assert judged[1] != pytest.approx(on_cycle[1])
+
+
 def test_the_loop_refuses_an_expensive_candidate_runs_the_deployed_and_converges(lq):
     run, learner = _run(lq, 0.0, _expensive(lq))
     rows = []

@@ -313,11 +313,16 @@ class LearningRun:
         self, theta: np.ndarray, deployed: np.ndarray, params: np.ndarray
     ) -> tuple[float, float]:
         """What ``theta`` would save per episode were it deployed instead of ``deployed``: the
-        mean over the run's fixed starts of the deployed theta's noise-free cost on the model
-        with ``params`` less its own (NaN where its closed loop fails and the deployed
-        theta's does not), and the deployed theta's mean cost there."""
-        d = self.start_costs(self.cycle_starts, deployed, params)
-        c = self.start_costs(self.cycle_starts, theta, params)
+        mean over the starts where the learner's deployment test measures a theta
+        (:meth:`~mpcmobo.learners.Learner.judge_starts`: the twin's), else over the run's fixed
+        starts, of the deployed theta's noise-free cost on the model with ``params`` less its
+        own (NaN where its closed loop fails and the deployed theta's does not), and the
+        deployed theta's mean cost there."""
+        starts = self.learner.judge_starts()
+        if starts is None:
+            starts = self.cycle_starts
+        d = self.start_costs(starts, deployed, params)
+        c = self.start_costs(starts, theta, params)
         ok = np.isfinite(d)
         if not ok.any():
             return np.nan, np.nan

@@ -21,7 +21,8 @@ same noise
   bound is infinite: only the deployed controller runs;
 * every other candidate runs. One predicted to cost more than the deployed controller
   **pays back** if, were it deployed, its predicted saving per episode (the deployed
-  controller's mean cost less its own, noise-free on the model from the run's fixed starts)
+  controller's mean cost less its own, noise-free on the model from the starts where the
+  learner's deployment test measures a theta, the twin's, else from the run's fixed starts)
   plus, at best, the model's error (``exp(s) - 1`` times the deployed controller's mean cost)
   over the remaining episodes covers its predicted excess;
 * where the model's error is at most :data:`SIMULATION_ERROR` and the learner learns in

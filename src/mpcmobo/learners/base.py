@@ -159,6 +159,13 @@ class Learner(ABC):
         (default None: the learner's theta0 on the MPC's nominal model)."""
         return None
 
+    def judge_starts(self) -> np.ndarray | None:
+        """The initial states (n, nx) on which the learner's deployment test measures a theta
+        on its model (the twin's simulated starts, where a twin judges), so that whoever asks
+        what a theta would save (the exploration budget's payback) asks it where the
+        deployment is decided (default None: the learner judges on plant episodes alone)."""
+        return None
+
     def identified(self) -> np.ndarray | None:
         """The model parameters the learner has identified from the plant (default None: it
         does not identify, or has no fit yet)."""

@@ -299,6 +299,16 @@ class IdentifyFirst(Learner):
             return None
         return self.switch_.deployed_.copy(), params.copy()
 
+    def judge_starts(self) -> np.ndarray | None:
+        """The deployed identified model's twin's simulated starts while it judges: the twin's
+        theta offered to the switch, then the inner learner's candidates (None before: the
+        switch judges its fitted candidates on the plant's episodes)."""
+        if self.inner_ is None and not self.switch_.offered():
+            return None
+        params = self.switch_.deployed_params_
+        twin = None if params is None else self.switch_.twin(params)
+        return None if twin is None else twin.starts.copy()
+
     def identified(self) -> np.ndarray | None:
         """The model identified for the deployed theta (the last fit while the switch runs)."""
         if self.inner_ is not None:
