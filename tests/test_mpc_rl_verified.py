@@ -169,6 +169,30 @@ def test_a_clearly_better_block_is_deployed_and_a_worse_one_is_not(lq, cycled):
     assert not np.array_equal(lr.incumbent(), theta0)
 
 
+def test_an_episode_the_budget_ran_instead_of_the_candidate_is_no_evidence_of_it(lq):
+    """Where the exploration budget keeps a block's candidate off the plant, the deployed theta
+    runs instead: its cheap episodes do not enter the candidate's block, which waits for the
+    candidate's own (dearer) episodes and so does not deploy it."""
+    lr = _learner(lq, CYCLE)
+    for k in range(B):  # theta0's block
+        lr.observe(lr.propose(), _result(BASE[k], k))
+    for _ in range(EVERY):  # steps: the iterate moves, a new block is due
+        lr.observe(lr.propose(), _result(1.0, 0))
+    candidate = lr.propose()
+    assert lr.blocks_.in_block() and not np.array_equal(candidate, lr.incumbent())
+    for k in range(3):  # refused: the deployed theta ran, far cheaper than either block
+        lr.observe(lr.incumbent(), _result(0.01, k))
+        np.testing.assert_array_equal(lr.propose(), candidate)  # asked again
+    for k in [3, 4, 5, 0, 1, 2]:  # the candidate's own episodes, 20% dearer
+        lr.observe(lr.propose(), _result(1.2 * BASE[k], k))
+    ev = lr.blocks_.evidence_
+    block = ev.group(1)
+    assert len(block) == B
+    np.testing.assert_allclose(ev.Y[block, 0], 1.2 * BASE[[3, 4, 5, 0, 1, 2]])
+    assert lr.blocks_.conf_[0] < 0.5 and lr.blocks_.deployed_ == 0
+    np.testing.assert_array_equal(lr.incumbent(), lq.parameterization.theta0)
+
+
 def test_confidence_is_scipys_paired_or_welch_test(lq):
     rng = np.random.default_rng(3)
     base, cand = rng.uniform(1, 3, B), rng.uniform(0.8, 2.6, B)

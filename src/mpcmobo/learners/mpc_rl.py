@@ -242,11 +242,16 @@ class MPCRL(Learner):
 
     def observe(self, theta: np.ndarray, result: EpisodeResult) -> None:
         """One step along the episode's CDPG gradient; a block episode adds its gradient to
-        the block's, whose mean makes one step when the block ends."""
+        the block's, whose mean makes one step when the block ends. An episode of another
+        theta than the block's candidate (the exploration budget kept the candidate off the
+        plant and the deployed theta ran instead) is no evidence of the candidate: the block
+        waits for the candidate's own episodes."""
         self.n_observed += 1
         g = _gradient(result)
         b = self.blocks_
         if b is not None and b.in_block():
+            if not np.array_equal(np.asarray(theta, float), self.propose()):
+                return
             z = self.space.to_unit(self.space.clip(theta))
             step, conf = b.observe(z, result, g)
             if step is not None:
