@@ -250,7 +250,7 @@ class MPCRL(Learner):
         g = _gradient(result)
         b = self.blocks_
         if b is not None and b.in_block():
-            if not np.array_equal(np.asarray(theta, float), self.propose()):
+            if not np.array_equal(np.asarray(theta, float), self.theta_of(b.candidate(self.z_))):
                 return
             z = self.space.to_unit(self.space.clip(theta))
             step, conf = b.observe(z, result, g)
