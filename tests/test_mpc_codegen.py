@@ -125,3 +125,29 @@ def test_cache_directory_follows_the_environment(monkeypatch, tmp_path):
     assert cg.cache_directory() == tmp_path / "mpcmobo"
     monkeypatch.setenv("MPCMOBO_CACHE_DIR", str(tmp_path / "own"))
     assert cg.cache_directory() == tmp_path / "own"
+
+
+def test_auto_compiles_where_it_can(lq, tmp_path, monkeypatch):
+    """``codegen="auto"`` (the settings' default): compiled with a compiler, CasADi's virtual
+    machine without one or where compiling fails (with a warning), the same action either way;
+    a value that is neither a bool nor "auto" is refused."""
+    from mpcmobo.experiment.settings import load_settings
+
+    assert load_settings(None).mpc.codegen == "auto"
+    x = lq.x_ref + 0.1
+    monkeypatch.setenv("CC", "no-such-compiler-xyz")
+    without = ParametricMPC(lq, horizon=2, codegen="auto", cache_dir=tmp_path)
+    assert without.build_info == {"codegen": False} and not list(tmp_path.iterdir())
+    monkeypatch.setenv("CC", "false")  # found, but every compile fails
+    with pytest.warns(RuntimeWarning, match=r'codegen = "auto"\): compiling the MPC'):
+        failed = ParametricMPC(lq, horizon=2, codegen="auto", cache_dir=tmp_path)
+    assert failed.build_info["codegen"] is False
+    with pytest.raises(ValueError, match="codegen must be true, false or 'auto'"):
+        ParametricMPC(lq, horizon=2, codegen="yes", cache_dir=tmp_path)  # type: ignore[arg-type]
+    u = without.solve(x).action
+    assert np.array_equal(failed.solve(x).action, u)
+    if shutil.which("cc"):
+        monkeypatch.delenv("CC")
+        compiled = ParametricMPC(lq, horizon=2, codegen="auto", cache_dir=tmp_path)
+        assert compiled.build_info["codegen"] is True and compiled.build_info["path"]
+        np.testing.assert_allclose(compiled.solve(x).action, u, rtol=0, atol=1e-12)

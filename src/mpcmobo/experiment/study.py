@@ -50,7 +50,7 @@ def check_learners(settings: Settings) -> None:
     finally:
         plant.close()
     try:
-        if settings.mpc.codegen:
+        if settings.mpc.codegen is True:
             require_compiler()
     except RuntimeError as err:
         raise SettingsError(f"mpc.codegen: {err}") from None

@@ -46,11 +46,17 @@ def compiler_command() -> list[str]:
     return shlex.split(os.environ.get("CC", "cc"))
 
 
+def compiler_available() -> bool:
+    """Whether the C compiler (:func:`compiler_command`) is on the path."""
+    cc = compiler_command()
+    return bool(cc) and shutil.which(cc[0]) is not None
+
+
 def require_compiler() -> list[str]:
     """The C compiler's command (:func:`compiler_command`), or a ``RuntimeError`` saying what
     to do if it is not on the path."""
     cc = compiler_command()
-    if not cc or shutil.which(cc[0]) is None:
+    if not compiler_available():
         raise RuntimeError(
             f"codegen needs a C compiler, and {cc[0] if cc else '$CC'!r} was not found: set $CC, "
             "or turn codegen off ([mpc] codegen = false; ParametricMPC(..., codegen=False))"

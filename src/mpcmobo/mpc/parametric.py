@@ -22,13 +22,15 @@ injects a failure replaces one of the solver's public path methods on the instan
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
+from typing import Literal
 
 import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mpcmobo.mpc.codegen import compiled_library
+from mpcmobo.mpc.codegen import compiled_library, compiler_available
 from mpcmobo.mpc.interior import Continuation
 from mpcmobo.mpc.kkt import KKTSystem
 from mpcmobo.mpc.solve import MPCSolution, Solver
@@ -74,7 +76,9 @@ class ParametricMPC:
         step, compiled once per machine and problem and cached on disk (``mpcmobo.mpc.codegen``):
         the first build compiles (tens of seconds), later builds of the same problem load the
         library. Same numbers as without it, faster steps (``docs/benchmarks.md``, step time).
-        Needs a C compiler (``$CC`` or ``cc``).
+        Needs a C compiler (``$CC`` or ``cc``). ``"auto"``: compiled where a C compiler is
+        found and compiles the code, else CasADi's virtual machine (with a warning where the
+        compiler fails); ``build_info["codegen"]`` says which.
     cache_dir:
         Directory of the compiled libraries (default: ``mpcmobo.mpc.codegen.cache_directory()``).
     newton_steps:
@@ -116,7 +120,7 @@ class ParametricMPC:
         cost_scale: float | None = None,
         warm_options: dict | None = None,
         linsol: str = "qr",
-        codegen: bool = False,
+        codegen: bool | Literal["auto"] = False,
         cache_dir: str | os.PathLike | None = None,
         newton_steps: int = 6,
         continuation_steps: int = 30,
@@ -141,10 +145,11 @@ class ParametricMPC:
         )
         self.kkt = KKTSystem(self.problem, tau, linsol)
         #: how the MPC's functions were built: {"codegen", and with it "path", "cached", "seconds"}
-        self.build_info: dict = {"codegen": bool(codegen)}
+        self.build_info: dict = {"codegen": False}
         nlp: dict | str = self.problem.nlp
-        if codegen:
-            lib = self._compiled_library(cache_dir)
+        lib = self._library(codegen, cache_dir)
+        if lib is not None:
+            self.build_info["codegen"] = True
             nlp = str(lib)
             self.kkt.load(lib)
         self.solver = Solver(
@@ -161,6 +166,27 @@ class ParametricMPC:
             if continuation_steps
             else None,
         )
+
+    def _library(
+        self, codegen: bool | Literal["auto"], cache_dir: str | os.PathLike | None
+    ) -> Path | None:
+        """The compiled library the MPC's functions come from (None: CasADi's virtual machine):
+        ``codegen`` True compiles or fails, ``"auto"`` compiles where it can."""
+        if codegen == "auto":
+            if not compiler_available():
+                return None
+            try:
+                return self._compiled_library(cache_dir)
+            except RuntimeError as err:
+                warnings.warn(
+                    f'the MPC runs without generated code ([mpc] codegen = "auto"): {err}',
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+                return None
+        if codegen not in (True, False):
+            raise ValueError(f"codegen must be true, false or 'auto', got {codegen!r}")
+        return self._compiled_library(cache_dir) if codegen else None
 
     def _compiled_library(self, cache_dir: str | os.PathLike | None) -> Path:
         """The NLP functions IPOPT calls, the sensitivity function and the Newton step,
