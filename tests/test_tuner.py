@@ -294,7 +294,7 @@ def test_status_counts_every_change_and_evaluates_only_the_deployed_theta(tmp_pa
     st = tuner.status()
     assert st["changes_of_deployed"] == 2 and st["J_eval"] is None
     res = CliRunner().invoke(app, ["status", str(out)])
-    assert "changed 2 times" in res.output and "deployed theta not evaluated yet" in res.output
+    assert "changed twice" in res.output and "deployed theta not evaluated yet" in res.output
 
 
 def test_a_dataframe_log_with_measured_costs(lq_tuner):

@@ -124,6 +124,20 @@ def test_a_state_in_the_wrong_unit_is_named(tmp_path, mode):
         assert tuner.status()["quarantined"] == [trial.id]
 
 
+def test_a_unit_error_inside_the_box_is_named_by_the_start(tmp_path):
+    """A state logged ten times too large that stays inside its box (cycled starts): its first
+    value is the trial's start times 10, and the refusal says so first."""
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=2, steps=10, start_mode="cycle")
+    trial = tuner.ask()
+    X, U = episode(tuner, trial)
+    j = int(np.argmin(np.max(np.abs(X), axis=0) / tuner.system.x_ub))
+    assert np.all(np.abs(10 * X[:, j]) < tuner.system.x_ub[j])  # inside the box at 10x
+    X[:, j] *= 10
+    name = tuner.system.state_names[j]
+    with pytest.raises(TunerError, match=rf"^the log's {name} looks 10 times too large"):
+        tuner.tell(trial, X, U)
+
+
 def test_force_accepts_the_quarantined_log(tmp_path):
     """``force=True`` without a log tells the quarantined one; the quarantine keeps it, marked
     accepted, and the status's trial says what it was accepted despite; a trial without a
@@ -180,3 +194,10 @@ def test_the_checks_on_their_own():
     (found,) = checks.box_problems(cstr, X)
     assert "multiplied by 100" in found.message and found.steps == (0, 1, 2, 3, 4)
     assert checks.box_problems(cstr, np.tile(cstr.x_ref, (5, 1))) == []
+    # mostly small values a thousand times too large: 10 brings 90% of them into [0, 30], 100
+    # and 1000 all of them; the trial's start tells 1000
+    x = 1000 * np.array([2.2, 0.5, *[0.2] * 18])
+    assert checks.unit_factor(x, 0.0, 30.0, 30.0) == 100.0
+    assert checks.unit_factor(x, 0.0, 30.0, 30.0, start=2.2) == 1000.0
+    assert checks.start_factor(22.19, 2.219) == 10.0
+    assert checks.start_factor(2.3, 2.219) is None and checks.start_factor(-22.19, 2.219) is None

@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -78,6 +82,23 @@ def test_a_semicolon_separated_log_is_read(asked, tmp_path):
     assert res.exit_code == 0 and "trial 0 told" in res.output, res.output
 
 
+def test_a_log_with_decimal_commas_is_read(asked, tmp_path):
+    """A semicolon-separated CSV with decimal commas, as spreadsheets in many locales write
+    it: the same numbers as the log with decimal points."""
+    from mpcmobo.experiment.plantlog import read_log_file
+
+    d, tuner, _, (X, U) = asked
+    log = tmp_path / "ep.csv"
+    write_log(log, X, U, tuner.system)
+    dots = pd.read_csv(log)
+    comma = tmp_path / "comma.csv"
+    dots.to_csv(comma, sep=";", decimal=",", index=False)
+    assert "," in comma.read_text()
+    pd.testing.assert_frame_equal(read_log_file(comma), dots)
+    res = runner.invoke(app, ["tell", str(d), "0", str(comma)])
+    assert res.exit_code == 0 and "trial 0 told" in res.output, res.output
+
+
 def test_ctrl_c_in_a_tell_says_the_trial_is_pending(asked, tmp_path, monkeypatch):
     d, tuner, _, (X, U) = asked
     log = write_log(tmp_path / "ep.csv", X, U, tuner.system)
@@ -88,6 +109,34 @@ def test_ctrl_c_in_a_tell_says_the_trial_is_pending(asked, tmp_path, monkeypatch
     monkeypatch.setattr(Tuner, "tell", interrupted)
     res = runner.invoke(app, ["tell", str(d), "0", str(log)])
     assert res.exit_code == 130 and "trial 0 is still pending" in _output(res), res.output
+    monkeypatch.undo()
+    assert Tuner.load(d).status()["pending"] == 0
+
+
+def test_ctrl_c_that_a_library_turns_into_another_error_still_says_the_trial_is_pending(
+    asked, tmp_path, monkeypatch
+):
+    """BoTorch restores a GP's state when its fit is interrupted; where that fails it raises a
+    RuntimeError in place of the KeyboardInterrupt: still the Ctrl-C, not a crash."""
+    d, tuner, _, (X, U) = asked
+    log = write_log(tmp_path / "ep.csv", X, U, tuner.system)
+
+    def interrupted_fit(self, *args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise RuntimeError("Unexpected key(s) in state_dict") from None
+
+    monkeypatch.setattr(Tuner, "tell", interrupted_fit)
+    res = runner.invoke(app, ["tell", str(d), "0", str(log)])
+    assert res.exit_code == 130 and "trial 0 is still pending" in _output(res), res.output
+
+    def failed(self, *args, **kwargs):
+        raise RuntimeError("a failure of its own")
+
+    monkeypatch.setattr(Tuner, "tell", failed)
+    res = runner.invoke(app, ["tell", str(d), "0", str(log)])
+    assert res.exit_code == 1 and isinstance(res.exception, RuntimeError), res.output
     monkeypatch.undo()
     assert Tuner.load(d).status()["pending"] == 0
 
@@ -148,3 +197,11 @@ def test_a_system_object_is_recorded_or_refused(tmp_path, monkeypatch):
     monkeypatch.delitem(registry._REGISTRY, system.name)
     res = runner.invoke(app, ["status", str(out)])
     assert res.exit_code == 0 and "1 of 2 trials told" in res.output, res.output
+    # another process, elsewhere, without the module's directory on its path: found where it
+    # was when the tuner was made
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    cmd = [sys.executable, "-m", "mpcmobo.cli", "ask", str(out)]
+    proc = subprocess.run(cmd, cwd=elsewhere, env=env, capture_output=True, text=True)
+    assert proc.returncode == 0 and '"id": 1' in proc.stdout, proc.stderr[-2000:]

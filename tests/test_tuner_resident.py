@@ -112,6 +112,37 @@ def test_a_served_tuner_records_what_a_tuner_told_directly_records(made, tmp_pat
     assert not (made / ADDRESS_FILE).exists() and not (made / KEY_FILE).exists()
 
 
+def test_the_last_trial_of_the_budget_says_so_while_it_is_learned_from(tmp_path):
+    """With the process serving, the tell of the budget's last trial says that it was the last;
+    an ask meanwhile is refused at once (the learning would end in the same refusal), and the
+    status recommends to stop."""
+    d = tmp_path / "one"
+    Tuner("lq", "mpc-rl", d, **{**SETTINGS, "episodes": 1})
+    served = Served(d)
+    gate = threading.Event()
+    try:
+        log = _log_of(d, _ask(d), tmp_path / "trial-0.csv")
+        learn = served.resident.tuner.learn
+
+        def held(*a, **kw):
+            gate.wait(30)
+            return learn(*a, **kw)
+
+        served.resident.tuner.learn = held
+        res = runner.invoke(app, ["tell", str(d), "0", str(log)])
+        assert res.exit_code == 0 and "the last trial of the budget" in res.output, res.output
+        t0 = time.perf_counter()
+        res = runner.invoke(app, ["ask", str(d)])
+        assert res.exit_code == 2 and "budget of 1 trials is spent" in res.output, res.output
+        assert time.perf_counter() - t0 < 20 and not gate.is_set()
+        st = json.loads(runner.invoke(app, ["status", str(d), "--json"]).stdout)
+        assert st["recommendation"]["action"] == "stop", st["recommendation"]
+    finally:
+        gate.set()
+        served.stop()
+    assert Tuner.load(d).episodes == 1
+
+
 def test_a_crash_between_the_check_and_the_learning_loses_nothing(made, tmp_path):
     """A log accepted (Tuner.accept) by a process that then dies is learned from at the next
     load: the same records as a tell."""

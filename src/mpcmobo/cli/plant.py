@@ -42,13 +42,30 @@ app: typer.Typer = cli.app
 
 def _errors(fn: Any) -> Any:
     """Run ``fn`` with the tuner's and the settings' errors as exit code 2, a run's files that
-    cannot be read as exit code 1."""
+    cannot be read as exit code 1; an error raised while a Ctrl-C unwound ``fn`` is the Ctrl-C
+    (:func:`_during_interrupt`)."""
     try:
         return fn()
     except (TunerError, SettingsError, OlderRunError) as err:
         cli._fail(str(err), 2)
     except StudyError as err:
         cli._fail(str(err), 1)
+    except Exception as err:
+        if _during_interrupt(err):
+            raise KeyboardInterrupt from err
+        raise
+
+
+def _during_interrupt(err: BaseException) -> bool:
+    """Whether ``err`` was raised while a ``KeyboardInterrupt`` was being handled: a library's
+    clean-up that failed on the way out (BoTorch restoring a GP's state after a fit that Ctrl-C
+    stopped raises a ``RuntimeError``), so the interrupt is in its context chain."""
+    seen: BaseException | None = err
+    while seen is not None:
+        if isinstance(seen, KeyboardInterrupt):
+            return True
+        seen = seen.__context__
+    return False
 
 
 def _tuner(directory: Path, episodes: int | None, **create: Any) -> Any:
@@ -203,10 +220,17 @@ def _told_by_the_process(directory: Path, trial: int, log: Path | None, force: b
     where = None if log is None else str(log.resolve())
     served, answer = _served(directory, "tell", trial=trial, log=where, force=force)
     if served:
+        last = trial + 1 >= answer["budget"]
+        then = (
+            f"that was the last trial of the budget: mpcmobo status {directory} shows the "
+            "result once it has learned"
+            if last
+            else f"and prepares the next trial: mpcmobo ask {directory} prints it"
+        )
         cli.console.print(
             f"trial {trial} told: plant cost {fmt(answer['plant_cost'])}, {trial + 1} of "
-            f"{answer['budget']} trials; the tuner's process learns from it and prepares the "
-            f"next trial: mpcmobo ask {directory} prints it",
+            f"{answer['budget']} trials; the tuner's process learns from it{';' if last else ''} "
+            f"{then}",
             highlight=False,
         )
     return bool(served)
@@ -341,7 +365,7 @@ def status(
         f"{st['learner']}: {st['told']} of {st['budget']} trials told"
         + (f", trial {st['pending']} pending" if st["pending"] is not None else "")
         + f"; the deployed theta ran {st['deployed_episodes']} of them and changed "
-        f"{st['changes_of_deployed']} times",
+        + _times(st["changes_of_deployed"]),
         highlight=False,
     )
     if st["J_initial"] is not None:  # a simulated plant
@@ -366,6 +390,11 @@ def status(
         cli.warn_summary(storage.read_json(summary), unpriced=False)
     rec = st["recommendation"]
     cli.console.print(f"next: {rec['action']}: {escape(rec['reason'])}", highlight=False)
+
+
+def _times(n: int) -> str:
+    """``n`` as a count of times: never, once, twice, n times."""
+    return {0: "never", 1: "once", 2: "twice"}.get(int(n), f"{n} times")
 
 
 def _status_of(directory: Path) -> dict[str, Any]:

@@ -223,6 +223,23 @@ class Resident:
             self.log(f"preparing the next trial failed: {type(err).__name__}: {err}")
             self._written()  # what the failed proposal wrote is this process's
 
+    def _spent(self, episodes: int | None) -> str | None:
+        """The refusal of an ``ask`` while the last trial of the budget (or of the larger one,
+        ``episodes``) is learned from; None where a trial can follow it."""
+        tuner = self.tuner
+        learning = None if tuner is None else tuner.learning
+        if learning is None:
+            return None
+        budget = max(tuner.settings.episodes, episodes or 0)
+        if learning + 1 < budget:
+            return None
+        return (
+            f"the tuner's budget of {budget} trials is spent: trial {learning}, the last, is "
+            f"told and the tuner's process is learning from it (mpcmobo status "
+            f"{self.directory} shows the result once it has); a larger budget goes on: "
+            f"mpcmobo ask {self.directory} --episodes N"
+        )
+
     def _hand_over(self, fn: Callable[[], None], what: str) -> None:
         """``fn`` in the background thread. The caller holds the tuner's lock and hands it
         over: the thread releases it when ``fn`` returns."""
@@ -260,6 +277,10 @@ class Resident:
             return
         if op not in ops:
             conn.send(("error", {"message": f"unknown request {op!r}", "code": 1}))
+            return
+        spent = self._spent(kwargs.get("episodes")) if op == "ask" else None
+        if spent is not None:  # at once: the learning would end in the same refusal
+            conn.send(("error", {"message": spent, "code": 2}))
             return
         while not self.lock.acquire(timeout=PROGRESS_EVERY_S):
             conn.send(("progress", self.work.what or "working"))

@@ -85,9 +85,13 @@ def _box(system: System) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return lo, hi, width
 
 
-def box_problems(system: System, states: np.ndarray) -> list[Problem]:
+def box_problems(
+    system: System, states: np.ndarray, start: np.ndarray | None = None
+) -> list[Problem]:
     """Each state column against the system's box: far outside it, or outside it by a factor
-    that a power of ten undoes (the column's unit is named as the likely error)."""
+    that a power of ten undoes (the column's unit is named as the likely error; ``start``, the
+    trial's initial state, tells apart the factors that all bring the column into the box:
+    :func:`unit_factor`)."""
     X = np.asarray(states, float)
     lo, hi, width = _box(system)
     problems = []
@@ -102,7 +106,7 @@ def box_problems(system: System, states: np.ndarray) -> list[Problem]:
             f"[{lo[j]:.6g}, {hi[j]:.6g}] by {out[worst]:.3g} box widths"
         )
         steps = tuple(int(k) for k in np.flatnonzero(out > UNIT_OUTSIDE))
-        unit = _unit_factor(x, lo[j], hi[j], width[j])
+        unit = unit_factor(x, lo[j], hi[j], width[j], None if start is None else start[j])
         if unit is not None:
             times = f"{unit:g} times too large" if unit > 1 else f"{1 / unit:g} times too small"
             fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
@@ -131,13 +135,36 @@ def box_problems(system: System, states: np.ndarray) -> list[Problem]:
     return problems
 
 
-def _unit_factor(x: np.ndarray, lo: float, hi: float, width: float) -> float | None:
-    """The power of ten that brings 90% of ``x`` into [lo, hi] (with a tenth of its width to
-    spare), if one does."""
+def unit_factor(
+    x: np.ndarray, lo: float, hi: float, width: float, start: float | None = None
+) -> float | None:
+    """The power of ten (10, 100, 1000 or their inverses) that ``x`` is off by: of those that
+    bring 90% of ``x`` into [lo, hi] (with a tenth of its width to spare), the one that brings
+    its first value nearest the trial's start ``start`` (where given, of the same sign and
+    not 0), else the one that brings the most of ``x`` in (the smaller on a tie). A column of
+    small values a thousand times too large is brought in by 100 and 1000 alike: the start
+    decides. None: no power of ten brings it in."""
+    fits = []
     for f in (*UNIT_FACTORS, *(1 / f for f in UNIT_FACTORS)):
         y = x / f
-        inside = (y >= lo - 0.1 * width) & (y <= hi + 0.1 * width)
-        if np.mean(inside) >= 0.9:
+        inside = float(np.mean((y >= lo - 0.1 * width) & (y <= hi + 0.1 * width)))
+        if inside >= 0.9:
+            fits.append((f, inside))
+    if not fits:
+        return None
+    if start is not None and start * x[0] > 0:
+        return min(fits, key=lambda fit: abs(np.log(x[0] / fit[0] / start)))[0]
+    return max(fits, key=lambda fit: fit[1])[0]
+
+
+def start_factor(logged: float, start: float) -> float | None:
+    """The power of ten (10, 100, 1000 or their inverses) that a log's first value ``logged``
+    is, within 2%, times the trial's start ``start``: a unit error that may keep the column
+    inside its box (None: none is)."""
+    if start * logged <= 0:
+        return None
+    for f in (*UNIT_FACTORS, *(1 / f for f in UNIT_FACTORS)):
+        if abs(logged / start / f - 1.0) <= 0.02:
             return f
     return None
 
@@ -312,7 +339,7 @@ def review(
     the model's one-step error checked. The problems, the replay's record (None if the checks
     stopped before it) and its time."""
     X, U = log.states, log.inputs
-    problems = box_problems(system, X)
+    problems = box_problems(system, X, plan.x0)
     if problems:
         return problems, None, 0.0
     problems = order_problems(system, X, U, params, log.time)

@@ -22,6 +22,8 @@ from mpcmobo.systems.base import System
 
 # a column of one of these names is the log's time (checked for order, not used otherwise)
 TIME_COLUMNS = ("time", "t", "timestamp", "time_s", "datetime")
+# a number written with a decimal comma: 5,14 or -1,5e-3
+DECIMAL_COMMA = r"[-+]?\d*,\d+(?:[eE][-+]?\d+)?"
 
 
 class TunerError(ValueError):
@@ -221,10 +223,24 @@ def log_columns(path: str | Path) -> list[str]:
     return [name.strip() for name in header]
 
 
+def _decimal_commas(df: Any) -> bool:
+    """Whether a column of ``df`` read as text holds numbers written with a decimal comma
+    (``5,14``), as spreadsheets in many locales write a semicolon-separated CSV."""
+    for name in df.columns:
+        col = df[name]
+        if col.dtype.kind in "biufc":
+            continue
+        text = col.dropna().astype(str).str.strip()
+        if len(text) and text.str.fullmatch(DECIMAL_COMMA).all():
+            return True
+    return False
+
+
 def read_log_file(path: str | Path) -> Any:
     """A log file as a DataFrame: Parquet, or a CSV whose delimiter (comma, semicolon, tab)
-    is sniffed; a file that does not exist, is empty or cannot be read is a
-    :class:`TunerError`."""
+    is sniffed, its numbers with a decimal point or, where the delimiter is not a comma, a
+    decimal comma (:func:`_decimal_commas`); a file that does not exist, is empty or cannot be
+    read is a :class:`TunerError`."""
     path = _existing(path)
     import pandas as pd  # after the checks that need none: a missing file is refused at once
 
@@ -232,7 +248,10 @@ def read_log_file(path: str | Path) -> Any:
         if path.suffix == ".parquet":
             df = pd.read_parquet(path)
         else:
-            df = pd.read_csv(path, sep=_csv_delimiter(path))
+            sep = _csv_delimiter(path)
+            df = pd.read_csv(path, sep=sep)
+            if sep != "," and _decimal_commas(df):
+                df = pd.read_csv(path, sep=sep, decimal=",")
     except Exception as err:  # noqa: BLE001 - any unreadable file is reported the same way
         raise TunerError(f"the log {path} cannot be read: {type(err).__name__}: {err}") from None
     if len(df) == 0:

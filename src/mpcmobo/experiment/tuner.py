@@ -42,7 +42,7 @@ from mpcmobo.experiment.rundir import RunDirectory, open_run
 from mpcmobo.experiment.settings import Settings, load_settings
 from mpcmobo.experiment.summary import write_records
 from mpcmobo.experiment.tunerfiles import TunerFiles, history_errors, told_twin
-from mpcmobo.experiment.usersystem import recorded_system, restore_system
+from mpcmobo.experiment.usersystem import recorded_system, restore_system, save_system
 from mpcmobo.learners.base import Progress
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
 from mpcmobo.rl.objectives import mean_stage_cost
@@ -162,7 +162,7 @@ class Tuner:
         run_dir, settings = open_run(out, settings, resume=False)
         try:
             if saved_system is not None:
-                storage.write_pickle(run_dir.path / "system.pkl", saved_system)
+                save_system(run_dir.path, saved_system)
             self._open(run_dir, settings, new=True)
             storage.atomic_write_text(
                 run_dir.tuner_mark, json.dumps({"learner": learner, "seed": seed}) + "\n"
@@ -534,8 +534,17 @@ class Tuner:
         scale = np.asarray(self.system.x_scale, float)
         j = int(np.argmax(np.abs(x_first - plan.x0) / scale))
         found = "".join(f"{p.message}; " for p in problems)
+        name = self.system.state_names[j]
+        unit = checks.start_factor(float(x_first[j]), float(plan.x0[j]))
+        named = any(p.check == "range" for p in problems)  # the box check named a unit
+        if unit is not None and not named:  # the other checks' findings follow from it
+            times = f"{unit:g} times too large" if unit > 1 else f"{1 / unit:g} times too small"
+            found = (
+                f"the log's {name} looks {times}: a unit error? (its first value is the "
+                f"trial's start times {unit:g}); "
+            )
         raise TunerError(
-            f"{found}the log starts at {self.system.state_names[j]} = {x_first[j]:.6g}, "
+            f"{found}the log starts at {name} = {x_first[j]:.6g}, "
             f"the trial at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared "
             "from the same starts, so an episode must start at its trial's x0 (within "
             f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "

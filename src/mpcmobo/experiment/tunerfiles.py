@@ -15,6 +15,7 @@ Layout in the tuner's directory ``DIR``::
     status.json                  ``Tuner.status()``, rewritten after every ask, tell, retract
     trials/<id>/                 a trial as ``mpcmobo ask`` wrote it (trial.json, its controller)
     system.pkl                   a ``System`` given as an object (registered again on load)
+    system-modules.json          where the modules of that System's functions are
 
 Every file is written atomically (:mod:`mpcmobo.experiment.storage`).
 """

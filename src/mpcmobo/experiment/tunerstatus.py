@@ -112,6 +112,16 @@ def recommendation(
     exploring ("": it has not; :mod:`mpcmobo.experiment.price`); ``learning``: the told trial
     the learner is learning from (``mpcmobo serve``), None if none; ``verifying``: a candidate
     is under verification (not yet deployed or dropped)."""
+    if learning is not None and learning + 1 >= budget:
+        return {
+            "action": "stop",
+            "reason": (
+                f"trial {learning}, the last of the budget of {budget} trials, is told and the "
+                f"tuner's process is learning from it: then the deployed theta is the result "
+                f"(mpcmobo export {directory}); a larger budget goes on (mpcmobo ask "
+                f"{directory} --episodes N)"
+            ),
+        }
     if learning is not None:
         return {
             "action": "continue",
