@@ -18,7 +18,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mpcmobo.cli import app
-from mpcmobo.connect import ConnectError, run_plant
+from mpcmobo.connect import ConnectError, load_nodes, run_plant
 from mpcmobo.experiment.tuner import Tuner
 from mpcmobo.systems import get_system
 
@@ -173,10 +173,26 @@ def test_ctrl_c_writes_the_safe_input_and_exits_130(plant, tuner_dir, tmp_path, 
             break
     assert res.exit_code == 130, res.output
     assert "interrupted (SIGINT): the safe input is written;" in res.output
+    assert f"trial {tid}, in progress, is not told" in " ".join(res.output.split())
     assert np.array_equal(_last_input(plant), SAFE)
     _inputs_in_bounds(plant, cstr_system)
     assert (tuner_dir / "trials" / str(tid) / "aborted-1.csv").exists()
     assert Tuner.load(tuner_dir).status()["pending"] == tid
+
+
+def test_ctrl_c_between_trials_says_that_no_trial_was_in_progress(tuner_dir, tmp_path):
+    """What a Ctrl-C's message says of the trials: the one in progress is not told; between
+    trials none was in progress, and the told ones are named."""
+    from mpcmobo.connect.session import _Session
+
+    tuner = Tuner.load(tuner_dir)
+    nodes = load_nodes(_nodes(tmp_path), tuner.system)
+    session = _Session(tuner, "opc.tcp://127.0.0.1:4840", nodes, PERIOD, True, print)
+    assert session.trials_said() == "no trial was in progress"
+    session.told, session.in_progress = [4, 5], 6
+    assert session.trials_said().startswith("trial 6, in progress, is not told")
+    session.in_progress = None
+    assert session.trials_said() == "no trial was in progress (told: 4, 5)"
 
 
 def test_an_unreachable_server_bad_nodes_and_a_cycled_start_exit_2(plant, tuner_dir, tmp_path):

@@ -54,6 +54,10 @@ def test_the_server_answers_get_only_and_says_when_nothing_changed(dashboard_run
         assert b"http" not in page  # every asset from this server
         status, body = _request(url, "GET", "/api/episode?run=0&learner=mobo")
         assert status == 400 and b"bad request" in body
+        # a reference episode (theta0's, the perfect model's): its learner is blank
+        ref = "/api/episode?run=0&learner=&seed=-1&phase=initial&episode=-1&start=0"
+        status, body = _request(url, "GET", ref)
+        assert status == 200 and len(json.loads(body)["x"]) > 0, body
 
 
 def test_the_command_binds_to_localhost_and_refuses_a_missing_directory(tmp_path):

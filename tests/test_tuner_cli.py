@@ -165,6 +165,10 @@ def test_export_names_a_pending_trial_and_force_tells_the_quarantined_log(asked,
     d, tuner, trial, _ = asked
     res = runner.invoke(app, ["export", str(d), "--theta", "0", "--out", str(tmp_path / "c")])
     assert res.exit_code == 2 and "trial 0 is pending" in _output(res), res.output
+    assert "(written by ask)" in _output(res)  # mpcmobo ask wrote it
+    (d / "trials" / "0" / "controller.casadi").unlink()  # as for a trial connect asked for
+    res = runner.invoke(app, ["export", str(d), "--theta", "0", "--out", str(tmp_path / "c")])
+    assert res.exit_code == 2 and f"mpcmobo ask {d} writes its controller" in _output(res)
     X, U = episode(tuner, trial, override=(range(2, 7), [2.5]))
     log = write_log(tmp_path / "ep.csv", X, U, tuner.system)
     res = runner.invoke(app, ["tell", str(d), "0", str(log)])

@@ -80,12 +80,7 @@ def connect(
     try:
         outcomes = _errors(lambda: _connect_errors(go, ConnectError))
     except KeyboardInterrupt as err:
-        cli.err_console.print(
-            f"interrupted (SIGINT): {err}; the trial in progress is not told (its log is kept "
-            f"under {directory}/trials); connect again to run it",
-            highlight=False,
-            soft_wrap=True,
-        )
+        cli.err_console.print(f"interrupted (SIGINT): {err}", highlight=False, soft_wrap=True)
         raise typer.Exit(130) from None
     for outcome in outcomes:
         if outcome.status == "dry-run":

@@ -34,7 +34,11 @@ def dashboard(
         if d.exists() and not d.is_dir():
             cli._fail(f"{d} is a file, not a run directory", 2)
         if not d.exists():
-            cli._fail(f"{d} does not exist", 2)
+            cli._fail(
+                f"{d} does not exist: to watch a run from its start, create it first (mkdir "
+                f"{d}; mpcmobo run --out {d} writes into an empty directory)",
+                2,
+            )
     from mpcmobo.dashboard import make_server
 
     try:

@@ -514,10 +514,14 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
             f"--theta must be deployed, final or a trial's id, got {which!r}"
         ) from None
     if ckpt.pending is not None and int(ckpt.pending["episode"]) == k:
+        written = run_dir.path / "trials" / str(k) / "controller.casadi"
+        where = (
+            f"its controller is {written} (written by ask)"
+            if written.is_file()
+            else f"mpcmobo ask {run_dir.path} writes its controller to {written}"
+        )
         raise TunerError(
-            f"trial {k} is pending: it has not been told yet, so it has no record; its "
-            f"controller is {run_dir.path / 'trials' / str(k) / 'controller.casadi'} (written "
-            "by ask)"
+            f"trial {k} is pending: it has not been told yet, so it has no record; {where}"
         )
     if not 0 <= k < len(ckpt.rows):
         raise TunerError(f"no trial {k}: the job has trials 0 to {len(ckpt.rows) - 1}")

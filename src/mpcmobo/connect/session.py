@@ -34,8 +34,9 @@ __all__ = ["Outcome", "PlantInterrupted", "run_plant"]
 
 
 class PlantInterrupted(KeyboardInterrupt):
-    """Ctrl-C stopped :func:`run_plant`; the message says whether the safe input is written.
-    The trial in progress is aborted (its log kept) and not told."""
+    """Ctrl-C stopped :func:`run_plant`; the message says whether the safe input is written
+    and what became of the trials: the one in progress is aborted (its log kept) and not told;
+    between trials, every trial run is told."""
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ def run_plant(
     try:
         return asyncio.run(session.run(trials))
     except KeyboardInterrupt:
-        raise PlantInterrupted(session.handed_back) from None
+        raise PlantInterrupted(f"{session.handed_back}; {session.trials_said()}") from None
 
 
 class _Session:
@@ -106,6 +107,19 @@ class _Session:
         self.client = PlantClient(url, nodes, tuner.system, dry_run)
         self.wrote = False  # whether this session has written to the plant
         self.handed_back = "nothing was written to the plant"
+        self.in_progress: int | None = None  # the trial started and not yet told or aborted
+        self.told: list[int] = []  # the trials this session told
+
+    def trials_said(self) -> str:
+        """What became of the trials, for a Ctrl-C's message."""
+        told = f" (told: {', '.join(map(str, self.told))})" if self.told else ""
+        if self.in_progress is None:
+            return f"no trial was in progress{told}"
+        where = self.tuner.run_dir.path / "trials" / str(self.in_progress)
+        return (
+            f"trial {self.in_progress}, in progress, is not told (its log is kept under "
+            f"{where}); connect again to run it{told}"
+        )
 
     async def run(self, trials: int) -> list[Outcome]:
         await self.client.open()
@@ -131,6 +145,14 @@ class _Session:
 
     async def _trial(self, trial: Trial) -> Outcome:
         first = await self._start(trial)
+        self.in_progress = trial.id
+        outcome = await self._run(trial, first)
+        self.in_progress = None
+        if outcome.status == "told":
+            self.told.append(trial.id)
+        return outcome
+
+    async def _run(self, trial: Trial, first: Reading) -> Outcome:
         trial.restart()
         self.echo(f"trial {trial.id}: {trial.steps} periods of {self.period:g} s")
         self.wrote = self.wrote or not self.dry_run

@@ -125,7 +125,9 @@ class Handler(BaseHTTPRequestHandler):
     def do_GET(self) -> None:
         """Serve the page, its assets and its data."""
         url = urlparse(self.path)
-        query = {k: v[-1] for k, v in parse_qs(url.query).items()}
+        # blank values kept: the reference episodes (theta0's, the perfect model's) have the
+        # learner ""
+        query = {k: v[-1] for k, v in parse_qs(url.query, keep_blank_values=True).items()}
         try:
             self._route(url.path, query)
         except (KeyError, ValueError, IndexError) as err:

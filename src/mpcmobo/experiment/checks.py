@@ -315,8 +315,9 @@ def model_problems(
                 (
                     f"the identified model explains steps {describe_steps(steps)} far worse than the "
                     f"episode's other steps (one-step error up to {float(np.max(r)):.3g}, the median "
-                    f"{float(np.median(r)):.3g}): rows out of order (swapped or shuffled), or a "
-                    "disturbance at those steps?"
+                    f"{float(np.median(r)):.3g}): rows out of order (swapped or shuffled), a "
+                    "disturbance or a measurement fault at those steps, or states where the "
+                    "model is poor (where it is not smooth, e.g. a square root at zero)?"
                 ),
                 steps,
             )
