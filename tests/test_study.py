@@ -265,6 +265,31 @@ def test_ray_backend_matches_serial(full_run, tmp_path):
     pd.testing.assert_frame_equal(a, b)
 
 
+def test_ray_joins_the_cluster_ray_address_names(tmp_path, monkeypatch):
+    """With RAY_ADDRESS set the Ray backend connects to that cluster (whose CPUs decide how
+    many jobs run at once) instead of starting one of ``workers`` CPUs."""
+    import types
+
+    from mpcmobo.experiment import workers
+
+    calls = []
+
+    def init(**kwargs):
+        calls.append(kwargs)
+        raise RuntimeError("stop here")
+
+    fake = types.SimpleNamespace(is_initialized=lambda: False, init=init)
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.setenv("RAY_ADDRESS", "ray://head:10001")
+    with pytest.raises(RuntimeError, match="stop here"):
+        workers._run_ray([], {}, 2, None)  # type: ignore[arg-type]
+    monkeypatch.delenv("RAY_ADDRESS")
+    with pytest.raises(RuntimeError, match="stop here"):
+        workers._run_ray([], {}, 2, None)  # type: ignore[arg-type]
+    assert calls[0] == {"address": "ray://head:10001", "ignore_reinit_error": True}
+    assert calls[1]["num_cpus"] == 2 and "address" not in calls[1]
+
+
 def tiny_lq(**options):
     """A user-defined system: defined at module level, registered only inside the test below
     (a worker process that imports this module does not register it by itself)."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 
 import casadi as ca
 import gymnasium
@@ -16,7 +17,7 @@ from cstr_reference import fd_sensitivities
 from gymnasium.utils.env_checker import check_env
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from user_system_source import write_user_files
+from user_system_source import SYSTEM, write_user_files
 
 import mpcmobo  # noqa: F401 - registers mpcmobo/CSTR-v0
 from mpcmobo.experiment import storage
@@ -269,6 +270,22 @@ def test_systems_by_factory_path_module_and_plugin(files, tmp_path, monkeypatch)
     assert get_system("di").name == "double_integrator"
     s = load_settings(None, system={"name": "di", "learn_model": ["gain"]})
     assert s.system.name == "di"
+
+
+def test_a_factory_file_imports_the_modules_beside_it(tmp_path, monkeypatch):
+    """A factory path's file imports a module in its own folder, as a script run there would
+    (the system in one file, its equations in another)."""
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / "equations_beside.py").write_text(SYSTEM)
+    (folder / "entry.py").write_text(
+        "import equations_beside\n\n\ndef make_system():\n"
+        "    return equations_beside.make_system(path=False)\n"
+    )
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the folder added here goes with the test
+    monkeypatch.delitem(sys.modules, "equations_beside", raising=False)
+    assert get_system(f"{folder}/entry.py:make_system").name == "double_integrator"
+    assert sys.path[-1] == str(folder.resolve())
 
 
 def test_settings_take_a_factory_path_and_store_it_absolute(files, monkeypatch):

@@ -61,7 +61,9 @@ class SystemSettings(Section):
     system's (4 on the CSTR)."""
     model_log_range: float | None = Field(None, gt=0, le=10)
     """Learnable model parameters are searched within their nominal value times
-    ``e^(+-model_log_range)``; unset: the system's. The same bounds hold for identification: a
+    ``e^(+-model_log_range)`` (a nominal value of 0 or below: within it plus or minus
+    ``model_log_range |nominal| + 1``); unset: the system's. The same bounds hold for
+    identification: a
     fit that ends on one is reported (``mpcmobo run`` warns, ``identified_at_bound`` in
     summary.json), as the plant's value may lie beyond it. Wider bounds cost nothing in the
     fit; for learnable model parameters they widen the search."""

@@ -183,7 +183,11 @@ def _run_ray(
         ) from None
     started = not ray.is_initialized()  # a cluster of the study's own, shut down after it
     if started:
-        ray.init(num_cpus=workers, include_dashboard=False, ignore_reinit_error=True)
+        address = os.environ.get("RAY_ADDRESS")
+        if address:  # an existing cluster: its own CPUs decide how many jobs run at once
+            ray.init(address=address, ignore_reinit_error=True)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, ignore_reinit_error=True)
         interrupts.reclaim()  # Ray's SIGTERM handler would end the study without a word
     remote = ray.remote(num_cpus=1)(run_job)
     refs = [remote.remote(learner_name=n, seed=s, **args) for n, s in jobs]

@@ -104,9 +104,14 @@ def load_object(spec: str, what: str = "system factory") -> Any:
 
 
 def _load_file(path: Path, spec: str, what: str) -> Any:
-    """Import a Python file once per process, as a module named after its path."""
+    """Import a Python file once per process, as a module named after its path. Its folder
+    goes on the Python path (at its end, so that it shadows no installed package), so that it
+    imports the modules beside it, as a script run from there would."""
     if not path.is_file():
         raise SystemSpecError(f"{what} '{spec}': file not found: {path}")
+    folder = str(path.resolve().parent)
+    if folder not in sys.path:
+        sys.path.append(folder)
     digest = hashlib.sha1(str(path).encode()).hexdigest()[:10]
     name = f"mpcmobo_user_{path.stem if path.stem.isidentifier() else 'file'}_{digest}"
     if name in sys.modules:
