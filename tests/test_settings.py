@@ -96,6 +96,18 @@ def test_overrides_merge_into_file(tmp_path):
     assert s.system.name == "lq"
 
 
+def test_a_wrong_value_in_the_file_is_refused_where_an_override_sets_it_too(tmp_path):
+    """The command line setting a key does not hide that the file's value is wrong."""
+    p = tmp_path / "c.toml"
+    p.write_text('episodes = "ten"\n[mpc]\nhorizon = 0\n[system]\nname = "lq"\n')
+    with pytest.raises(SettingsError, match=r"(?s)in the file .*\n  episodes: .*'ten'"):
+        load_settings(p, episodes=2, mpc__horizon=4)
+    with pytest.raises(SettingsError, match=r"mpc\.horizon: .*greater than or equal to 1"):
+        load_settings(p, episodes=2, mpc__horizon=4)
+    p.write_text('episodes = 7\n[mpc]\nhorizon = 5\n[system]\nname = "lq"\n')
+    assert load_settings(p, episodes=2, mpc__horizon=4).episodes == 2
+
+
 @pytest.mark.parametrize(
     "data, key, allowed",
     [

@@ -303,8 +303,48 @@ def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
 
 def settings_from(data: dict[str, Any], **overrides: Any) -> Settings:
     """Settings from a TOML-like table (a file already read) plus overrides, as
-    :func:`load_settings` merges them."""
-    return validate_settings(_merge(data, _nest(overrides)))
+    :func:`load_settings` merges them; the file's values that the overrides replace are
+    checked too (:func:`_check_overridden`)."""
+    nested = _nest(overrides)
+    _check_overridden(data, nested)
+    return validate_settings(_merge(data, nested))
+
+
+def _overridden(data: dict[str, Any], nested: dict[str, Any], prefix: tuple = ()) -> list[tuple]:
+    """The key paths of ``data``'s values that the (nested) overrides replace."""
+    out: list[tuple] = []
+    for key, value in nested.items():
+        if key not in data:
+            continue
+        if isinstance(value, dict) and isinstance(data[key], dict):
+            out += _overridden(data[key], value, (*prefix, key))
+        else:
+            out.append((*prefix, key))
+    return out
+
+
+def _check_overridden(data: dict[str, Any], nested: dict[str, Any]) -> None:
+    """A wrong value in a settings file is refused even where the command line (or a caller's
+    keyword) sets the same key: the file's own values, with the overrides only where the file
+    is silent, are validated, and an error at a key the overrides replace is a
+    :class:`SettingsError` (other errors are the merged settings' to report)."""
+    paths = _overridden(data, nested)
+    if not paths:
+        return
+    try:
+        Settings.model_validate(_merge(nested, data))
+    except ValidationError as err:
+        found = [
+            e for e in err.errors() if any(tuple(e.get("loc", ()))[: len(p)] == p for p in paths)
+        ]
+        if found:
+            lines = [_format_error(e) for e in found]
+            raise SettingsError(
+                "invalid settings in the file (where the command line sets the same keys, "
+                "the file's values must be valid too):\n  " + "\n  ".join(lines)
+            ) from None
+    except (SettingsError, ValueError, TypeError, KeyError):
+        return  # a check across sections: the merged settings' validation reports it
 
 
 def settings_to_toml(settings: Settings) -> str:
