@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
@@ -189,6 +190,42 @@ def test_run_seeds_forms_resume_and_evaluate(tmp_path):
     res = runner.invoke(app, ["evaluate", str(out), "--n-starts", "2"])
     assert res.exit_code == 0, res.output
     assert "mpc-rl" in res.output and "J_eval" in res.output
+
+
+def test_evaluate_reports_the_runs_j_of_theta0_for_a_job_that_deployed_nothing():
+    """A job with identification has theta0 with the nominal model parameters in its own MPC:
+    the same controller as the study's theta0, whose J the run records; evaluate says the
+    same, not another solve of it."""
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from mpcmobo.cli import _evaluation_table
+
+    class Evaluator:
+        def __init__(self, J, theta0):
+            self.J, self.theta0, self.cache = J, theta0, {}
+
+        def J_star(self):
+            return 3297.9
+
+        def J_eval(self, theta):
+            return self.cache.get(None if theta is None else tuple(theta), self.J)
+
+        def remember(self, theta, value):
+            self.cache[tuple(theta)] = value
+
+        def mpc(self, model):
+            return SimpleNamespace(theta0=self.theta0)
+
+    theta0 = np.array([1.0, 2.0, 0.5])
+    study, own = Evaluator(15410.0, theta0[:2]), Evaluator(15126.0, theta0)
+    settings = SimpleNamespace(system=SimpleNamespace(name="cstr"))
+    table = _evaluation_table(settings, [("mobo", 0, 8, theta0)], study, {"mobo": own})
+    console = Console(record=True, width=200)
+    console.print(table)
+    text = console.export_text()
+    assert "15410" in text.split("\n", 1)[1] and "15126" not in text, text
 
 
 def test_run_with_progress_bars(tmp_path):

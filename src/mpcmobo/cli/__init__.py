@@ -499,6 +499,11 @@ def _evaluation_table(
     ``evaluator``, the study's), or without J* its improvement over theta0."""
     J_star = evaluator.J_star()
     J0 = evaluator.J_eval(None)
+    for own in evaluators.values():
+        # theta0 in a job's own MPC (with the nominal model parameters in theta) is the study's
+        # theta0: J(theta0), as the jobs take it, not another solve of the same controller
+        # (whose continuations can end at other local minima)
+        own.remember(own.mpc("imperfect").theta0, J0)
     table = Table(title=f"{settings.system.name}: J* = {fmt(J_star)}, J(theta0) = {fmt(J0)}")
     # without a reference model (no J*), the gap is the improvement over theta0
     gap_title = "gap to J* [%]" if J_star is not None else "improvement over theta0 [%]"
