@@ -30,6 +30,8 @@ FAR_WIDTHS = 3.0
 # a state this many box widths outside its box that a power of ten brings into it: a unit error
 UNIT_OUTSIDE = 0.5
 UNIT_FACTORS = (10.0, 100.0, 1000.0)
+# the factors a unit error is looked for at: the powers of ten above and their inverses
+POWERS_OF_TEN = (*UNIT_FACTORS, *(1 / f for f in UNIT_FACTORS))
 # an applied input further than this fraction of its span from the controller plus its noise
 INPUT_TOLERANCE = 0.005
 # an episode whose one-step error exceeds this many times the median of the episodes before it
@@ -108,7 +110,7 @@ def box_problems(
         steps = tuple(int(k) for k in np.flatnonzero(out > UNIT_OUTSIDE))
         unit = unit_factor(x, lo[j], hi[j], width[j], None if start is None else start[j])
         if unit is not None:
-            times = f"{unit:g} times too large" if unit > 1 else f"{1 / unit:g} times too small"
+            times = looks_off_by(unit)
             fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
             problems.append(
                 Problem(
@@ -145,7 +147,7 @@ def unit_factor(
     small values a thousand times too large is brought in by 100 and 1000 alike: the start
     decides. None: no power of ten brings it in."""
     fits = []
-    for f in (*UNIT_FACTORS, *(1 / f for f in UNIT_FACTORS)):
+    for f in POWERS_OF_TEN:
         y = x / f
         inside = float(np.mean((y >= lo - 0.1 * width) & (y <= hi + 0.1 * width)))
         if inside >= 0.9:
@@ -157,13 +159,18 @@ def unit_factor(
     return max(fits, key=lambda fit: fit[1])[0]
 
 
+def looks_off_by(unit: float) -> str:
+    """A column off by the power of ten ``unit``, in words: "10 times too large"."""
+    return f"{unit:g} times too large" if unit > 1 else f"{1 / unit:g} times too small"
+
+
 def start_factor(logged: float, start: float) -> float | None:
     """The power of ten (10, 100, 1000 or their inverses) that a log's first value ``logged``
     is, within 2%, times the trial's start ``start``: a unit error that may keep the column
     inside its box (None: none is)."""
     if start * logged <= 0:
         return None
-    for f in (*UNIT_FACTORS, *(1 / f for f in UNIT_FACTORS)):
+    for f in POWERS_OF_TEN:
         if abs(logged / start / f - 1.0) <= 0.02:
             return f
     return None

@@ -63,9 +63,8 @@ class SystemSettings(Section):
     """Learnable model parameters are searched within their nominal value times
     ``e^(+-model_log_range)`` (a nominal value of 0 or below: within it plus or minus
     ``model_log_range |nominal| + 1``); unset: the system's. The same bounds hold for
-    identification: a
-    fit that ends on one is reported (``mpcmobo run`` warns, ``identified_at_bound`` in
-    summary.json), as the plant's value may lie beyond it. Wider bounds cost nothing in the
+    identification: a fit that ends on one is reported (``mpcmobo run`` warns,
+    ``identified_at_bound`` in summary.json), as the plant's value may lie beyond it. Wider bounds cost nothing in the
     fit; for learnable model parameters they widen the search."""
     process_noise: list[float] | None = None
     """Standard deviation of Gaussian noise added to each state by every step of the system's

@@ -538,9 +538,8 @@ class Tuner:
         unit = checks.start_factor(float(x_first[j]), float(plan.x0[j]))
         named = any(p.check == "range" for p in problems)  # the box check named a unit
         if unit is not None and not named:  # the other checks' findings follow from it
-            times = f"{unit:g} times too large" if unit > 1 else f"{1 / unit:g} times too small"
             found = (
-                f"the log's {name} looks {times}: a unit error? (its first value is the "
+                f"the log's {name} looks {checks.looks_off_by(unit)}: a unit error? (its first value is the "
                 f"trial's start times {unit:g}); "
             )
         raise TunerError(

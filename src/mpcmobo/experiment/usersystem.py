@@ -22,7 +22,12 @@ from pathlib import Path
 from mpcmobo.experiment import storage
 from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.systems.base import System
-from mpcmobo.systems.registry import BUILTIN_SYSTEMS, is_registered, register_system
+from mpcmobo.systems.registry import (
+    BUILTIN_SYSTEMS,
+    add_to_path,
+    is_registered,
+    register_system,
+)
 
 SYSTEM_FILE = "system.pkl"
 MODULES_FILE = "system-modules.json"
@@ -106,8 +111,8 @@ def _find_modules(directory: Path) -> None:
     except (OSError, ValueError):
         return
     for name, root in roots.items() if isinstance(roots, dict) else ():
-        if importlib.util.find_spec(name.split(".")[0]) is None and root not in sys.path:
-            sys.path.append(str(root))
+        if importlib.util.find_spec(name.split(".")[0]) is None:
+            add_to_path(root)
 
 
 def restore_system(directory: str | Path) -> None:

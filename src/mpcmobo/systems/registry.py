@@ -103,15 +103,20 @@ def load_object(spec: str, what: str = "system factory") -> Any:
     return obj
 
 
+def add_to_path(folder: str | Path) -> None:
+    """``folder`` (a user's: their system's or plant's modules) on the Python path, at its end,
+    so that it shadows no installed package."""
+    if str(folder) not in sys.path:
+        sys.path.append(str(folder))
+
+
 def _load_file(path: Path, spec: str, what: str) -> Any:
     """Import a Python file once per process, as a module named after its path. Its folder
-    goes on the Python path (at its end, so that it shadows no installed package), so that it
-    imports the modules beside it, as a script run from there would."""
+    goes on the Python path (:func:`add_to_path`), so that it imports the modules beside it,
+    as a script run from there would."""
     if not path.is_file():
         raise SystemSpecError(f"{what} '{spec}': file not found: {path}")
-    folder = str(path.resolve().parent)
-    if folder not in sys.path:
-        sys.path.append(folder)
+    add_to_path(path.resolve().parent)
     digest = hashlib.sha1(str(path).encode()).hexdigest()[:10]
     name = f"mpcmobo_user_{path.stem if path.stem.isidentifier() else 'file'}_{digest}"
     if name in sys.modules:
