@@ -257,3 +257,26 @@ def test_learner_may_be_repeated_or_a_comma_list():
     assert _learners(["mobo", "identify"]) == _learners(["mobo,identify"]) == ["mobo", "identify"]
     assert _learners(["all"]) == list(LEARNER_SPECS)
     assert _learners(None) is None and _learners([]) is None
+
+
+def test_the_command_list_gives_each_command_its_summary_as_prose():
+    """``mpcmobo --help`` on a wide terminal: each command's row holds the first paragraph of
+    its docstring on one line (the source's line breaks are not the reader's), with nothing of
+    it lost to markup (``DIR/trials/ID/``)."""
+    import inspect
+
+    import typer
+
+    commands = typer.main.get_command(app).commands  # type: ignore[attr-defined]
+    wide = runner.invoke(app, ["--help"], env={"COLUMNS": "400", "TERM": "dumb"}).output
+    panel = wide[wide.index("Commands") :].splitlines()[1:]
+    rows: dict[str, list[str]] = {}
+    for line in panel:  # a row begins with its command's name; a folded line continues it
+        cells = line.strip("│ ╰─╯").split()
+        if cells and cells[0] in commands and line.startswith("│ " + cells[0]):
+            rows[cells[0]] = cells[1:]
+        elif cells and rows:
+            rows[list(rows)[-1]].extend(cells)
+    for name, command in commands.items():
+        summary = " ".join(inspect.cleandoc(command.help or "").split("\n\n")[0].split())
+        assert " ".join(rows[name]) == summary.replace("``", "").replace("`", ""), name

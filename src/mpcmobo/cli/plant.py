@@ -104,7 +104,7 @@ def ask(
         None, "--episodes", "-n", help="the budget of trials; on a tuner, a larger one"
     ),
 ) -> None:
-    """Print the next trial as JSON and write it, with its controller, to DIR/trials/<id>/
+    """Print the next trial as JSON and write it, with its controller, to DIR/trials/ID/
     (a trial that ``tell`` prepared is printed as it was written, without loading the tuner)."""
     create = {"system": system, "learner": learner, "seed": seed, "config": config}
     given = episodes is not None or any(v is not None for v in create.values())
