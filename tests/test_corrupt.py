@@ -205,7 +205,7 @@ def test_a_bad_trust_region_option_is_named_by_its_dotted_path(tmp_path):
 def test_run_help_shows_defaults_and_learner_options():
     res = runner.invoke(app, ["run", "--help"], terminal_width=200)
     assert res.exit_code == 0
-    text = " ".join(res.output.split())
+    text = " ".join(res.output.replace("│", " ").split())  # an option's default may fold
     assert re.search(r"episodes per job \[default: \(?600\)?\]", text), text
     assert re.search(r"parallel processes \[default: \(?2\)?\]", text), text
     # every learner's options with their defaults, as TOML
