@@ -365,6 +365,7 @@ def test_a_killed_builds_lock_is_cleared_and_a_live_build_is_waited_for(tmp_path
     lock as old as STALE_BUILD_LOCK (a killed build's) is removed with a warning; a younger one
     is waited for until its build removes it, or until it is that old."""
     import os
+    import subprocess
     import threading
     import time
     import warnings
@@ -388,3 +389,10 @@ def test_a_killed_builds_lock_is_cleared_and_a_live_build_is_waited_for(tmp_path
     with pytest.warns(RuntimeWarning, match="never finished"):
         assert clear_dead_build_lock(lock, stale=0.3, poll=0.05) is True
     assert 0.25 <= time.time() - t0 < 5 and not lock.exists()
+    lock.write_text("")  # an old lock whose build still compiles (a process works there)
+    os.utime(lock, (time.time() - 200, time.time() - 200))
+    compiler = subprocess.Popen(["sleep", "1"], cwd=tmp_path)
+    t0 = time.time()
+    with pytest.warns(RuntimeWarning, match="never finished"):
+        assert clear_dead_build_lock(lock, stale=120, poll=0.05) is True
+    assert compiler.poll() is not None and time.time() - t0 >= 0.5

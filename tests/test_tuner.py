@@ -141,13 +141,19 @@ def test_bad_trials_and_logs_are_refused_and_nothing_recorded_changes(lq_tuner):
         ((trial.id + 1, X, U), "unknown trial 1: the pending trial is 0"),
         ((trial, X[:-1], U), r"states must be \(7, 2\)"),
         ((trial, X, U[:-1]), r"inputs must be \(6, 1\)"),
-        ((trial, np.where(np.arange(7)[:, None] == 3, np.nan, X), U), "not finite at step 3"),
+        (
+            (trial, np.where((np.arange(7)[:, None] == 3) & [False, True], np.nan, X), U),
+            r"not finite at step 3 \(row 3 of the log\): v = nan",
+        ),
         ((trial, X + 1e4, U), "far outside its bounds"),
         ((trial, X, U + 1e3), "outside its bounds"),
         ((0.7, X, U), "a Trial or its integer id"),
         ((trial, [*X[:2].tolist(), ["x", 0.0], *X[3:].tolist()], U), "states holds a value that"),
         ((trial, X, U, None, -np.ones(6)), "violations cannot be negative; step 0"),
-        ((trial, X, U, np.where(np.arange(6) == 4, np.nan, 1.0)), "stage_costs .* at step 4"),
+        (
+            (trial, X, U, np.where(np.arange(6) == 4, np.nan, 1.0)),
+            r"stage_costs .* at step 4 \(row 4 of the log's column 'stage_cost'\)",
+        ),
         (
             (trial, pd.DataFrame({"p": [*X[:6, 0], "abc"], "v": X[:, 1], "f": [*U[:, 0], np.nan]})),
             "column 'p' holds a value that is not a number",
@@ -200,15 +206,21 @@ def test_the_episode_starts_where_the_log_does(tmp_path):
     first state (x0, and the start covariate of the learners' tests, are that state's); one
     within START_TOLERANCE of x0 keeps x0; the episode's predicted cost (the exploration
     budget's) is from the logged start. Cycled starts compare thetas from the same starts: a
-    log that starts elsewhere is refused."""
+    log that starts elsewhere is refused, unless told with force (a noisy measurement of the
+    trial's start: the episode keeps the trial's x0)."""
     for mode in ("random", "cycle"):
         tuner = Tuner("lq", "bo", tmp_path / mode, episodes=3, steps=6, start_mode=mode)
         trial = tuner.ask()
         near, U = _episode(tuner, trial, trial.x0 + 0.01 * tuner.system.x_scale)
         elsewhere, U_elsewhere = _episode(tuner, trial, trial.x0 + 0.5 * tuner.system.x_scale)
         if mode == "cycle":
-            with pytest.raises(TunerError, match="must start at its trial's x0"):
+            with pytest.raises(TunerError, match="must start at its trial's x0.*--force"):
                 tuner.tell(trial, elsewhere, U_elsewhere)
+            row = tuner.tell(trial, elsewhere, U_elsewhere, force=True)
+            np.testing.assert_array_equal(row.x0, trial.x0)
+            assert "start" in tuner.status()["trials"][0]["forced"]
+            trial = tuner.ask()
+            near, U = _episode(tuner, trial, trial.x0 + 0.01 * tuner.system.x_scale)
             row = tuner.tell(trial, near, U)
             np.testing.assert_array_equal(row.x0, trial.x0)
             continue

@@ -84,8 +84,12 @@ def test_bad_logs_are_refused_or_quarantined_with_the_problem_named(tmp_path, mo
     with pytest.raises(TunerError, match="this log is trial 0's, told already"):
         tuner.tell(trial, X0, U0)
     table = PlantLog(X, U).frame(tuner.system)  # a table sorted the wrong way
-    with pytest.raises(TunerError, match="reverse time order: its first row has no inputs"):
+    with pytest.raises(TunerError, match="first row has no inputs .* reverse time order"):
         tuner.tell(trial, table.iloc[::-1].reset_index(drop=True))
+    late = table.assign(time=np.arange(len(X)) * 0.1)  # a historian's: the inputs a row late
+    late[list(tuner.system.input_names)] = late[list(tuner.system.input_names)].shift(1)
+    with pytest.raises(TunerError, match="time increases: the inputs logged one row late"):
+        tuner.tell(trial, late)
     timed = table.assign(time=np.arange(len(X)) * 0.1)
     timed.loc[[3, 4], "time"] = timed.loc[[4, 3], "time"].to_numpy()
     with pytest.raises(TunerError, match="out of time order at rows 4"):

@@ -61,10 +61,13 @@ def test_a_log_is_checked_before_the_tuner_is_loaded(asked, tmp_path, monkeypatc
     def loaded(*args, **kwargs):
         raise AssertionError("the tuner was loaded")
 
+    as_json = tmp_path / "ep.json"
+    pd.read_csv(renamed).to_json(as_json)
     monkeypatch.setattr(Tuner, "load", loaded)
     for log, message in [
         (tmp_path / "missing.csv", "does not exist"),
         (bad, "cannot be read"),
+        (as_json, "is a JSON file: a log is a CSV file .* or a Parquet file"),
         (renamed, "no column 'p'; .* its columns are \\['pos', 'v', 'f'\\]"),
     ]:
         res = runner.invoke(app, ["tell", str(d), "0", str(log)])
@@ -209,3 +212,23 @@ def test_a_system_object_is_recorded_or_refused(tmp_path, monkeypatch):
     cmd = [sys.executable, "-m", "mpcmobo.cli", "ask", str(out)]
     proc = subprocess.run(cmd, cwd=elsewhere, env=env, capture_output=True, text=True)
     assert proc.returncode == 0 and '"id": 1' in proc.stdout, proc.stderr[-2000:]
+
+
+def test_status_says_when_the_fit_no_longer_follows_the_trials(capsys):
+    """Once tuning has converged the learner fits no later trial: the identification's line
+    says so, where the count of transitions would otherwise look stale."""
+    import mpcmobo.cli as cli
+    from mpcmobo.cli import plant
+
+    ident = {
+        "parameters": {"a": {"nominal": 0.15, "estimate": 0.24, "std": 0.002}},
+        "holdout_error": 0.01,
+        "nominal_error": 0.2,
+        "transitions": 425,
+    }
+    for frozen in (False, True):
+        with cli.console.capture() as out:
+            plant._print_identification(ident, frozen=frozen)
+        text = " ".join(out.get().split())
+        assert "fitted on 425 transitions" in text
+        assert ("the trials since are not fitted" in text) == frozen

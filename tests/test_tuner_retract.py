@@ -87,6 +87,26 @@ def test_retracting_a_trial_with_later_ones(tmp_path):
     ]
 
 
+def test_a_trial_retracted_twice_keeps_both_logs(tmp_path):
+    """Told, retracted, told again with another log and retracted again: both logs and both
+    records are kept (the earlier as ``trial-<id>-1``), nothing overwritten."""
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", **SETTINGS)
+    logs = []
+    for k in range(2):
+        trial = tuner.ask()
+        states, inputs = episode(tuner, trial)
+        logs.append(states)
+        tuner.tell(trial, states * (1 + 1e-3 * k), inputs, force=True)
+        assert tuner.retract(trial) == [0]
+    kept = tmp_path / "t" / "retracted"
+    assert sorted(p.name for p in kept.glob("*.json")) == ["trial-0-1.json", "trial-0.json"]
+    first = pd.read_parquet(kept / "trial-0-1.parquet")
+    second = pd.read_parquet(kept / "trial-0.parquet")
+    assert json.loads((kept / "trial-0-1.json").read_text())["log"] == "trial-0-1.parquet"
+    np.testing.assert_allclose(second.iloc[:, :2].to_numpy() / first.iloc[:, :2].to_numpy(), 1.001)
+    assert len(pd.read_parquet(kept / "episodes.parquet")) == 2
+
+
 def test_status_lists_the_trials_and_says_what_to_do(tmp_path):
     out = tmp_path / "t"
     tuner = Tuner(

@@ -17,6 +17,7 @@ samples of ``optimize_acqf`` and the quasi-MC sampler is ``SobolQMCNormalSampler
 
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from dataclasses import dataclass
@@ -45,8 +46,9 @@ from mpcmobo.bo.surrogate import GPSurrogate
 __all__ = ["AcqfSearch", "EHVIOptions", "posterior_front", "propose_ehvi", "propose_ei"]
 
 # BoTorch compiles its fused qLogEHVI kernel on first use, under a lock file that torch waits
-# for without end; a build killed (kill -9) leaves the lock behind. A build takes 20-30 s: a
-# lock older than this is a dead build's.
+# for without end; a build killed (kill -9) leaves the lock behind. A build takes 20-30 s
+# (minutes on a loaded machine): a lock older than this, with no process building in its
+# directory, is a dead build's.
 STALE_BUILD_LOCK = 120.0
 
 
@@ -209,15 +211,38 @@ class _SingleLogEHVI(qLogExpectedHypervolumeImprovement):
         return logmeanexp(logsumexp(log_areas[..., 0], dim=-1), dim=0)
 
 
+def building_in(directory: Path) -> bool:
+    """Whether a live process works in ``directory`` (its current directory: torch runs the
+    build's ninja, and ninja its compilers, there). Read from ``/proc``; False where there is
+    none to read (the lock's age alone then decides)."""
+    target = os.path.realpath(directory)
+    try:
+        entries = os.listdir("/proc")
+    except OSError:  # pragma: no cover - not Linux
+        return False
+    for pid in entries:
+        if not pid.isdigit():
+            continue
+        try:
+            if os.path.realpath(f"/proc/{pid}/cwd") == target:
+                return True
+        except OSError:  # a process that ended, or another user's
+            continue
+    return False
+
+
 def clear_dead_build_lock(lock: Path, stale: float = STALE_BUILD_LOCK, poll: float = 1.0) -> bool:
     """Wait while another process builds under ``lock``; remove the lock once it is ``stale``
-    seconds old (a killed build's, which torch would wait for forever), with a warning. Returns
-    whether it removed one."""
+    seconds old and no process works in its directory (:func:`building_in`: a killed build's,
+    which torch would wait for forever), with a warning. Returns whether it removed one."""
     while True:
         try:
             age = time.time() - lock.stat().st_mtime
         except FileNotFoundError:
             return False
+        if age >= stale and building_in(lock.parent):  # a slow build, on a loaded machine
+            time.sleep(poll)
+            continue
         if age >= stale:
             lock.unlink(missing_ok=True)
             warnings.warn(

@@ -383,7 +383,8 @@ def status(
     cli.console.print(table)
     _print_trials(st)
     if st["identification"] is not None:
-        _print_identification(st["identification"])
+        converged = (st.get("exploration") or {}).get("converged")
+        _print_identification(st["identification"], frozen=bool(converged))
     summary = directory / "summary.json"
     if summary.exists():  # an identified parameter held by its bounds (the recommendation
         # below says why tuning stopped exploring)
@@ -462,9 +463,10 @@ def _print_exploration(ex: dict[str, Any]) -> None:
     )
 
 
-def _print_identification(ident: dict[str, Any]) -> None:
+def _print_identification(ident: dict[str, Any], frozen: bool = False) -> None:
     """The last fit of the model (``Tuner.status``'s ``identification``) as a table and a line
-    on how it predicts the held-out transitions."""
+    on how it predicts the held-out transitions; ``frozen``: tuning has converged, and the
+    learner fits no later trial."""
     table = Table(title="identified model (the last fit)")
     for col in ("parameter", "nominal", "estimate", "std"):
         table.add_column(col, justify="left" if col == "parameter" else "right")
@@ -474,7 +476,8 @@ def _print_identification(ident: dict[str, Any]) -> None:
     cli.console.print(
         f"fitted on {ident['transitions']} transitions; one-step error on held-out ones (RMS, "
         f"scaled by x_scale) {fmt(ident['holdout_error'], 3)}, the nominal model's "
-        f"{fmt(ident['nominal_error'], 3)}",
+        f"{fmt(ident['nominal_error'], 3)}"
+        + ("; tuning has converged: the trials since are not fitted" if frozen else ""),
         highlight=False,
     )
 

@@ -98,10 +98,13 @@ def _trajectory(system: System, steps: int, states: Any, inputs: Any) -> tuple[n
             f"inputs must be ({T}, {s.nu}): the {T} inputs applied "
             f"({', '.join(s.input_names)}); got {U.shape}"
         )
-    for name, arr in (("states", X), ("inputs", U)):
+    for name, arr, cols in (("states", X, s.state_names), ("inputs", U, s.input_names)):
         if not np.all(np.isfinite(arr)):
-            k = int(np.flatnonzero(~np.all(np.isfinite(arr.reshape(len(arr), -1)), 1))[0])
-            raise TunerError(f"{name} has a value that is not finite at step {k}: {arr[k]}")
+            k, j = (int(i[0]) for i in np.nonzero(~np.isfinite(arr)))
+            raise TunerError(
+                f"{name} has a value that is not finite at step {k} (row {k} of the log): "
+                f"{cols[j]} = {arr[k, j]}"
+            )
     outside = (U < s.u_lb - 1e-9 * np.abs(s.u_lb) - 1e-12) | (
         U > s.u_ub + 1e-9 * np.abs(s.u_ub) + 1e-12
     )
@@ -124,7 +127,11 @@ def _per_step(values: Any, name: str, steps: int) -> np.ndarray | None:
         raise TunerError(f"{name} must be {steps} numbers, one per input; got {a.shape}")
     if not np.all(np.isfinite(a)):
         k = int(np.flatnonzero(~np.isfinite(a))[0])
-        raise TunerError(f"{name} has a value that is not finite at step {k}: {a[k]}")
+        column = name.rstrip("s")  # the log's column: stage_cost, violation
+        raise TunerError(
+            f"{name} has a value that is not finite at step {k} (row {k} of the log's "
+            f"column {column!r}): {a[k]}"
+        )
     if name == "violations" and np.any(a < 0):
         k = int(np.flatnonzero(a < 0)[0])
         raise TunerError(f"violations cannot be negative; step {k} has {a[k]}")
@@ -156,16 +163,30 @@ def _frame(df: Any, system: System) -> tuple[Any, Any, Any, Any, Any]:
             msg = f"the log's column {c!r} holds a value that is not a number: {err}"
             raise TunerError(msg) from None
     U_all = df[list(system.input_names)].to_numpy(float)
+    time = _time(df, names)
     if len(U_all) > 1 and np.all(np.isnan(U_all[0])) and np.all(np.isfinite(U_all[-1])):
-        raise TunerError(
-            "the log is in reverse time order: its first row has no inputs and its last row "
-            "has them (the last row is the state after the last input); sort it by time, the "
-            "episode's start first"
-        )
+        raise TunerError(_inputs_at_the_end(time))
     X = df[list(system.state_names)].to_numpy(float)
     L = df["stage_cost"].to_numpy(float)[:-1] if "stage_cost" in df.columns else None
     V = df["violation"].to_numpy(float)[:-1] if "violation" in df.columns else None
-    return X, U_all[:-1], L, V, _time(df, names)
+    return X, U_all[:-1], L, V, time
+
+
+def _inputs_at_the_end(time: np.ndarray | None) -> str:
+    """What a log whose first row has no inputs and whose last row has them is: its inputs
+    logged one row late (a ``time`` column that increases says so), or a reversed log."""
+    found = "its first row has no inputs and its last row has them"
+    late = (
+        "the inputs logged one row late (on the row after the step they were applied at, as "
+        "some historians write them): move them up one row, the last row's inputs empty, as "
+        "the last row is the state after the last input"
+    )
+    if time is not None and len(time) > 1 and np.all(np.diff(time) > 0):
+        return f"{found}, and its time increases: {late}"
+    return (
+        f"{found}: either the log is in reverse time order (sort it by time, the episode's "
+        f"start first) or it has {late}"
+    )
 
 
 def _time(df: Any, names: tuple[str, ...]) -> np.ndarray | None:
@@ -186,13 +207,36 @@ def _time(df: Any, names: tuple[str, ...]) -> np.ndarray | None:
         return None
 
 
+# suffixes of files a log is sometimes saved as that are neither CSV nor Parquet
+OTHER_FORMATS = {
+    ".json": "a JSON file",
+    ".xlsx": "an Excel workbook",
+    ".xls": "an Excel workbook",
+    ".xlsm": "an Excel workbook",
+    ".ods": "a spreadsheet",
+    ".pkl": "a pickle",
+    ".pickle": "a pickle",
+    ".h5": "an HDF5 file",
+    ".hdf5": "an HDF5 file",
+    ".feather": "a Feather file",
+    ".mat": "a MATLAB file",
+}
+
+
 def _existing(path: str | Path) -> Path:
-    """``path``, a file that exists (else a :class:`TunerError`)."""
+    """``path``, a file that exists, not of a format other than CSV or Parquet that its
+    suffix names (:data:`OTHER_FORMATS`; else a :class:`TunerError`)."""
     path = Path(path)
     if not path.exists():
         raise TunerError(f"the log {path} does not exist")
     if path.is_dir():
         raise TunerError(f"the log {path} is a directory, not a CSV or Parquet file")
+    other = OTHER_FORMATS.get(path.suffix.lower())
+    if other is not None:
+        raise TunerError(
+            f"the log {path} is {other}: a log is a CSV file (comma, semicolon or tab "
+            "separated, a header of the state and input names) or a Parquet file; save it as one"
+        )
     return path
 
 

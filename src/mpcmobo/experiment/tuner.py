@@ -417,13 +417,22 @@ class Tuner:
         problems, record, mpc_time = checks.review(
             self.system, self.job.run.mpc, plan, log, params, model, history
         )
-        if self.settings.start_mode == "cycle":  # a log from another start is refused
+        cycled = self.settings.start_mode == "cycle"
+        if cycled and not force:  # a log from another start is refused
             self._check_start(plan, log.states[0], problems)
+        elif cycled and not self._at_start(plan, log.states[0]):  # kept with the forced ones
+            problems.append(
+                checks.Problem(
+                    "start",
+                    f"the log starts further than {START_TOLERANCE:g} x_scale from the trial's x0",
+                )
+            )
         if problems and not force:
             path = self.files.quarantine(tid, log, problems, self.system)
             self._write_status()
             raise LogQuarantined(_quarantine_message(tid, problems, path), problems, path)
-        started = self._started(plan, log.states[0])  # once the log is believed
+        # once the log is believed; forced under cycled starts, it started at the trial's x0
+        started = plan if cycled else self._started(plan, log.states[0])
         if record is None:  # a log the checks stopped at, told with force
             t0 = time.perf_counter()
             record = replay(self.system, self.job.run.mpc, plan.theta, *_arrays(log))
@@ -477,7 +486,8 @@ class Tuner:
                 f"{'trial' if len(ids) == 2 else 'trials'} {checks.describe_steps(ids[1:])} "
                 f"{'was' if len(ids) == 2 else 'were'} told after trial {tid}, proposed by a "
                 f"learner that had seen it: retract them with it (Tuner.retract({tid}, "
-                f"later=True), mpcmobo retract DIR {tid} --with-later); their logs are kept"
+                f"later=True), mpcmobo retract {self.run_dir.path} {tid} --with-later); their "
+                "logs are kept"
             )
         found = [self.files.told(k, checkpoint=k == tid) for k in ids]
         entries = [e for e in found if e is not None]
@@ -547,7 +557,8 @@ class Tuner:
             f"the trial at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared "
             "from the same starts, so an episode must start at its trial's x0 (within "
             f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "
-            "start_mode = 'random'"
+            "start_mode = 'random'; where the plant did start there and the first row is a "
+            "noisy measurement of it, tell the log with --force (force=True)"
         )
 
     def _started(self, plan: EpisodePlan, x_first: np.ndarray) -> EpisodePlan:

@@ -138,15 +138,12 @@ class TunerFiles:
         """Keep a log the checks did not believe, with the reasons; its path. A log the trial
         had in quarantine before is kept as ``trial-<id>-<n>``, marked replaced."""
         path = self.quarantine_dir / f"trial-{tid}.parquet"
-        if path.with_suffix(".json").exists():
-            n = len(list(self.quarantine_dir.glob(f"trial-{tid}-*.json"))) + 1
-            entry = storage.read_json(path.with_suffix(".json"))
+        kept = _set_aside(self.quarantine_dir, tid)
+        if kept is not None:
+            entry = storage.read_json(kept)
             if entry.get("status") == QUARANTINED:
                 entry.update(status="replaced by a later log", released_at=_now())
-            kept = self.quarantine_dir / f"trial-{tid}-{n}.parquet"
-            if path.exists():
-                os.replace(path, kept)
-            storage.write_json(kept.with_suffix(".json"), dict(entry, log=kept.name))
+                storage.write_json(kept, entry)
         storage.write_parquet(path, log.frame(system))
         storage.write_json(
             path.with_suffix(".json"),
@@ -197,13 +194,14 @@ class TunerFiles:
     # ------------------------------------------------------------------ retracted trials
     def retract(self, entries: list[dict], rows: list[dict], system: System) -> None:
         """Keep the told trials ``entries`` (with their ``rows``) in ``retracted/`` and drop
-        them from ``told/``."""
+        them from ``told/``. A trial retracted before keeps that log as ``trial-<id>-<n>``."""
         import pandas as pd
 
         at = _now()
         for entry, row in zip(entries, rows, strict=True):
             tid = int(entry["trial"])
             log: PlantLog = entry["log"]
+            _set_aside(self.retracted_dir, tid)
             path = self.retracted_dir / f"trial-{tid}.parquet"
             storage.write_parquet(path, log.frame(system))
             storage.write_json(
@@ -290,3 +288,19 @@ def told_twin(
         ):
             return tid
     return None
+
+
+def _set_aside(directory: Path, tid: int) -> Path | None:
+    """The log and JSON ``directory`` keeps of trial ``tid`` moved aside to ``trial-<id>-<n>``
+    (``n``: 1 for the first kept so), to make room for its next one; the moved JSON (None:
+    ``directory`` kept none)."""
+    current = directory / f"trial-{tid}.json"
+    if not current.exists():
+        return None
+    n = len(list(directory.glob(f"trial-{tid}-*.json"))) + 1
+    kept = directory / f"trial-{tid}-{n}.parquet"
+    if current.with_suffix(".parquet").exists():
+        os.replace(current.with_suffix(".parquet"), kept)
+    storage.write_json(kept.with_suffix(".json"), dict(storage.read_json(current), log=kept.name))
+    current.unlink()
+    return kept.with_suffix(".json")
