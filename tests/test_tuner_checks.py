@@ -205,3 +205,33 @@ def test_the_checks_on_their_own():
     assert checks.unit_factor(x, 0.0, 30.0, 30.0, start=2.2) == 1000.0
     assert checks.start_factor(22.19, 2.219) == 10.0
     assert checks.start_factor(2.3, 2.219) is None and checks.start_factor(-22.19, 2.219) is None
+
+
+def test_an_episode_run_on_the_exported_controller_is_the_trials(tmp_path, monkeypatch):
+    """``controller.casadi`` (IPOPT from its last solution) may stop at another local minimum
+    than the MPC's own solve, or fail where the user applies a fallback: a log whose inputs are
+    the exported controller's plus the noise, or anything where it failed, is the trial's; an
+    input that is neither is still an override. On `lq` both controllers agree, so the exported
+    controller's other minimum at steps 3-6 and its failure at step 8 are stood in for."""
+    from mpcmobo.mpc.export import controller_inputs
+
+    tuner = Tuner("lq", "bo", tmp_path / "t", episodes=3, steps=12)
+    trial = tuner.ask()
+    X, U = episode(tuner, trial, override=(range(3, 7), [0.7]))
+    real = controller_inputs(tuner.job.run.mpc, trial.theta, X[:-1], False)
+    trial.restart()
+    np.testing.assert_allclose(real, np.array([trial.policy(x) for x in X[:-1]]), atol=1e-5)
+    found = checks.input_problems(tuner.system, U, real, trial.noise, trial.id)
+    assert found and found[0].steps == (3, 4, 5, 6)
+    other = real.copy()
+    other[3:7] = 0.7 - trial.noise[3:7]  # the exported controller's own minimum there
+    other[8] = np.nan  # it failed: the user's fallback
+    U_fallback = U.copy()
+    U_fallback[8] = -0.3
+    assert checks.input_problems(tuner.system, U_fallback, real, trial.noise, 0, [other]) == []
+    U_fallback[10] += 0.2  # neither controller's
+    (found,) = checks.input_problems(tuner.system, U_fallback, real, trial.noise, 0, [other])
+    assert found.steps == (10,)
+    monkeypatch.setattr(checks, "controller_inputs", lambda *args: other)
+    row = tuner.tell(trial, X, U)  # the review asks the exported controller
+    assert row.episode == trial.id and tuner.status()["quarantined"] == []

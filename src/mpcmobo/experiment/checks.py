@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
+from mpcmobo.mpc.export import controller_inputs
 from mpcmobo.systems.base import System
 
 # a state more than this many box widths outside its box is not a state of the plant
@@ -243,16 +244,28 @@ def order_problems(
 
 
 def input_problems(
-    system: System, inputs: np.ndarray, pi: np.ndarray, noise: np.ndarray, trial: int
+    system: System,
+    inputs: np.ndarray,
+    pi: np.ndarray,
+    noise: np.ndarray,
+    trial: int,
+    exported: Sequence[np.ndarray] = (),
 ) -> list[Problem]:
     """The applied inputs against the trial's controller ``pi`` (at the logged states) plus its
     ``noise``, clipped to the input bounds: the steps that differ by more than
-    ``INPUT_TOLERANCE`` of the input's span, and what that suggests."""
+    ``INPUT_TOLERANCE`` of the input's span, and what that suggests. ``exported``: the inputs
+    of the trial's exported controller at the logged states (NaN where it failed), one array
+    per way of calling it, which may stop at another local minimum: a step that matches any is
+    the trial's, and one where the exported controller failed is the user's fallback."""
     U, pi, noise = (np.asarray(a, float) for a in (inputs, pi, noise))
     lb, ub = np.asarray(system.u_lb, float), np.asarray(system.u_ub, float)
     span = np.where(np.isfinite(ub - lb), ub - lb, 2 * np.asarray(system.u_scale, float))
     expected = np.clip(pi + noise, lb, ub)
     off = np.max(np.abs(U - expected) / span, axis=1)
+    for other in exported:
+        failed = ~np.all(np.isfinite(other), axis=1)
+        differs = np.max(np.abs(U - np.clip(other + noise, lb, ub)) / span, axis=1)
+        off = np.where(failed, 0.0, np.minimum(off, differs))
     bad = np.flatnonzero(off > INPUT_TOLERANCE)
     if not len(bad):
         return []
@@ -359,6 +372,9 @@ def review(
     problems = input_problems(system, U, record.pi, plan.noise, plan.episode)
     if problems and len(problems[0].steps) > len(U) / 2 and _reversed(system, mpc, plan, log):
         return [Problem("time_order", REVERSED)], record, mpc_time
+    if problems:  # the episode may have run on the trial's exported controller
+        exported = [controller_inputs(mpc, plan.theta, X[:-1], cold) for cold in (False, True)]
+        problems = input_problems(system, U, record.pi, plan.noise, plan.episode, exported)
     problems += model_problems(system, X, U, params, history, model)
     return problems, record, mpc_time
 

@@ -19,8 +19,11 @@ the command that builds it.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import sysconfig
+from collections.abc import Iterator
 from pathlib import Path
 
 import casadi as ca
@@ -29,7 +32,13 @@ import numpy as np
 from mpcmobo.mpc.codegen import compiler_command
 from mpcmobo.mpc.parametric import ParametricMPC
 
-__all__ = ["c_compile_command", "controller_function", "export_c", "export_casadi"]
+__all__ = [
+    "c_compile_command",
+    "controller_function",
+    "controller_inputs",
+    "export_c",
+    "export_casadi",
+]
 
 NAME = "controller"
 
@@ -55,6 +64,44 @@ def controller_function(mpc: ParametricMPC, theta: np.ndarray | None = None) -> 
     w = sol["x"]
     u = ca.DM(mpc.system.u_ref) + ca.DM(pr.Su) * w[list(pr.iu[0])]
     return ca.Function(NAME, [x, warm, cold], [u, w], ["x", "warm", "cold"], ["u", "warm_next"])
+
+
+def controller_inputs(
+    mpc: ParametricMPC, theta: np.ndarray | None, states: np.ndarray, cold_after_failure: bool
+) -> np.ndarray:
+    """The inputs :func:`controller_function` gives at ``states`` (rows, in order) called as
+    its users call it: cold at the first, then warm from the last solution it returned; a row
+    of NaN where it fails (the caller's fallback applies). After a failure the next call
+    starts cold (``cold_after_failure``) or from the last solution. CasADi's report of a
+    failed call (its inputs, on the standard error) is not shown."""
+    controller = controller_function(mpc, theta)
+    warm = np.zeros(controller.size1_in(1))
+    out = np.full((len(states), mpc.system.nu), np.nan)
+    cold = True
+    with _quiet_stderr():
+        for k, x in enumerate(np.asarray(states, float)):
+            try:
+                u, w = controller(x, warm, 1.0 if cold else 0.0)
+            except RuntimeError:  # IPOPT did not converge (error_on_fail)
+                cold = cold or cold_after_failure
+                continue
+            out[k] = np.asarray(u, float).reshape(-1)
+            warm, cold = np.asarray(w, float).reshape(-1), False
+    return out
+
+
+@contextlib.contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """The process's standard error (file descriptor 2, where CasADi's C++ writes) discarded."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def export_casadi(mpc: ParametricMPC, theta: np.ndarray | None, path: str | os.PathLike) -> Path:
