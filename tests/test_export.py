@@ -3,6 +3,7 @@ MPC's inputs, the generated C compiles and gives them too."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 
@@ -12,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mpcmobo.cli import app
+from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.mpc import ParametricMPC
 from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
 from mpcmobo.mpc.export import c_compile_command, controller_function, export_c, export_casadi
@@ -101,6 +103,32 @@ def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     assert res.exit_code == 2 and "is a file; C code goes into a directory" in res.output
     res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path)])
     assert res.exit_code == 2 and "is a directory; the CasADi function is one file" in res.output
+    res = runner.invoke(app, ["export", str(d), "--learner", "bo", "--out", str(tmp_path / "y")])
+    assert (
+        res.exit_code == 2
+        and "holds no job --learner bo; its jobs: --learner mobo --seed 0"
+        in (" ".join(res.output.split()))
+    )
+
+
+def test_an_export_does_not_mix_with_another_controllers_files(tmp_path):
+    """A C export into a directory that holds files it does not write (another format's, or
+    the user's) is refused; into its own earlier export it writes again, the old build gone."""
+    from mpcmobo.cli.plant import _write_controller
+
+    mpc = ParametricMPC(get_system("lq"), codegen=False)
+    out = tmp_path / "emb"
+    _write_controller(mpc, None, "embedded", out, False)
+    (out / "controller").write_text("an earlier build")
+    _write_controller(mpc, None, "embedded", out, False)
+    assert not (out / "controller").exists()
+    with pytest.raises(TunerError, match="holds files this export does not write .*mpc_functions"):
+        _write_controller(mpc, None, "c", out, False)
+    exported = re.findall(
+        r"CASADI_SYMBOL_EXPORT \w+ (\w+)\(", (out / "mpc_functions.c").read_text()
+    )
+    prefixes = ("mpcmobo_", "mpc_functions_")  # the MPC's functions, the file's version
+    assert exported and all(name.startswith(prefixes) for name in exported), exported
 
 
 OWN_PATHS = {
@@ -204,3 +232,30 @@ def test_the_command_line_writes_and_builds_the_embedded_controller(tmp_path):
     x = np.array([0.8, -0.3])
     row = _run_embedded(out / "controller", [x], "--cold")[0]
     np.testing.assert_allclose(row[: mpc.nu], mpc.solve(x, theta, False).action, atol=1e-6)
+
+
+def test_a_controller_casadi_cannot_save_or_generate_is_refused(tmp_path, monkeypatch):
+    """Equations with a Python ``casadi.Callback`` run in mpcmobo but CasADi can neither load
+    their saved function back nor generate C for them (its code says ``#error``): the export
+    says so and leaves no file that looks usable."""
+    from mpcmobo.mpc.export import ExportError, check_generated
+
+    source, header = tmp_path / "controller.c", tmp_path / "controller.h"
+    source.write_text(
+        "int f(void) {\n  #error Code generation not supported for CallbackInternal\n}\n"
+    )
+    header.write_text("")
+    with pytest.raises(ExportError, match="not supported for CallbackInternal.*casadi.Callback"):
+        check_generated(source, [source, header])
+    assert not source.exists() and not header.exists()
+    (tmp_path / "t.c").write_text("int f;\n")
+    check_generated(tmp_path / "t.c", [])  # generated code without an #error passes
+
+    def unloadable(path):
+        raise RuntimeError("FunctionInternal::deserialize: not found 'CallbackInternal'")
+
+    monkeypatch.setattr(ca.Function, "load", staticmethod(unloadable))
+    mpc = ParametricMPC(get_system("lq"), codegen=False)
+    with pytest.raises(ExportError, match="cannot be saved as a CasADi function"):
+        export_casadi(mpc, None, tmp_path / "m.casadi")
+    assert not (tmp_path / "m.casadi").exists()

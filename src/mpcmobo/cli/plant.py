@@ -492,8 +492,16 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
         for s in settings.seeds
         if (learner is None or n == learner) and (seed is None or s == seed)
     ]
+    if not jobs:
+        every = ", ".join(
+            f"--learner {n} --seed {s}" for n in settings.learners for s in settings.seeds
+        )
+        asked = " ".join(
+            f"--{k} {v}" for k, v in (("learner", learner), ("seed", seed)) if v is not None
+        )
+        raise TunerError(f"{run_dir.path} holds no job {asked}; its jobs: {every}")
     if len(jobs) != 1:
-        listed = ", ".join(f"--learner {n} --seed {s}" for n, s in jobs) or "none"
+        listed = ", ".join(f"--learner {n} --seed {s}" for n, s in jobs)
         raise TunerError(f"choose one job of {run_dir.path}: {listed}")
     ((name, s),) = jobs
     ckpt = run_dir.checkpoint(name, s)
@@ -531,22 +539,49 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
     return settings, name, np.asarray(ckpt.rows[k].theta, float)
 
 
+# the files `mpcmobo export` writes per C format (beside them the built example, `controller`)
+EXPORT_FILES = {
+    "c": ("controller.c", "controller.h", "main.c"),
+    "embedded": ("controller.c", "controller.h", "mpc_functions.c", "mpc_functions.h", "main.c"),
+}
+
+
 def _write_controller(mpc: Any, theta: Any, fmt_: str, out: Path, compile_c: bool) -> str:
     """Write the controller of ``mpc`` with ``theta`` in the format ``fmt_`` into ``out``
     (compiled with ``compile_c``); what ``mpcmobo export`` prints."""
+    from mpcmobo.mpc.export import ExportError
+
+    try:
+        return _exported(mpc, theta, fmt_, out, compile_c)
+    except ExportError as err:
+        raise TunerError(str(err)) from None
+
+
+def _exported(mpc: Any, theta: Any, fmt_: str, out: Path, compile_c: bool) -> str:
+    """What :func:`_write_controller` does."""
     from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
     from mpcmobo.mpc.export import c_compile_command, export_c, export_casadi
 
     if fmt_ == "casadi":
         return f"wrote {export_casadi(mpc, theta, out)}"
+    names = EXPORT_FILES[fmt_]
+    others = sorted(
+        p.name for p in out.glob("*") if out.is_dir() and p.name not in (*names, "controller")
+    )
+    if others:
+        raise TunerError(
+            f"--out {out} holds files this export does not write ({', '.join(others[:5])}): "
+            "give a new or empty directory, so that no file of another controller stays beside "
+            "this one"
+        )
+    (out / "controller").unlink(missing_ok=True)  # an earlier build: it is built anew
     if fmt_ == "embedded":
         export_embedded(mpc, theta, out)
         cmd = embedded_compile_command(out)
-        files = "controller.c, controller.h, mpc_functions.c, mpc_functions.h, main.c"
     else:
         export_c(mpc, theta, out)
         cmd = c_compile_command(out)
-        files = "controller.c, controller.h, main.c"
+    files = ", ".join(names)
     if compile_c:
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:

@@ -3,11 +3,13 @@
 :func:`export_embedded` writes into a directory
 
 - ``mpc_functions.c`` / ``.h``: CasADi-generated code of the MPC's Newton step on the barrier KKT
-  system at ``tau`` (``newton``) and at a barrier parameter ``m`` (``newton_mu``), the rows
-  ``H(w, p)`` (``rows``), the reduced Hessian whose Cholesky factorisation tells a minimum
-  from a saddle point (``reduced_hessian``, :meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`)
-  and the one-stage shift of a root into the next warm start with its multipliers
-  (``warm_start``); the linear solves are CasADi's sparse QR, generated as plain C;
+  system at ``tau`` (``mpcmobo_newton``) and at a barrier parameter ``m``
+  (``mpcmobo_newton_mu``), the rows ``H(w, p)`` (``mpcmobo_rows``), the reduced Hessian whose
+  Cholesky factorisation tells a minimum from a saddle point (``mpcmobo_reduced_hessian``,
+  :meth:`~mpcmobo.mpc.kkt.KKTSystem.is_minimum`) and the one-stage shift of a root into the
+  next warm start with its multipliers (``mpcmobo_warm_start``); the linear solves are
+  CasADi's sparse QR, generated as plain C; every name it exports begins with ``mpcmobo_``
+  or ``mpc_functions_``;
 - ``controller.c`` / ``.h``: the solve, the paths of :mod:`mpcmobo.mpc.solve` without IPOPT:
   with a warm start, at most ``newton_steps`` Newton steps, then the interior-point
   continuation of :mod:`mpcmobo.mpc.interior` from the re-centred shifted plan, then the same
@@ -35,6 +37,7 @@ import numpy as np
 
 from mpcmobo.mpc.codegen import compiler_command
 from mpcmobo.mpc.embedded_source import CONTROLLER_C, CONTROLLER_H, MAIN_C
+from mpcmobo.mpc.export import check_generated
 from mpcmobo.mpc.interior import RESTART_BARRIER
 from mpcmobo.mpc.parametric import ParametricMPC
 
@@ -127,6 +130,22 @@ def _constants(mpc: ParametricMPC, theta: np.ndarray, functions: list[ca.Functio
     return "".join(out)
 
 
+#: what the names the generated C exports begin with (``mpcmobo_newton``, ``mpcmobo_rows``,
+#: ...): a control task's own ``newton`` or ``rows`` links beside them
+PREFIX = "mpcmobo_"
+
+
+def _prefixed(f: ca.Function) -> ca.Function:
+    """``f`` under the name ``PREFIX + f.name()``: an SX function's expressions again, an MX
+    function called by a wrapper (CasADi's generated code keeps a called function static)."""
+    name = PREFIX + f.name()
+    if f.is_a("SXFunction"):
+        sx = f.sx_in()
+        return ca.Function(name, sx, f.call(sx), f.name_in(), f.name_out())
+    mx = f.mx_in()
+    return ca.Function(name, mx, f.call(mx), f.name_in(), f.name_out())
+
+
 def export_embedded(
     mpc: ParametricMPC, theta: np.ndarray | None, directory: str | os.PathLike
 ) -> Path:
@@ -145,10 +164,13 @@ def export_embedded(
     ]
     if not all(isinstance(f, ca.Function) and not f.is_a("external") for f in functions):
         raise ValueError("export_embedded needs the MPC's own functions (build it without codegen)")
+    functions = [_prefixed(f) for f in functions]
     gen = ca.CodeGenerator("mpc_functions.c", {"with_header": True})
     for f in functions:
         gen.add(f)
     gen.generate(str(directory) + os.sep)
+    generated = [directory / "mpc_functions.c", directory / "mpc_functions.h"]
+    check_generated(generated[0], generated)
     constants = _constants(mpc, theta, functions)
     (directory / "controller.h").write_text(CONTROLLER_H)
     (directory / "controller.c").write_text(CONTROLLER_C.replace("/* CONSTANTS */\n", constants))

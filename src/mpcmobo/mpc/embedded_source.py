@@ -52,12 +52,12 @@ static void step(double m) { /* one Newton step from Y into Y1, S; m <= 0: at ta
   ARG[0] = Y; ARG[1] = P; ARG[2] = &m;
   RES[0] = Y1;
   for (i = 0; i < 6; i++) RES[1 + i] = &S[i];
-  if (m > 0) newton_mu(ARG, RES, IW, WORK, 0); else newton(ARG, RES, IW, WORK, 0);
+  if (m > 0) mpcmobo_newton_mu(ARG, RES, IW, WORK, 0); else mpcmobo_newton(ARG, RES, IW, WORK, 0);
 }
 
 static void eval_rows(void) {
   ARG[0] = Y; ARG[1] = P; RES[0] = H;
-  rows(ARG, RES, IW, WORK, 0);
+  mpcmobo_rows(ARG, RES, IW, WORK, 0);
 }
 
 static int minimum(void) { /* whether the root Y is a minimum: a Cholesky factorisation of
@@ -65,7 +65,7 @@ static int minimum(void) { /* whether the root Y is a minimum: a Cholesky factor
   int i, j, k;
   double d, s;
   ARG[0] = Y; ARG[1] = P; RES[0] = MRED;
-  reduced_hessian(ARG, RES, IW, WORK, 0);
+  mpcmobo_reduced_hessian(ARG, RES, IW, WORK, 0);
   for (j = 0; j < NRED; j++) {
     d = MRED[j + j * NRED];
     for (k = 0; k < j; k++) d -= MRED[j + k * NRED] * MRED[j + k * NRED];
@@ -157,7 +157,7 @@ static int continuation(double m0) { /* the central path from Y: the steps taken
 
 static void warm(void) {
   ARG[0] = YPREV; RES[0] = Y;
-  warm_start(ARG, RES, IW, WORK, 0);
+  mpcmobo_warm_start(ARG, RES, IW, WORK, 0);
 }
 
 static int central(double m0) { /* the continuation from Y's primal point, central at m0 */

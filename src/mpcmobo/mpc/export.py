@@ -33,7 +33,9 @@ from mpcmobo.mpc.codegen import compiler_command
 from mpcmobo.mpc.parametric import ParametricMPC
 
 __all__ = [
+    "ExportError",
     "c_compile_command",
+    "check_generated",
     "controller_function",
     "controller_inputs",
     "export_c",
@@ -104,12 +106,47 @@ def _quiet_stderr() -> Iterator[None]:
         os.close(saved)
 
 
+class ExportError(ValueError):
+    """An MPC that cannot be taken out in the format asked: the message says why."""
+
+
+# what to do where CasADi cannot serialise or generate a function of the system's equations
+NOT_EXPRESSIONS = (
+    "write the system's equations in CasADi expressions (casadi.if_else, fmin, fmax, "
+    "interpolant, ...): a Python casadi.Callback runs in mpcmobo but cannot be exported"
+)
+
+
 def export_casadi(mpc: ParametricMPC, theta: np.ndarray | None, path: str | os.PathLike) -> Path:
-    """Save :func:`controller_function` to ``path`` (a ``.casadi`` file)."""
+    """Save :func:`controller_function` to ``path`` (a ``.casadi`` file), loaded once to
+    check it (an :class:`ExportError` where it cannot be: the file is removed)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     controller_function(mpc, theta).save(str(path))
+    try:
+        ca.Function.load(str(path))
+    except RuntimeError as err:
+        path.unlink(missing_ok=True)
+        found = str(err).strip().splitlines()[-1][:200]
+        raise ExportError(
+            f"the controller cannot be saved as a CasADi function ({found}): {NOT_EXPRESSIONS}"
+        ) from None
     return path
+
+
+def check_generated(source: Path, written: list[Path]) -> None:
+    """An :class:`ExportError` (the ``written`` files removed) where CasADi's generated
+    ``source`` holds an ``#error`` (a function it cannot generate code for)."""
+    lines = source.read_text().splitlines()
+    found = [line.strip() for line in lines if line.lstrip().startswith("#error")]
+    if not found:
+        return
+    for path in written:
+        path.unlink(missing_ok=True)
+    raise ExportError(
+        f"CasADi cannot generate C for the controller ({found[0][7:].strip()[:200]}): "
+        f"{NOT_EXPRESSIONS}"
+    )
 
 
 def _casadi_dir() -> Path:
@@ -158,6 +195,7 @@ def export_c(mpc: ParametricMPC, theta: np.ndarray | None, directory: str | os.P
     gen = ca.CodeGenerator(f"{NAME}.c", {"with_header": True})
     gen.add(fn)
     gen.generate(str(directory) + os.sep)
+    check_generated(directory / f"{NAME}.c", [directory / f"{NAME}.c", directory / f"{NAME}.h"])
     sizes = f"#define NX {mpc.nx}\n#define NU {mpc.nu}\n#define NW {mpc.problem.nw}\n"
     header = directory / f"{NAME}.h"
     header.write_text(header.read_text() + "\n" + sizes)
