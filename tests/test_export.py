@@ -84,6 +84,8 @@ def test_the_generated_c_compiles_and_gives_the_same_inputs(tmp_path):
         np.testing.assert_allclose(
             np.array(out.stdout.split(), float), mpc.solve(x, sensitivities=False).action, atol=1e-9
         )
+    bad = subprocess.run([str(d / "controller")], input=b"0.1,0.2\n", capture_output=True)
+    assert bad.returncode == 2 and b"a state is 2 numbers separated by spaces" in bad.stderr
 
 
 def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
@@ -103,6 +105,8 @@ def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     assert res.exit_code == 2 and "is a file; C code goes into a directory" in res.output
     res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path)])
     assert res.exit_code == 2 and "is a directory; the CasADi function is one file" in res.output
+    res = runner.invoke(app, ["export", str(tmp_path / "nothere"), "--out", str(tmp_path / "y")])
+    assert res.exit_code == 2 and "nothere does not exist" in " ".join(res.output.split())
     res = runner.invoke(app, ["export", str(d), "--learner", "bo", "--out", str(tmp_path / "y")])
     assert (
         res.exit_code == 2
@@ -185,6 +189,9 @@ def test_the_embedded_controller_needs_libc_and_libm_only_and_gives_the_mpcs_inp
     rows = _run_embedded(d / "controller", loop)
     np.testing.assert_allclose(rows[:, : cstr.nu], np.array(actions), rtol=0, atol=1e-6)
     assert np.sum(rows[:, cstr.nu] == 1) >= 15  # the warm steps take the Newton path
+    # a state written with commas is not read as the end of the input
+    bad = subprocess.run([str(d / "controller")], input=b"100,0.15,430\n", capture_output=True)
+    assert bad.returncode == 2 and b"a state is 3 numbers separated by spaces" in bad.stderr
     # from a hot start the closed loop takes every path but the cold one; a root that is a
     # saddle point is refused as the MPC refuses it (here at step 31, where both restart), so
     # the inputs agree until the MPC hands a step to IPOPT, which the controller does not have

@@ -404,6 +404,8 @@ def _check_records(directory: Path) -> None:
 
 def _require_run(directory: Path) -> RunDirectory:
     run_dir = RunDirectory(directory)
+    if not directory.exists():
+        _fail(f"{directory} does not exist", 2)
     if not run_dir.holds_run():
         _fail(f"{directory} does not hold a run (no config.toml)", 2)
     return run_dir

@@ -482,9 +482,9 @@ def _print_identification(ident: dict[str, Any], frozen: bool = False) -> None:
     )
 
 
-def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int | None) -> Any:
-    """The theta ``which`` ("deployed", "final" or a trial's id) of the job of ``run_dir``, and
-    the settings."""
+def _job_of(run_dir: RunDirectory, learner: str | None, seed: int | None) -> tuple[str, int]:
+    """The one job of ``run_dir`` that ``learner`` and ``seed`` (None: any) name: its learner
+    and seed (else a :class:`TunerError` listing the jobs there are)."""
     settings = run_dir.saved_settings()
     jobs = [
         (n, s)
@@ -503,7 +503,14 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
     if len(jobs) != 1:
         listed = ", ".join(f"--learner {n} --seed {s}" for n, s in jobs)
         raise TunerError(f"choose one job of {run_dir.path}: {listed}")
-    ((name, s),) = jobs
+    return jobs[0]
+
+
+def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int | None) -> Any:
+    """The theta ``which`` ("deployed", "final" or a trial's id) of the job of ``run_dir``, and
+    the settings."""
+    settings = run_dir.saved_settings()
+    name, s = _job_of(run_dir, learner, seed)
     ckpt = run_dir.checkpoint(name, s)
     if ckpt is None or (not ckpt.rows and ckpt.pending is None):
         raise TunerError(f"the job {name} s{s} has no episode yet: nothing to export")
@@ -535,7 +542,8 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
             f"trial {k} is pending: it has not been told yet, so it has no record; {where}"
         )
     if not 0 <= k < len(ckpt.rows):
-        raise TunerError(f"no trial {k}: the job has trials 0 to {len(ckpt.rows) - 1}")
+        what = "trial" if run_dir.is_tuner() else "episode"
+        raise TunerError(f"no {what} {k}: the job has {what}s 0 to {len(ckpt.rows) - 1}")
     return settings, name, np.asarray(ckpt.rows[k].theta, float)
 
 

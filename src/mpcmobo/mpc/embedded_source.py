@@ -244,8 +244,14 @@ int main(int argc, char** argv) {
   int nx = controller_nx(), nu = controller_nu();
   struct timespec t0, t1;
   while (1) {
-    for (i = 0; i < nx; i++)
-      if (scanf("%lf", &x[i]) != 1) return 0;
+    for (i = 0; i < nx; i++) {
+      int read = scanf("%lf", &x[i]);
+      if (read == EOF && i == 0) return 0;
+      if (read != 1) {
+        fprintf(stderr, "a state is %d numbers separated by spaces or newlines\n", nx);
+        return 2;
+      }
+    }
     if (cold) controller_reset();
     clock_gettime(CLOCK_MONOTONIC, &t0);
     controller_step(x, u);

@@ -170,8 +170,14 @@ int main(void) {
   casadi_real x[NX], warm[NW] = {0}, u[NU], cold = 1;
   int mem = controller_checkout();
   while (1) {
-    for (int i = 0; i < NX; i++)
-      if (scanf("%lf", &x[i]) != 1) goto done;
+    for (int i = 0; i < NX; i++) {
+      int read = scanf("%lf", &x[i]);
+      if (read == EOF && i == 0) goto done;
+      if (read != 1) {
+        fprintf(stderr, "a state is %d numbers separated by spaces or newlines\n", NX);
+        return 2;
+      }
+    }
     arg[0] = x; arg[1] = warm; arg[2] = &cold;
     res[0] = u; res[1] = warm;  /* the solution becomes the next warm start */
     if (controller(arg, res, iw, w, mem)) { fprintf(stderr, "solver failed\n"); return 1; }
