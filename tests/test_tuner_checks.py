@@ -197,6 +197,12 @@ def test_the_checks_on_their_own():
     X[:, 0] /= 100  # V in hectolitres
     (found,) = checks.box_problems(cstr, X)
     assert "multiplied by 100" in found.message and found.steps == (0, 1, 2, 3, 4)
+    celsius = np.tile(cstr.x_ref, (5, 1))
+    celsius[:, 2] -= 273.15  # the CSTR's T (kelvin) logged in degrees Celsius
+    (found,) = checks.box_problems(cstr, celsius, start=cstr.x_ref)
+    assert "T looks like Celsius for kelvin (plus 273.15" in found.message
+    (found,) = checks.box_problems(cstr, celsius)  # without the start: the box alone
+    assert "far outside its bounds" in found.message
     assert checks.box_problems(cstr, np.tile(cstr.x_ref, (5, 1))) == []
     # mostly small values a thousand times too large: 10 brings 90% of them into [0, 30], 100
     # and 1000 all of them; the trial's start tells 1000

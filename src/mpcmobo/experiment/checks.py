@@ -109,8 +109,20 @@ def box_problems(
             f"[{lo[j]:.6g}, {hi[j]:.6g}] by {out[worst]:.3g} box widths"
         )
         steps = tuple(int(k) for k in np.flatnonzero(out > UNIT_OUTSIDE))
+        scale = None if start is None else temperature_scale(x, lo[j], hi[j], width[j], start[j])
         unit = unit_factor(x, lo[j], hi[j], width[j], None if start is None else start[j])
-        if unit is not None:
+        if scale is not None:
+            problems.append(
+                Problem(
+                    "range",
+                    (
+                        f"{where}; the log's {name} looks like {scale[0]} ({scale[1]}, the "
+                        "column lies in its box and starts at the trial's start): a unit error?"
+                    ),
+                    steps,
+                )
+            )
+        elif unit is not None:
             times = looks_off_by(unit)
             fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
             problems.append(
@@ -158,6 +170,30 @@ def unit_factor(
     if start is not None and start * x[0] > 0:
         return min(fits, key=lambda fit: abs(np.log(x[0] / fit[0] / start)))[0]
     return max(fits, key=lambda fit: fit[1])[0]
+
+
+# temperature scales a log may be in instead of the system's: what it looks like, how the
+# system's value follows from the logged one, and that in words
+TEMPERATURE_SCALES: tuple[tuple[str, Any, str], ...] = (
+    ("kelvin for Celsius", lambda t: t - 273.15, "minus 273.15"),
+    ("Celsius for kelvin", lambda t: t + 273.15, "plus 273.15"),
+    ("Fahrenheit for Celsius", lambda t: (t - 32.0) * 5.0 / 9.0, "(T - 32) 5/9"),
+    ("Celsius for Fahrenheit", lambda t: t * 9.0 / 5.0 + 32.0, "T 9/5 + 32"),
+)
+
+
+def temperature_scale(
+    x: np.ndarray, lo: float, hi: float, width: float, start: float
+) -> tuple[str, str] | None:
+    """The temperature scale (:data:`TEMPERATURE_SCALES`) that brings 90% of ``x`` into
+    [lo, hi] (a tenth of its width to spare) and its first value within 5% of the width of the
+    trial's ``start``: what the column looks like and the conversion, in words (None: none)."""
+    for looks, convert, words in TEMPERATURE_SCALES:
+        y = convert(np.asarray(x, float))
+        inside = float(np.mean((y >= lo - 0.1 * width) & (y <= hi + 0.1 * width)))
+        if inside >= 0.9 and abs(y[0] - start) <= 0.05 * width:
+            return looks, words
+    return None
 
 
 def looks_off_by(unit: float) -> str:
