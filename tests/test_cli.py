@@ -257,6 +257,10 @@ def test_learner_may_be_repeated_or_a_comma_list():
     assert _learners(["mobo", "identify"]) == _learners(["mobo,identify"]) == ["mobo", "identify"]
     assert _learners(["all"]) == list(LEARNER_SPECS)
     assert _learners(None) is None and _learners([]) is None
+    for args in (["--learner", "identify", "bo"], ["--learner", "identify", "bo", "--seeds", "0"]):
+        res = runner.invoke(app, ["run", *args, "--episodes", "1"])
+        text = " ".join(res.output.split())
+        assert res.exit_code == 2 and "unexpected argument 'bo': --learner takes one name" in text
 
 
 def test_the_command_list_gives_each_command_its_summary_as_prose():

@@ -257,11 +257,29 @@ def test_fig2_and_fig3_draw_the_records(small_run):
     assert any("2 seeds" in t.get_text() for t in fig.legends[0].get_texts())
 
 
+def test_fig2_leaves_out_episodes_without_a_critic(small_run):
+    """An episode whose critic was not fitted (a converged tuning's, without exploration) has
+    no advantage: recorded as 0, it is not drawn as one (the curve has a gap there)."""
+    ep, _ = _records(small_run)
+    ep = ep.copy()
+    quiet = (ep.learner == "mpc-rl") & (ep.episode == 3)
+    ep.loc[quiet, ["critic_ok", "mean_abs_A"]] = [False, 0.0]
+    curve = _line(fig2(ep, LEARNERS, window=1).axes[0], "MPC-RL", "MPC-RL")
+    drawn = dict(zip(curve.get_xdata(), curve.get_ydata(), strict=True))
+    assert 3 not in drawn and drawn  # the median over seeds skips it, not 0
+
+
 def test_plot_errors(small_run, tmp_path):
     res = CliRunner().invoke(app, ["plot", str(tmp_path)])
     assert res.exit_code == 2 and "config.toml" in res.output
     res = CliRunner().invoke(app, ["plot", str(small_run), "--learner", "mobo"])
     assert res.exit_code == 2 and "not in this run" in res.output
+    bare = tmp_path / "bare"  # a run's directory without its trajectories
+    bare.mkdir()
+    for name in ("config.toml", "summary.json", "episodes.parquet"):
+        (bare / name).write_bytes((small_run / name).read_bytes())
+    res = CliRunner().invoke(app, ["plot", str(bare)])
+    assert res.exit_code == 2 and "has no trajectories.parquet" in " ".join(res.output.split())
 
 
 def test_pareto_mask():

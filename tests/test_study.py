@@ -367,3 +367,31 @@ def test_summary_counts_the_deployed_thetas_worst_evaluation_and_regressions():
     assert per["0"]["violation_mean"] == 1.5 and per["1"]["violation_mean"] == 2.5
     assert (s["J_final"], s["J_final_worst"], s["J_worst"]) == (3.5, 5.0, 9.0)
     assert (s["regressions"], s["seeds_with_regressions"]) == (3, 2)
+
+
+def test_a_job_that_ends_at_theta0_draws_the_episodes_of_its_j_eval(tmp_path, monkeypatch):
+    """Every job's J_eval of theta0 is the reference's; a job that ends at theta0 (identify,
+    too few episodes to deploy) stores the reference's episodes of theta0 as its final ones,
+    not theta0 solved again (on the CSTR another local minimum from a hot start: 15126
+    against 15410), so figures 3 and 4 draw the closed loops that J_final is of."""
+    from mpcmobo.experiment.evaluation import Evaluator
+
+    solved_again = []
+    original = Evaluator.episodes
+
+    def episodes(self, theta=None, model="imperfect"):
+        solved_again.append(model)
+        return original(self, theta, model)
+
+    monkeypatch.setattr(Evaluator, "episodes", episodes)
+    settings = small(learners=["identify"], seeds=[0], episodes=3)
+    summary = run_study(settings, tmp_path / "r")
+    tr = pd.read_parquet(tmp_path / "r" / "trajectories.parquet")
+    columns = ["start", "k", "x_p", "x_v", "u_f"]
+    initial = tr[tr.phase == "initial"][columns].reset_index(drop=True)
+    final = tr[tr.phase == "final"][columns].reset_index(drop=True)
+    assert len(final) > 0
+    pd.testing.assert_frame_equal(initial, final)
+    assert solved_again == ["imperfect", "perfect"]  # the reference's, none for the final
+    job = summary["learners"]["identify"]
+    assert job["J_final"] == pytest.approx(summary["J_initial"])

@@ -285,6 +285,8 @@ def _advantage_panel(ax: Axes, ep: pd.DataFrame, learners: list[str], window: in
     shown = [n for n in ("mpc-rl", "mobo") if n in learners] or learners
     for name in shown:
         d = ep[ep.learner == name]
+        # an episode without a critic (one that did not explore) has no advantage, not zero
+        d = d.assign(mean_abs_A=d["mean_abs_A"].where(d["critic_ok"]))
         ns, c, label = d.seed.nunique(), COLORS.get(name, "tab:orange"), LABELS.get(name, name)
         if window > 1:
             each = "per episode" + (" (median)" if ns > 1 else "")
@@ -405,6 +407,9 @@ def make_figures(
     """Write figures 1-4 (PNG and PDF) into ``run_dir/figures``; return the paths.
     ``summary``: the run's summary (default: ``summary.json``)."""
     run_dir = Path(run_dir)
+    for name in ("episodes.parquet", "trajectories.parquet"):
+        if not (run_dir / name).exists():
+            raise ValueError(f"{run_dir} has no {name}: nothing to plot (is the run started?)")
     ep = pd.read_parquet(run_dir / "episodes.parquet")
     tr = pd.read_parquet(run_dir / "trajectories.parquet")
     if summary is None:
@@ -416,6 +421,8 @@ def make_figures(
         raise ValueError(f"{run_dir} has no episodes to plot yet")
     if learner is None:
         learner = "mobo" if "mobo" in learners else learners[-1]
+    elif learner not in learners and learner in summary["learners"]:
+        raise ValueError(f"learner '{learner}' has no episodes yet; with episodes: {learners}")
     elif learner not in learners:
         raise ValueError(f"learner '{learner}' is not in this run; allowed: {learners}")
     out = run_dir / "figures"

@@ -71,6 +71,13 @@ def _fail(message: str, code: int) -> NoReturn:
 def _parse_seeds(values: list[str] | None, extra: list[str]) -> list[int] | None:
     if not values and not extra:
         return None
+    stray = [a for a in extra if a in LEARNER_SPECS]
+    if stray:  # --learner identify bo: the second name is an argument of its own
+        _fail(
+            f"unexpected argument {stray[0]!r}: --learner takes one name per flag or a comma "
+            f"list (--learner identify,{stray[0]} or --learner identify --learner {stray[0]})",
+            2,
+        )
     if extra and not values:
         _fail(f"unexpected arguments: {' '.join(extra)}", 2)
     seeds: list[int] = []

@@ -236,6 +236,24 @@ class Job:
         self.wall_time_s += time.perf_counter() - t_start
         return row
 
+    def _final_episodes(self, episode: int, incumbent: np.ndarray) -> list[Trajectory]:
+        """The final incumbent's evaluation episodes: theta0's are the reference's, whose cost
+        is every job's J_eval of theta0 (solved again, another local minimum from a hot start
+        would draw another closed loop than that J_eval's); another theta's simulated now, its
+        J_eval theirs."""
+        reference = (
+            self.run_dir.reference() if np.array_equal(incumbent, self.run.mpc.theta0) else None
+        )
+        initial = (
+            [] if reference is None else [t for t in reference.trajectories if t.phase == "initial"]
+        )
+        if initial and self.evaluator.is_cached(incumbent):
+            return [Trajectory("final", episode, t.start, t.x.copy(), t.u.copy()) for t in initial]
+        eps = self.evaluator.episodes(incumbent)
+        if not self.evaluator.is_cached(incumbent):
+            self.evaluator.remember(incumbent, mean_cost(eps))
+        return [Trajectory("final", episode, i, r.x.copy(), r.u.copy()) for i, r in enumerate(eps)]
+
     def _evaluate(self, episode: int, incumbent: np.ndarray) -> tuple[float, str]:
         """J_eval of the incumbent if the schedule evaluates it, else NaN; at the last episode
         the final incumbent's evaluation episodes are stored. An incumbent whose evaluation
@@ -245,13 +263,7 @@ class Job:
             return math.nan, ""
         try:
             if episode == self.schedule.last:
-                eps = self.evaluator.episodes(incumbent)
-                if not self.evaluator.is_cached(incumbent):
-                    self.evaluator.remember(incumbent, mean_cost(eps))
-                self.trajectories += [
-                    Trajectory("final", episode, i, r.x.copy(), r.u.copy())
-                    for i, r in enumerate(eps)
-                ]
+                self.trajectories += self._final_episodes(episode, incumbent)
             return self.evaluator.J_eval(incumbent), ""
         except EPISODE_FAILURES as err:
             self.evaluator.remember(incumbent, math.inf)
