@@ -328,3 +328,25 @@ def test_an_interrupt_inside_a_solve_ends_it_normally():
         signal.signal(signal.SIGINT, previous)
     assert statuses  # the interrupted solve returned normally, then Interrupted was raised
     assert all(s == statuses[0] for s in statuses) and "Exception" not in statuses[0], statuses
+
+
+def test_a_signal_swallowed_during_the_reference_stops_the_run(tmp_path, monkeypatch):
+    """A SIGINT that lands in a solve the study does not guard (a library's own, which swallows
+    it: the solve fails) leaves only the flag set: the run stops once the reference is
+    computed, before that reference is kept, as a Ctrl-C elsewhere stops it (exit 130)."""
+    from mpcmobo.experiment import interrupts, study
+
+    computed = study.compute_reference
+
+    def swallowed(settings):
+        reference = computed(settings)
+        interrupts.request_stop(signal.SIGINT)  # as _handler leaves it when CasADi swallows
+        return reference
+
+    monkeypatch.setattr(study, "compute_reference", swallowed)
+    settings = load_settings(None, **tomllib.loads(CONFIG), workers=1)
+    with pytest.raises(Interrupted) as err:
+        run_study(settings, tmp_path / "run")
+    assert err.value.exit_code == 130
+    assert not (tmp_path / "run" / "reference.pkl").exists()
+    assert not list((tmp_path / "run").glob("jobs/*/checkpoint.pkl"))

@@ -387,3 +387,12 @@ def test_recheck_counts_a_theta_that_runs_the_plant_away_as_a_regression(
     for r in rows:
         assert r["J_fresh_ratio"] == math.inf and r["regression"] and r["wins"] == 0
         assert math.isfinite(r["J0_fresh_ratio"])
+
+
+def test_a_one_episode_curve_is_drawn_as_a_point(small_run):
+    """A run of one episode has one point per curve: drawn with a marker, not as an empty
+    line."""
+    ep, summary = _records(small_run)
+    one = ep[ep.episode == 0]
+    curve = _line(fig2(one, LEARNERS, window=1).axes[0], "MPC-RL", "MPC-RL")
+    assert len(curve.get_xdata()) == 1 and curve.get_marker() == "o"

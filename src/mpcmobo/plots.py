@@ -66,6 +66,8 @@ def _curve(
     """The median over seeds of ``col`` per episode, and with several seeds its interquartile
     band (unless ``band`` is False)."""
     b = _band(df, col).dropna(subset=["med"])
+    if len(b) == 1:  # one episode: a point, which a line alone does not draw
+        kw = {"marker": "o", **kw}
     ax.plot(b.index, b["med"], color=color, label=label, **kw)
     if n_seeds > 1 and band:
         step: dict[str, Any] = {"step": "post"} if kw.get("drawstyle") == "steps-post" else {}

@@ -131,6 +131,9 @@ def _reference(run_dir: RunDirectory, settings: Settings, emit: Progress) -> Ref
     if reference is None:
         emit({"kind": "reference", "status": "running"})
         reference = compute_reference(settings)
+        # a signal that landed in a solve of a library's own (swallowed there, the solve
+        # failed) stops the run here, before a reference that may hold that failure is kept
+        interrupts.check()
         run_dir.save_reference(reference)
     emit(
         {
