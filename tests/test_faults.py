@@ -25,10 +25,11 @@ EPISODES = 8
 FAST_SEARCH = {"num_restarts": 2, "raw_samples": 32, "maxiter": 20}  # a cheap acquisition search
 
 
-def small(learners, identify=False, **kw):
-    """A short study on ``lq``: the learners tune the nominal model unless ``identify``. Every
-    candidate runs (no exploration budget): the faults are injected into the plant's episodes,
-    and the budget would add closed loops on the model."""
+def small(learners, identify=False, bo=None, **kw):
+    """A short study on ``lq``: the learners tune the nominal model unless ``identify``; ``bo``:
+    more options of the bo learner. Every candidate runs (no exploration budget): the faults
+    are injected into the plant's episodes, and the budget would add closed loops on the
+    model."""
     kw.setdefault("exploration", {"budget": math.inf})
     return load_settings(
         None,
@@ -38,7 +39,7 @@ def small(learners, identify=False, **kw):
         steps=8,
         workers=1,
         evaluation={"n_starts": 2},
-        learner_options={"bo": {"n_init": 3, "search": FAST_SEARCH}},
+        learner_options={"bo": {"n_init": 3, "search": FAST_SEARCH, **(bo or {})}},
         **kw,
     )
 
@@ -143,7 +144,8 @@ def test_an_evaluation_that_runs_the_plant_away_is_recorded_and_the_run_goes_on(
     tmp_path, monkeypatch, error, recorded
 ):
     """A plant that runs away, or raises, from an evaluation start: J_eval is inf with the
-    error, the run goes on."""
+    error, the run goes on. (bo deploys its GP's best point, so the final incumbent is not
+    theta0, whose J_eval and episodes are the reference's.)"""
     armed = []
     compute = study.compute_reference
 
@@ -161,7 +163,7 @@ def test_an_evaluation_that_runs_the_plant_away_is_recorded_and_the_run_goes_on(
 
     monkeypatch.setattr(study, "compute_reference", reference_then_arm)
     monkeypatch.setattr(Evaluator, "episodes", runaway)
-    summary = run_study(small(["bo"]), tmp_path / "run")
+    summary = run_study(small(["bo"], bo={"deploy": {"rule": "incumbent"}}), tmp_path / "run")
     assert summary["complete"] is True
     df = storage.read_episodes(tmp_path / "run")
     assert len(df) == EPISODES
