@@ -241,3 +241,20 @@ def test_an_episode_run_on_the_exported_controller_is_the_trials(tmp_path, monke
     monkeypatch.setattr(checks, "controller_inputs", lambda *args: other)
     row = tuner.tell(trial, X, U)  # the review asks the exported controller
     assert row.episode == trial.id and tuner.status()["quarantined"] == []
+
+
+def test_an_actuator_that_saturates_inside_the_bounds_is_named():
+    """Inputs held at one value where the controller asked more, and never above it: an
+    actuator that saturates inside the input's bounds, named as such; a constant override
+    that the episode's other inputs pass is an operator's."""
+    from mpcmobo.systems import get_system
+
+    lq = get_system("lq")
+    pi = np.linspace(-1.0, 3.0, 12)[:, None]  # what the controller asked
+    noise = np.zeros_like(pi)
+    (found,) = checks.input_problems(lq, np.minimum(pi, 2.0), pi, noise, 4)
+    assert "the applied f stays at 2 where the controller asked more: an actuator" in found.message
+    override = pi.copy()
+    override[3:6] = 2.0  # an operator's setting; the controller's later inputs pass it
+    (found,) = checks.input_problems(lq, override, pi, noise, 4)
+    assert "an actuator" not in found.message and "operator override" in found.message

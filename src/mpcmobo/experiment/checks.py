@@ -311,8 +311,17 @@ def input_problems(
         f"than {INPUT_TOLERANCE:.1%} of an input's span, up to {np.max(off):.1%})"
     )
     no_noise = np.max(np.abs(U - np.clip(pi, lb, ub)) / span, axis=1) <= INPUT_TOLERANCE
+    held = _saturated(U, expected, bad, span)
     if np.any(np.abs(noise) > 0) and np.mean(no_noise) > 0.9:
         why = "the inputs are the controller's without the trial's noise: add trial.noise[k]"
+    elif held is not None:
+        j, value, side = held
+        why = (
+            f"at steps {describe_steps(steps)} the applied {system.input_names[j]} stays at "
+            f"{value:g} where the controller asked {side}: an actuator that saturates there, "
+            f"inside the input's bounds [{lb[j]:g}, {ub[j]:g}] (give the system that bound), "
+            "or an operator override?"
+        )
     elif len(bad) > T / 2:
         why = (
             f"at {len(bad)} of {T} steps: is this another trial's log, or the inputs of "
@@ -326,6 +335,26 @@ def input_problems(
             "operator override?"
         )
     return [Problem("inputs", f"{head} {why}", steps)]
+
+
+def _saturated(
+    applied: np.ndarray, expected: np.ndarray, bad: np.ndarray, span: np.ndarray
+) -> tuple[int, float, str] | None:
+    """The input that, at the steps ``bad`` where ``applied`` differs from ``expected`` (the
+    controller's plus its noise), stays at one value where the controller asked beyond it, on
+    the same side at every one of them, and never passes that value at any step (an actuator
+    that saturates inside the input's bounds, not an operator's setting); its index, that value
+    and "more" or "less" (None: no input does so)."""
+    for j in range(applied.shape[1]):
+        u, e = applied[bad, j], expected[bad, j]
+        if len(u) < 2 or np.ptp(u) > 1e-9 * span[j]:
+            continue
+        gap, tiny = INPUT_TOLERANCE * span[j], 1e-9 * span[j]
+        if np.all(e > u[0] + gap) and np.all(applied[:, j] <= u[0] + tiny):
+            return j, float(u[0]), "more"
+        if np.all(e < u[0] - gap) and np.all(applied[:, j] >= u[0] - tiny):
+            return j, float(u[0]), "less"
+    return None
 
 
 def model_problems(
