@@ -224,7 +224,7 @@ def test_an_episode_run_on_the_exported_controller_is_the_trials(tmp_path, monke
     tuner = Tuner("lq", "bo", tmp_path / "t", episodes=3, steps=12)
     trial = tuner.ask()
     X, U = episode(tuner, trial, override=(range(3, 7), [0.7]))
-    real = controller_inputs(tuner.job.run.mpc, trial.theta, X[:-1], False)
+    (real,) = controller_inputs(tuner.job.run.mpc, trial.theta, X[:-1])  # no call failed
     trial.restart()
     np.testing.assert_allclose(real, np.array([trial.policy(x) for x in X[:-1]]), atol=1e-5)
     found = checks.input_problems(tuner.system, U, real, trial.noise, trial.id)
@@ -238,7 +238,7 @@ def test_an_episode_run_on_the_exported_controller_is_the_trials(tmp_path, monke
     U_fallback[10] += 0.2  # neither controller's
     (found,) = checks.input_problems(tuner.system, U_fallback, real, trial.noise, 0, [other])
     assert found.steps == (10,)
-    monkeypatch.setattr(checks, "controller_inputs", lambda *args: other)
+    monkeypatch.setattr(checks, "controller_inputs", lambda *args: [other])
     row = tuner.tell(trial, X, U)  # the review asks the exported controller
     assert row.episode == trial.id and tuner.status()["quarantined"] == []
 

@@ -573,9 +573,7 @@ def _exported(mpc: Any, theta: Any, fmt_: str, out: Path, compile_c: bool) -> st
     if fmt_ == "casadi":
         return f"wrote {export_casadi(mpc, theta, out)}"
     names = EXPORT_FILES[fmt_]
-    others = sorted(
-        p.name for p in out.glob("*") if out.is_dir() and p.name not in (*names, "controller")
-    )
+    others = sorted(p.name for p in out.glob("*") if p.name not in (*names, "controller"))
     if others:
         raise TunerError(
             f"--out {out} holds files this export does not write ({', '.join(others[:5])}): "

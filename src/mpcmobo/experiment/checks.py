@@ -150,6 +150,11 @@ def box_problems(
     return problems
 
 
+def _inside(y: np.ndarray, lo: float, hi: float, width: float) -> float:
+    """The fraction of ``y`` in [lo, hi] with a tenth of its ``width`` to spare."""
+    return float(np.mean((y >= lo - 0.1 * width) & (y <= hi + 0.1 * width)))
+
+
 def unit_factor(
     x: np.ndarray, lo: float, hi: float, width: float, start: float | None = None
 ) -> float | None:
@@ -161,8 +166,7 @@ def unit_factor(
     decides. None: no power of ten brings it in."""
     fits = []
     for f in POWERS_OF_TEN:
-        y = x / f
-        inside = float(np.mean((y >= lo - 0.1 * width) & (y <= hi + 0.1 * width)))
+        inside = _inside(x / f, lo, hi, width)
         if inside >= 0.9:
             fits.append((f, inside))
     if not fits:
@@ -190,8 +194,7 @@ def temperature_scale(
     trial's ``start``: what the column looks like and the conversion, in words (None: none)."""
     for looks, convert, words in TEMPERATURE_SCALES:
         y = convert(np.asarray(x, float))
-        inside = float(np.mean((y >= lo - 0.1 * width) & (y <= hi + 0.1 * width)))
-        if inside >= 0.9 and abs(y[0] - start) <= 0.05 * width:
+        if _inside(y, lo, hi, width) >= 0.9 and abs(y[0] - start) <= 0.05 * width:
             return looks, words
     return None
 
@@ -438,7 +441,7 @@ def review(
     if problems and len(problems[0].steps) > len(U) / 2 and _reversed(system, mpc, plan, log):
         return [Problem("time_order", REVERSED)], record, mpc_time
     if problems:  # the episode may have run on the trial's exported controller
-        exported = [controller_inputs(mpc, plan.theta, X[:-1], cold) for cold in (False, True)]
+        exported = controller_inputs(mpc, plan.theta, X[:-1])
         problems = input_problems(system, U, record.pi, plan.noise, plan.episode, exported)
     problems += model_problems(system, X, U, params, history, model)
     return problems, record, mpc_time

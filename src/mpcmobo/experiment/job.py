@@ -241,13 +241,13 @@ class Job:
         is every job's J_eval of theta0 (solved again, another local minimum from a hot start
         would draw another closed loop than that J_eval's); another theta's simulated now, its
         J_eval theirs."""
+        theta0 = np.array_equal(incumbent, self.run.mpc.theta0)
         reference = (
-            self.run_dir.reference() if np.array_equal(incumbent, self.run.mpc.theta0) else None
+            self.run_dir.reference() if theta0 and self.evaluator.is_cached(incumbent) else None
         )
-        initial = (
-            [] if reference is None else [t for t in reference.trajectories if t.phase == "initial"]
-        )
-        if initial and self.evaluator.is_cached(incumbent):
+        trajectories = [] if reference is None else reference.trajectories
+        initial = [t for t in trajectories if t.phase == "initial"]
+        if initial:
             return [Trajectory("final", episode, t.start, t.x.copy(), t.u.copy()) for t in initial]
         eps = self.evaluator.episodes(incumbent)
         if not self.evaluator.is_cached(incumbent):

@@ -69,16 +69,27 @@ def controller_function(mpc: ParametricMPC, theta: np.ndarray | None = None) -> 
 
 
 def controller_inputs(
-    mpc: ParametricMPC, theta: np.ndarray | None, states: np.ndarray, cold_after_failure: bool
-) -> np.ndarray:
+    mpc: ParametricMPC, theta: np.ndarray | None, states: np.ndarray
+) -> list[np.ndarray]:
     """The inputs :func:`controller_function` gives at ``states`` (rows, in order) called as
     its users call it: cold at the first, then warm from the last solution it returned; a row
-    of NaN where it fails (the caller's fallback applies). After a failure the next call
-    starts cold (``cold_after_failure``) or from the last solution. CasADi's report of a
-    failed call (its inputs, on the standard error) is not shown."""
+    of NaN where it fails (the caller's fallback applies). After a failure the next call starts
+    from the last solution (the first array) or cold (the second, there only where a call
+    failed: else it is the first). CasADi's report of a failed call (its inputs, on the
+    standard error) is not shown."""
     controller = controller_function(mpc, theta)
+    chains = [_chain(controller, states, mpc.system.nu, cold_after_failure=False)]
+    if np.isnan(chains[0]).any():
+        chains.append(_chain(controller, states, mpc.system.nu, cold_after_failure=True))
+    return chains
+
+
+def _chain(
+    controller: ca.Function, states: np.ndarray, nu: int, cold_after_failure: bool
+) -> np.ndarray:
+    """One pass of :func:`controller_inputs`."""
     warm = np.zeros(controller.size1_in(1))
-    out = np.full((len(states), mpc.system.nu), np.nan)
+    out = np.full((len(states), nu), np.nan)
     cold = True
     with _quiet_stderr():
         for k, x in enumerate(np.asarray(states, float)):
