@@ -396,3 +396,37 @@ def test_a_one_episode_curve_is_drawn_as_a_point(small_run):
     one = ep[ep.episode == 0]
     curve = _line(fig2(one, LEARNERS, window=1).axes[0], "MPC-RL", "MPC-RL")
     assert len(curve.get_xdata()) == 1 and curve.get_marker() == "o"
+
+
+def test_the_figures_of_a_partial_run_say_so(small_run, tmp_path):
+    """The figures of a run whose jobs have not all ended (an interrupted run, or one plotted
+    while it runs) say at their foot which jobs have how many of the run's episodes; a finished
+    run's figures carry no such note."""
+    from mpcmobo.plots import partial_note
+
+    ep, summary = _records(small_run)
+    assert partial_note(summary, ep) == ""
+    part = tmp_path / "run"
+    shutil.copytree(small_run, part)
+    cut = ep[~((ep.learner == "bo") & (ep.seed == 1) & (ep.episode >= 4))]
+    cut.to_parquet(part / "episodes.parquet")
+    note = partial_note(summary, cut)
+    assert note == "A partial run: bo seed 1: 4 of 6 episodes"
+    res = CliRunner().invoke(app, ["plot", str(part)])
+    assert res.exit_code == 0, res.output
+    from mpcmobo import plots
+
+    drawn = []
+    real_save = plots._save
+
+    def spy(fig, out, name, note=""):
+        paths = real_save(fig, out, name, note)
+        drawn.append([t.get_text() for t in fig.texts])
+        return paths
+
+    plots._save = spy
+    try:
+        plots.make_figures(part)
+    finally:
+        plots._save = real_save
+    assert len(drawn) >= 4 and all(note in texts for texts in drawn)

@@ -161,6 +161,9 @@ def test_summary_matches_records(full_run):
     assert s["regressions"] == regressions
     assert s["J_star"] == J_star and s["J_initial"] == on_disk["J_initial"]
     assert s["theta_names"][0] == "theta_c" and len(s["theta_names"]) == len(s["theta_final"])
+    best = int(np.argmin(finals))  # the learner's theta_final: the best seed's deployed theta
+    assert s["theta_final_seed"] == best
+    assert s["theta_final"] == s["per_seed"][str(best)]["theta_final"]
     assert s["wall_time_s"] > 0
     assert on_disk["settings"]["episodes"] == 7 and on_disk["system"] == "lq"
     # J_initial is J_eval(theta0): the mean stage cost of the "initial" evaluation episodes

@@ -107,7 +107,11 @@ def reference_window(summary: dict) -> int:
     return int(st.get("evaluation", {}).get("n_starts", 10))
 
 
-def _save(fig: Figure, out: Path, name: str) -> list[Path]:
+def _save(fig: Figure, out: Path, name: str, note: str = "") -> list[Path]:
+    """``fig`` as ``name``.png and .pdf in ``out``, with ``note`` (a partial run's) at its
+    foot."""
+    if note:
+        fig.text(0.01, 0.0, note, fontsize=8, color="0.3", va="top", wrap=True)
     paths = []
     for ext in ("png", "pdf"):
         p = out / f"{name}.{ext}"
@@ -429,14 +433,32 @@ def make_figures(
         raise ValueError(f"learner '{learner}' is not in this run; allowed: {learners}")
     out = run_dir / "figures"
     out.mkdir(exist_ok=True)
-    paths = _save(fig1(ep, summary, learners), out, FIGURES[0])
-    paths += _save(fig2(ep, learners, reference_window(summary)), out, FIGURES[1])
-    paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2])
-    paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3])
+    note = partial_note(summary, ep)
+    paths = _save(fig1(ep, summary, learners), out, FIGURES[0], note)
+    paths += _save(fig2(ep, learners, reference_window(summary)), out, FIGURES[1], note)
+    paths += _save(_traj_figure(tr, info, learner, "x"), out, FIGURES[2], note)
+    paths += _save(_traj_figure(tr, info, learner, "u"), out, FIGURES[3], note)
     fig5 = identified_figure(ep, summary, learners)
     if fig5 is not None:
-        paths += _save(fig5, out, IDENTIFIED)
+        paths += _save(fig5, out, IDENTIFIED, note)
     return paths
+
+
+def partial_note(summary: dict, ep: pd.DataFrame) -> str:
+    """What a figure of a run that has not ended says of it: the episodes each unfinished job
+    has, of the run's budget ("" when every job of the run has ended)."""
+    budget = int(summary.get("settings", {}).get("episodes", 0))
+    seeds = summary.get("settings", {}).get("seeds", [])
+    done = ep.groupby(["learner", "seed"])["episode"].nunique()
+    short = []
+    for name in summary.get("learners", {}):
+        for seed in seeds:
+            n = int(done.get((name, seed), 0))
+            if n < budget:
+                short.append(f"{name} seed {seed}: {n} of {budget} episodes")
+    if not short:
+        return ""
+    return f"A partial run: {'; '.join(short)}"
 
 
 def identified_figure(ep: pd.DataFrame, summary: dict, learners: list[str]) -> Figure | None:

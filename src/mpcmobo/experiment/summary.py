@@ -128,7 +128,7 @@ def _learner_summary(
         "J_worst": max(worst) if worst else None,
         "regressions": int(sum(v["regressions"] for v in vals)),
         "seeds_with_regressions": sum(1 for v in vals if v["regressions"] > 0),
-        "theta_final": vals[0]["theta_final"] if vals else None,
+        **_best_seed_theta(per_seed),
         "theta_names": theta_names,
         "identified_names": list(identified),
         **_bounds_summary(system, identified, per_seed),
@@ -138,6 +138,17 @@ def _learner_summary(
         and len(vals) == len(settings.seeds),
         "per_seed": per_seed,
     }
+
+
+def _best_seed_theta(per_seed: dict[str, Any]) -> dict[str, Any]:
+    """The deployed theta of the seed whose final J_eval is the lowest (``theta_final``, the
+    seed: ``theta_final_seed``); where no seed was evaluated, the first seed's."""
+    if not per_seed:
+        return {"theta_final": None, "theta_final_seed": None}
+    evaluated = {k: v for k, v in per_seed.items() if v["J_final"] is not None}
+    pool = evaluated or per_seed
+    seed = min(pool, key=lambda k: pool[k]["J_final"]) if evaluated else next(iter(pool))
+    return {"theta_final": per_seed[seed]["theta_final"], "theta_final_seed": int(seed)}
 
 
 def _bounds_summary(
