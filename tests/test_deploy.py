@@ -21,6 +21,8 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mpcmobo.bo import GPSurrogate
 from mpcmobo.learners import EpisodeResult, Learner, Replay, Starts, make_learner
@@ -844,3 +846,29 @@ def test_a_candidate_with_a_failed_episode_is_never_deployed(lq):
     assert theta_key(good) in lr.evidence_.failed()
     assert lr.policy.confidence_of(lr.evidence_, lr.surrogate, good, z0) >= 0.9
     assert _same(lr.deployed_z_, z0) and lr.verify_z_ is None
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.integers(0, 5), min_size=1, max_size=30),
+    st.sampled_from([0.0, -0.0, -1e-12, 1e-10, 0.3, 1.0]),
+)
+def test_the_rows_of_a_theta_are_those_of_its_key(picks, special):
+    """``Evidence.rows_of(z)``: the finite plant rows whose :func:`theta_key` is ``z``'s, row
+    by row (a NaN row and a simulated row are not evidence; -0.0 and 0.0 are two keys, as the
+    keys' bytes are)."""
+    pool = np.random.default_rng(len(picks)).random((6, 3))
+    pool[1, 0], pool[2] = special, pool[3] + 1e-11  # within the key's rounding of row 3
+    ev = Evidence(3, 3, 1)
+    for i, k in enumerate(picks):
+        y = [np.nan] if i % 7 == 6 else [1.0]
+        ev.append(pool[k], y, np.zeros(3), 0, 1.0, "simulated" if i % 5 == 4 else "design")
+    for z in [*pool, np.array([0.0, *pool[1, 1:]]), np.array([-0.0, *pool[1, 1:]])]:
+        expected = [
+            i
+            for i, zz in enumerate(ev.Z)
+            if np.isfinite(ev.Y[i, 0])
+            and ev.kinds[i] != "simulated"
+            and theta_key(zz) == theta_key(z)
+        ]
+        assert ev.rows_of(z).tolist() == expected

@@ -36,6 +36,13 @@ def theta_key(z: np.ndarray) -> bytes:
     return np.round(np.asarray(z, float), 9).tobytes()
 
 
+def _keys(Z: np.ndarray) -> np.ndarray:
+    """:func:`theta_key` of each row of ``Z`` (n, d), as an array of n raw byte strings (NumPy
+    voids: trailing zero bytes kept), to compare with ``np.void(theta_key(z))``."""
+    rounded = np.ascontiguousarray(np.round(np.asarray(Z, float), 9))
+    return rounded.view(np.dtype((np.void, 8 * rounded.shape[1]))).reshape(-1)
+
+
 class Evidence:
     """The episodes a learner has observed (see the module docstring)."""
 
@@ -91,9 +98,8 @@ class Evidence:
 
     def rows_of(self, z: np.ndarray) -> np.ndarray:
         """The finite rows of plant episodes run with the unit-cube theta ``z``."""
-        key = theta_key(z)
         rows = np.flatnonzero(self.finite() & self.plant())
-        return np.array([i for i in rows if theta_key(self.Z[i]) == key], dtype=int)
+        return rows[_keys(self.Z[rows]) == np.void(theta_key(z))]
 
     def group(self, g: int) -> np.ndarray:
         """The rows of group ``g``, finite or not, in order."""
