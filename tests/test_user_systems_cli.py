@@ -165,3 +165,37 @@ def test_systems_lists_plugins_and_says_how_to_add_one(files, tmp_path, monkeypa
     assert len(notes) == 1 and notes[0].startswith("di (discrete-time, 1 path constraint): ")
     assert "--system path/to/file.py:make_system" in res.output
     assert '"mpcmobo.systems"' in res.output
+
+
+@pytest.mark.parametrize(
+    "edit, named",
+    [
+        (("imperfect=(0.6,)", "imperfect=(0.7,)"), "nominal_params"),
+        (("x[0] + 0.5 * x[1] - 1.5", "x[0] + 0.5 * x[1] - 1.4"), "its equations"),
+    ],
+)
+def test_a_resume_refuses_a_system_whose_file_changed(tmp_path, edit, named):
+    """The system's file edited between a run and its resume (a model parameter, or its
+    constraint's expression): the resume is refused naming what changed (exit 1, as a resume
+    with a shorter budget), and writes nothing; the file put back, the run resumes."""
+    (tmp_path / "user").mkdir()
+    d = write_user_files(tmp_path / "user")
+    spec = f"{d}/usersys.py:make_system"
+    out = tmp_path / "run"
+    args = ["run", "--system", spec, "--learner", "identify", "--episodes", "1", "--quiet"]
+    res = runner.invoke(app, [*args, "--out", str(out), "--no-plot"])
+    assert res.exit_code == 0, res.output
+    source = (d / "usersys.py").read_text()
+    assert edit[0] in source
+    (d / "usersys.py").write_text(source.replace(edit[0], edit[1]))
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in out.rglob("*") if p.is_file())
+    resume = [sys.executable, "-m", "mpcmobo.cli", "run", "--resume", "--out", str(out)]
+    resume += ["--episodes", "2", "--quiet", "--no-plot"]  # a new process imports the file anew
+    res = subprocess.run(resume, capture_output=True, text=True, env=same_source_env())
+    assert res.returncode == 1, res.stdout + res.stderr  # as the other refusals of a resume
+    said = " ".join((res.stdout + res.stderr).split())
+    assert "not the one the run" in said and named in said and "Traceback" not in said
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in out.rglob("*") if p.is_file()) == before
+    (d / "usersys.py").write_text(source)
+    res = subprocess.run(resume, capture_output=True, text=True, env=same_source_env())
+    assert res.returncode == 0, res.stdout + res.stderr

@@ -7,8 +7,11 @@ job runs; :func:`system_info` is what the figures need to know about the system.
 
 from __future__ import annotations
 
+import hashlib
 import time
+from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
 from mpcmobo.experiment import interrupts
@@ -16,7 +19,7 @@ from mpcmobo.experiment.build import build_system
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost, no_J_star_reason
 from mpcmobo.experiment.loop import EPISODE_FAILURES
 from mpcmobo.experiment.records import Reference, Trajectory
-from mpcmobo.experiment.rundir import StudyError
+from mpcmobo.experiment.rundir import RunDirectory, StudyError
 from mpcmobo.experiment.settings import Settings
 from mpcmobo.experiment.training_reference import training_references
 from mpcmobo.systems.base import System
@@ -42,7 +45,54 @@ def system_info(system: System) -> dict:
         "true_params": None
         if system.true_params is None
         else np.asarray(system.true_params, float).tolist(),
+        "equations": equations_fingerprint(system),
     }
+
+
+def equations_fingerprint(system: System) -> dict:
+    """A hash of the system's equations (its discrete step and path constraints, as CasADi
+    serialises them) and the CasADi version that serialised them: what tells a resumed run
+    that the system's code changed under it."""
+    digest = hashlib.sha1(system.discrete_step.serialize().encode())
+    if system.path_function is not None:
+        digest.update(system.path_function.serialize().encode())
+    return {"casadi": ca.CasadiMeta.version(), "hash": digest.hexdigest()}
+
+
+# what a change of does not change the system (its words)
+_NOT_COMPARED = ("description", "equations")
+
+
+def check_run_system(run_dir: RunDirectory) -> None:
+    """Before a saved run or tuner goes on (and before anything of it is written): refuse
+    where its system changed since its reference was computed (:func:`check_same_system`); a
+    run of an older version is refused as such first."""
+    if not run_dir.holds_run():
+        return
+    run_dir.check_schema()
+    reference = run_dir.reference()
+    if reference is not None:
+        system = build_system(run_dir.saved_settings())
+        check_same_system(reference.system, system, run_dir.path)
+
+
+def check_same_system(saved: dict, system: System, where: str | Path) -> None:
+    """Refuse (:class:`StudyError`) to go on with the run in ``where`` when ``system`` is not
+    the one its reference was computed with (``saved``: its :func:`system_info`): a field that
+    differs, or equations whose fingerprint differs under the same CasADi. A run saved before
+    the fingerprint existed is compared on the other fields."""
+    now = system_info(system)
+    changed = [k for k in now if k in saved and k not in _NOT_COMPARED and saved[k] != now[k]]
+    before, after = saved.get("equations"), now["equations"]
+    if isinstance(before, dict) and before.get("casadi") == after["casadi"]:
+        if before.get("hash") != after["hash"]:
+            changed.append("its equations (dynamics or path constraints)")
+    if changed:
+        raise StudyError(
+            f"the system is not the one the run in {where} was made with: "
+            f"{', '.join(changed)} changed since, and the records would mix two systems. "
+            f"Go on with the system as it was, or start a new run in another directory"
+        )
 
 
 def compute_reference(settings: Settings) -> Reference:

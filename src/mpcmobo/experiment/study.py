@@ -23,7 +23,7 @@ from mpcmobo.experiment.build import build_plant, build_system
 from mpcmobo.experiment.job import Progress, explores, make_study_learner, progress_event
 from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.records import Reference
-from mpcmobo.experiment.reference import compute_reference
+from mpcmobo.experiment.reference import check_run_system, compute_reference
 from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
 from mpcmobo.experiment.sections import SettingsError
 from mpcmobo.experiment.settings import Settings
@@ -90,6 +90,8 @@ def run_study(
                 f"mpcmobo run. Go on with `mpcmobo ask {out_dir}`; `mpcmobo ask {out_dir} "
                 "--episodes N` extends its budget"
             )
+        if resume:
+            check_run_system(RunDirectory(out_dir))
         run_dir, settings = open_run(out_dir, settings, resume)
         with run_log(run_dir.path, "study"):
             return _run_study(run_dir, settings, resume, progress, max_episodes_this_call)

@@ -37,7 +37,7 @@ from mpcmobo.experiment.job import Job
 from mpcmobo.experiment.loop import SIMULATED_NOTE, EpisodePlan
 from mpcmobo.experiment.plantlog import PlantLog, TunerError, parse_log, write_log
 from mpcmobo.experiment.records import EpisodeRow, Reference
-from mpcmobo.experiment.reference import compute_reference, system_info
+from mpcmobo.experiment.reference import check_run_system, compute_reference, system_info
 from mpcmobo.experiment.rundir import RunDirectory, open_run
 from mpcmobo.experiment.settings import Settings, load_settings
 from mpcmobo.experiment.summary import write_records
@@ -184,6 +184,7 @@ class Tuner:
             raise TunerError(f"{out} holds no tuner (no config.toml)")
         run_dir.check_schema()
         restore_system(run_dir.path)
+        check_run_system(run_dir)
         settings = run_dir.saved_settings()
         if len(settings.learners) != 1 or len(settings.seeds) != 1:
             raise TunerError(
