@@ -104,10 +104,12 @@ def test_bad_logs_are_refused_or_quarantined_with_the_problem_named(tmp_path, mo
 
 
 @pytest.mark.parametrize("mode", MODES)
-def test_a_state_in_the_wrong_unit_is_named(tmp_path, mode):
-    """The CSTR's concentration logged ten times too large: quarantined (random starts) or
-    refused (cycled starts, as it starts elsewhere), the column and the unit named, before the
-    MPC is replayed."""
+def test_a_state_in_the_wrong_unit_is_refused_even_with_force(tmp_path, mode):
+    """The CSTR's concentration logged ten times too large, or its temperature (kelvin) in
+    degrees Celsius: refused under both start modes, the column, the unit and the conversion
+    named, before the MPC is replayed; not advised to be forced, and ``force=True`` refuses it
+    too: nothing is recorded or quarantined, the trial stays pending, and the log in the
+    system's units is then believed."""
     tuner = Tuner(
         "cstr",
         "mpc-rl",
@@ -119,13 +121,53 @@ def test_a_state_in_the_wrong_unit_is_named(tmp_path, mode):
     )
     trial = tuner.ask()
     X, U = episode(tuner, trial)
-    X[:, 1] *= 10
-    before = _recorded(tuner) if mode == "random" else None
-    with pytest.raises(TunerError, match=r"state Ca .* divided by 10.* a unit error"):
-        tuner.tell(trial, X, U)
-    if before is not None:
-        assert _recorded(tuner) == before
-        assert tuner.status()["quarantined"] == [trial.id]
+    ten, celsius = X.copy(), X.copy()
+    ten[:, 1] *= 10
+    celsius[:, 2] -= 273.15
+    cases = (
+        (ten, r"state Ca .* divided by 10.* a unit error.* convert the column \(divided by 10\)"),
+        (celsius, r"T looks like Celsius for kelvin .* convert the column \(plus 273.15\)"),
+    )
+    before = _recorded(tuner)
+    for log, message in cases:
+        for force in (False, True):
+            with pytest.raises(TunerError, match=message) as err:
+                tuner.tell(trial, log, U, force=force)
+            assert not isinstance(err.value, LogQuarantined), force
+            assert "--force (force=True)" not in str(err.value), force
+            assert "--force does not accept a log with a state in the wrong unit" in str(err.value)
+            assert _recorded(tuner) == before, force
+            st = tuner.status()
+            assert st["quarantined"] == [] and st["pending"] == trial.id, force
+    assert not list((tuner.run_dir.path / "quarantine").glob("*.parquet"))
+    assert tuner.tell(trial, X, U).episode == trial.id
+
+
+def test_every_temperature_scale_is_named_with_its_conversion():
+    """kelvin, Celsius and Fahrenheit each for each other: the table holds every pair both
+    ways, each conversion maps the freezing and boiling points of water, the pair's two are
+    inverse, and a column logged in each scale is named by its own (Fahrenheit for kelvin:
+    "(T - 32) 5/9 + 273.15")."""
+    points = {"kelvin": (273.15, 373.15), "Celsius": (0.0, 100.0), "Fahrenheit": (32.0, 212.0)}
+    table = {looks: (convert, words) for looks, convert, words in checks.TEMPERATURE_SCALES}
+    pairs = {(a, b) for a in points for b in points if a != b}
+    assert set(table) == {f"{a} for {b}" for a, b in pairs}
+    for a, b in pairs:
+        convert = table[f"{a} for {b}"][0]
+        back = table[f"{b} for {a}"][0]
+        np.testing.assert_allclose(convert(np.array(points[a])), points[b], atol=1e-9)
+        t = np.linspace(-50.0, 500.0, 7)
+        np.testing.assert_allclose(back(convert(t)), t, atol=1e-9)
+    from mpcmobo.systems import get_system
+
+    cstr = get_system("cstr")  # T in kelvin, its box [400, 480]
+    X = np.tile(cstr.x_ref, (5, 1))
+    X[:, 2] += np.linspace(-10.0, 10.0, 5)
+    fahrenheit = X.copy()
+    fahrenheit[:, 2] = (X[:, 2] - 273.15) * 9 / 5 + 32
+    (found,) = checks.box_problems(cstr, fahrenheit, start=X[0])
+    assert "T looks like Fahrenheit for kelvin ((T - 32) 5/9 + 273.15" in found.message
+    assert not found.forceable
 
 
 def test_a_unit_error_inside_the_box_is_named_by_the_start(tmp_path):
@@ -258,3 +300,80 @@ def test_an_actuator_that_saturates_inside_the_bounds_is_named():
     override[3:6] = 2.0  # an operator's setting; the controller's later inputs pass it
     (found,) = checks.input_problems(lq, override, pi, noise, 4)
     assert "an actuator" not in found.message and "operator override" in found.message
+
+
+def sensed_episode(tuner, trial, noise, seed):
+    """The user's loop on the simulated plant through a sensor of Gaussian noise ``noise``
+    (a fraction of each state's x_scale): the controller is given, and the log holds, the
+    measured states."""
+    system = tuner.system
+    plant = SystemPlant(system)
+    rng = np.random.default_rng(seed)
+    scale = noise * np.asarray(system.x_scale, float)
+    trial.restart()
+    x, _ = plant.reset(seed=0, options={"x0": trial.x0})
+    y = x + scale * rng.standard_normal(system.nx)
+    states, inputs = [y], []
+    for k in range(trial.steps):
+        u = np.clip(trial.policy(y) + trial.noise[k], system.u_lb, system.u_ub)
+        x, *_ = plant.step(u)
+        y = x + scale * rng.standard_normal(system.nx)
+        states.append(y)
+        inputs.append(u)
+    return np.array(states), np.array(inputs)
+
+
+def test_a_noisier_sensor_told_with_force_becomes_the_baseline(tmp_path):
+    """After three episodes at a sensor noise of 0.26% of x_scale, an honest episode at 2% is
+    quarantined with higher measurement noise named as a possible cause; told with force, it
+    is the baseline of the model check, so the next honest episode at 2% is believed, and one
+    far worse than it is still quarantined."""
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=6, steps=20, start_mode="random")
+    for k in range(3):
+        trial = tuner.ask()
+        tuner.tell(trial, *sensed_episode(tuner, trial, 0.0026, k))
+    trial = tuner.ask()
+    with pytest.raises(LogQuarantined, match="more measurement noise than in the episodes told"):
+        tuner.tell(trial, *sensed_episode(tuner, trial, 0.02, 3))
+    tuner.tell(trial.id, force=True)
+    assert tuner.status()["trials"][-1]["forced"] == ["model"]
+    trial = tuner.ask()
+    with pytest.raises(LogQuarantined, match="explains this episode far worse"):
+        tuner.tell(trial, *sensed_episode(tuner, trial, 0.3, 4))
+    row = Tuner.load(tuner.run_dir.path).tell(trial.id, *sensed_episode(tuner, trial, 0.02, 5))
+    assert row.episode == trial.id
+
+
+def test_a_missing_or_repeated_row_is_named_by_the_time_column(tmp_path):
+    """A log with a ``time`` column: a row dropped is named by where the time step is twice
+    the usual (refused, with what to do), as is a last row missing (the state after the last
+    input) and a row written twice; a row written twice next to a missing one (the row count
+    right, the rows between a step off) is named so, not as an operator override."""
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=2, steps=20, start_mode="random")
+    trial = tuner.ask()
+    X, U = episode(tuner, trial)
+    table = PlantLog(X, U).frame(tuner.system).assign(time=np.arange(len(X)) * 30.0)
+    cases = {
+        "dropped": (table.drop(index=12), r"the log 20: a row is missing after row 11 \(the time"),
+        "no last state": (table.iloc[:-1], "the state after the last input is missing"),
+        "twice": (
+            pd.concat([table.iloc[:6], table.iloc[[5]], table.iloc[6:]]),
+            "its time repeats at row 6 .a row written twice.: drop the repeated row",
+        ),
+    }
+    before = _recorded(tuner)
+    for name, (log, message) in cases.items():
+        with pytest.raises(TunerError, match=message):
+            tuner.tell(trial, log.reset_index(drop=True))
+        assert _recorded(tuner) == before, name
+    dropped = table.drop(index=12).reset_index(drop=True)
+    shifted = pd.concat([dropped.iloc[:6], dropped.iloc[[5]], dropped.iloc[6:]])
+    with pytest.raises(LogQuarantined) as err:
+        tuner.tell(trial, shifted.reset_index(drop=True))
+    (found,) = err.value.problems
+    assert found.check == "time_order" and found.steps == tuple(range(6, 13))
+    assert "time repeats at row 6 (a row written twice) and a row is missing after row 12" in (
+        found.message
+    )
+    assert "operator override" not in str(err.value)
+    assert tuner.tell(trial, table).episode == trial.id

@@ -160,6 +160,32 @@ def test_a_crash_between_the_check_and_the_learning_loses_nothing(made, tmp_path
     pd.testing.assert_frame_equal(_records(made), _records(tmp_path / "direct"))
 
 
+def test_status_after_a_tell_killed_before_its_learning_names_the_command_that_learns(made):
+    """A tell killed between its check and its learning, with no process serving the tuner
+    (none named, or the one ``resident.json`` names is gone): ``status`` says that the log is
+    accepted and not learned from yet and names the command that learns from it, not that a
+    process learns; that command does."""
+    tuner = Tuner.load(made)
+    trial = tuner.ask()
+    tuner.accept(trial, *episode(tuner, trial))
+    del tuner  # killed before it learned
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    )
+    for named in (False, True):
+        if named:  # a process killed while it served: its files stay
+            where = {"socket": str(made / "resident.sock"), "pid": int(gone.stdout)}
+            (made / ADDRESS_FILE).write_text(json.dumps(where))
+            (made / KEY_FILE).write_bytes(b"key")
+        st = json.loads(runner.invoke(app, ["status", str(made), "--json"]).stdout)
+        reason = st["recommendation"]["reason"]
+        assert st["learning"] == 0 and "the tuner's process is learning" not in reason, reason
+        assert "is accepted (accepted/trial-0.pkl) and not learned from yet" in reason, reason
+        assert f"mpcmobo ask {made} learns from it and prints the next trial" in reason, reason
+    (made / ADDRESS_FILE).unlink()
+    assert _ask(made)["id"] == 1 and Tuner.load(made).episodes == 1
+
+
 def test_a_failed_learning_is_reported_and_the_trial_is_pending_again(made, tmp_path):
     """The learner fails in the background: the next command says so and the trial can be
     told again; a retract goes through the process too."""

@@ -400,8 +400,11 @@ def _times(n: int) -> str:
 
 def _status_of(directory: Path) -> dict[str, Any]:
     """``Tuner.status()`` of the tuner in ``directory``: from its ``status.json`` where that is
-    up to date (no learner loaded), else from the loaded tuner."""
-    st = saved_status(directory)
+    up to date (no learner loaded; an accepted log is said to be learned from only where the
+    tuner's process answers that it learns), else from the loaded tuner."""
+    from mpcmobo.cli.resident import learns
+
+    st = saved_status(directory, learns)
     if st is not None:
         return st
     from mpcmobo.experiment.tuner import Tuner

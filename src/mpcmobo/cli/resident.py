@@ -35,7 +35,7 @@ from multiprocessing.connection import Client, Connection, Listener
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ADDRESS_FILE", "KEY_FILE", "Resident", "ResidentError", "request"]
+__all__ = ["ADDRESS_FILE", "KEY_FILE", "Resident", "ResidentError", "learns", "request"]
 
 ADDRESS_FILE = "resident.json"
 KEY_FILE = "resident.key"
@@ -114,6 +114,47 @@ def request(
                 "command again",
                 1,
             ) from None
+
+
+# how long ``mpcmobo status`` waits for the tuner's process to say whether it learns
+PING_TIMEOUT_S = 2.0
+
+
+def _alive(directory: Path) -> bool:
+    """Whether the process that ``DIR/resident.json`` names runs (False: none is named, or it
+    is gone, e.g. killed)."""
+    try:
+        pid = int(json.loads((directory / ADDRESS_FILE).read_text(encoding="utf-8"))["pid"])
+        os.kill(pid, 0)
+    except PermissionError:
+        return True  # another user's process of that id
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return True
+
+
+def learns(directory: Path) -> bool:
+    """Whether a process serving ``directory`` is learning from a told log now: it runs and
+    answers that it learns, or is too busy to answer within ``PING_TIMEOUT_S`` (a command it
+    serves waits for its learning). What ``mpcmobo status`` says of a log accepted and not
+    learned from yet."""
+    if not _alive(Path(directory)):
+        return False
+    answers: list[tuple[bool, Any]] = []
+
+    def ping() -> None:
+        try:
+            answers.append(request(Path(directory), "ping"))
+        except ResidentError:
+            answers.append((False, None))
+
+    thread = threading.Thread(target=ping, name="mpcmobo-ping", daemon=True)
+    thread.start()
+    thread.join(PING_TIMEOUT_S)
+    if not answers:
+        return True
+    served, answer = answers[0]
+    return bool(served) and str(answer.get("working", "")).startswith("learning")
 
 
 # ---------------------------------------------------------------------------- the server

@@ -2,15 +2,17 @@
 
 A log that parses is not yet an episode of the trial. :func:`box_problems` compares each state
 column with the system's box (a column far outside it, or one that a factor 10, 100 or 1000
-brings into it, is a unit error); :func:`order_problems` looks for a log in reverse time order
-(a ``time`` column that decreases, or transitions the model explains far better read
-backwards); :func:`input_problems` compares the applied inputs with the trial's controller
-plus its exploration noise, clipped, at the logged states (an operator override, shuffled
-rows, another trial's log); :func:`model_problems` compares the episode's one-step prediction
-error under the current model (the identified one, else the MPC's nominal model) with the
-episodes told before (a robust z-score of the per-episode RMS scaled residuals). Each finding
-is a :class:`Problem` naming the check, the column or the steps; the tuner quarantines the
-episode (:mod:`mpcmobo.experiment.tuner`).
+or another temperature scale brings into it, is a unit error); :func:`order_problems` looks
+for a log in reverse time order (a ``time`` column that decreases, or that repeats a row next
+to a missing one, or transitions the model explains far better read backwards);
+:func:`input_problems` compares the applied inputs with the trial's controller plus its
+exploration noise, clipped, at the logged states (an operator override, shuffled rows, another
+trial's log); :func:`model_problems` compares the episode's one-step prediction error under
+the current model (the identified one, else the MPC's nominal model) with the episodes told
+before (a robust z-score of the per-episode RMS scaled residuals). Each finding is a
+:class:`Problem` naming the check, the column or the steps; the tuner quarantines the episode
+(:mod:`mpcmobo.experiment.tuner`), or refuses it outright where the finding is not
+``forceable`` (a state it is sure is in the wrong unit, or far outside its box).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from mpcmobo.experiment.plantlog import describe_gaps, time_gaps
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
 from mpcmobo.mpc.export import controller_inputs
 from mpcmobo.systems.base import System
@@ -49,11 +52,14 @@ STEP_RATIO = 20.0  # a step whose error exceeds this many times the episode's me
 @dataclass(frozen=True)
 class Problem:
     """One finding: the ``check`` ("range", "time_order", "inputs", "model", "start"), the
-    ``message`` naming what is wrong, and the log's ``steps`` (rows from 0) it concerns."""
+    ``message`` naming what is wrong, the log's ``steps`` (rows from 0) it concerns, and
+    whether ``force`` may accept the log despite it (not: a state the tool is sure is in the
+    wrong unit, or far outside its box)."""
 
     check: str
     message: str
     steps: tuple[int, ...] = ()
+    forceable: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         """The finding as plain data (a quarantined trial's json)."""
@@ -92,9 +98,12 @@ def box_problems(
     system: System, states: np.ndarray, start: np.ndarray | None = None
 ) -> list[Problem]:
     """Each state column against the system's box: far outside it, or outside it by a factor
-    that a power of ten undoes (the column's unit is named as the likely error; ``start``, the
-    trial's initial state, tells apart the factors that all bring the column into the box:
-    :func:`unit_factor`)."""
+    that a power of ten undoes, or in another temperature scale (the column's unit is named as
+    the likely error; ``start``, the trial's initial state, tells apart the factors that all
+    bring the column into the box: :func:`unit_factor`). A finding the tool is sure of (the
+    column far outside its box, or a conversion that brings it into its box and its first
+    value to the trial's start) is not ``forceable``: the log is refused, the conversion
+    named."""
     X = np.asarray(states, float)
     lo, hi, width = _box(system)
     problems = []
@@ -109,45 +118,66 @@ def box_problems(
             f"[{lo[j]:.6g}, {hi[j]:.6g}] by {out[worst]:.3g} box widths"
         )
         steps = tuple(int(k) for k in np.flatnonzero(out > UNIT_OUTSIDE))
-        scale = None if start is None else temperature_scale(x, lo[j], hi[j], width[j], start[j])
-        unit = unit_factor(x, lo[j], hi[j], width[j], None if start is None else start[j])
-        if scale is not None:
-            problems.append(
-                Problem(
-                    "range",
-                    (
-                        f"{where}; the log's {name} looks like {scale[0]} ({scale[1]}, the "
-                        "column lies in its box and starts at the trial's start): a unit error?"
-                    ),
-                    steps,
-                )
+        found = _column_unit(name, x, (lo[j], hi[j], width[j]), None if start is None else start[j])
+        if found is None and out[worst] <= FAR_WIDTHS:
+            continue
+        far = bool(out[worst] > FAR_WIDTHS)
+        if found is None:
+            message = (
+                f"{where}, far outside its bounds (more than {FAR_WIDTHS:g} widths), not a state "
+                f"of the plant: check the log's units and columns (is {name} the right column?), "
+                f"correct the log and tell it again; {NOT_FORCED}"
             )
-        elif unit is not None:
-            times = looks_off_by(unit)
-            fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
-            problems.append(
-                Problem(
-                    "range",
-                    (
-                        f"{where}; {fix}, the column lies in its box: a unit error? (the log's {name} "
-                        f"looks {times}, e.g. mm for cm, or in another unit or with an offset, "
-                        "e.g. kelvin or Fahrenheit for Celsius; far outside its bounds as logged)"
-                    ),
-                    steps,
-                )
-            )
-        elif out[worst] > FAR_WIDTHS:
-            problems.append(
-                Problem(
-                    "range",
-                    (
-                        f"{where}, far outside its bounds (more than {FAR_WIDTHS:g} widths): check "
-                        f"the log's units and columns (is {name} the right column?)"
-                    ),
-                    steps,
-                )
-            )
+            problems.append(Problem("range", message, steps, forceable=False))
+            continue
+        text, sure = found
+        sure = sure or far
+        then = f"; {NOT_FORCED}" if sure else ""
+        problems.append(Problem("range", f"{where}; {text}{then}", steps, forceable=not sure))
     return problems
+
+
+# what a refusal the tool is sure of says of --force
+NOT_FORCED = (
+    "--force does not accept a log with a state in the wrong unit or far outside its box "
+    "(if the plant was there, the system's bounds x_lb, x_ub do not hold it: widen them)"
+)
+
+
+def _column_unit(
+    name: str, x: np.ndarray, box: tuple[float, float, float], start: float | None
+) -> tuple[str, bool] | None:
+    """The unit error of the state column ``x`` named ``name`` outside its ``box`` (lower,
+    upper, width): another temperature scale (:func:`temperature_scale`, which the trial's
+    ``start`` confirms) or a power of ten (:func:`unit_factor`), in words with the conversion
+    to apply, and whether the tool is sure of it (the converted column starts within 5% of the
+    box's width of ``start``); None: neither brings the column into its box."""
+    lo, hi, width = box
+    scale = None if start is None else temperature_scale(x, lo, hi, width, start)
+    if scale is not None:
+        return (
+            f"the log's {name} looks like {scale[0]} ({scale[1]} brings the column into its "
+            f"box and to the trial's start): a unit error; convert the column ({scale[1]}) "
+            "and tell the log again",
+            True,
+        )
+    unit = unit_factor(x, lo, hi, width, start)
+    if unit is None:
+        return None
+    fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
+    sure = start is not None and abs(x[0] / unit - start) <= 0.05 * width
+    text = (
+        f"{fix}, the column lies in its box: a unit error? (the log's {name} looks "
+        f"{looks_off_by(unit)}, e.g. mm for cm, or in another unit or with an offset, e.g. "
+        "kelvin or Fahrenheit for Celsius; far outside its bounds as logged)"
+    )
+    if sure:
+        text = (
+            f"{fix}, the column lies in its box and starts at the trial's start: a unit error "
+            f"(the log's {name} looks {looks_off_by(unit)}, e.g. mm for cm); convert the "
+            f"column ({fix}) and tell the log again"
+        )
+    return text, sure
 
 
 def _inside(y: np.ndarray, lo: float, hi: float, width: float) -> float:
@@ -178,11 +208,14 @@ def unit_factor(
 
 # temperature scales a log may be in instead of the system's: what it looks like, how the
 # system's value follows from the logged one, and that in words
+# (every pair of kelvin, Celsius and Fahrenheit, both ways)
 TEMPERATURE_SCALES: tuple[tuple[str, Any, str], ...] = (
     ("kelvin for Celsius", lambda t: t - 273.15, "minus 273.15"),
     ("Celsius for kelvin", lambda t: t + 273.15, "plus 273.15"),
     ("Fahrenheit for Celsius", lambda t: (t - 32.0) * 5.0 / 9.0, "(T - 32) 5/9"),
     ("Celsius for Fahrenheit", lambda t: t * 9.0 / 5.0 + 32.0, "T 9/5 + 32"),
+    ("Fahrenheit for kelvin", lambda t: (t - 32.0) * 5.0 / 9.0 + 273.15, "(T - 32) 5/9 + 273.15"),
+    ("kelvin for Fahrenheit", lambda t: (t - 273.15) * 9.0 / 5.0 + 32.0, "(T - 273.15) 9/5 + 32"),
 )
 
 
@@ -191,12 +224,18 @@ def temperature_scale(
 ) -> tuple[str, str] | None:
     """The temperature scale (:data:`TEMPERATURE_SCALES`) that brings 90% of ``x`` into
     [lo, hi] (a tenth of its width to spare) and its first value within 5% of the width of the
-    trial's ``start``: what the column looks like and the conversion, in words (None: none)."""
+    trial's ``start``, of those that do the one that brings it nearest: what the column looks
+    like and the conversion, in words (None: none)."""
+    found: list[tuple[float, str, str]] = []
     for looks, convert, words in TEMPERATURE_SCALES:
         y = convert(np.asarray(x, float))
-        if _inside(y, lo, hi, width) >= 0.9 and abs(y[0] - start) <= 0.05 * width:
-            return looks, words
-    return None
+        miss = abs(float(y[0]) - start)
+        if _inside(y, lo, hi, width) >= 0.9 and miss <= 0.05 * width:
+            found.append((miss, looks, words))
+    if not found:
+        return None
+    _, looks, words = min(found, key=lambda f: f[0])
+    return looks, words
 
 
 def looks_off_by(unit: float) -> str:
@@ -240,32 +279,12 @@ def order_problems(
     system: System, states: np.ndarray, inputs: np.ndarray, params: Any, time: Any = None
 ) -> list[Problem]:
     """A log in reverse time order: its ``time`` column (if it has one) decreases or is out of
-    order, or the model explains its transitions far better read backwards."""
+    order, or repeats a row and misses another (:func:`time_problems`), or the model explains
+    its transitions far better read backwards."""
     if time is not None:
-        t = np.asarray(time, float)
-        dt = np.diff(t)
-        if len(dt) and np.all(dt < 0):
-            return [
-                Problem(
-                    "time_order",
-                    (
-                        "the log is in reverse time order (its time column decreases): sort it by time, "
-                        "the first row the episode's start"
-                    ),
-                )
-            ]
-        if np.any(dt < 0):
-            bad = tuple(int(k) + 1 for k in np.flatnonzero(dt < 0))
-            return [
-                Problem(
-                    "time_order",
-                    (
-                        f"the log's rows are out of time order at rows {describe_steps(bad)} (its time "
-                        "column does not increase there): sort it by time"
-                    ),
-                    bad,
-                )
-            ]
+        found = time_problems(np.asarray(time, float))
+        if found:
+            return found
     forward = episode_error(system, states, inputs, params)
     backward = episode_error(system, states[::-1], inputs[::-1], params)
     if forward > RESIDUAL_FLOOR and backward < REVERSE_RATIO * forward:
@@ -280,6 +299,55 @@ def order_problems(
             )
         ]
     return []
+
+
+def time_problems(t: np.ndarray) -> list[Problem]:
+    """A log's time column ``t`` that decreases (a reversed log), does not increase somewhere
+    (rows out of order), or repeats a time next to a step about twice the usual one (a row
+    written twice and another missing, so the rows between are a step off: the inputs and the
+    states there do not belong together). A repeated time alone passes: a coarse clock writes
+    one."""
+    dt = np.diff(t)
+    if len(dt) and np.all(dt < 0):
+        return [
+            Problem(
+                "time_order",
+                (
+                    "the log is in reverse time order (its time column decreases): sort it by time, "
+                    "the first row the episode's start"
+                ),
+            )
+        ]
+    if np.any(dt < 0):
+        bad = tuple(int(k) + 1 for k in np.flatnonzero(dt < 0))
+        return [
+            Problem(
+                "time_order",
+                (
+                    f"the log's rows are out of time order at rows {describe_steps(bad)} (its time "
+                    "column does not increase there): sort it by time"
+                ),
+                bad,
+            )
+        ]
+    repeated = [int(k) + 1 for k in np.flatnonzero(dt == 0)]
+    gaps = time_gaps(t)
+    if not (repeated and gaps):
+        return []
+    first, last = min(repeated + gaps), max(repeated + gaps)
+    return [
+        Problem(
+            "time_order",
+            (
+                f"the log's time repeats at row{'s' if len(repeated) > 1 else ''} "
+                f"{describe_steps(repeated)} (a row written twice) and a row is missing "
+                f"{describe_gaps(t, gaps)}: the rows between are a step off, "
+                "their states and inputs do not belong together; drop the repeated row, restore "
+                "the missing one from the plant's records and tell the log again"
+            ),
+            tuple(range(first, last + 1)),
+        )
+    ]
 
 
 def input_problems(
@@ -367,18 +435,21 @@ def model_problems(
     params: Any,
     history: Sequence[float],
     model: str,
+    confirmed: bool = False,
 ) -> list[Problem]:
     """The episode's one-step error under the ``model`` (its ``params``: "identified" or
     "nominal") against the errors of the episodes told before (``history``, under the same
     model): far worse is a finding (with fewer than ``MIN_HISTORY`` episodes before it, none
-    is made). An identified model also judges the episode's steps: a few steps it explains
-    far worse than the rest (``STEP_RATIO`` times the median) are rows out of order."""
+    is made, unless the ``history`` is ``confirmed``: it starts at an episode the user told
+    despite this check, e.g. at a new sensor's noise). An identified model also judges the
+    episode's steps: a few steps it explains far worse than the rest (``STEP_RATIO`` times the
+    median) are rows out of order."""
     r = residuals(system, states, inputs, params)
     e = float(np.sqrt(np.mean(r**2)))
     limit = max(STEP_RATIO * float(np.median(r)), RESIDUAL_FLOOR)
     steps = tuple(int(k) for k in np.flatnonzero(r > limit))
     h = np.asarray([v for v in history if np.isfinite(v)], float)
-    if len(h) >= MIN_HISTORY:
+    if len(h) >= (1 if confirmed else MIN_HISTORY):
         med = float(np.median(h))
         scale = max(1.4826 * float(np.median(np.abs(h - med))), 0.1 * med, 1e-12)
         z = (e - med) / scale
@@ -390,8 +461,10 @@ def model_problems(
                     (
                         f"the {model} model explains this episode far worse than the {len(h)} told "
                         f"before (RMS scaled one-step error {e:.3g}, theirs {med:.3g} in the median, "
-                        f"robust z {z:.1f}){where}: a sensor fault, rows out of order, or not this "
-                        "plant's log?"
+                        f"robust z {z:.1f}){where}: more measurement noise than in the episodes told "
+                        "before (a new or noisier sensor: if so, accept the log with --force "
+                        "(force=True), and the later checks compare with it), a sensor fault, rows out of "
+                        "order, or not this plant's log?"
                     ),
                     steps,
                 )
@@ -421,12 +494,14 @@ def review(
     params: np.ndarray,
     model: str,
     history: Sequence[float],
+    confirmed: bool = False,
 ) -> tuple[list[Problem], EpisodeRecord | None, float]:
     """Every check of a told ``log`` (a :class:`~mpcmobo.experiment.plantlog.PlantLog`) of
     the trial ``plan``, in order: the box (a unit error stops there), the time order (a
     reversed log stops there), then the MPC replayed on the logged states and the inputs and
-    the model's one-step error checked. The problems, the replay's record (None if the checks
-    stopped before it) and its time."""
+    the model's one-step error checked against the ``history`` (``confirmed``:
+    :func:`model_problems`). The problems, the replay's record (None if the checks stopped
+    before it) and its time."""
     X, U = log.states, log.inputs
     problems = box_problems(system, X, plan.x0)
     if problems:
@@ -443,7 +518,7 @@ def review(
     if problems:  # the episode may have run on the trial's exported controller
         exported = controller_inputs(mpc, plan.theta, X[:-1])
         problems = input_problems(system, U, record.pi, plan.noise, plan.episode, exported)
-    problems += model_problems(system, X, U, params, history, model)
+    problems += model_problems(system, X, U, params, history, model, confirmed)
     return problems, record, mpc_time
 
 

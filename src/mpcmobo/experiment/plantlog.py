@@ -11,6 +11,7 @@ Parquet file, :func:`write_log` writes one. What the numbers mean is checked aft
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -73,7 +74,7 @@ def parse_log(
     their bounds, violations not negative."""
     time = None
     if hasattr(states, "columns"):  # a DataFrame
-        states, inputs, stage_costs, violations, time = _frame(states, system)
+        states, inputs, stage_costs, violations, time = _frame(states, system, steps)
     X, U = _trajectory(system, steps, states, inputs)
     L = _per_step(stage_costs, "stage_costs", steps)
     V = _per_step(violations, "violations", steps)
@@ -117,6 +118,32 @@ def _trajectory(system: System, steps: int, states: Any, inputs: Any) -> tuple[n
     return X, U
 
 
+# a time step this many times the log's usual one or more is a gap: rows missing there
+GAP_RATIO = 1.5
+
+
+def time_gaps(t: np.ndarray) -> list[int]:
+    """The rows of the time column ``t`` after which its step is ``GAP_RATIO`` times the
+    usual one (the median of its positive steps) or more: rows are missing there."""
+    dt = np.diff(np.asarray(t, float))
+    positive = dt[dt > 0]
+    if not len(positive):
+        return []
+    usual = float(np.median(positive))
+    return [int(k) for k in np.flatnonzero(dt >= GAP_RATIO * usual)]
+
+
+def describe_gaps(t: np.ndarray, gaps: Sequence[int]) -> str:
+    """Where the time column ``t`` has its ``gaps`` (:func:`time_gaps`), in words: "after row
+    17 (the time step to row 18 is 2 times the usual)"."""
+    dt = np.diff(np.asarray(t, float))
+    usual = float(np.median(dt[dt > 0]))
+    return ", ".join(
+        f"after row {k} (the time step to row {k + 1} is {dt[k] / usual:.3g} times the usual)"
+        for k in gaps
+    )
+
+
 def _per_step(values: Any, name: str, steps: int) -> np.ndarray | None:
     """A per-step column of the log (stage costs, violations), checked: one finite number per
     input, violations not negative; None where the log has none."""
@@ -138,9 +165,11 @@ def _per_step(values: Any, name: str, steps: int) -> np.ndarray | None:
     return a
 
 
-def _frame(df: Any, system: System) -> tuple[Any, Any, Any, Any, Any]:
+def _frame(df: Any, system: System, steps: int) -> tuple[Any, Any, Any, Any, Any]:
     """States, inputs, stage costs, violations and time from a DataFrame with the system's
-    state and input names as columns (the inputs' last row empty)."""
+    state and input names as columns (the inputs' last row empty); a table whose time column
+    shows why it has not the ``steps`` + 1 rows of the episode is refused
+    (:func:`_row_count`)."""
     import pandas as pd
 
     names = (*system.state_names, *system.input_names)
@@ -166,10 +195,46 @@ def _frame(df: Any, system: System) -> tuple[Any, Any, Any, Any, Any]:
     time = _time(df, names)
     if len(U_all) > 1 and np.all(np.isnan(U_all[0])) and np.all(np.isfinite(U_all[-1])):
         raise TunerError(_inputs_at_the_end(time))
+    _row_count(time, U_all, steps)
     X = df[list(system.state_names)].to_numpy(float)
     L = df["stage_cost"].to_numpy(float)[:-1] if "stage_cost" in df.columns else None
     V = df["violation"].to_numpy(float)[:-1] if "violation" in df.columns else None
     return X, U_all[:-1], L, V, time
+
+
+def _row_count(time: np.ndarray | None, inputs: np.ndarray, steps: int) -> None:
+    """A table of other than ``steps`` + 1 rows with a ``time`` column: a :class:`TunerError`
+    naming where rows are missing (a time step about twice the usual or more:
+    :func:`time_gaps`) or repeated (the same time twice), or, with evenly spaced times and
+    inputs on its last row, that the state after the last input is missing; and what to do.
+    Nothing where the time does not say (the shape check names the counts)."""
+    rows = len(inputs)
+    if time is None or rows == steps + 1 or rows < 2:
+        return
+    counts = (
+        f"the episode has {steps + 1} rows (the state before each of its {steps} inputs, and "
+        f"the state after the last), the log {rows}"
+    )
+    if rows < steps + 1 and (gaps := time_gaps(time)):
+        raise TunerError(
+            f"{counts}: a row is missing {describe_gaps(time, gaps)}; restore it from the "
+            "plant's records (the state measured and the input applied at that step) and tell "
+            "the log again; an episode with a step missing cannot be learned from (if the row "
+            "is lost, run the trial again)"
+        )
+    if rows == steps and np.all(np.isfinite(inputs[-1])):
+        raise TunerError(
+            f"{counts}: its time steps evenly and its last row has inputs, so the state after "
+            "the last input is missing: add it as the last row (its inputs empty) and tell the "
+            "log again"
+        )
+    repeated = [int(k) + 1 for k in np.flatnonzero(np.diff(time) == 0)]
+    if rows > steps + 1 and repeated:
+        raise TunerError(
+            f"{counts}: its time repeats at row{'s' if len(repeated) > 1 else ''} "
+            f"{', '.join(map(str, repeated))} (a row written twice): drop the repeated "
+            "row and tell the log again"
+        )
 
 
 def _inputs_at_the_end(time: np.ndarray | None) -> str:

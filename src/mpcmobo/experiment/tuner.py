@@ -9,8 +9,9 @@ every step, and where a simulated study would start it), the episode runs on the
 and f1..f4 are what a simulated episode would have had; the stage cost and violation are the
 system's where the log has none. A log is checked before it is believed
 (:mod:`mpcmobo.experiment.checks`): one it does not believe is quarantined and the trial stays
-pending, until a corrected log or ``force=True``; :meth:`Tuner.retract` takes a told trial
-back. Each tell is recorded as ``mpcmobo run`` records an episode
+pending, until a corrected log or ``force=True``; one with a state it is sure is in the wrong
+unit (or far outside its box) is refused, ``force`` or not; :meth:`Tuner.retract` takes a told
+trial back. Each tell is recorded as ``mpcmobo run`` records an episode
 (``episodes.parquet``, ``trajectories.parquet``, ``summary.json``, a checkpoint after every ask
 and tell), so :meth:`Tuner.load` continues after a crash, also between ask and tell. Where the
 system's plant can be simulated (its true parameters, or a plant of the settings), the
@@ -299,7 +300,10 @@ class Tuner:
         The log is checked first (:mod:`mpcmobo.experiment.checks`); one the checks do not
         believe is kept in ``quarantine/`` and :class:`LogQuarantined` names the problems: the
         trial stays pending. ``force=True`` tells it all the same (without ``states``: the
-        trial's quarantined log). ``progress(what, done, total)`` hears the learner's long work
+        trial's quarantined log), except a log with a state the checks are sure is in the
+        wrong unit or far outside its box: that is a :class:`TunerError` naming the
+        conversion, ``force`` or not. A log told with ``force`` despite the model check starts
+        that check's baseline: later logs are compared with it and the ones told after it. ``progress(what, done, total)`` hears the learner's long work
         (the twin's tuning, :meth:`~mpcmobo.learners.base.Learner.use_progress`).
 
         A tell is :meth:`accept` then :meth:`learn`; a tell that fails or is interrupted in
@@ -400,24 +404,16 @@ class Tuner:
         time, the parsed log and the problems found (a log they do not believe, without
         ``force``, is quarantined: :class:`LogQuarantined`)."""
         plan = self._pending(tid)
-        steps = self.job.run.steps
-        if states is None and force:
-            log = self.files.quarantined_log(tid, self.system, steps)
-        elif states is None:
-            raise TunerError("the log needs the states (T+1 rows), and the inputs applied")
-        else:
-            log = parse_log(self.system, steps, states, inputs, stage_costs, violations)
-        twin = told_twin(self.files, self.episodes, log, self._errors, self._repeatable(plan))
-        if twin is not None:
-            raise TunerError(
-                f"this log is trial {twin}'s, told already (the same states and inputs): tell "
-                f"trial {tid}'s own log"
-            )
+        log = self._parsed(plan, states, inputs, stage_costs, violations, force)
         params, model = self._model()
-        history = history_errors(self.files, self.episodes, params, self.system, self._errors)
-        problems, record, mpc_time = checks.review(
-            self.system, self.job.run.mpc, plan, log, params, model, history
+        since = self._baseline()
+        history = history_errors(
+            self.files, self.episodes, params, self.system, self._errors, since
         )
+        problems, record, mpc_time = checks.review(
+            self.system, self.job.run.mpc, plan, log, params, model, history, since > 0
+        )
+        _refuse_unforceable(tid, problems, self.run_dir.path)
         cycled = self.settings.start_mode == "cycle"
         if cycled and not force:  # a log from another start is refused
             self._check_start(plan, log.states[0], problems)
@@ -439,6 +435,32 @@ class Tuner:
             record = replay(self.system, self.job.run.mpc, plan.theta, *_arrays(log))
             mpc_time = time.perf_counter() - t0
         return started, record, mpc_time, log, problems
+
+    def _parsed(
+        self,
+        plan: EpisodePlan,
+        states: Any,
+        inputs: Any | None,
+        stage_costs: Any | None,
+        violations: Any | None,
+        force: bool,
+    ) -> PlantLog:
+        """The told log of the trial ``plan`` parsed (without ``states``, with ``force``: its
+        quarantined log); one that repeats a told trial's log is a :class:`TunerError`."""
+        tid, steps = plan.episode, self.job.run.steps
+        if states is None and force:
+            log = self.files.quarantined_log(tid, self.system, steps)
+        elif states is None:
+            raise TunerError("the log needs the states (T+1 rows), and the inputs applied")
+        else:
+            log = parse_log(self.system, steps, states, inputs, stage_costs, violations)
+        twin = told_twin(self.files, self.episodes, log, self._errors, self._repeatable(plan))
+        if twin is not None:
+            raise TunerError(
+                f"this log is trial {twin}'s, told already (the same states and inputs): tell "
+                f"trial {tid}'s own log"
+            )
+        return log
 
     def _complete(
         self,
@@ -521,6 +543,13 @@ class Tuner:
             if np.array_equal(r.theta, plan.theta) and np.array_equal(r.x0, plan.x0)
         )
 
+    def _baseline(self) -> int:
+        """The first told trial the model check compares a log with: the last one told with
+        ``force`` despite that check (the user confirmed it is the plant's, e.g. at a noisier
+        sensor: the episodes before it measured another noise), else trial 0."""
+        confirmed = [tid for tid, found in self.files.forced().items() if "model" in found]
+        return max(confirmed, default=0)
+
     def _model(self) -> tuple[np.ndarray, str]:
         """The model the logs are checked with: the learner's identified model, else the
         MPC's nominal one; and its name."""
@@ -549,17 +578,25 @@ class Tuner:
         unit = checks.start_factor(float(x_first[j]), float(plan.x0[j]))
         named = any(p.check == "range" for p in problems)  # the box check named a unit
         if unit is not None and not named:  # the other checks' findings follow from it
-            found = (
-                f"the log's {name} looks {checks.looks_off_by(unit)}: a unit error? (its first value is the "
-                f"trial's start times {unit:g}); "
+            fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
+            raise TunerError(
+                f"the log's {name} looks {checks.looks_off_by(unit)}: a unit error? (its "
+                f"first value is the trial's start times {unit:g}, at {x_first[j]:.6g} where "
+                f"the trial starts at {plan.x0[j]:.6g}); convert the column ({fix}) and tell "
+                "the log again"
             )
+        noisy = (  # a state in another unit is no noisy measurement of the start
+            "correct the log's units and tell it again"
+            if named
+            else "where the plant did start there and the first row is a noisy measurement "
+            "of it, tell the log with --force (force=True)"
+        )
         raise TunerError(
             f"{found}the log starts at {name} = {x_first[j]:.6g}, "
             f"the trial at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared "
             "from the same starts, so an episode must start at its trial's x0 (within "
             f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "
-            "start_mode = 'random'; where the plant did start there and the first row is a "
-            "noisy measurement of it, tell the log with --force (force=True)"
+            f"start_mode = 'random'; {noisy}"
         )
 
     def _started(self, plan: EpisodePlan, x_first: np.ndarray) -> EpisodePlan:
@@ -718,6 +755,21 @@ def _trial_id(trial: Any) -> int:
 def _arrays(log: PlantLog) -> tuple[Any, ...]:
     """A log's arrays as :func:`~mpcmobo.mpc.replay` takes them."""
     return log.states, log.inputs, log.stage_costs, log.violations
+
+
+def _refuse_unforceable(tid: int, problems: list[checks.Problem], directory: Path) -> None:
+    """A :class:`TunerError` where the checks found a problem ``force`` does not accept (a
+    state the tool is sure is in the wrong unit, or far outside its box): the log is refused,
+    with or without ``force``, nothing of it is kept or recorded, and the trial stays pending."""
+    refused = [p for p in problems if not p.forceable]
+    if not refused:
+        return
+    found = "".join(f"\n  - {p.check}: {p.message}" for p in refused)
+    raise TunerError(
+        f"trial {tid}'s log is refused, nothing of it is recorded; the trial stays pending:"
+        f"{found}\nCorrect the log and tell it again (Tuner.tell({tid}, log), mpcmobo tell "
+        f"{directory} {tid} LOG)"
+    )
 
 
 def _quarantine_message(tid: int, problems: list[checks.Problem], path: Path) -> str:

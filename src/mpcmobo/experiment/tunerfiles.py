@@ -244,16 +244,21 @@ class TunerFiles:
 
 
 def history_errors(
-    files: TunerFiles, told: int, params: np.ndarray, system: System, cache: dict
+    files: TunerFiles,
+    told: int,
+    params: np.ndarray,
+    system: System,
+    cache: dict,
+    since: int = 0,
 ) -> list[float]:
     """The one-step errors (:func:`~mpcmobo.experiment.checks.episode_error`) under the model
-    ``params`` of the ``told`` trials kept; ``cache`` keeps their logs (by trial) and errors
-    (by trial and params) for the tuner's next tell."""
+    ``params`` of the ``told`` trials kept, from trial ``since`` on; ``cache`` keeps their logs
+    (by trial) and errors (by trial and params) for the tuner's next tell."""
     from mpcmobo.experiment.checks import episode_error
 
     out = []
     key_p = np.asarray(params, float).tobytes()
-    for tid in range(told):
+    for tid in range(since, told):
         key = (tid, key_p)
         if key not in cache:
             if tid not in cache:

@@ -8,14 +8,16 @@ its verdict (whether its theta was deployed, or is still under verification) and
 its log was told despite (``forced``, with ``--force``). :func:`recommendation` says whether
 to go on.
 :func:`saved_status` reads ``status.json`` (what the tuner wrote after its last ask, tell or
-retract) without loading the tuner, if it is as new as the tuner's checkpoint and settings.
+retract) without loading the tuner, if it is as new as the tuner's checkpoint and settings;
+a trial whose log is accepted and not learned from yet is said to be learned from only where a
+process is (the caller asks the tuner's process, ``mpcmobo serve``).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -107,29 +109,15 @@ def recommendation(
     converged: str = "",
     learning: int | None = None,
     verifying: bool = False,
+    learns: bool = True,
 ) -> dict[str, str]:
     """``action`` (``continue`` or ``stop``) and ``reason``; ``converged``: why tuning stopped
     exploring ("": it has not; :mod:`mpcmobo.experiment.price`); ``learning``: the told trial
-    the learner is learning from (``mpcmobo serve``), None if none; ``verifying``: a candidate
-    is under verification (not yet deployed or dropped)."""
-    if learning is not None and learning + 1 >= budget:
-        return {
-            "action": "stop",
-            "reason": (
-                f"trial {learning}, the last of the budget of {budget} trials, is told and the "
-                f"tuner's process is learning from it: then the deployed theta is the result "
-                f"(mpcmobo export {directory}); a larger budget goes on (mpcmobo ask "
-                f"{directory} --episodes N)"
-            ),
-        }
+    whose accepted log the learner has not learned from yet, None if none, and ``learns``:
+    whether a process is learning from it now (:func:`learning_reason`); ``verifying``: a
+    candidate is under verification (not yet deployed or dropped)."""
     if learning is not None:
-        return {
-            "action": "continue",
-            "reason": (
-                f"trial {learning} is told and the tuner's process is learning from it: "
-                f"mpcmobo ask {directory} prints the next trial when it is ready"
-            ),
-        }
+        return learning_reason(learning, budget, directory, learns)
     if converged and (pending is None or pending not in quarantined):
         # a model that cannot price a candidate stopped exploring; it did not converge
         stopped, theta = (
@@ -173,6 +161,38 @@ def recommendation(
     return {"action": "continue", "reason": reason}
 
 
+def learning_reason(learning: int, budget: int, directory: str, learns: bool) -> dict[str, str]:
+    """The recommendation while trial ``learning``'s log is accepted and not learned from yet:
+    a process learns from it now (``learns``: the tuner's, ``mpcmobo serve``), or none does
+    (the command that told it stopped before it learned) and the next command that loads the
+    tuner learns from it, named."""
+    last = learning + 1 >= budget
+    result = (
+        f"then the deployed theta is the result (mpcmobo export {directory}); a larger budget "
+        f"goes on (mpcmobo ask {directory} --episodes N)"
+    )
+    if learns:
+        told = f"trial {learning} is told and the tuner's process is learning from it"
+        if last:
+            told = (
+                f"trial {learning}, the last of the budget of {budget} trials, is told and the "
+                "tuner's process is learning from it"
+            )
+        then = result if last else f"mpcmobo ask {directory} prints the next trial when it is ready"
+        return {"action": "stop" if last else "continue", "reason": f"{told}: {then}"}
+    told = (
+        f"trial {learning} is told: its log is accepted (accepted/trial-{learning}.pkl) and not "
+        "learned from yet, and no process is learning from it (the command that told it "
+        "stopped before it learned); the next command that loads the tuner (ask, tell, serve) "
+        "learns from it"
+    )
+    if last:
+        then = f"mpcmobo ask {directory} learns from it and says the budget is spent; {result}"
+    else:
+        then = f"mpcmobo ask {directory} learns from it and prints the next trial"
+    return {"action": "continue", "reason": f"{told}: {then}"}
+
+
 # the keys of Tuner.status() that ``mpcmobo status`` reads
 STATUS_KEYS = frozenset(
     (
@@ -198,12 +218,16 @@ STATUS_KEYS = frozenset(
 )
 
 
-def saved_status(directory: str | Path) -> dict[str, Any] | None:
+def saved_status(
+    directory: str | Path, learns: Callable[[Path], bool] | None = None
+) -> dict[str, Any] | None:
     """``Tuner.status()`` of the tuner in ``directory`` as its ``status.json`` holds it (NaN
     as None), with the recommendation naming ``directory`` as given; None where the file is
     missing, unreadable, of other keys, or older than the tuner's settings or a checkpoint of
     its job (written by an interrupted tell, or the budget extended since): then the tuner must
-    be loaded to say it."""
+    be loaded to say it. Where it names a trial whose accepted log is not learned from yet,
+    ``learns(directory)`` says whether a process is learning from it now (None: none is; the
+    file cannot tell a process that learns from one that was killed)."""
     path = Path(directory)
     status, mark = path / "status.json", path / "tuner.json"
     if not (status.is_file() and mark.is_file()):
@@ -219,6 +243,7 @@ def saved_status(directory: str | Path) -> dict[str, Any] | None:
     if not isinstance(st, dict) or not STATUS_KEYS <= set(st):
         return None
     converged = (st["exploration"] or {}).get("converged") or ""
+    learning = st.get("learning")
     st["recommendation"] = recommendation(
         st["told"],
         st["budget"],
@@ -226,7 +251,8 @@ def saved_status(directory: str | Path) -> dict[str, Any] | None:
         st["quarantined"],
         str(path),
         converged,
-        st.get("learning"),
+        learning,
         bool(st.get("verifying")),
+        learning is not None and learns is not None and learns(path),
     )
     return st
