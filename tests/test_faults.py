@@ -211,3 +211,46 @@ def test_a_plant_that_fails_while_the_reference_is_computed_ends_the_run_with_a_
         "computing J(theta0), theta0's MPC on the plant from the evaluation starts failed: "
         "RuntimeError: plant step failure" in text
     )
+
+
+def test_a_state_that_is_not_finite_fails_the_episode_by_name_and_the_summary_says_so(
+    tmp_path, monkeypatch
+):
+    """A plant that returns a NaN state for one step of one learning episode (a sensor
+    dropout): that episode fails, named as a state that is not finite (not as a divergence),
+    the run goes on, and the summary and the run's warnings name the failed episode."""
+    from mpcmobo.cli import failed_warnings
+    from mpcmobo.systems.plant import SystemPlant
+
+    compute, armed, calls = study.compute_reference, [], []
+
+    def reference_then_arm(settings):
+        ref = compute(settings)
+        armed.append(1)
+        return ref
+
+    step = SystemPlant.step
+
+    def dropout(self, action):
+        obs, reward, terminated, truncated, info = step(self, action)
+        if armed:
+            calls.append(1)
+            if len(calls) == 20:  # once, in a learning episode
+                obs = np.full_like(obs, np.nan)
+        return obs, reward, terminated, truncated, info
+
+    monkeypatch.setattr(study, "compute_reference", reference_then_arm)
+    monkeypatch.setattr(SystemPlant, "step", dropout)
+    summary = run_study(small(["mpc-rl"]), tmp_path / "run")
+    assert summary["complete"] is True
+    df = storage.read_episodes(tmp_path / "run")
+    failed = df[df.mean_stage_cost.isna()]
+    assert len(failed) == 1 and len(df) == EPISODES
+    e = int(failed.episode.iloc[0])
+    assert "the plant returned a state that is not finite at step" in failed.error.iloc[0]
+    per = summary["learners"]["mpc-rl"]["per_seed"]["0"]
+    assert [f["episode"] for f in per["failed_episodes"]] == [e]
+    assert summary["learners"]["mpc-rl"]["failed_episodes"] == 1
+    (line,) = failed_warnings(summary)
+    assert line.startswith(f"mpc-rl seed 0: 1 episode(s) failed (episode {e}: PlantDiverged: the")
+    assert "never deployed" in line

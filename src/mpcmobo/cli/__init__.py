@@ -295,10 +295,29 @@ def unpriced_warnings(summary: dict) -> list[str]:
     ]
 
 
+def failed_warnings(summary: dict) -> list[str]:
+    """One line per job with episodes that failed (``failed_episodes`` of its summary): how
+    many, the first with its error, and what it means for the theta that ran it."""
+    lines = []
+    for learner, s in summary["learners"].items():
+        for seed, per in s.get("per_seed", {}).items():
+            failed = per.get("failed_episodes") or []
+            if not failed:
+                continue
+            first = failed[0]
+            lines.append(
+                f"{learner} seed {seed}: {len(failed)} episode(s) failed (episode "
+                f"{first['episode']}: {first['error']}); the learner observed no closed loop "
+                "there, and a theta with a failed episode is never deployed"
+            )
+    return lines
+
+
 def warn_summary(summary: dict, unpriced: bool = True) -> None:
-    """Print :func:`bound_warnings` and (``unpriced``) :func:`unpriced_warnings` of
-    ``summary`` to standard error."""
-    lines = bound_warnings(summary) + (unpriced_warnings(summary) if unpriced else [])
+    """Print :func:`bound_warnings`, :func:`failed_warnings` and (``unpriced``)
+    :func:`unpriced_warnings` of ``summary`` to standard error."""
+    lines = bound_warnings(summary) + failed_warnings(summary)
+    lines += unpriced_warnings(summary) if unpriced else []
     for line in lines:
         err_console.print(f"warning: {escape(line)}", highlight=False, soft_wrap=True)
 

@@ -81,9 +81,23 @@ def _seed_summary(
         "plant_cost": _sum_or_null(s, "plant_cost"),
         "excess_cost": _sum_or_null(s, "excess_cost"),
         "theta_final": [float(x) for x in s["incumbent"].iloc[-1]],
+        "failed_episodes": _failed_episodes(s),
         "identified_final": _last_identified(s),
         "wall_time_s": float(wall_time_s),
     }
+
+
+def _failed_episodes(s: pd.DataFrame) -> list[dict[str, Any]]:
+    """The job's episodes that failed (no closed loop to learn from: the plant diverged or
+    returned a state that is not finite, the episode broke), each ``{"episode", "error"}``
+    (none in a file without the columns)."""
+    if "mean_stage_cost" not in s.columns or "error" not in s.columns:
+        return []
+    failed = s[~np.isfinite(s["mean_stage_cost"].to_numpy(float))]
+    return [
+        {"episode": int(e), "error": str(err)}
+        for e, err in zip(failed["episode"], failed["error"], strict=True)
+    ]
 
 
 def _sum_or_null(s: pd.DataFrame, column: str) -> float | None:
@@ -127,6 +141,7 @@ def _learner_summary(
         "J_final_worst": max(J_finals) if J_finals else None,
         "J_worst": max(worst) if worst else None,
         "regressions": int(sum(v["regressions"] for v in vals)),
+        "failed_episodes": int(sum(len(v.get("failed_episodes", [])) for v in vals)),
         "seeds_with_regressions": sum(1 for v in vals if v["regressions"] > 0),
         **_best_seed_theta(per_seed),
         "theta_names": theta_names,

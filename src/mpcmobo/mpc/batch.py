@@ -32,7 +32,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mpcmobo.mpc.closed_loop import RUNAWAY, PlantDiverged, _blank_record
+from mpcmobo.mpc.closed_loop import RUNAWAY, PlantDiverged, _blank_record, not_finite
 from mpcmobo.mpc.kkt import NumpyCall
 from mpcmobo.mpc.parametric import ParametricMPC
 from mpcmobo.mpc.records import EpisodeRecord
@@ -302,7 +302,7 @@ def _plant_step(
     for j, i in enumerate(loops):
         x = X[i]
         if not np.all(np.isfinite(x)):
-            stopped = f"the plant diverged at step {k}: state {x}"
+            stopped = not_finite(k, x)
         elif np.any(far[j]):
             names = ", ".join(nm for nm, f in zip(system.state_names, far[j]) if f)
             stopped = (

@@ -222,6 +222,15 @@ def _record_solve(rec: EpisodeRecord, k: int, sol: MPCSolution, sensitivities: b
             rec.slack[k] = sol.slack
 
 
+def not_finite(k: int, x: np.ndarray) -> str:
+    """Why an episode whose plant returned the state ``x``, not finite, after step ``k`` is
+    stopped."""
+    return (
+        f"the plant returned a state that is not finite at step {k}: {x} (a sensor dropout, "
+        "or a diverged simulation); the episode is stopped"
+    )
+
+
 def _apply(
     system: System, plant: gymnasium.Env, rec: EpisodeRecord, k: int, x: np.ndarray, u: np.ndarray
 ) -> tuple[np.ndarray, bool]:
@@ -235,7 +244,7 @@ def _apply(
     x = _measured(system, obs, f"step {k}")
     stopped = None
     if not np.all(np.isfinite(x)):
-        stopped = f"the plant diverged at step {k}: state {x}"
+        stopped = not_finite(k, x)
     else:
         far = np.abs(x - system.x_ref) > RUNAWAY * np.asarray(system.x_scale, float)
         if np.any(far):
