@@ -283,6 +283,7 @@ def test_ray_joins_the_cluster_ray_address_names(tmp_path, monkeypatch):
 
     fake = types.SimpleNamespace(is_initialized=lambda: False, init=init)
     monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.setattr(workers, "check_reachable", lambda address: None)  # no "head" here
     monkeypatch.setenv("RAY_ADDRESS", "ray://head:10001")
     with pytest.raises(RuntimeError, match="stop here"):
         workers._run_ray([], {}, 2, None)  # type: ignore[arg-type]
@@ -291,6 +292,30 @@ def test_ray_joins_the_cluster_ray_address_names(tmp_path, monkeypatch):
         workers._run_ray([], {}, 2, None)  # type: ignore[arg-type]
     assert calls[0] == {"address": "ray://head:10001", "ignore_reinit_error": True}
     assert calls[1]["num_cpus"] == 2 and "address" not in calls[1]
+
+
+def test_a_ray_cluster_takes_the_jobs_with_one_worker_and_must_answer(tmp_path, monkeypatch):
+    """With ``backend = "ray"`` and RAY_ADDRESS set, the jobs go to the cluster even with
+    ``workers = 1`` (its CPUs decide); an address where nothing answers is refused at once,
+    naming it, where Ray would wait for minutes."""
+    import socket
+
+    from mpcmobo.experiment import workers
+    from mpcmobo.experiment.rundir import RunDirectory, StudyError
+
+    sent = []
+    monkeypatch.setattr(workers, "_run_ray", lambda jobs, args, n, watch: sent.append(jobs))
+    monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
+    s = small(workers=1, backend="ray")
+    run_dir = RunDirectory(tmp_path / "run")
+    workers.run_jobs([("mpc-rl", 0)], {}, s, run_dir, lambda event: None)
+    assert sent == [[("mpc-rl", 0)]]
+    with socket.socket() as free:  # a port nothing listens on
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    with pytest.raises(StudyError, match=f"RAY_ADDRESS=127.0.0.1:{port}: no Ray cluster answers"):
+        workers.check_reachable(f"127.0.0.1:{port}")
+    workers.check_reachable("auto")  # left to Ray
 
 
 def tiny_lq(**options):

@@ -33,8 +33,11 @@ def run_jobs(
     run_dir: RunDirectory,
     emit: Progress,
 ) -> None:
-    """Run the jobs here, one after the other, or in worker processes (``settings.backend``)."""
-    if settings.workers == 1 or len(jobs) <= 1 and settings.backend == "process":
+    """Run the jobs here, one after the other, or in worker processes (``settings.backend``):
+    with ``backend = "ray"`` and a cluster named by ``RAY_ADDRESS``, on the cluster whatever
+    ``workers`` says (its CPUs decide how many jobs run at once); else with one worker, here."""
+    cluster = settings.backend == "ray" and bool(os.environ.get("RAY_ADDRESS"))
+    if not cluster and (settings.workers == 1 or len(jobs) <= 1 and settings.backend == "process"):
         for n, s in jobs:
             run_job(learner_name=n, seed=s, on_episode=emit, **args)
         return
@@ -171,6 +174,29 @@ def _stop_pool(pool: ProcessPoolExecutor, stop: Path, remaining: Collection[Futu
     pool.shutdown(wait=False, cancel_futures=True)
 
 
+# how long the study waits for a Ray cluster's address to accept a connection
+CLUSTER_TIMEOUT_S = 10.0
+
+
+def check_reachable(address: str) -> None:
+    """A :class:`StudyError` where ``RAY_ADDRESS`` names a ``host:port`` (or ``ray://host:port``)
+    that accepts no connection within ``CLUSTER_TIMEOUT_S``: Ray itself would wait for it for
+    minutes, with nothing but its own retries on the terminal. ``auto`` is left to Ray."""
+    import socket
+
+    target = address.removeprefix("ray://")
+    host, sep, port = target.rpartition(":")
+    if not sep or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host or "127.0.0.1", int(port)), CLUSTER_TIMEOUT_S).close()
+    except OSError as err:
+        raise StudyError(
+            f"RAY_ADDRESS={address}: no Ray cluster answers there ({err}); start it (ray start "
+            "--head), or unset RAY_ADDRESS to run the jobs on this machine"
+        ) from None
+
+
 def _run_ray(
     jobs: list[tuple[str, int]], args: dict[str, Any], workers: int, watch: _Watch
 ) -> None:
@@ -185,6 +211,7 @@ def _run_ray(
     if started:
         address = os.environ.get("RAY_ADDRESS")
         if address:  # an existing cluster: its own CPUs decide how many jobs run at once
+            check_reachable(address)
             ray.init(address=address, ignore_reinit_error=True)
         else:
             ray.init(num_cpus=workers, include_dashboard=False, ignore_reinit_error=True)
