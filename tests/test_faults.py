@@ -211,6 +211,11 @@ def test_a_plant_that_fails_while_the_reference_is_computed_ends_the_run_with_a_
         "computing J(theta0), theta0's MPC on the plant from the evaluation starts failed: "
         "RuntimeError: plant step failure" in text
     )
+    assert not (tmp_path / "run").exists()  # nothing recorded: the same --out starts anew
+    (tmp_path / "empty").mkdir()  # an empty directory given is left empty
+    args = ["run", "-c", str(tmp_path / "s.toml"), "--out", str(tmp_path / "empty"), "-q"]
+    assert CliRunner().invoke(app, args).exit_code == 1
+    assert (tmp_path / "empty").is_dir() and not any((tmp_path / "empty").iterdir())
 
 
 def test_a_state_that_is_not_finite_fails_the_episode_by_name_and_the_summary_says_so(

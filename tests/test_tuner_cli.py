@@ -232,3 +232,33 @@ def test_status_says_when_the_fit_no_longer_follows_the_trials(capsys):
         text = " ".join(out.get().split())
         assert "fitted on 425 transitions" in text
         assert ("the trials since are not fitted" in text) == frozen
+
+
+def test_a_study_of_one_learner_and_seed_is_not_taken_for_a_tuner(tmp_path):
+    """``ask``, ``status`` and ``Tuner.load`` on the directory of ``mpcmobo run`` with one
+    learner and one seed are refused, naming how to go on with it and where its results are;
+    nothing is written into it."""
+    from mpcmobo.experiment.settings import load_settings
+    from mpcmobo.experiment.study import run_study
+
+    out = tmp_path / "study"
+    s = load_settings(
+        None,
+        system={"name": "lq"},
+        learners=["identify"],
+        seeds=[0],
+        episodes=1,
+        steps=5,
+        workers=1,
+        evaluation={"n_starts": 1},
+    )
+    run_study(s, out)
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    for args in (["status", str(out)], ["ask", str(out)]):
+        res = runner.invoke(app, args)
+        text = _output(res)
+        assert res.exit_code == 2, text
+        assert "holds a study of mpcmobo run" in text and "mpcmobo run --resume" in text
+    with pytest.raises(TunerError, match="not a tuner"):
+        Tuner.load(out)
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before

@@ -19,7 +19,7 @@ from mpcmobo.experiment.build import build_system
 from mpcmobo.experiment.evaluation import make_evaluator, mean_cost, no_J_star_reason
 from mpcmobo.experiment.loop import EPISODE_FAILURES
 from mpcmobo.experiment.records import Reference, Trajectory
-from mpcmobo.experiment.rundir import RunDirectory, StudyError
+from mpcmobo.experiment.rundir import ReferenceFailed, RunDirectory, StudyError
 from mpcmobo.experiment.settings import Settings
 from mpcmobo.experiment.training_reference import training_references
 from mpcmobo.systems.base import System
@@ -115,7 +115,7 @@ def compute_reference(settings: Settings) -> Reference:
             eps = evaluator.episodes(theta, model)
         except EPISODE_FAILURES as err:
             what = "J(theta0), theta0's MPC" if phase == "initial" else "J*, the perfect MPC"
-            raise StudyError(
+            raise ReferenceFailed(
                 f"computing {what} on the plant from the evaluation starts failed: "
                 f"{type(err).__name__}: {err}. Every J_eval is measured against these; check the "
                 "plant (docs/user-systems.md) and run again"

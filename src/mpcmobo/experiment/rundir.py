@@ -41,6 +41,11 @@ class StudyError(RuntimeError):
     """A study cannot run as asked (e.g. the output directory already holds another run)."""
 
 
+class ReferenceFailed(StudyError):
+    """J* or J_eval(theta0) could not be computed on the plant: a new run ends with nothing
+    of it kept (:func:`~mpcmobo.experiment.study.run_study`)."""
+
+
 class RunFileError(StudyError):
     """A file of a run cannot be read; the message names it and says what to do."""
 

@@ -16,6 +16,7 @@ Its parts: the reference (:mod:`~mpcmobo.experiment.reference`), the records and
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 from mpcmobo.experiment import interrupts
@@ -24,7 +25,7 @@ from mpcmobo.experiment.job import Progress, explores, make_study_learner, progr
 from mpcmobo.experiment.logs import run_log
 from mpcmobo.experiment.records import Reference
 from mpcmobo.experiment.reference import check_run_system, compute_reference
-from mpcmobo.experiment.rundir import RunDirectory, StudyError, open_run
+from mpcmobo.experiment.rundir import ReferenceFailed, RunDirectory, StudyError, open_run
 from mpcmobo.experiment.sections import SettingsError
 from mpcmobo.experiment.settings import Settings
 from mpcmobo.experiment.summary import write_records
@@ -92,9 +93,25 @@ def run_study(
             )
         if resume:
             check_run_system(RunDirectory(out_dir))
+        existed = Path(out_dir).exists()
         run_dir, settings = open_run(out_dir, settings, resume)
-        with run_log(run_dir.path, "study"):
-            return _run_study(run_dir, settings, resume, progress, max_episodes_this_call)
+        try:
+            with run_log(run_dir.path, "study"):
+                return _run_study(run_dir, settings, resume, progress, max_episodes_this_call)
+        except ReferenceFailed:
+            if not resume:  # nothing was recorded: the directory is as it was
+                _remove_new_run(run_dir.path, existed)
+            raise
+
+
+def _remove_new_run(path: Path, existed: bool) -> None:
+    """What a new run wrote in ``path`` (an empty directory, or a new one) before it ended
+    without a reference."""
+    for item in [*path.iterdir()] if existed else [path]:
+        if item.is_dir():
+            shutil.rmtree(item, ignore_errors=True)
+        else:
+            item.unlink(missing_ok=True)
 
 
 def _run_study(

@@ -185,13 +185,15 @@ class Tuner:
             raise TunerError(f"{out} holds no tuner (no config.toml)")
         run_dir.check_schema()
         restore_system(run_dir.path)
-        check_run_system(run_dir)
         settings = run_dir.saved_settings()
-        if len(settings.learners) != 1 or len(settings.seeds) != 1:
+        if not run_dir.is_tuner():  # a study of mpcmobo run, whose episodes it runs itself
             raise TunerError(
-                f"{out} holds a study of {len(settings.learners)} learners and "
-                f"{len(settings.seeds)} seeds; a tuner has one of each"
+                f"{out} holds a study of mpcmobo run ({len(settings.learners)} learner(s), "
+                f"{len(settings.seeds)} seed(s)), not a tuner: continue it with mpcmobo run "
+                f"--resume --out {out}; its results: mpcmobo evaluate {out}, mpcmobo plot "
+                f"{out}, mpcmobo dashboard {out}"
             )
+        check_run_system(run_dir)
         if episodes is not None and episodes != settings.episodes:
             if episodes < settings.episodes:
                 raise TunerError(
