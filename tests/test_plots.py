@@ -430,3 +430,27 @@ def test_the_figures_of_a_partial_run_say_so(small_run, tmp_path):
     finally:
         plots._save = real_save
     assert len(drawn) >= 4 and all(note in texts for texts in drawn)
+
+
+def test_a_failed_training_reference_episode_is_named_in_the_summary():
+    """A perfect-model episode of J~* that failed (a NaN) leaves that seed's J~* null; the
+    summary says why (``J_tilde_star_reason``) instead of a silent null."""
+    from mpcmobo.experiment.records import Reference, TrainingReference
+    from mpcmobo.experiment.training_reference import training_summary
+
+    def reference(*training):
+        return Reference(
+            J_star=1.0, J_initial=2.0, theta0=np.zeros(1), system={}, training=list(training)
+        )
+
+    ok, bad = (
+        TrainingReference(0, [1.0, 2.0], [[0.0]]),
+        TrainingReference(1, [1.0, math.nan], [[0.0]]),
+    )
+    assert "J_tilde_star_reason" not in training_summary(reference(ok))
+    one = training_summary(reference(ok, bad))
+    assert (
+        one["J_tilde_star"] == 1.5 and "seed(s) 1: their J~* is null" in one["J_tilde_star_reason"]
+    )
+    none = training_summary(reference(bad))
+    assert none["J_tilde_star"] is None and none["J_tilde_star_reason"].endswith("so is the median")

@@ -259,7 +259,7 @@ def test_a_tuner_is_extended_not_shortened_and_not_run_by_mpcmobo_run(tmp_path):
     assert Tuner.load(out).settings.episodes == 2  # saved
     runner = CliRunner()
     res = runner.invoke(app, ["ask", str(out), "--learner", "mpc-rl"])
-    assert res.exit_code == 2 and "--learner apply only when one is made" in res.output
+    assert res.exit_code == 2 and "--learner applies only when one is made" in res.output
     res = runner.invoke(app, ["ask", str(out), "--episodes", "3"])
     assert res.exit_code == 0 and json.loads(res.output)["id"] == 1, res.output
     assert Tuner.load(out).settings.episodes == 3
@@ -393,3 +393,31 @@ def test_the_command_line_asks_tells_and_reports(tmp_path):
     res = runner.invoke(app, ["status", str(d)])
     assert res.exit_code == 0 and "1 of 2 trials told" in res.output and "Q_p" in res.output
     assert pd.read_parquet(d / "episodes.parquet").shape[0] == 1
+
+
+def test_a_tell_killed_between_its_checkpoint_and_its_records_is_repaired_at_the_next_load(
+    lq_tuner, monkeypatch
+):
+    """A tell stopped after the learner's state was saved (the trial told) and before the
+    records and ``status.json`` were written from it: the next load writes them, so the
+    records, the status file and the checkpoint agree (as after a tell that ended)."""
+    import mpcmobo.experiment.tuner as tuner_module
+
+    tuner, trial = lq_tuner
+    out = tuner.run_dir.path
+
+    def killed(*args, **kwargs):
+        raise SystemExit("killed here")  # as kill -9 after the checkpoint
+
+    monkeypatch.setattr(tuner_module, "write_records", killed)
+    monkeypatch.setattr(Tuner, "_write_status", lambda self: None)  # nothing runs after a kill
+    with pytest.raises(SystemExit):
+        tuner.tell(trial, *_episode(tuner, trial))
+    monkeypatch.undo()
+    assert not (out / "episodes.parquet").exists()  # no records of the told trial
+    assert json.loads((out / "status.json").read_text())["told"] == 0
+    loaded = Tuner.load(out)
+    assert loaded.episodes == 1
+    assert len(pd.read_parquet(out / "episodes.parquet")) == 1
+    assert json.loads((out / "status.json").read_text())["told"] == 1
+    assert loaded.ask().id == 1

@@ -254,7 +254,7 @@ def test_a_study_of_one_learner_and_seed_is_not_taken_for_a_tuner(tmp_path):
     )
     run_study(s, out)
     before = sorted(p.relative_to(out) for p in out.rglob("*"))
-    for args in (["status", str(out)], ["ask", str(out)]):
+    for args in (["status", str(out)], ["ask", str(out)], ["ask", str(out), "--system", "lq"]):
         res = runner.invoke(app, args)
         text = _output(res)
         assert res.exit_code == 2, text

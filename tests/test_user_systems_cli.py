@@ -199,3 +199,28 @@ def test_a_resume_refuses_a_system_whose_file_changed(tmp_path, edit, named):
     (d / "usersys.py").write_text(source)
     res = subprocess.run(resume, capture_output=True, text=True, env=same_source_env())
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_a_tuner_refuses_its_pending_trial_once_its_systems_file_changed(tmp_path):
+    """A tuner's pending trial is handed out without loading the tuner; once its system's file
+    is newer than its reference and the system differs, ``ask`` loads it and is refused,
+    before the plant runs the trial, naming the tuner and the file."""
+    (tmp_path / "user").mkdir()
+    d = write_user_files(tmp_path / "user")
+    spec = f"{d}/usersys.py:make_system"
+    out = tmp_path / "tuner"
+    cmd = [sys.executable, "-m", "mpcmobo.cli", "ask", str(out)]
+    env = same_source_env()
+    res = subprocess.run(
+        [*cmd, "--system", spec, "--episodes", "3"], capture_output=True, text=True, env=env
+    )
+    assert res.returncode == 0, res.stderr
+    source = (d / "usersys.py").read_text()
+    (d / "usersys.py").write_text(source.replace("imperfect=(0.6,)", "imperfect=(0.7,)"))
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    said = " ".join((res.stdout + res.stderr).split())
+    assert res.returncode == 1, said
+    assert f"the tuner in {out} (its system from {spec})" in said and "nominal_params" in said
+    (d / "usersys.py").write_text(source)  # as it was: the pending trial again
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    assert res.returncode == 0 and '"id": 0' in res.stdout, res.stdout + res.stderr

@@ -73,14 +73,16 @@ def _tuner(directory: Path, episodes: int | None, **create: Any) -> Any:
     ``create`` the first time (None: the default)."""
     from mpcmobo.experiment.tuner import Tuner
 
-    if RunDirectory(directory).holds_run():
+    run_dir = RunDirectory(directory)
+    if run_dir.holds_run():
         given = [f"--{k}" for k, v in create.items() if v is not None]
-        if given:
+        if given and run_dir.is_tuner():
             raise TunerError(
-                f"{directory} holds a tuner already; {', '.join(given)} apply only when one "
-                "is made (--episodes extends its budget)"
+                f"{directory} holds a tuner already; {', '.join(given)} "
+                f"{'applies' if len(given) == 1 else 'apply'} only when one is made "
+                "(--episodes extends its budget)"
             )
-        return Tuner.load(directory, episodes=episodes)
+        return Tuner.load(directory, episodes=episodes)  # a study: refused, named as one
     made = {k: v for k, v in create.items() if v is not None}
     if "system" not in made and "config" not in made:
         raise TunerError(
@@ -141,10 +143,12 @@ def _write_trial(directory: Path, tuner: Any) -> dict:
 
 def _prepared_trial(directory: Path) -> dict | None:
     """The pending trial as ``DIR/trials/<id>/trial.json`` holds it, where the tuner's
-    ``status.json`` is current and names it pending and its controller was written (None:
-    the tuner must be loaded to ask)."""
+    ``status.json`` is current and names it pending, its controller was written and its
+    system's file is not newer than its reference (None: the tuner must be loaded to ask)."""
     st = saved_status(directory)
     if st is None or st["pending"] is None or st.get("learning") is not None:
+        return None
+    if RunDirectory(directory).system_file_changed():  # loading the tuner checks the system
         return None
     where = directory / "trials" / str(st["pending"])
     if not (where / "controller.casadi").is_file():

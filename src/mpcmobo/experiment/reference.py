@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import time
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -72,15 +71,19 @@ def check_run_system(run_dir: RunDirectory) -> None:
     run_dir.check_schema()
     reference = run_dir.reference()
     if reference is not None:
-        system = build_system(run_dir.saved_settings())
-        check_same_system(reference.system, system, run_dir.path)
+        settings = run_dir.saved_settings()
+        what = f"{'tuner' if run_dir.is_tuner() else 'run'} in {run_dir.path}"
+        if settings.system.factory is not None:
+            what += f" (its system from {settings.system.factory})"
+        check_same_system(reference.system, build_system(settings), what)
 
 
-def check_same_system(saved: dict, system: System, where: str | Path) -> None:
-    """Refuse (:class:`StudyError`) to go on with the run in ``where`` when ``system`` is not
-    the one its reference was computed with (``saved``: its :func:`system_info`): a field that
-    differs, or equations whose fingerprint differs under the same CasADi. A run saved before
-    the fingerprint existed is compared on the other fields."""
+def check_same_system(saved: dict, system: System, what: str) -> None:
+    """Refuse (:class:`StudyError`) to go on with ``what`` (the run or tuner, in words) when
+    ``system`` is not the one its reference was computed with (``saved``: its
+    :func:`system_info`): a field that differs, or equations whose fingerprint differs under
+    the same CasADi. A run saved before the fingerprint existed is compared on the other
+    fields."""
     now = system_info(system)
     changed = [k for k in now if k in saved and k not in _NOT_COMPARED and saved[k] != now[k]]
     before, after = saved.get("equations"), now["equations"]
@@ -89,9 +92,9 @@ def check_same_system(saved: dict, system: System, where: str | Path) -> None:
             changed.append("its equations (dynamics or path constraints)")
     if changed:
         raise StudyError(
-            f"the system is not the one the run in {where} was made with: "
-            f"{', '.join(changed)} changed since, and the records would mix two systems. "
-            f"Go on with the system as it was, or start a new run in another directory"
+            f"the system is not the one the {what} was made with: {', '.join(changed)} "
+            "changed since, and the records would mix two systems. Go on with the system as "
+            "it was, or start anew in another directory"
         )
 
 

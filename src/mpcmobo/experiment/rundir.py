@@ -123,6 +123,21 @@ class RunDirectory:
         """Whether the directory holds a run (its ``config.toml`` exists)."""
         return self.config.exists()
 
+    def system_file_changed(self) -> bool:
+        """Whether the file of the run's system factory (``[system] factory`` of its
+        ``config.toml``) was written after its reference: a cheap sign, without building the
+        system, that the system may have changed (the full check: ``reference.
+        check_run_system``). False for a named system, or where either file is missing."""
+        import tomllib
+
+        try:
+            config = tomllib.loads(self.config.read_text(encoding="utf-8"))
+            factory = str(config["system"]["factory"])
+            source = Path(factory.rsplit(":", 1)[0])
+            return source.stat().st_mtime_ns > self.reference_path.stat().st_mtime_ns
+        except (OSError, ValueError, KeyError, TypeError):
+            return False
+
     def is_tuner(self) -> bool:
         """Whether the run is a tuner's (ask and tell): its episodes run on a plant outside
         mpcmobo, so ``mpcmobo run --resume`` must not run them."""

@@ -96,8 +96,16 @@ def training_summary(reference: Reference) -> dict[str, Any]:
         return {"J_tilde_star": None, "J_tilde_star_reason": reason}
     per_seed = {str(t.seed): t.mean for t in reference.training}
     finite = [v for v in per_seed.values() if math.isfinite(v)]
-    return {
+    out: dict[str, Any] = {
         "J_tilde_star": float(np.median(finite)) if finite else None,
         "J_tilde_star_per_seed": per_seed,
         "J_tilde_star_episodes": len(reference.training[0].J_tilde),
     }
+    failed = [seed for seed, v in per_seed.items() if not math.isfinite(v)]
+    if failed:
+        out["J_tilde_star_reason"] = (
+            f"an episode of the perfect-model MPC failed (the plant diverged or returned a "
+            f"state that is not finite) on the training starts of seed(s) {', '.join(failed)}: "
+            "their J~* is null" + ("" if finite else ", and so is the median")
+        )
+    return out

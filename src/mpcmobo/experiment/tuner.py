@@ -204,9 +204,22 @@ class Tuner:
         tuner = cls.__new__(cls)
         tuner._open(run_dir, settings, new=False)
         tuner._learn_accepted()
-        if episodes is not None and episodes > tuner.files.status_budget():
+        if tuner._records_behind():  # a tell killed after its checkpoint, before its records
+            write_records(run_dir.path, settings, tuner.reference)
+            tuner._write_status()
+        elif episodes is not None and episodes > tuner.files.status_budget():
             tuner._write_status()  # the larger budget, for `mpcmobo status`
         return tuner
+
+    def _records_behind(self) -> bool:
+        """Whether ``status.json`` (written last by a tell) is older than the job's checkpoint:
+        a tell was stopped after the learner's state was saved and before the records and the
+        status were written from it."""
+        ckpt = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
+        status = self.files.status_path
+        if not (ckpt.exists() and status.exists()):
+            return ckpt.exists()
+        return status.stat().st_mtime_ns < ckpt.stat().st_mtime_ns
 
     def _open(self, run_dir: RunDirectory, settings: Settings, new: bool) -> None:
         self.run_dir, self.settings = run_dir, settings
