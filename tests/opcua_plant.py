@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import _thread
 import asyncio
+import signal
 import socket
 import threading
 import time
@@ -170,9 +171,11 @@ class SimPlant:
         """The server goes away now and comes back after ``seconds`` (not waited for)."""
         return asyncio.run_coroutine_threadsafe(self._outage(seconds), self.loop)
 
-    def interrupt_after(self, n_requests: int) -> None:
-        """A Ctrl-C in the main thread at the ``n_requests``-th write request from now."""
+    def interrupt_after(self, n_requests: int, signum: int = signal.SIGINT) -> None:
+        """A Ctrl-C (or the signal ``signum``) in the main thread at the ``n_requests``-th
+        write request from now."""
         self.interrupt_at = self.requests + n_requests
+        self.interrupt_signal = signum
 
     def after_writes(self, n_requests: int, fault: Any) -> threading.Thread:
         """Call ``fault()`` (in a thread of its own) once ``n_requests`` more write requests
@@ -307,4 +310,4 @@ class SimPlant:
             await self._publish()
         if self.interrupt_at is not None and self.requests >= self.interrupt_at:
             self.interrupt_at = None
-            _thread.interrupt_main()
+            _thread.interrupt_main(self.interrupt_signal)

@@ -23,7 +23,7 @@ from mpcmobo.experiment.tuner import Tuner
 from mpcmobo.systems import get_system
 
 sys.path.insert(0, str(Path(__file__).parent))
-from opcua_plant import SimPlant, free_port, node_map  # noqa: E402
+from opcua_plant import KELVIN, SimPlant, free_port, node_map  # noqa: E402
 
 PERIOD = 0.15  # the CSTR's 3 s sampling, 20 times faster
 CONFIG = """\
@@ -180,6 +180,26 @@ def test_ctrl_c_writes_the_safe_input_and_exits_130(plant, tuner_dir, tmp_path, 
     assert Tuner.load(tuner_dir).status()["pending"] == tid
 
 
+def test_sigterm_writes_the_safe_input_first_and_exits_143(plant, tuner_dir, tmp_path, cstr_system):
+    """SIGTERM (a service manager, ``kill``) during a trial stops it as Ctrl-C does: the safe
+    input written, the log so far kept, the trial pending; exit code 143."""
+    import signal
+
+    args = ["connect", str(tuner_dir), "--url", plant.url, "--nodes", str(_nodes(tmp_path))]
+    for _ in range(3):  # the simulated signal can reach a trial's last period
+        tid = Tuner.load(tuner_dir).ask().id
+        plant.interrupt_after(4, signal.SIGTERM)
+        res = runner.invoke(app, [*args, "--period", str(PERIOD), "--trials", "1"])
+        if res.exit_code != 0:
+            break
+    assert res.exit_code == 143, res.output
+    assert "interrupted (SIGTERM): the safe input is written;" in res.output
+    assert np.array_equal(_last_input(plant), SAFE)
+    note = tuner_dir / "trials" / str(tid) / "aborted-1.json"
+    assert "SIGTERM" in note.read_text()
+    assert Tuner.load(tuner_dir).status()["pending"] == tid
+
+
 def test_ctrl_c_between_trials_says_that_no_trial_was_in_progress(tuner_dir, tmp_path):
     """What a Ctrl-C's message says of the trials: the one in progress is not told; between
     trials none was in progress, and the told ones are named."""
@@ -214,6 +234,23 @@ def test_an_unreachable_server_bad_nodes_and_a_cycled_start_exit_2(plant, tuner_
     res = runner.invoke(app, [*base, "--url", plant.url, "--nodes", str(nodes)])
     assert res.exit_code == 2 and "enable node ns=2;s=CSTR.Enable is off" in res.output
     assert plant.writes == []
+    celsius = tmp_path / "celsius.toml"  # T's node holds Celsius: the map lost its offset
+    celsius.write_text(node_map().replace(f", offset = {-KELVIN}", ""))
+    plant.set_enable(True)
+    for dry in ([], ["--dry-run"]):
+        res = runner.invoke(app, [*base, "--url", plant.url, "--nodes", str(celsius), *dry])
+        said = " ".join(res.output.split())
+        assert res.exit_code == 2, said
+        assert "the plant's reading is not a state of the system (T = " in said
+        assert "check the node map's scale and offset" in said and "nothing is written" in said
+    assert plant.writes == []
+    boolean = tmp_path / "boolean.toml"  # an input on a Boolean node (the enable's)
+    boolean.write_text(node_map().replace('qc = "ns=2;s=CSTR.qc"', 'qc = "ns=2;s=CSTR.Enable"'))
+    res = runner.invoke(app, [*base, "--url", plant.url, "--nodes", str(boolean), "--dry-run"])
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "input qc (ns=2;s=CSTR.Enable) is a Boolean node" in said, said
+    assert plant.writes == []
+    plant.set_enable(False)
     assert {p: p.stat().st_mtime_ns for p in stamp} == stamp  # the checkpoint untouched
     (tmp_path / "cycle.toml").write_text('start_mode = "cycle"\n' + CONFIG)
     plant.set_enable(True)
@@ -297,3 +334,25 @@ def test_a_certificate_signs_and_encrypts_the_channel(
         assert plant.input_writes("qs").size == 8 + 1
     finally:
         plant.close()
+
+
+def test_a_trial_with_the_controllers_fallback_inputs_is_told(plant, tuner_dir, tmp_path):
+    """Periods whose solve misses its budget write the previous plan's input (marked in the
+    log's ``fallback`` column); the tuner's input check takes those steps as the controller's
+    fallback, so the trial is told, not quarantined."""
+    nodes = _nodes(tmp_path, solve_budget=0.001)  # a solve cannot finish within 0.15 ms
+    outcome = run_plant(Tuner.load(tuner_dir), plant.url, nodes, PERIOD)[-1]
+    assert outcome.status == "told" and outcome.fallbacks > 0, outcome.message
+    log = pd.read_csv(outcome.log)
+    assert log["fallback"].iloc[:-1].sum() == outcome.fallbacks
+    assert Tuner.load(tuner_dir).status()["quarantined"] == []
+
+
+def test_a_password_in_the_url_without_a_security_policy_is_warned_of(plant, tuner_dir, tmp_path):
+    """The password of ``opc.tcp://user:password@host`` travels unencrypted without a security
+    policy, as the node map's does: ``connect`` warns, and never prints the password."""
+    url = plant.url.replace("opc.tcp://", "opc.tcp://operator:s3cret@")
+    args = ["connect", str(tuner_dir), "--url", url, "--nodes", str(_nodes(tmp_path))]
+    res = runner.invoke(app, [*args, "--period", str(PERIOD), "--dry-run"])
+    assert "warning: no security policy: the password goes to the server unencrypted" in res.output
+    assert "s3cret" not in res.output

@@ -15,6 +15,7 @@ import logging
 import tomllib
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import typer
 
@@ -70,7 +71,8 @@ def connect(
     def go() -> Any:
         tuner = _tuner(directory, episodes, **create)
         node_map = load_nodes(nodes, tuner.system)
-        if node_map.security.password is not None and not node_map.security.encrypted:
+        password = node_map.security.password is not None or urlsplit(url).password
+        if password and not node_map.security.encrypted:
             echo("warning: no security policy: the password goes to the server unencrypted")
         dry = " (dry run: nothing is written)" if dry_run else ""
         echo(f"connecting to {public_url(url)}{dry}")
@@ -80,8 +82,9 @@ def connect(
     try:
         outcomes = _errors(lambda: _connect_errors(go, ConnectError))
     except KeyboardInterrupt as err:
-        cli.err_console.print(f"interrupted (SIGINT): {err}", highlight=False, soft_wrap=True)
-        raise typer.Exit(130) from None
+        name = getattr(err, "signal_name", "SIGINT")
+        cli.err_console.print(f"interrupted ({name}): {err}", highlight=False, soft_wrap=True)
+        raise typer.Exit(143 if name == "SIGTERM" else 130) from None
     for outcome in outcomes:
         if outcome.status == "dry-run":
             echo(

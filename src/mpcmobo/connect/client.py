@@ -149,6 +149,15 @@ class PlantClient:
                     f"{dv.StatusCode.name}"
                 )
         self._types = [dv.Value.VariantType for dv in values[len(self._reads) :]]
+        for name, vtype in zip(self.nodes.inputs, self._types):
+            kind = getattr(vtype, "name", str(vtype))
+            if kind not in NUMERIC_TYPES:
+                await self.close()
+                raise ConnectError(
+                    f"nodes: input {name} ({self.nodes.inputs[name].node}) is a {kind} node; "
+                    "an input needs a number node (Float or Double; an integer node rounds "
+                    "what is written, and the log records the rounded value)"
+                )
         if self.nodes.heartbeat is not None:
             beat = values[-1].Value.Value
             self._beat = int(beat) if not isinstance(beat, bool) else 0
@@ -193,18 +202,21 @@ class PlantClient:
         names = self.system.state_names
         return Reading(np.array([x[n] for n in names]), tuple(stamps[n] for n in names), enabled)
 
-    async def write(self, u: np.ndarray) -> None:
+    async def write(self, u: np.ndarray) -> np.ndarray:
         """Write the input ``u`` (model units, the system's order) and the next heartbeat in
-        one call; a refused value is a :class:`PlantFault` (``refused``)."""
+        one call; the input as written (model units: an integer node's rounding undone, so
+        that the log holds what the plant got). A refused value is a :class:`PlantFault`
+        (``refused``)."""
         if self.dry_run:
-            return
+            return np.asarray(u, float)
         ua = _ua()
         by_name = dict(zip(self.system.input_names, np.asarray(u, float)))
         values = [n.scale * by_name[name] + n.offset for name, n in self.nodes.inputs.items()]
         if self.nodes.heartbeat is not None:
             self._beat = (self._beat + 1) % 2**31
             values.append(self._beat)
-        dvs = [ua.DataValue(ua.Variant(_cast(v, t), t)) for v, t in zip(values, self._types)]
+        cast = [_cast(v, t) for v, t in zip(values, self._types)]
+        dvs = [ua.DataValue(ua.Variant(v, t)) for v, t in zip(cast, self._types)]
         if self._client is None:
             raise ConnectionLost("not connected to the server")
         try:
@@ -221,6 +233,11 @@ class PlantClient:
                 raise PlantFault(
                     "refused", f"the server refused the write of {name}: {status.name}"
                 )
+        written = {
+            name: (float(v) - n.offset) / n.scale
+            for (name, n), v in zip(self.nodes.inputs.items(), cast)
+        }
+        return np.array([written[name] for name in self.system.input_names])
 
 
 def _number(value: Any, name: str) -> float:
@@ -232,6 +249,12 @@ def _number(value: Any, name: str) -> float:
     if isinstance(value, bool) or not math.isfinite(v):
         raise PlantFault("quality", f"state {name} reads {value!r}, not a finite number")
     return v
+
+
+# the variant types an input node may have: numbers (an integer one rounds the value)
+NUMERIC_TYPES = frozenset(
+    {"Float", "Double", "Byte", "SByte", "Int16", "UInt16", "Int32", "UInt32", "Int64", "UInt64"}
+)
 
 
 def _cast(value: float, vtype: Any) -> Any:

@@ -172,7 +172,7 @@ async def _period(
     base, fallback, took = ctrl.action(reading.x, k)
     u = ctrl.system.clip_input(base + trial.noise[k])
     t_write = time.perf_counter()
-    await client.write(u)
+    u = await client.write(u)  # as written: an integer node rounds it
     done = time.perf_counter()
     log.add(
         reading.x,
@@ -206,7 +206,7 @@ async def run_trial(
     except PlantFault as fault:
         raise Aborted(fault.kind, str(fault), log) from None
     except asyncio.CancelledError:
-        raise Aborted("interrupted", "interrupted (Ctrl-C)", log) from None
+        raise Aborted("interrupted", "interrupted", log) from None
     except Exception as err:  # a bug or an MPC error: the plant is handed back all the same
         raise Aborted("error", f"{type(err).__name__}: {err}", log) from err
     finally:

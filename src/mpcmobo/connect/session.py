@@ -16,7 +16,9 @@ tells nothing (``dry-run-<n>.csv``).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,15 +30,20 @@ from mpcmobo.connect.client import PlantClient, PlantFault, Reading, public_url
 from mpcmobo.connect.nodes import ConnectError, NodeMap, load_nodes
 from mpcmobo.connect.runner import Aborted, TrialLog, run_trial
 from mpcmobo.experiment import storage
+from mpcmobo.experiment.checks import reading_problem
 from mpcmobo.experiment.tuner import START_TOLERANCE, Trial, Tuner, TunerError
 
 __all__ = ["Outcome", "PlantInterrupted", "run_plant"]
 
 
 class PlantInterrupted(KeyboardInterrupt):
-    """Ctrl-C stopped :func:`run_plant`; the message says whether the safe input is written
-    and what became of the trials: the one in progress is aborted (its log kept) and not told;
-    between trials, every trial run is told."""
+    """Ctrl-C or SIGTERM (``signal_name``) stopped :func:`run_plant`; the message says whether
+    the safe input is written and what became of the trials: the one in progress is aborted
+    (its log kept) and not told; between trials, every trial run is told."""
+
+    def __init__(self, message: str, signal_name: str = "SIGINT") -> None:
+        super().__init__(message)
+        self.signal_name = signal_name
 
 
 @dataclass(frozen=True)
@@ -86,8 +93,9 @@ def run_plant(
     session = _Session(tuner, url, nodes, period, dry_run, echo or (lambda _: None))
     try:
         return asyncio.run(session.run(trials))
-    except KeyboardInterrupt:
-        raise PlantInterrupted(f"{session.handed_back}; {session.trials_said()}") from None
+    except (KeyboardInterrupt, asyncio.CancelledError):  # Ctrl-C; SIGTERM cancels the run
+        said = f"{session.handed_back}; {session.trials_said()}"
+        raise PlantInterrupted(said, session.signal_name) from None
 
 
 class _Session:
@@ -109,6 +117,7 @@ class _Session:
         self.handed_back = "nothing was written to the plant"
         self.in_progress: int | None = None  # the trial started and not yet told or aborted
         self.told: list[int] = []  # the trials this session told
+        self.signal_name = "SIGINT"  # what stopped the run, if a signal did
 
     def trials_said(self) -> str:
         """What became of the trials, for a Ctrl-C's message."""
@@ -121,7 +130,19 @@ class _Session:
             f"{where}); connect again to run it{told}"
         )
 
+    def _on_sigterm(self, task: asyncio.Task) -> None:
+        """SIGTERM (a service manager, ``kill``) stops the run as Ctrl-C does: the trial in
+        progress is aborted and the plant handed back."""
+        self.signal_name = "SIGTERM"
+        task.cancel()
+
     async def run(self, trials: int) -> list[Outcome]:
+        task = asyncio.current_task()
+        if task is not None:  # a platform without signal handlers in the loop keeps SIGTERM's
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                asyncio.get_running_loop().add_signal_handler(
+                    signal.SIGTERM, self._on_sigterm, task
+                )
         await self.client.open()
         outcomes: list[Outcome] = []
         try:
@@ -159,19 +180,21 @@ class _Session:
         try:
             log = await run_trial(self.client, trial, self.nodes, self.period, first)
         except Aborted as ab:
-            path = self._save(trial, ab.log, "aborted", str(ab))
+            handed = await self._let_go(ab.kind)  # the plant first, then the log to disk
             if ab.kind == "interrupted":
+                self.handed_back = handed.lstrip("; ") or self.handed_back
+                self._save(trial, ab.log, "aborted", f"{ab} ({self.signal_name})")
                 raise asyncio.CancelledError from None
+            path = self._save(trial, ab.log, "aborted", str(ab))
             message = f"trial {trial.id} aborted: {ab} (log so far: {path}); it is not told"
-            message += await self._let_go(ab.kind)
-            return Outcome(trial.id, "aborted", path, message, None, *_timing(ab.log))
+            return Outcome(trial.id, "aborted", path, message + handed, None, *_timing(ab.log))
         if self.dry_run:
             path = self._save(trial, log, "dry-run", "")
             return Outcome(trial.id, "dry-run", path, "", None, *_timing(log))
         path = self._save(trial, log, "log", "")
-        names = [*self.tuner.system.state_names, *self.tuner.system.input_names]
+        names = [*self.tuner.system.state_names, *self.tuner.system.input_names, "fallback"]
         try:
-            row = self.tuner.tell(trial, log.frame()[names])
+            row = self.tuner.tell(trial, log.frame().reindex(columns=names))
         except TunerError as err:
             raise TunerError(
                 f"trial {trial.id}: {err} (its log is kept: {path}; the trial stays pending)"
@@ -193,6 +216,13 @@ class _Session:
                 "(the operator has not handed the plant over)"
             )
         s = self.tuner.system
+        implausible = reading_problem(s, first.x)
+        if implausible is not None:
+            raise ConnectError(
+                f"trial {trial.id} not started: the plant's reading is not a state of the "
+                f"system ({implausible}): check the node map's scale and offset of that state "
+                "(a unit error?); nothing is written"
+            )
         scale = np.asarray(s.x_scale, float)
         off = np.abs(first.x - trial.x0) / scale
         if self.tuner.settings.start_mode == "cycle" and np.any(off > START_TOLERANCE):

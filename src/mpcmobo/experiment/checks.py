@@ -137,6 +137,26 @@ def box_problems(
     return problems
 
 
+def reading_problem(system: System, x: np.ndarray) -> str | None:
+    """What makes one reading of the plant's states ``x`` (a live plant's, before anything is
+    written to it) not a state of the system, as :func:`box_problems` judges a log's column:
+    a state outside its bounds by more than half its box's width that a unit error explains,
+    or one more than :data:`FAR_WIDTHS` widths outside; None where every state is plausible."""
+    lo, hi, width = _box(system)
+    found = []
+    for j, name in enumerate(system.state_names):
+        out = max(lo[j] - x[j], x[j] - hi[j], 0.0) / width[j]
+        unit = _column_unit(name, np.array([x[j]]), (lo[j], hi[j], width[j]), None)
+        if out <= UNIT_OUTSIDE or (unit is None and out <= FAR_WIDTHS):
+            continue
+        hint = "" if unit is None else f" ({unit[0].split(', the column')[0]} it lies in its box)"
+        found.append(
+            f"{name} = {x[j]:.6g} is outside its bounds [{lo[j]:.6g}, {hi[j]:.6g}] by "
+            f"{out:.3g} box widths{hint}"
+        )
+    return "; ".join(found) or None
+
+
 # what a refusal the tool is sure of says of --force
 NOT_FORCED = (
     "--force does not accept a log with a state in the wrong unit or far outside its box "
@@ -357,13 +377,16 @@ def input_problems(
     noise: np.ndarray,
     trial: int,
     exported: Sequence[np.ndarray] = (),
+    fallback: np.ndarray | None = None,
 ) -> list[Problem]:
     """The applied inputs against the trial's controller ``pi`` (at the logged states) plus its
     ``noise``, clipped to the input bounds: the steps that differ by more than
     ``INPUT_TOLERANCE`` of the input's span, and what that suggests. ``exported``: the inputs
     of the trial's exported controller at the logged states (NaN where it failed), one array
     per way of calling it, which may stop at another local minimum: a step that matches any is
-    the trial's, and one where the exported controller failed is the user's fallback."""
+    the trial's, and one where the exported controller failed is the user's fallback; so is a
+    step the log marks as the controller's fallback (``fallback``: the previous plan's input,
+    applied where a solve missed its deadline)."""
     U, pi, noise = (np.asarray(a, float) for a in (inputs, pi, noise))
     lb, ub = np.asarray(system.u_lb, float), np.asarray(system.u_ub, float)
     span = np.where(np.isfinite(ub - lb), ub - lb, 2 * np.asarray(system.u_scale, float))
@@ -373,6 +396,8 @@ def input_problems(
         failed = ~np.all(np.isfinite(other), axis=1)
         differs = np.max(np.abs(U - np.clip(other + noise, lb, ub)) / span, axis=1)
         off = np.where(failed, 0.0, np.minimum(off, differs))
+    if fallback is not None:
+        off = np.where(fallback, 0.0, off)
     bad = np.flatnonzero(off > INPUT_TOLERANCE)
     if not len(bad):
         return []
@@ -512,12 +537,13 @@ def review(
     t0 = time.perf_counter()
     record = replay(system, mpc, plan.theta, X, U, log.stage_costs, log.violations)
     mpc_time = time.perf_counter() - t0
-    problems = input_problems(system, U, record.pi, plan.noise, plan.episode)
+    marked = log.fallback
+    problems = input_problems(system, U, record.pi, plan.noise, plan.episode, (), marked)
     if problems and len(problems[0].steps) > len(U) / 2 and _reversed(system, mpc, plan, log):
         return [Problem("time_order", REVERSED)], record, mpc_time
     if problems:  # the episode may have run on the trial's exported controller
         exported = controller_inputs(mpc, plan.theta, X[:-1])
-        problems = input_problems(system, U, record.pi, plan.noise, plan.episode, exported)
+        problems = input_problems(system, U, record.pi, plan.noise, plan.episode, exported, marked)
     problems += model_problems(system, X, U, params, history, model, confirmed)
     return problems, record, mpc_time
 

@@ -35,13 +35,16 @@ class TunerError(ValueError):
 @dataclass
 class PlantLog:
     """An episode's log: ``states`` (T+1, nx), ``inputs`` (T, nu), the plant's ``stage_costs``
-    and ``violations`` (T,) where it measured them, and its ``time`` (T+1,) where it has one."""
+    and ``violations`` (T,) where it measured them, its ``time`` (T+1,) where it has one, and
+    the steps whose input is the controller's fallback (``fallback``: the previous plan's
+    input, applied where a solve missed its deadline, as ``mpcmobo connect`` marks it)."""
 
     states: np.ndarray
     inputs: np.ndarray
     stage_costs: np.ndarray | None = None
     violations: np.ndarray | None = None
     time: np.ndarray | None = None
+    fallback: np.ndarray | None = None  # (T,) bool: the input is the controller's fallback
 
     def frame(self, system: System) -> Any:
         """The log as a table of the tuner's format (what :func:`write_log` writes)."""
@@ -55,6 +58,8 @@ class PlantLog:
         for name, arr in (("stage_cost", self.stage_costs), ("violation", self.violations)):
             if arr is not None:
                 data[name] = [*np.asarray(arr, float), np.nan]
+        if self.fallback is not None:
+            data["fallback"] = [*np.asarray(self.fallback, float), np.nan]
         return pd.DataFrame(data)
 
 
@@ -72,13 +77,26 @@ def parse_log(
 ) -> PlantLog:
     """The log as a :class:`PlantLog`, checked: shapes, numbers, finite values, inputs within
     their bounds, violations not negative."""
-    time = None
+    time = fallback = None
     if hasattr(states, "columns"):  # a DataFrame
+        fallback = _fallback(states, steps)
         states, inputs, stage_costs, violations, time = _frame(states, system, steps)
     X, U = _trajectory(system, steps, states, inputs)
     L = _per_step(stage_costs, "stage_costs", steps)
     V = _per_step(violations, "violations", steps)
-    return PlantLog(X, U, L, V, time)
+    return PlantLog(X, U, L, V, time, fallback)
+
+
+def _fallback(df: Any, steps: int) -> np.ndarray | None:
+    """The steps a ``fallback`` column marks 1 (the input is the controller's fallback, the
+    previous plan's: what ``mpcmobo connect`` writes where a solve misses its deadline), as a
+    (steps,) mask; None without the column."""
+    import pandas as pd
+
+    if "fallback" not in df.columns:
+        return None
+    marked = pd.to_numeric(df["fallback"], errors="coerce").to_numpy(float)[:steps] == 1.0
+    return np.concatenate([marked, np.zeros(max(steps - len(marked), 0), bool)])
 
 
 def _trajectory(system: System, steps: int, states: Any, inputs: Any) -> tuple[np.ndarray, ...]:
