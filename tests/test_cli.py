@@ -186,7 +186,9 @@ def test_run_seeds_forms_resume_and_evaluate(tmp_path):
     assert len(storage.read_episodes(out)) == 2 * 4
     assert json.loads((out / "summary.json").read_text())["settings"]["episodes"] == 4
     res = runner.invoke(app, ["run", *SMALL, "--out", str(out)])
-    assert res.exit_code == 1 and "not empty" in res.output
+    said = " ".join(res.output.split())
+    assert res.exit_code == 1 and "holds a run; choose a new --out directory" in said
+    assert "--resume --episodes N extends it" in said
     res = runner.invoke(app, ["evaluate", str(out), "--n-starts", "2"])
     assert res.exit_code == 0, res.output
     assert "mpc-rl" in res.output and "J_eval" in res.output

@@ -223,8 +223,12 @@ def test_parallel_workers_match_serial(full_run, tmp_path):
 
 def test_refuses_to_overwrite_and_checks_learners(full_run, tmp_path, monkeypatch):
     out_full, _, _ = full_run
-    with pytest.raises(StudyError, match="not empty"):
+    with pytest.raises(StudyError, match="holds a run"):
         run_study(small(), out_full)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    with pytest.raises(StudyError, match="is not empty; choose a new --out directory$"):
+        run_study(small(), tmp_path / "other")
     with pytest.raises(StudyError, match="nothing to resume"):
         run_study(None, tmp_path / "empty", resume=True)
     with pytest.raises(SettingsError, match=r"learner_options\.mpc-rl\.optimizer\.lr: "):

@@ -452,7 +452,7 @@ def _print_exploration(ex: dict[str, Any]) -> None:
     if ex["budget"] is None:
         cli.console.print("no exploration budget: every candidate runs", highlight=False)
         return
-    refused = ", ".join(map(str, ex["refused"])) or "none"
+    refused = ("trials " + ", ".join(map(str, ex["refused"]))) if ex["refused"] else "none"
     simulated = ex.get("simulated") or []  # a status saved before simulated candidates
     learned = (
         f" (learned from in simulation: {', '.join(map(str, simulated))})" if simulated else ""
@@ -464,7 +464,7 @@ def _print_exploration(ex: dict[str, Any]) -> None:
         error += f", its ratios of two controllers' costs within {math.exp(ratio):.3f}"
     cli.console.print(
         f"exploration budget {1 + ex['budget']:.2f}x the deployed controller's predicted cost; "
-        f"trials whose candidate it refused (the deployed ran): {refused}{learned}; the "
+        f"candidates it refused (the deployed controller ran instead): {refused}{learned}; the "
         f"model's prediction error {error}",
         highlight=False,
     )

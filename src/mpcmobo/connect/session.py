@@ -196,8 +196,12 @@ class _Session:
         try:
             row = self.tuner.tell(trial, log.frame().reindex(columns=names))
         except TunerError as err:
+            said = str(err)
+            head = "" if said.startswith(f"trial {trial.id}") else f"trial {trial.id}: "
             raise TunerError(
-                f"trial {trial.id}: {err} (its log is kept: {path}; the trial stays pending)"
+                f"{head}{said} (the log {path} is kept; the trial stays pending: connect again "
+                f"to run it anew, or tell that log with mpcmobo tell {self.tuner.run_dir.path} "
+                f"{trial.id} {path} --force where the checks are wrong)"
             ) from None
         outcome = Outcome(trial.id, "told", path, "", float(row.f1), *_timing(log))
         self.echo(f"trial {trial.id} told: f1 {row.f1:.6g}; {outcome.timing(self.period)}")

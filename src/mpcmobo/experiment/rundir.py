@@ -181,9 +181,14 @@ class RunDirectory:
             if not path.is_dir():
                 raise StudyError(f"--out {path} is a file; give a directory for the run")
             if any(path.iterdir()):
+                held = " holds a run" if self.holds_run() else " is not empty"
                 raise StudyError(
-                    f"{path} is not empty; choose a new --out directory or continue it with "
-                    "--resume"
+                    f"{path}{held}; choose a new --out directory"
+                    + (
+                        ", or continue it with --resume (--resume --episodes N extends it)"
+                        if self.holds_run()
+                        else ""
+                    )
                 )
             if not os.access(path, os.W_OK | os.X_OK):
                 raise StudyError(f"--out {path}: the directory is not writable")
