@@ -214,8 +214,12 @@ def test_the_episode_starts_where_the_log_does(tmp_path):
         near, U = _episode(tuner, trial, trial.x0 + 0.01 * tuner.system.x_scale)
         elsewhere, U_elsewhere = _episode(tuner, trial, trial.x0 + 0.5 * tuner.system.x_scale)
         if mode == "cycle":
-            with pytest.raises(TunerError, match="must start at its trial's x0.*--force"):
+            with pytest.raises(TunerError, match="must start at its trial's x0.*--force") as err:
                 tuner.tell(trial, elsewhere, U_elsewhere)
+            said = str(err.value)  # the start first: the other checks' findings follow from it
+            assert said.startswith("trial 0's log is refused (nothing is recorded; the trial")
+            also = said.find("The checks also found")
+            assert also == -1 or said.index("it starts at") < also
             row = tuner.tell(trial, elsewhere, U_elsewhere, force=True)
             np.testing.assert_array_equal(row.x0, trial.x0)
             assert "start" in tuner.status()["trials"][0]["forced"]

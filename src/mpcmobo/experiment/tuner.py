@@ -604,14 +604,20 @@ class Tuner:
             "correct the log's units and tell it again"
             if named
             else "where the plant did start there and the first row is a noisy measurement "
-            "of it, tell the log with --force (force=True)"
+            "of it, tell the same log file again with --force (force=True)"
+        )
+        also = (
+            f" The checks also found, which may follow from it: {found.rstrip('; ')}."
+            if found
+            else ""
         )
         raise TunerError(
-            f"{found}the log starts at {name} = {x_first[j]:.6g}, "
-            f"the trial at {plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared "
-            "from the same starts, so an episode must start at its trial's x0 (within "
+            f"trial {plan.episode}'s log is refused (nothing is recorded; the trial stays "
+            f"pending): it starts at {name} = {x_first[j]:.6g}, the trial at "
+            f"{plan.x0[j]:.6g}: under start_mode = 'cycle' thetas are compared from the same "
+            "starts, so an episode must start at its trial's x0 (within "
             f"{START_TOLERANCE:g} x_scale); on a plant that cannot be brought there, use "
-            f"start_mode = 'random'; {noisy}"
+            f"start_mode = 'random'; {noisy}.{also}"
         )
 
     def _started(self, plan: EpisodePlan, x_first: np.ndarray) -> EpisodePlan:
