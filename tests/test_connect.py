@@ -356,3 +356,14 @@ def test_a_password_in_the_url_without_a_security_policy_is_warned_of(plant, tun
     res = runner.invoke(app, [*args, "--period", str(PERIOD), "--dry-run"])
     assert "warning: no security policy: the password goes to the server unencrypted" in res.output
     assert "s3cret" not in res.output
+
+
+def test_periods_whose_input_came_late_are_warned_of(plant, tuner_dir, tmp_path):
+    """A period shorter than the read, the solve and the write together: the trial is told,
+    and ``connect`` warns that inputs were written more than a period after their reads."""
+    said: list[str] = []
+    outcome = run_plant(
+        Tuner.load(tuner_dir), plant.url, _nodes(tmp_path), 0.0005, echo=said.append
+    )
+    assert outcome[-1].status == "told", outcome[-1].message
+    assert any(line.startswith("warning: in ") and "more than a period" in line for line in said)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -91,11 +92,16 @@ def run_plant(
     else:
         nodes.check(tuner.system)
     session = _Session(tuner, url, nodes, period, dry_run, echo or (lambda _: None))
+    quiet = logging.getLogger("asyncua")  # its notes (a session timeout granted) are not ours
+    level = quiet.level
+    quiet.setLevel(max(level, logging.ERROR))
     try:
         return asyncio.run(session.run(trials))
     except (KeyboardInterrupt, asyncio.CancelledError):  # Ctrl-C; SIGTERM cancels the run
         said = f"{session.handed_back}; {session.trials_said()}"
         raise PlantInterrupted(said, session.signal_name) from None
+    finally:
+        quiet.setLevel(level)
 
 
 class _Session:
@@ -205,6 +211,13 @@ class _Session:
             ) from None
         outcome = Outcome(trial.id, "told", path, "", float(row.f1), *_timing(log))
         self.echo(f"trial {trial.id} told: f1 {row.f1:.6g}; {outcome.timing(self.period)}")
+        late = sum(latency > self.period for latency in outcome.latencies)
+        if late:
+            self.echo(
+                f"warning: in {late} of trial {trial.id}'s periods the input was written more "
+                f"than a period ({self.period:g} s) after the read: a longer period, or a "
+                "smaller solve_budget (the previous plan's input sooner)"
+            )
         return outcome
 
     async def _start(self, trial: Trial) -> Reading:
