@@ -108,7 +108,7 @@ def test_three_trials_are_asked_run_and_told(plant, tmp_path, cstr_system):
     assert np.any((written == cstr_system.u_lb) | (written == cstr_system.u_ub))  # clipped
     assert np.array_equal(_last_input(plant), SAFE)
     beats = plant.input_writes("Heartbeat")
-    assert np.all(np.diff(beats) == 1)
+    assert np.all(np.diff(beats) == 1) and len(beats) == 3 * 8  # none with the safe input
     log = pd.read_csv(out / "trials" / "1" / "log.csv")
     assert len(log) == 9 and log[["qs", "qc"]].iloc[-1].isna().all()
     assert log["T"].between(400, 480).all()  # Kelvin: the node's Celsius converted back

@@ -202,17 +202,18 @@ class PlantClient:
         names = self.system.state_names
         return Reading(np.array([x[n] for n in names]), tuple(stamps[n] for n in names), enabled)
 
-    async def write(self, u: np.ndarray) -> np.ndarray:
-        """Write the input ``u`` (model units, the system's order) and the next heartbeat in
-        one call; the input as written (model units: an integer node's rounding undone, so
-        that the log holds what the plant got). A refused value is a :class:`PlantFault`
-        (``refused``)."""
+    async def write(self, u: np.ndarray, beat: bool = True) -> np.ndarray:
+        """Write the input ``u`` (model units, the system's order) and (``beat``) the next
+        heartbeat in one call; the input as written (model units: an integer node's rounding
+        undone, so that the log holds what the plant got). A refused value is a
+        :class:`PlantFault` (``refused``). The safe input goes without a beat: once the tool
+        lets go, the heartbeat stops, and a plant's watchdog takes over."""
         if self.dry_run:
             return np.asarray(u, float)
         ua = _ua()
         by_name = dict(zip(self.system.input_names, np.asarray(u, float)))
         values = [n.scale * by_name[name] + n.offset for name, n in self.nodes.inputs.items()]
-        if self.nodes.heartbeat is not None:
+        if self.nodes.heartbeat is not None and beat:
             self._beat = (self._beat + 1) % 2**31
             values.append(self._beat)
         cast = [_cast(v, t) for v, t in zip(values, self._types)]
@@ -221,7 +222,7 @@ class PlantClient:
             raise ConnectionLost("not connected to the server")
         try:
             results = await self._client.write_values(
-                self._writes, dvs, raise_on_partial_error=False
+                self._writes[: len(dvs)], dvs, raise_on_partial_error=False
             )
         except (TimeoutError, OSError, ua.UaError) as err:
             raise ConnectionLost(

@@ -265,7 +265,7 @@ class _Session:
                 "on the heartbeat node must take over)"
             )
         try:
-            await self.client.write(self.nodes.safe(self.tuner.system))
+            await self.client.write(self.nodes.safe(self.tuner.system), beat=False)
         except PlantFault as fault:
             return f"; writing the safe input failed too: {fault}"
         self.wrote = False
