@@ -286,3 +286,13 @@ def test_the_command_list_gives_each_command_its_summary_as_prose():
     for name, command in commands.items():
         summary = " ".join(inspect.cleandoc(command.help or "").split("\n\n")[0].split())
         assert " ".join(rows[name]) == summary.replace("``", "").replace("`", ""), name
+
+
+def test_several_names_after_one_learner_flag_are_named_with_the_ones_given(tmp_path):
+    """``--learner mobo identify``: the second name is a stray argument; the message shows how
+    to give both, with the names the user gave."""
+    res = runner.invoke(app, ["run", "--learner", "mobo", "identify", "--out", str(tmp_path / "r")])
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2, said
+    assert "--learner mobo,identify or --learner mobo --learner identify" in said
+    assert not (tmp_path / "r").exists()

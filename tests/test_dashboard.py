@@ -71,6 +71,11 @@ def test_the_page_of_a_finished_run_shows_its_numbers(dashboard_run, browser):
             [None if not math.isfinite(v) else v for v in job.J_eval_incumbent]
         )
         assert perf[2] == pytest.approx([ref["J_star"], ref["J_initial"]])
+        stepped = page.evaluate(  # J_eval held between evaluations, not sloped: not the cost's path
+            "() => { const s = window.charts.perf.series, at = (l) => s.find(x => x.label === l); "
+            "return at('mobo s1: J_eval deployed').paths !== at('mobo s1: plant cost').paths; }"
+        )
+        assert stepped
         # one episode's states against their limits: the stored trajectory's numbers
         key = page.input_value("#trajectory")
         _, learner, seed, phase, episode, start = key.split("|")

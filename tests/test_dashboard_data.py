@@ -191,3 +191,32 @@ def test_several_runs_side_by_side(dashboard_run, tmp_path):
     assert mobo["seeds"] == 2 and len(mobo["cost"]["median"]) == 3
     costs = [j["cost"] for j in runs[1]["jobs"] if j["learner"] == "mobo"]
     assert mobo["cost"]["min"] == [min(c) for c in zip(*costs)]
+
+
+def test_a_told_log_is_said_to_be_learned_from_only_while_the_tuners_process_runs(tmp_path):
+    """``status.json`` says a told log is being learned from (written at the tell); the page
+    says so only while the tuner's process (``mpcmobo serve``) runs, and, once it is gone,
+    what ``mpcmobo status`` says (no process learns from it; the next command does); the
+    process's end changes the page's version, so the page is built again."""
+    from test_tuner_checks import episode
+
+    from mpcmobo.dashboard.server import Dashboard
+    from mpcmobo.experiment.tuner import Tuner
+
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=3, steps=6)
+    trial = tuner.ask()
+    tuner.accept(trial, *episode(tuner, trial))  # told, not learned from: as a killed serve
+    alive = [True]
+    board = Dashboard([tmp_path / "t"], serving=lambda path: alive[0])
+
+    def said() -> tuple[str, str]:
+        version, body = board.state()
+        status = json.loads(body)["runs"][0]["tuner"]["status"]
+        return version, status["recommendation"]["reason"]
+
+    before, reason = said()
+    assert "the tuner's process is learning from it" in reason
+    alive[0] = False
+    after, reason = said()
+    assert after != before and "no process is learning from it" in reason
+    assert "the next command that loads the tuner" in reason

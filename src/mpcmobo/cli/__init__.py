@@ -68,14 +68,20 @@ def _fail(message: str, code: int) -> NoReturn:
     raise typer.Exit(code)
 
 
-def _parse_seeds(values: list[str] | None, extra: list[str]) -> list[int] | None:
+def _parse_seeds(
+    values: list[str] | None, extra: list[str], learners: list[str] | None = None
+) -> list[int] | None:
+    """The seeds of ``--seeds`` (and stray arguments after it); a learner's name among the
+    stray ones is a ``--learner`` given several names, named so (``learners``: the names
+    ``--learner`` took)."""
     if not values and not extra:
         return None
     stray = [a for a in extra if a in LEARNER_SPECS]
-    if stray:  # --learner identify bo: the second name is an argument of its own
+    if stray:  # --learner mobo identify: the second name is an argument of its own
+        first = (learners or ["identify"])[-1]
         _fail(
             f"unexpected argument {stray[0]!r}: --learner takes one name per flag or a comma "
-            f"list (--learner identify,{stray[0]} or --learner identify --learner {stray[0]})",
+            f"list (--learner {first},{stray[0]} or --learner {first} --learner {stray[0]})",
             2,
         )
     if extra and not values:
@@ -211,7 +217,7 @@ def run(
     """Run a study (learners x seeds): records, summary and, once complete, the figures."""
     from mpcmobo.experiment.study import run_study
 
-    seed_list = _parse_seeds(seeds, list(ctx.args))
+    seed_list = _parse_seeds(seeds, list(ctx.args), learner)
     try:
         if resume:
             fixed = {

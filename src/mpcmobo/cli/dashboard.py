@@ -39,10 +39,11 @@ def dashboard(
                 f"{d}; mpcmobo run --out {d} writes into an empty directory)",
                 2,
             )
+    from mpcmobo.cli.resident import serving
     from mpcmobo.dashboard import make_server
 
     try:
-        server = make_server(directories, host=host, port=port)
+        server = make_server(directories, host=host, port=port, serving=serving)
     except OSError as err:
         cli._fail(f"cannot serve on {host}:{port} ({err.strerror or err})", 2)
     typer.echo(f"reading {len(directories)} run(s) ...")

@@ -17,6 +17,7 @@ import math
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any, NoReturn
@@ -300,8 +301,13 @@ def serve(directory: Path = typer.Argument(..., help="the tuner's directory")) -
     try:
         resident.serve()
     except KeyboardInterrupt as err:
+        code = getattr(err, "exit_code", 130)
         log("stopped; an accepted log not learned from yet is learned at the next load")
-        raise typer.Exit(getattr(err, "exit_code", 130)) from None
+        if resident.work.what:  # a learning in a thread, in C++ code: no interpreter shutdown
+            sys.stdout.flush()  # under it (that aborts); what it learns is on disk already
+            sys.stderr.flush()
+            os._exit(code)
+        raise typer.Exit(code) from None
 
 
 def _interrupted(what: str) -> NoReturn:

@@ -35,7 +35,7 @@ from multiprocessing.connection import Client, Connection, Listener
 from pathlib import Path
 from typing import Any
 
-__all__ = ["ADDRESS_FILE", "KEY_FILE", "Resident", "ResidentError", "learns", "request"]
+__all__ = ["ADDRESS_FILE", "KEY_FILE", "Resident", "ResidentError", "learns", "request", "serving"]
 
 ADDRESS_FILE = "resident.json"
 KEY_FILE = "resident.key"
@@ -131,6 +131,13 @@ def _alive(directory: Path) -> bool:
     except (OSError, ValueError, KeyError, TypeError):
         return False
     return True
+
+
+def serving(directory: Path) -> bool:
+    """Whether the process that serves ``directory`` (``mpcmobo serve``) runs: the one its
+    ``resident.json`` names is alive (a check of the process alone, no request; what the
+    dashboard asks at every poll)."""
+    return _alive(Path(directory))
 
 
 def learns(directory: Path) -> bool:

@@ -10,6 +10,7 @@ message of :attr:`RunSource.messages`, never an exception.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.records import Reference
 from mpcmobo.experiment.rundir import RunDirectory
 from mpcmobo.experiment.settings import Settings, read_toml
+from mpcmobo.experiment.tunerstatus import STATUS_KEYS, with_recommendation
 
 __all__ = ["RunSource"]
 
@@ -48,10 +50,13 @@ def _trajectory_index(path: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
 class RunSource:
     """The files of one run directory, read through a shared cache."""
 
-    def __init__(self, path: str | Path, cache: FileCache) -> None:
+    def __init__(
+        self, path: str | Path, cache: FileCache, serving: Callable[[Path], bool] | None = None
+    ) -> None:
         self.path = Path(path)
         self.dir = RunDirectory(self.path)
         self.cache = cache
+        self.serving = serving  # whether a tuner's process (mpcmobo serve) runs
         self.messages: list[str] = []
         self._names: tuple[tuple[int, int] | None, dict[int, list[str]]] | None = None
 
@@ -105,8 +110,15 @@ class RunSource:
         return self._read("summary.json", read_json)
 
     def status(self) -> dict[str, Any] | None:
-        """A tuner's ``status.json`` (None where it writes none)."""
-        return self._read("status.json", read_json)
+        """A tuner's ``status.json`` (None where it writes none); where it says that a told
+        log is being learned from, its recommendation as ``mpcmobo status`` makes it: a
+        process learns only where the tuner's process runs (``serving``)."""
+        st = self._read("status.json", read_json)
+        if not isinstance(st, dict) or st.get("learning") is None or self.serving is None:
+            return st
+        if not STATUS_KEYS <= set(st):
+            return st
+        return with_recommendation(dict(st), self.path, self.serving)
 
     def is_tuner(self) -> bool:
         """Whether the directory holds a tuner (ask and tell)."""

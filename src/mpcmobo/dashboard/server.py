@@ -14,7 +14,7 @@ import gzip
 import hashlib
 import json
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
@@ -44,16 +44,21 @@ VENDOR = ("uPlot.iife.min.js", "uPlot.min.css")  # stored as static/vendor/<name
 class Dashboard:
     """The runs of the page and their data, rebuilt only when a file of a run changed."""
 
-    def __init__(self, directories: Sequence[str | Path]) -> None:
+    def __init__(
+        self, directories: Sequence[str | Path], serving: Callable[[Path], bool] | None = None
+    ) -> None:
         self.cache = FileCache()
-        self.sources = [RunSource(d, self.cache) for d in directories]
+        self.serving = serving  # whether a tuner's process (mpcmobo serve) runs
+        self.sources = [RunSource(d, self.cache, serving) for d in directories]
         self._lock = threading.Lock()
         self._state: tuple[str, bytes] | None = None
         self._assets: dict[str, bytes] = {}
 
     def version(self) -> str:
         """A digest of the stamps of every file of the runs."""
-        stamps = [s.stamp() for s in self.sources]
+        stamps: list[Any] = [s.stamp() for s in self.sources]
+        if self.serving is not None:  # a tuner's process that stops changes the page too
+            stamps += [self.serving(s.path) for s in self.sources if s.is_tuner()]
         return hashlib.sha1(repr(stamps).encode(), usedforsecurity=False).hexdigest()[:16]
 
     def state(self) -> tuple[str, bytes]:
@@ -178,8 +183,13 @@ class DashboardServer(ThreadingHTTPServer):
 
 
 def make_server(
-    directories: Sequence[str | Path], host: str = "127.0.0.1", port: int = 8050
+    directories: Sequence[str | Path],
+    host: str = "127.0.0.1",
+    port: int = 8050,
+    serving: Callable[[Path], bool] | None = None,
 ) -> DashboardServer:
     """The dashboard's server for ``directories`` (``port`` 0: any free port); call its
-    ``serve_forever()``."""
-    return DashboardServer((host, port), Dashboard(directories))
+    ``serve_forever()``. ``serving(path)``: whether the tuner in ``path`` has its process
+    (``mpcmobo serve``) running, what the page says of a told log's learning (None: as
+    ``status.json`` says)."""
+    return DashboardServer((host, port), Dashboard(directories, serving))

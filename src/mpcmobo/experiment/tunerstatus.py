@@ -242,6 +242,15 @@ def saved_status(
         return None
     if not isinstance(st, dict) or not STATUS_KEYS <= set(st):
         return None
+    return with_recommendation(st, path, learns)
+
+
+def with_recommendation(
+    st: dict[str, Any], path: Path, learns: Callable[[Path], bool] | None
+) -> dict[str, Any]:
+    """The status ``st`` (``status.json``'s) with its recommendation made again for the tuner
+    in ``path`` as given; where it names a log accepted and not learned from yet,
+    ``learns(path)`` says whether a process learns from it now (None: none does)."""
     converged = (st["exploration"] or {}).get("converged") or ""
     learning = st.get("learning")
     st["recommendation"] = recommendation(

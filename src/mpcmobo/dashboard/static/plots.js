@@ -125,7 +125,9 @@ function drawPerformance(runs, perSeed) {
       jobs.forEach((job) => {
         const who = jobs.length > 1 ? `${name} s${job.seed}` : name;
         perf.push({ label: `${who}: plant cost`, y: aligned(job, job.cost, n), stroke: fade(color, 0.45), width: 1, points: { show: false } });
-        perf.push({ label: `${who}: J_eval deployed`, y: aligned(job, job.J_eval, n), stroke: color, width: 2, points: { show: true, size: 4 } });
+        // held until the next evaluation, as the median view holds it: not a slope between them
+        perf.push({ label: `${who}: J_eval deployed`, y: aligned(job, job.J_eval, n), stroke: color, width: 2, points: { show: true, size: 4 },
+          paths: uPlot.paths.stepped({ align: 1 }) });
         const marks = new Array(n).fill(null);
         job.changes.forEach((c) => { if (c.episode < n) marks[c.episode] = c.J_eval !== null ? c.J_eval : job.cost[job.episode.indexOf(c.episode)]; });
         perf.push({ label: `${who}: deployed theta changed`, y: marks, stroke: color, paths: NO_LINE, points: { show: true, size: 10, fill: color } });
