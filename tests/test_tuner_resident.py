@@ -283,3 +283,34 @@ def test_the_process_reloads_a_tuner_changed_under_it(made):
     finally:
         served.stop()
     assert any("reloading" in h for h in served.heard)
+
+
+def test_serve_stopped_while_it_learns_exits_at_once(made, monkeypatch):
+    """A signal that stops ``mpcmobo serve`` while its thread learns (in C++ code, which an
+    interpreter shutting down under it aborts): the process exits at once with the signal's
+    code (``os._exit``), the accepted log on disk; idle, it exits as any command does."""
+    import mpcmobo.cli.plant as plant_cli
+    from mpcmobo.cli.resident import _Work
+    from mpcmobo.experiment.interrupts import Interrupted
+
+    def serve_then_stop(self):
+        self.work = _Work(what="learning from trial 3: the GP 1/2")
+        raise Interrupted(signal.SIGTERM)
+
+    exits = []
+
+    def fake_exit(code):
+        exits.append(code)
+        raise SystemExit(code)
+
+    monkeypatch.setattr(Resident, "open", lambda self: None)
+    monkeypatch.setattr(Resident, "serve", serve_then_stop)
+    monkeypatch.setattr(plant_cli.os, "_exit", fake_exit)
+    monkeypatch.setattr(plant_cli.signal, "signal", lambda *a: None)  # this process's stays
+    res = CliRunner().invoke(app, ["serve", str(made)])
+    assert exits == [143] and res.exit_code == 143, res.output
+    monkeypatch.setattr(
+        Resident, "serve", lambda self: (_ for _ in ()).throw(Interrupted(signal.SIGTERM))
+    )
+    res = CliRunner().invoke(app, ["serve", str(made)])
+    assert exits == [143] and res.exit_code == 143  # idle: no os._exit, a normal exit
