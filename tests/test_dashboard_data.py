@@ -220,3 +220,20 @@ def test_a_told_log_is_said_to_be_learned_from_only_while_the_tuners_process_run
     after, reason = said()
     assert after != before and "no process is learning from it" in reason
     assert "the next command that loads the tuner" in reason
+
+
+def test_the_episodes_with_an_error_are_named_on_the_page(dashboard_run, tmp_path):
+    """A failed episode (its error in its record) is named in the page's messages with its
+    job, episode and error, the first three of a job, then how many more."""
+    out = tmp_path / "run"
+    shutil.copytree(dashboard_run, out)
+    ep = pd.read_parquet(out / "episodes.parquet")
+    failed = (ep.learner == "mobo") & (ep.seed == 0)
+    ep.loc[failed, "error"] = [f"PlantDiverged: step {k}" for k in ep.loc[failed, "episode"]]
+    ep.loc[failed, "mean_stage_cost"] = np.nan
+    storage.write_parquet(out / "episodes.parquet", ep)
+    messages = run_payload(RunSource(out, FileCache()), 0)["messages"]
+    assert "mobo seed 0, episode 0: PlantDiverged: step 0" in messages
+    assert sum(m.startswith("mobo seed 0") for m in messages) == min(3, int(failed.sum())) + (
+        int(failed.sum()) > 3
+    )

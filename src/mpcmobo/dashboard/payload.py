@@ -113,6 +113,23 @@ def _trajectory_keys(index: Any, live: dict[tuple[str, int], dict]) -> list[list
     return keys
 
 
+# how many of a job's episode errors the page names (the rest are counted)
+ERRORS_SHOWN = 3
+
+
+def _episode_errors(jobs: list[dict[str, Any]]) -> list[str]:
+    """A line per episode whose record holds an error (a failed episode, a failed proposal or
+    evaluation), the first ``ERRORS_SHOWN`` of each job, then how many more."""
+    lines = []
+    for job in jobs:
+        errors = job.get("errors") or []
+        who = f"{job['learner']} seed {job['seed']}"
+        lines += [f"{who}, episode {e}: {m}" for e, m in errors[:ERRORS_SHOWN]]
+        if len(errors) > ERRORS_SHOWN:
+            lines.append(f"{who}: {len(errors) - ERRORS_SHOWN} more episodes with an error")
+    return lines
+
+
 def run_payload(source: RunSource, index: int) -> dict[str, Any]:
     """Everything the page shows of the run of ``source`` (the ``index``-th of the page)."""
     source.begin()
@@ -159,5 +176,5 @@ def run_payload(source: RunSource, index: int) -> dict[str, Any]:
         "trajectories": _trajectory_keys(index_frame, live),
         "tuner": _tuner(source, status, live),
         "complete": bool(summary.get("complete", True)) if isinstance(summary, dict) else None,
-        "messages": list(dict.fromkeys(source.messages)),
+        "messages": list(dict.fromkeys([*source.messages, *_episode_errors(jobs)])),
     }
