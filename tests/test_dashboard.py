@@ -130,7 +130,7 @@ def test_a_tuner_shows_its_pending_trial_recommendation_and_trials(copy, browser
     status = {
         "plant_cost": 12.5,
         "excess_cost": 1.25,
-        "recommendation": "stop: no candidate pays back its exploration",
+        "recommendation": {"action": "stop", "reason": "no candidate pays back its exploration"},
         "quarantined": [7],
         "pending": 3,
         "evidence": {"test": "one-sided t", "confidence": 0.9, "episodes": 6},
@@ -145,6 +145,8 @@ def test_a_tuner_shows_its_pending_trial_recommendation_and_trials(copy, browser
         text = page.inner_text("#tuner")
         for part in ("trial 3", "stop: no candidate pays back", "12.5", "1.25", "7", "one-sided t"):
             assert part in text, text
+        assert "test: one-sided t; confidence: 0.9; episodes: 6" in text  # in words, not JSON
+        assert "{" not in text, text
         trials = page.eval_on_selector_all("#tuner table tr", ROWS)
         assert trials == [["0", "candidate", "0.5", "kept"], ["1", "deployed", "0.25", "kept"]]
         assert np.isfinite(float(_jobs(page)[0][6]))

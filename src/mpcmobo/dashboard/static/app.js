@@ -66,7 +66,15 @@ function drawChanges(runs) {
 }
 
 // status.json's keys with a place of their own (the others are listed as they are)
-const SHOWN = new Set(["recommendation", "plant_cost", "excess_cost", "quarantined", "pending", "trials", "identification"]);
+const SHOWN = new Set(["recommendation", "plant_cost", "excess_cost", "quarantined", "pending", "trials", "identification", "learning"]);
+
+// a value of status.json in words: a list joined, a table as "key: value; ...", a number formatted
+function words(v) {
+  if (v === null || v === undefined) return "-";
+  if (Array.isArray(v)) return v.length ? v.map(words).join(", ") : "none";
+  if (typeof v === "object") return Object.entries(v).map(([k, x]) => `${k}: ${words(x)}`).join("; ");
+  return typeof v === "number" ? fmt(v) : String(v);
+}
 
 function drawTuner(runs) {
   const tuners = runs.filter((r) => r.tuner);
@@ -74,15 +82,16 @@ function drawTuner(runs) {
   const box = document.getElementById("tuner");
   box.textContent = "";
   tuners.forEach((run) => {
-    const t = run.tuner, s = t.status || {};
+    const t = run.tuner, known = !!t.status, s = t.status || {};
     const dl = el("dl");
-    const pending = t.pending ? `trial ${t.pending.episode}` + (t.pending.theta ? ` theta [${t.pending.theta.map((v) => fmt(v)).join(", ")}]` : "") : "none";
+    let pending = t.pending ? `trial ${t.pending.episode}` + (t.pending.theta ? ` theta [${t.pending.theta.map((v) => fmt(v)).join(", ")}]` : "") : "none";
+    if (s.learning !== null && s.learning !== undefined) pending = `trial ${s.learning}: told, its log not learned from yet`;
     const rec = s.recommendation;
-    [["run", run.path], ["pending trial", pending],
-      ["recommendation", rec === undefined || rec === null ? "not recorded" : (typeof rec === "string" ? rec : JSON.stringify(rec))],
+    const said = rec === undefined || rec === null ? "not recorded" : (typeof rec === "string" ? rec : `${rec.action}: ${rec.reason}`);
+    [["run", run.path], ["pending trial", pending], ["recommendation", said],
       ["cumulative plant cost", fmt(s.plant_cost)], ["cumulative excess cost", fmt(s.excess_cost)],
-      ["quarantined trials", (s.quarantined || []).join(", ") || "none"],
-      ...Object.entries(s).filter(([k]) => !SHOWN.has(k)).map(([k, v]) => [k, typeof v === "object" && v !== null ? JSON.stringify(v) : fmt(v)])].forEach(([k, v]) => {
+      ["quarantined trials", known ? words(s.quarantined || []) : "unknown (no readable status.json)"],
+      ...Object.entries(s).filter(([k]) => !SHOWN.has(k)).map(([k, v]) => [k, words(v)])].forEach(([k, v]) => {
       dl.appendChild(el("dt", k)); dl.appendChild(el("dd", v));
     });
     box.appendChild(dl);
@@ -91,7 +100,7 @@ function drawTuner(runs) {
       const id = `trials-${run.index}`;
       const t2 = el("table"); t2.id = id; box.appendChild(t2);
       const keys = [...new Set(trials.flatMap((r) => Object.keys(r)))];
-      table(id, keys, trials.map((r) => keys.map((k) => (typeof r[k] === "object" && r[k] !== null ? JSON.stringify(r[k]) : r[k]))));
+      table(id, keys, trials.map((r) => keys.map((k) => (typeof r[k] === "object" && r[k] !== null ? words(r[k]) : r[k]))));
     }
   });
 }
