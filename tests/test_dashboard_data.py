@@ -237,3 +237,18 @@ def test_the_episodes_with_an_error_are_named_on_the_page(dashboard_run, tmp_pat
     assert sum(m.startswith("mobo seed 0") for m in messages) == min(3, int(failed.sum())) + (
         int(failed.sum()) > 3
     )
+
+
+def test_a_damaged_episodes_file_leaves_the_jobs_rows_from_their_checkpoints(
+    dashboard_run, tmp_path
+):
+    """``episodes.parquet`` that cannot be read is named on the page, and the jobs' rows come
+    from their checkpoints (intact), so the table and the curves stay."""
+    out = tmp_path / "run"
+    shutil.copytree(dashboard_run, out)
+    (out / "episodes.parquet").write_bytes(b"not parquet")
+    payload = run_payload(RunSource(out, FileCache()), 0)
+    assert any("episodes.parquet cannot be read" in m for m in payload["messages"])
+    jobs = {(j["learner"], j["seed"]): j for j in payload["jobs"]}
+    assert len(jobs) == 4 and all(j["episode"] == [0, 1, 2] for j in jobs.values())
+    assert not any(j["live"] for j in jobs.values())  # finished jobs: recorded, not running

@@ -124,10 +124,10 @@ class RunSource:
         """Whether the directory holds a tuner (ask and tell)."""
         return self.dir.is_tuner()
 
-    def _checkpoints(self) -> dict[tuple[str, int], dict[str, Any]]:
+    def _checkpoints(self, every: bool = False) -> dict[tuple[str, int], dict[str, Any]]:
         """The checkpoints newer than ``episodes.parquet`` (a study in progress; a tuner's
-        pending trial), by job."""
-        records = file_stamp(self.path / "episodes.parquet")
+        pending trial), by job; ``every``: all of them (the records cannot be read)."""
+        records = None if every else file_stamp(self.path / "episodes.parquet")
         out = {}
         for path in sorted(self.path.glob("jobs/*/checkpoint.pkl")):
             st = file_stamp(path)
@@ -142,9 +142,11 @@ class RunSource:
 
     def episodes(self) -> tuple[pd.DataFrame, dict[tuple[str, int], dict[str, Any]]]:
         """One row per episode of every job (the records, with the rows of newer checkpoints
-        instead of a job's recorded ones) and those checkpoints."""
+        instead of a job's recorded ones; every checkpoint's where the records cannot be
+        read) and those checkpoints."""
         df = self._read("episodes.parquet", read_parquet)
-        live = self._checkpoints()
+        damaged = df is None and (self.path / "episodes.parquet").exists()
+        live = self._checkpoints(every=damaged)  # a damaged file: the jobs' rows from them
         parts = [] if df is None or df.empty else [df]
         for (learner, seed), ckpt in live.items():
             rows = ckpt.get("rows") or []
