@@ -252,3 +252,13 @@ def test_a_damaged_episodes_file_leaves_the_jobs_rows_from_their_checkpoints(
     jobs = {(j["learner"], j["seed"]): j for j in payload["jobs"]}
     assert len(jobs) == 4 and all(j["episode"] == [0, 1, 2] for j in jobs.values())
     assert not any(j["live"] for j in jobs.values())  # finished jobs: recorded, not running
+
+
+def test_a_directory_deleted_while_the_page_is_open_is_named_so(dashboard_run, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(dashboard_run, out)
+    source = RunSource(out, FileCache())
+    run_payload(source, 0)
+    shutil.rmtree(out)
+    messages = run_payload(source, 0)["messages"]
+    assert f"{out} no longer exists (moved or deleted)" in messages

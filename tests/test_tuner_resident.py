@@ -154,6 +154,13 @@ def test_a_crash_between_the_check_and_the_learning_loses_nothing(made, tmp_path
     tuner.accept(trial, *episode(tuner, trial))
     assert tuner.status()["learning"] == 0 and (made / "accepted" / "trial-0.pkl").exists()
     del tuner  # the process is gone before it learned
+    heard: list[str] = []
+    resident = Resident(made, heard.append)  # a serve started now says why it takes a while
+    resident.open()
+    assert resident.lock.acquire(timeout=120)  # its next trial prepared in the background
+    resident.lock.release()
+    resident.close()
+    assert heard[0].startswith("a told log waits: learning from it before serving")
     again = Tuner.load(made)
     assert again.episodes == 1 and again.learning is None
     assert not list((made / "accepted").glob("*.pkl"))

@@ -370,6 +370,8 @@ class Resident:
                 f"({self.directory / ADDRESS_FILE})",
                 2,
             )
+        if (self.directory / "accepted").is_dir() and any((self.directory / "accepted").iterdir()):
+            self.log("a told log waits: learning from it before serving (this can take a while)")
         self._load()
         key = secrets.token_bytes(32)
         socket = self._socket_path()

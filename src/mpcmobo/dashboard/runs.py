@@ -88,7 +88,9 @@ class RunSource:
     def begin(self) -> None:
         """Start a new reading: the messages are those of the files as they are now."""
         self.messages = []
-        if not self.path.is_dir():
+        if not self.path.exists():
+            self.messages.append(f"{self.path} no longer exists (moved or deleted)")
+        elif not self.path.is_dir():
             self.messages.append(f"{self.path} is not a directory")
         elif not self.dir.holds_run():
             self.messages.append(f"{self.path} does not hold a run yet (no config.toml)")
