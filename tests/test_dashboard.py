@@ -76,6 +76,8 @@ def test_the_page_of_a_finished_run_shows_its_numbers(dashboard_run, browser):
             "return at('mobo s1: J_eval deployed').paths !== at('mobo s1: plant cost').paths; }"
         )
         assert stepped
+        whole = "() => window.charts.perf.axes[0]._splits.every(Number.isInteger)"
+        assert page.evaluate(whole)  # the episode axis ticks whole episodes only
         # one episode's states against their limits: the stored trajectory's numbers
         key = page.input_value("#trajectory")
         _, learner, seed, phase, episode, start = key.split("|")

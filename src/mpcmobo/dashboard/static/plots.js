@@ -53,6 +53,9 @@ function rangeWith(levels) {
   };
 }
 
+// the episode axis's tick steps: whole episodes only
+const EPISODE_TICKS = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000];
+
 // One chart in the element `id` (replacing the one there): x and series [{label, y, ...}].
 function chart(id, { x, series, levels = [], xlabel = "", ylabel = "", title = "", height = 300,
   bands = [], legend = true, parent = null }) {
@@ -63,7 +66,8 @@ function chart(id, { x, series, levels = [], xlabel = "", ylabel = "", title = "
   const width = Math.max(300, el.clientWidth || el.parentElement.clientWidth || 600);
   const opts = { title, width, height, legend: { show: legend, live: legend },
     scales: { x: { time: false }, y: { range: rangeWith(levels) } },
-    axes: [{ label: xlabel, size: 40 }, { label: ylabel, size: 60 }],
+    axes: [{ label: xlabel, size: 40, incrs: xlabel === "episode" ? EPISODE_TICKS : undefined },
+      { label: ylabel, size: 60 }],
     series: [{ label: xlabel || "x" }, ...series.map(({ y, edge, ...s }) => ({ spanGaps: true, ...s }))],
     bands, hooks: { draw: [levelsHook(levels)] }, cursor: { drag: { x: true, y: false } } };
   const u = new uPlot(opts, [x, ...series.map((s) => s.y)], el);
