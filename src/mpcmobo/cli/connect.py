@@ -11,7 +11,6 @@ again), 2 bad input or a server that cannot be reached, 130 Ctrl-C (the safe inp
 
 from __future__ import annotations
 
-import logging
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -78,7 +77,6 @@ def connect(
         echo(f"connecting to {public_url(url)}{dry}")
         return run_plant(tuner, url, node_map, period, trials, dry_run, echo)
 
-    logging.getLogger("asyncua").setLevel(logging.ERROR)  # its notes are not the user's
     try:
         outcomes = _errors(lambda: _connect_errors(go, ConnectError))
     except KeyboardInterrupt as err:

@@ -35,6 +35,8 @@ from multiprocessing.connection import Client, Connection, Listener
 from pathlib import Path
 from typing import Any
 
+from mpcmobo.experiment.interrupts import process_alive
+
 __all__ = ["ADDRESS_FILE", "KEY_FILE", "Resident", "ResidentError", "learns", "request", "serving"]
 
 ADDRESS_FILE = "resident.json"
@@ -120,24 +122,15 @@ def request(
 PING_TIMEOUT_S = 2.0
 
 
-def _alive(directory: Path) -> bool:
-    """Whether the process that ``DIR/resident.json`` names runs (False: none is named, or it
-    is gone, e.g. killed)."""
-    try:
-        pid = int(json.loads((directory / ADDRESS_FILE).read_text(encoding="utf-8"))["pid"])
-        os.kill(pid, 0)
-    except PermissionError:
-        return True  # another user's process of that id
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
-    return True
-
-
 def serving(directory: Path) -> bool:
     """Whether the process that serves ``directory`` (``mpcmobo serve``) runs: the one its
-    ``resident.json`` names is alive (a check of the process alone, no request; what the
-    dashboard asks at every poll)."""
-    return _alive(Path(directory))
+    ``resident.json`` names is alive (False: none is named, or it is gone, e.g. killed). A
+    check of the process alone, no request: what the dashboard asks at every poll."""
+    try:
+        info = json.loads((Path(directory) / ADDRESS_FILE).read_text(encoding="utf-8"))
+        return process_alive(int(info["pid"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
 
 
 def learns(directory: Path) -> bool:
@@ -145,7 +138,7 @@ def learns(directory: Path) -> bool:
     answers that it learns, or is too busy to answer within ``PING_TIMEOUT_S`` (a command it
     serves waits for its learning). What ``mpcmobo status`` says of a log accepted and not
     learned from yet."""
-    if not _alive(Path(directory)):
+    if not serving(Path(directory)):
         return False
     answers: list[tuple[bool, Any]] = []
 

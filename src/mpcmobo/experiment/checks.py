@@ -109,7 +109,7 @@ def box_problems(
     problems = []
     for j, name in enumerate(system.state_names):
         x = X[:, j]
-        out = np.maximum(np.maximum(lo[j] - x, x - hi[j]), 0.0) / width[j]
+        out = _widths_outside(x, lo[j], hi[j], width[j])
         worst = int(np.argmax(out))
         if out[worst] <= UNIT_OUTSIDE:
             continue
@@ -145,11 +145,13 @@ def reading_problem(system: System, x: np.ndarray) -> str | None:
     lo, hi, width = _box(system)
     found = []
     for j, name in enumerate(system.state_names):
-        out = max(lo[j] - x[j], x[j] - hi[j], 0.0) / width[j]
-        unit = _column_unit(name, np.array([x[j]]), (lo[j], hi[j], width[j]), None)
-        if out <= UNIT_OUTSIDE or (unit is None and out <= FAR_WIDTHS):
+        out = float(_widths_outside(np.asarray(x[j], float), lo[j], hi[j], width[j]))
+        if out <= UNIT_OUTSIDE:
             continue
-        hint = "" if unit is None else f" ({unit[0].split(', the column')[0]} it lies in its box)"
+        unit = unit_factor(np.array([x[j]], float), lo[j], hi[j], width[j])
+        if unit is None and out <= FAR_WIDTHS:
+            continue
+        hint = "" if unit is None else f" ({unit_fix(unit)} it lies in its box)"
         found.append(
             f"{name} = {x[j]:.6g} is outside its bounds [{lo[j]:.6g}, {hi[j]:.6g}] by "
             f"{out:.3g} box widths{hint}"
@@ -184,7 +186,7 @@ def _column_unit(
     unit = unit_factor(x, lo, hi, width, start)
     if unit is None:
         return None
-    fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
+    fix = unit_fix(unit)
     sure = start is not None and abs(x[0] / unit - start) <= 0.05 * width
     text = (
         f"{fix}, the column lies in its box: a unit error? (the log's {name} looks "
@@ -198,6 +200,17 @@ def _column_unit(
             f"column ({fix}) and tell the log again"
         )
     return text, sure
+
+
+def _widths_outside(x: np.ndarray, lo: float, hi: float, width: float) -> np.ndarray:
+    """How far each value of ``x`` lies outside [lo, hi], in box ``width``s (0 inside)."""
+    return np.maximum(np.maximum(lo - x, x - hi), 0.0) / width
+
+
+def unit_fix(unit: float) -> str:
+    """The conversion that undoes the power of ten ``unit`` (:func:`unit_factor`), in words:
+    "divided by 10", "multiplied by 100"."""
+    return f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
 
 
 def _inside(y: np.ndarray, lo: float, hi: float, width: float) -> float:

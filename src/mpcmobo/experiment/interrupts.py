@@ -194,7 +194,8 @@ def worker_job() -> Iterator[None]:
         _Worker.busy.clear()
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether the process ``pid`` runs (one of another user's counts)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -206,7 +207,7 @@ def _alive(pid: int) -> bool:
 
 def _watchdog(parent_pid: int, stop: str | None) -> None:
     while True:
-        orphaned = os.getppid() != parent_pid or not _alive(parent_pid)
+        orphaned = os.getppid() != parent_pid or not process_alive(parent_pid)
         if orphaned or (stop is not None and os.path.exists(stop)):
             break
         time.sleep(WATCH_INTERVAL_S)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import pickle
+import shutil
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -123,6 +124,15 @@ class RunDirectory:
         """Whether the directory holds a run (its ``config.toml`` exists)."""
         return self.config.exists()
 
+    def remove_new(self, existed: bool) -> None:
+        """Remove what a new run or tuner wrote here before it failed to start: the
+        directory's contents (``existed``: it was there, empty, before) or the directory."""
+        for item in [*self.path.iterdir()] if existed else [self.path]:
+            if item.is_dir():
+                shutil.rmtree(item, ignore_errors=True)
+            else:
+                item.unlink(missing_ok=True)
+
     def system_file_changed(self) -> bool:
         """Whether the file of the run's system factory (``[system] factory`` of its
         ``config.toml``) was written after its reference: a cheap sign, without building the
@@ -180,16 +190,13 @@ class RunDirectory:
         if path.exists():
             if not path.is_dir():
                 raise StudyError(f"--out {path} is a file; give a directory for the run")
-            if any(path.iterdir()):
-                held = " holds a run" if self.holds_run() else " is not empty"
+            if self.holds_run():
                 raise StudyError(
-                    f"{path}{held}; choose a new --out directory"
-                    + (
-                        ", or continue it with --resume (--resume --episodes N extends it)"
-                        if self.holds_run()
-                        else ""
-                    )
+                    f"{path} holds a run; choose a new --out directory, or continue it with "
+                    "--resume (--resume --episodes N extends it)"
                 )
+            if any(path.iterdir()):
+                raise StudyError(f"{path} is not empty; choose a new --out directory")
             if not os.access(path, os.W_OK | os.X_OK):
                 raise StudyError(f"--out {path}: the directory is not writable")
             return

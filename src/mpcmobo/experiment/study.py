@@ -16,7 +16,6 @@ Its parts: the reference (:mod:`~mpcmobo.experiment.reference`), the records and
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 from mpcmobo.experiment import interrupts
@@ -100,18 +99,8 @@ def run_study(
                 return _run_study(run_dir, settings, resume, progress, max_episodes_this_call)
         except ReferenceFailed:
             if not resume:  # nothing was recorded: the directory is as it was
-                _remove_new_run(run_dir.path, existed)
+                run_dir.remove_new(existed)
             raise
-
-
-def _remove_new_run(path: Path, existed: bool) -> None:
-    """What a new run wrote in ``path`` (an empty directory, or a new one) before it ended
-    without a reference."""
-    for item in [*path.iterdir()] if existed else [path]:
-        if item.is_dir():
-            shutil.rmtree(item, ignore_errors=True)
-        else:
-            item.unlink(missing_ok=True)
 
 
 def _run_study(

@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import math
 import pickle
-import shutil
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -169,11 +168,7 @@ class Tuner:
                 run_dir.tuner_mark, json.dumps({"learner": learner, "seed": seed}) + "\n"
             )
         except BaseException:  # a system or learner that cannot be built: leave no tuner
-            for path in [*run_dir.path.iterdir()] if existed else [run_dir.path]:
-                if path.is_dir():
-                    shutil.rmtree(path, ignore_errors=True)
-                else:
-                    path.unlink(missing_ok=True)
+            run_dir.remove_new(existed)
             raise
 
     @classmethod
@@ -318,8 +313,9 @@ class Tuner:
         trial's quarantined log), except a log with a state the checks are sure is in the
         wrong unit or far outside its box: that is a :class:`TunerError` naming the
         conversion, ``force`` or not. A log told with ``force`` despite the model check starts
-        that check's baseline: later logs are compared with it and the ones told after it. ``progress(what, done, total)`` hears the learner's long work
-        (the twin's tuning, :meth:`~mpcmobo.learners.base.Learner.use_progress`).
+        that check's baseline: later logs are compared with it and the ones told after it.
+        ``progress(what, done, total)`` hears the learner's long work (the twin's tuning,
+        :meth:`~mpcmobo.learners.base.Learner.use_progress`).
 
         A tell is :meth:`accept` then :meth:`learn`; a tell that fails or is interrupted in
         between leaves its trial pending."""
@@ -593,7 +589,7 @@ class Tuner:
         unit = checks.start_factor(float(x_first[j]), float(plan.x0[j]))
         named = any(p.check == "range" for p in problems)  # the box check named a unit
         if unit is not None and not named:  # the other checks' findings follow from it
-            fix = f"divided by {unit:g}" if unit > 1 else f"multiplied by {1 / unit:g}"
+            fix = checks.unit_fix(unit)
             raise TunerError(
                 f"the log's {name} looks {checks.looks_off_by(unit)}: a unit error? (its "
                 f"first value is the trial's start times {unit:g}, at {x_first[j]:.6g} where "
