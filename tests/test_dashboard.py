@@ -95,6 +95,30 @@ def test_the_page_of_a_finished_run_shows_its_numbers(dashboard_run, browser):
         assert requests and all(u.startswith(url) for u in requests), requests  # no CDN
 
 
+def test_the_texts_of_close_levels_do_not_cover_each_other(dashboard_run, browser):
+    """J*, theta0's level and a limit a pixel apart: each text is drawn where no other is."""
+    made = (
+        "() => { const u = chart('close-levels', { x: [0, 1, 2], parent: document.body, "
+        "series: [{ label: 'cost', y: [1, 2, 3] }], levels: [{ y: 2, text: 'J*' }, "
+        "{ y: 2.005, dash: 'dot', text: 'theta0' }, { y: 1.995, text: 'a limit' }] }); "
+        "window.closeLevels = u; }"
+    )
+    with serving(dashboard_run) as url:
+        page, _ = _open(browser, url)
+        page.evaluate(made)
+        page.wait_for_function("() => (window.closeLevels.levelLabels || []).length === 3")
+        boxes = page.evaluate("() => window.closeLevels.levelLabels")
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1 :]:
+            apart = (
+                a["right"] <= b["left"]
+                or b["right"] <= a["left"]
+                or a["bottom"] <= b["top"]
+                or b["bottom"] <= a["top"]
+            )
+            assert apart, (a, b)
+
+
 def test_a_new_episode_appears_without_a_reload(copy, browser):
     ep = pd.read_parquet(copy / "episodes.parquet")
     storage.write_parquet(copy / "episodes.parquet", ep[ep.episode < 2])

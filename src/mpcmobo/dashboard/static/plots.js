@@ -20,10 +20,16 @@ function fmt(v, digits = 4) {
 }
 
 // Horizontal lines [{y, dash, color, text}] drawn over a chart (limits, J*, theta0's level).
+// Each line's text sits at the right end, above the line; a text that would cover one drawn
+// before goes below its line, else to the left of the texts in its way. The placed boxes are
+// kept in u.levelLabels [{text, left, top, right, bottom}] (canvas pixels).
 function levelsHook(levels) {
   return (u) => {
     const ctx = u.ctx, { left, width } = u.bbox;
     ctx.save();
+    ctx.font = `${11 * devicePixelRatio}px sans-serif`;
+    ctx.textAlign = "right";
+    const placed = [];
     levels.forEach((l) => {
       if (l.y === null || l.y === undefined) return;
       const y = Math.round(u.valToPos(l.y, "y", true));
@@ -32,14 +38,31 @@ function levelsHook(levels) {
       ctx.setLineDash(l.dash === "dot" ? [2, 3] : [6, 4]);
       ctx.beginPath(); ctx.moveTo(left, y); ctx.lineTo(left + width, y); ctx.stroke();
       if (l.text) {
+        const box = labelBox(ctx, l.text, left + width - 4, y, placed);
         ctx.fillStyle = l.color || GREY;
-        ctx.font = `${11 * devicePixelRatio}px sans-serif`;
-        ctx.textAlign = "right";
-        ctx.fillText(l.text, left + width - 4, y - 4);
+        ctx.fillText(l.text, box.right, box.bottom - 2 * devicePixelRatio);
+        placed.push(box);
       }
     });
     ctx.restore();
+    u.levelLabels = placed;
   };
+}
+
+// Where a level's text goes (levelsHook): the first of above its line, below it, and the
+// same further left, whose box overlaps none of the boxes `placed`.
+function labelBox(ctx, text, right, y, placed) {
+  const w = ctx.measureText(text).width, h = 13 * devicePixelRatio, gap = 2 * devicePixelRatio;
+  const box = (r, bottom) => ({ text, left: r - w, top: bottom - h, right: r, bottom });
+  const clear = (b) => placed.every((o) =>
+    b.right <= o.left || b.left >= o.right || b.bottom <= o.top || b.top >= o.bottom);
+  let r = right;
+  for (let i = 0; i <= placed.length; i += 1) {
+    for (const b of [box(r, y - gap), box(r, y + h + gap)]) if (clear(b)) return b;
+    const inWay = placed.filter((o) => o.right > r - w && o.left < r);
+    r = Math.min(...inWay.map((o) => o.left), r) - 8 * devicePixelRatio;
+  }
+  return box(r, y - gap);
 }
 
 // A y range that holds the data and the levels.
