@@ -153,6 +153,8 @@ def test_a_crash_between_the_check_and_the_learning_loses_nothing(made, tmp_path
     trial = tuner.ask()
     tuner.accept(trial, *episode(tuner, trial))
     assert tuner.status()["learning"] == 0 and (made / "accepted" / "trial-0.pkl").exists()
+    reason = tuner.status()["recommendation"]["reason"]  # in Python, before Tuner.learn()
+    assert "the tuner's process is learning" not in reason and "Tuner.learn()" in reason, reason
     del tuner  # the process is gone before it learned
     heard: list[str] = []
     resident = Resident(made, heard.append)  # a serve started now says why it takes a while

@@ -698,6 +698,7 @@ class Tuner:
                 self.job.run.price.converged_,
                 self.learning,
                 verifying,
+                learns=False,  # a told log waits for learn(): nothing in this process learns
             ),
             "learning": self.learning,
             "verifying": verifying,

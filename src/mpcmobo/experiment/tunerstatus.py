@@ -183,8 +183,8 @@ def learning_reason(learning: int, budget: int, directory: str, learns: bool) ->
     told = (
         f"trial {learning} is told: its log is accepted (accepted/trial-{learning}.pkl) and not "
         "learned from yet, and no process is learning from it (the command that told it "
-        "stopped before it learned); the next command that loads the tuner (ask, tell, serve) "
-        "learns from it"
+        "stopped before it learned, or Tuner.accept() without Tuner.learn()); Tuner.learn() or "
+        "the next command that loads the tuner (ask, tell, serve) learns from it"
     )
     if last:
         then = f"mpcmobo ask {directory} learns from it and says the budget is spent; {result}"
