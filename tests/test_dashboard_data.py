@@ -11,6 +11,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 
@@ -27,6 +28,9 @@ from mpcmobo.dashboard.runs import RunSource
 from mpcmobo.dashboard.series import changes, job_series
 from mpcmobo.dashboard.server import make_server
 from mpcmobo.experiment import storage
+from mpcmobo.experiment.rundir import RUNNING_FILE
+
+TEXT = {"capture_output": True, "text": True}
 
 
 def _request(url, method, path):
@@ -98,11 +102,26 @@ def test_a_checkpoint_newer_than_the_records_gives_the_jobs_rows(dashboard_run, 
     storage.write_pickle(ckpt, dict(storage.read_pickle(ckpt), done=False))  # still running
     later = (out / "episodes.parquet").stat().st_mtime_ns + 10**9
     os.utime(ckpt, ns=(later, later))
+    here = socket.gethostname()
+    (out / RUNNING_FILE).write_text(json.dumps({"pid": os.getpid(), "host": here}))
     payload = run_payload(RunSource(out, FileCache()), 0)
     jobs = {(j["learner"], j["seed"]): j for j in payload["jobs"]}
     assert jobs["mobo", 1]["episode"] == [0, 1, 2] and jobs["mobo", 1]["live"]
     assert jobs["mobo", 0]["episode"] == [0] and not jobs["mobo", 0]["live"]
     assert payload["messages"] == []
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], **TEXT)
+    for named, live in (({"pid": int(gone.stdout), "host": here}, False), (None, False)):
+        if named is None:  # stopped by its end or Ctrl-C: the file is removed
+            (out / RUNNING_FILE).unlink()
+        else:  # killed with kill -9: the file names a process that is gone
+            (out / RUNNING_FILE).write_text(json.dumps(named))
+        jobs = {
+            (j["learner"], j["seed"]): j
+            for j in run_payload(RunSource(out, FileCache()), 0)["jobs"]
+        }
+        assert jobs["mobo", 1]["episode"] == [0, 1, 2] and jobs["mobo", 1]["live"] is live
+    (out / RUNNING_FILE).write_text(json.dumps({"pid": 1, "host": here + "-elsewhere"}))
+    assert RunSource(out, FileCache()).study_alive()  # on another host: cannot tell, running
     # a study in progress: no trajectories.parquet yet, the checkpoint's trajectories are shown
     os.remove(out / "trajectories.parquet")
     source = RunSource(out, FileCache())

@@ -12,6 +12,7 @@ import pandas as pd
 import pytest
 
 from mpcmobo.experiment import storage
+from mpcmobo.experiment.rundir import RUNNING_FILE, RunDirectory
 from mpcmobo.experiment.settings import SettingsError, load_settings
 from mpcmobo.experiment.study import StudyError, run_study
 
@@ -190,6 +191,28 @@ def test_interrupted_then_resumed_equals_uninterrupted(full_run, tmp_path):
     # resuming a finished study changes nothing
     run_study(None, out, resume=True)
     pd.testing.assert_frame_equal(a, storage.read_episodes(out).drop(columns=WALL))
+
+
+def test_a_running_study_names_its_process_until_it_ends(tmp_path):
+    """``running.json`` names the study's process while it runs (what the dashboard reads),
+    and is gone when it ends, by its end or by an interruption."""
+    out = tmp_path / "run"
+    seen = []
+    run_study(
+        small(episodes=2, seeds=[0]),
+        out,
+        progress=lambda event: seen.append(RunDirectory(out).study_alive()),
+    )
+    assert len(seen) > 2 and all(v is True for v in seen)
+    assert not (out / RUNNING_FILE).exists() and RunDirectory(out).study_alive() is False
+
+    def stop(event):
+        if event["kind"] == "start":
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_study(None, out, resume=True, progress=stop)
+    assert not (out / RUNNING_FILE).exists()
 
 
 def test_extended_budget_equals_a_run_with_that_budget(full_run, tmp_path):

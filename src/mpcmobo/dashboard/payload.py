@@ -144,11 +144,12 @@ def run_payload(source: RunSource, index: int) -> dict[str, Any]:
     learners = list(settings.learners) if settings is not None else []
     learners += [lr for lr in episodes["learner"].unique().tolist() if lr not in learners]
     jobs = []
+    alive = source.study_alive()
     for (learner, seed), rows in episodes.groupby(["learner", "seed"], sort=False):
         start, names = _start(source, settings, reference, rows)
         job = job_series(rows.sort_values("episode"), start, names)
         ckpt = live.get((learner, seed))
-        running = ckpt is not None and not ckpt.get("done", False)
+        running = ckpt is not None and not ckpt.get("done", False) and alive
         head = {"learner": str(learner), "seed": int(seed), "live": running}
         jobs.append({**head, "deploy": _deploy_options(raw, str(learner)), **job})
     jobs.sort(key=lambda j: (learners.index(j["learner"]), j["seed"]))

@@ -22,7 +22,7 @@ from mpcmobo.dashboard.files import stamp as file_stamp
 from mpcmobo.dashboard.jsonable import floats2
 from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.records import Reference
-from mpcmobo.experiment.rundir import RunDirectory
+from mpcmobo.experiment.rundir import RUNNING_FILE, RunDirectory
 from mpcmobo.experiment.settings import Settings, read_toml
 from mpcmobo.experiment.tunerstatus import STATUS_KEYS, with_recommendation
 
@@ -71,6 +71,7 @@ class RunSource:
             "tuner.json",
             "episodes.parquet",
             "trajectories.parquet",
+            RUNNING_FILE,
         ]
         return [self.path / n for n in fixed] + sorted(self.path.glob("jobs/*/checkpoint.pkl"))
 
@@ -121,6 +122,12 @@ class RunSource:
         if not STATUS_KEYS <= set(st):
             return st
         return with_recommendation(dict(st), self.path, self.serving)
+
+    def study_alive(self) -> bool:
+        """Whether the study's process runs (:meth:`~mpcmobo.experiment.rundir.RunDirectory.
+        study_alive`; one on another host counts as running); a tuner's trials run on its
+        plant, outside any process of ours: True."""
+        return self.is_tuner() or self.dir.study_alive() is not False
 
     def is_tuner(self) -> bool:
         """Whether the directory holds a tuner (ask and tell)."""

@@ -59,6 +59,7 @@ class Dashboard:
         stamps: list[Any] = [s.stamp() for s in self.sources]
         if self.serving is not None:  # a tuner's process that stops changes the page too
             stamps += [self.serving(s.path) for s in self.sources if s.is_tuner()]
+        stamps += [s.study_alive() for s in self.sources]  # and a study's killed process
         return hashlib.sha1(repr(stamps).encode(), usedforsecurity=False).hexdigest()[:16]
 
     def state(self) -> tuple[str, bytes]:

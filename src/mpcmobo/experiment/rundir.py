@@ -9,12 +9,15 @@ may change. :class:`RunDirectory` reads and writes the typed records of the dire
 
 from __future__ import annotations
 
+import contextlib
+import json
 import math
 import os
 import pickle
 import shutil
+import socket
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -22,6 +25,7 @@ import numpy as np
 
 from mpcmobo import __version__
 from mpcmobo.experiment import storage
+from mpcmobo.experiment.interrupts import process_alive
 from mpcmobo.experiment.logs import RunFileWarning
 from mpcmobo.experiment.records import Checkpoint, Reference
 from mpcmobo.experiment.settings import (
@@ -36,6 +40,8 @@ T = TypeVar("T")
 
 # what a resumed run may take from the settings it is given (the rest is the saved run's)
 RESUME_CHANGES = ("workers", "backend", "episodes")
+# the file that names the process of a study while it runs (RunDirectory.running)
+RUNNING_FILE = "running.json"
 
 
 class StudyError(RuntimeError):
@@ -147,6 +153,31 @@ class RunDirectory:
             return source.stat().st_mtime_ns > self.reference_path.stat().st_mtime_ns
         except (OSError, ValueError, KeyError, TypeError):
             return False
+
+    @contextlib.contextmanager
+    def running(self) -> Iterator[None]:
+        """While a study runs in this process: ``running.json`` names the process (its pid and
+        host), so that a reader (the dashboard) tells a study in progress from one that was
+        killed; removed when the study ends, however it ends (a process killed with
+        ``kill -9`` leaves it, naming a process that is gone)."""
+        path = self.path / RUNNING_FILE
+        path.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+        try:
+            yield
+        finally:
+            path.unlink(missing_ok=True)
+
+    def study_alive(self) -> bool | None:
+        """Whether the process of a study runs in the directory: True, False (none is named in
+        ``running.json``, or it is gone), None (it ran on another host: cannot tell here)."""
+        try:
+            named = json.loads((self.path / RUNNING_FILE).read_text(encoding="utf-8"))
+            pid, host = int(named["pid"]), str(named["host"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return False
+        if host != socket.gethostname():
+            return None
+        return process_alive(pid)
 
     def is_tuner(self) -> bool:
         """Whether the run is a tuner's (ask and tell): its episodes run on a plant outside

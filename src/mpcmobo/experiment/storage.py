@@ -11,6 +11,7 @@ Layout of a study directory ``DIR``::
                                      the generation before (read if the latest cannot be)
     run.log                          library warnings and worker output (``logs.py``)
     .stop                            only while an interrupted study stops its workers
+    running.json                     only while the study runs: its process (``rundir.py``)
     episodes.parquet                 per-episode rows of all jobs (rebuilt from the checkpoints)
     trajectories.parquet             states/inputs, long format (rebuilt from the checkpoints)
     summary.json                     per-learner results

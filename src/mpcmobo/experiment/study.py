@@ -95,7 +95,7 @@ def run_study(
         existed = Path(out_dir).exists()
         run_dir, settings = open_run(out_dir, settings, resume)
         try:
-            with run_log(run_dir.path, "study"):
+            with run_log(run_dir.path, "study"), run_dir.running():
                 return _run_study(run_dir, settings, resume, progress, max_episodes_this_call)
         except ReferenceFailed:
             if not resume:  # nothing was recorded: the directory is as it was
