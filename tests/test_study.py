@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import socket
+import subprocess
 import sys
 import tomllib
 
@@ -16,6 +19,7 @@ from mpcmobo.experiment.rundir import RUNNING_FILE, RunDirectory
 from mpcmobo.experiment.settings import SettingsError, load_settings
 from mpcmobo.experiment.study import StudyError, run_study
 
+TEXT = {"capture_output": True, "text": True}
 WALL = ["mpc_time_s", "learner_time_s", "eval_time_s"]
 
 
@@ -212,6 +216,20 @@ def test_a_running_study_names_its_process_until_it_ends(tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         run_study(None, out, resume=True, progress=stop)
+    assert not (out / RUNNING_FILE).exists()
+    # a second process on a running study is refused; a killed study's file is replaced
+    (out / RUNNING_FILE).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    with pytest.raises(StudyError, match="is being run by another process"):
+        run_study(None, out, resume=True)
+    assert (out / RUNNING_FILE).exists()
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], **TEXT)
+    (out / RUNNING_FILE).write_text(json.dumps({"pid": int(gone.stdout), "host": "h"}))
+    with pytest.raises(StudyError, match="another host's"):  # another host: cannot tell
+        run_study(None, out, resume=True)
+    (out / RUNNING_FILE).write_text(
+        json.dumps({"pid": int(gone.stdout), "host": socket.gethostname()})
+    )
+    assert run_study(None, out, resume=True)["complete"] is True
     assert not (out / RUNNING_FILE).exists()
 
 

@@ -161,11 +161,33 @@ class RunDirectory:
         killed; removed when the study ends, however it ends (a process killed with
         ``kill -9`` leaves it, naming a process that is gone)."""
         path = self.path / RUNNING_FILE
-        path.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+        self._claim(path)
         try:
             yield
         finally:
             path.unlink(missing_ok=True)
+
+    def _claim(self, path: Path) -> None:
+        """Create ``running.json`` naming this process, or refuse (:class:`StudyError`) where it
+        names another study's process that runs (or may: on another host); one that names a
+        process that is gone (killed) is replaced."""
+        mark = json.dumps({"pid": os.getpid(), "host": socket.gethostname()})
+        for _ in range(3):
+            try:
+                with open(path, "x", encoding="utf-8") as f:
+                    f.write(mark)
+                return
+            except FileExistsError:
+                if self.study_alive() is False:
+                    path.unlink(missing_ok=True)
+                    continue
+                named = path.read_text(encoding="utf-8", errors="replace").strip()
+                raise StudyError(
+                    f"{self.path} is being run by another process ({RUNNING_FILE}: {named}): "
+                    f"wait for it to end or stop it (Ctrl-C, or kill PID); where that process "
+                    f"is gone (another host's), delete {path} and run again"
+                ) from None
+        raise StudyError(f"{path} cannot be claimed: another process writes it")
 
     def study_alive(self) -> bool | None:
         """Whether the process of a study runs in the directory: True, False (none is named in
