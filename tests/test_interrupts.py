@@ -350,3 +350,22 @@ def test_a_signal_swallowed_during_the_reference_stops_the_run(tmp_path, monkeyp
     assert err.value.exit_code == 130
     assert not (tmp_path / "run" / "reference.pkl").exists()
     assert not list((tmp_path / "run").glob("jobs/*/checkpoint.pkl"))
+
+
+def test_a_zombie_process_is_not_alive():
+    """A process that ended and was not reaped yet (a killed study whose parent has not waited
+    for it) is gone for the liveness checks: a resume, a worker's watchdog, the dashboard."""
+    from mpcmobo.experiment.interrupts import process_alive
+
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    assert process_alive(proc.pid)
+    os.kill(proc.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while Path(f"/proc/{proc.pid}/stat").read_text().rpartition(")")[2].split()[0] != "Z":
+        assert time.monotonic() < deadline, "the child never became a zombie"
+        time.sleep(0.05)
+    try:
+        assert not process_alive(proc.pid)
+    finally:
+        proc.wait()
+    assert not process_alive(proc.pid)

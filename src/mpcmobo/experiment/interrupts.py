@@ -23,6 +23,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 # exit code of a process stopped by a signal: 128 + signal number (130 SIGINT, 143 SIGTERM)
@@ -195,14 +196,19 @@ def worker_job() -> Iterator[None]:
 
 
 def process_alive(pid: int) -> bool:
-    """Whether the process ``pid`` runs (one of another user's counts)."""
+    """Whether the process ``pid`` runs (one of another user's counts; a zombie, ended and
+    not yet reaped by its parent, does not, where ``/proc`` tells)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except OSError:  # exists, but not ours to signal
         return True
-    return True
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text(encoding="ascii", errors="replace")
+    except OSError:  # no /proc (not Linux): the signal's answer
+        return True
+    return stat.rpartition(")")[2].split()[:1] != ["Z"]
 
 
 def _watchdog(parent_pid: int, stop: str | None) -> None:
