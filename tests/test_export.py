@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from mpcmobo.cli import app
 from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.mpc import ParametricMPC
+from mpcmobo.mpc.codegen import compiler_command
 from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
 from mpcmobo.mpc.export import c_compile_command, controller_function, export_c, export_casadi
 from mpcmobo.systems import get_system
@@ -86,6 +87,19 @@ def test_the_generated_c_compiles_and_gives_the_same_inputs(tmp_path):
         )
     bad = subprocess.run([str(d / "controller")], input=b"0.1,0.2\n", capture_output=True)
     assert bad.returncode == 2 and b"a state is 2 numbers separated by spaces" in bad.stderr
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_generated_c_compiles_strictly_without_a_warning(tmp_path):
+    """CasADi's functions share one signature and leave parameters unused: a build with
+    ``-std=c99 -Wall -Wextra -pedantic`` says nothing of it."""
+    d = export_c(ParametricMPC(get_system("lq")), None, tmp_path / "c")
+    flags = [a for a in c_compile_command(d) if a.startswith("-I")]
+    strict = ["-std=c99", "-Wall", "-Wextra", "-pedantic", "-fsyntax-only"]
+    for name in ("controller.c", "main.c"):
+        cmd = [*compiler_command(), *strict, *flags, str(d / name)]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        assert proc.returncode == 0 and proc.stderr == "", proc.stderr
 
 
 def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
