@@ -149,6 +149,20 @@ def test_an_export_does_not_mix_with_another_controllers_files(tmp_path):
     assert exported and all(name.startswith(prefixes) for name in exported), exported
 
 
+def test_an_export_without_a_compiler_says_so(tmp_path, monkeypatch):
+    """``--compile`` where ``$CC`` names no program: the files are written and the message says
+    so, names the compiler and gives the build line (exit code 2), not a traceback."""
+    from mpcmobo.cli.plant import _write_controller
+
+    monkeypatch.setenv("CC", "no-such-cc -O1")
+    mpc = ParametricMPC(get_system("lq"), codegen=False)
+    out = tmp_path / "emb"
+    with pytest.raises(TunerError, match="C compiler 'no-such-cc' cannot be run") as err:
+        _write_controller(mpc, None, "embedded", out, True)
+    assert "set $CC" in str(err.value) and "main.c -lm -o" in str(err.value)
+    assert (out / "mpc_functions.c").is_file() and not (out / "controller").exists()
+
+
 OWN_PATHS = {
     "Newton_Succeeded",
     "Continuation_Succeeded",
