@@ -102,6 +102,25 @@ def test_the_generated_c_compiles_strictly_without_a_warning(tmp_path):
         assert proc.returncode == 0 and proc.stderr == "", proc.stderr
 
 
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_c_example_reads_one_state_per_line(tmp_path):
+    """The C format's ``main.c`` refuses a line with a number too many or too few, naming it,
+    rather than read on into the next state, and an argument (it takes none)."""
+    d = export_c(ParametricMPC(get_system("lq"), continuation_steps=0), None, tmp_path / "c")
+    subprocess.run(c_compile_command(d), capture_output=True, check=True)
+    program = str(d / "controller")
+    for text, line in (("0.8 -0.3 0.1\n0.2\n", 1), ("\n0.8 -0.3\n0.8\n-0.3\n", 3)):
+        proc = subprocess.run([program], input=text, capture_output=True, text=True)
+        assert proc.returncode == 2, text
+        assert f"line {line}: a state is 2 numbers separated by spaces" in proc.stderr
+    proc = subprocess.run([program, "--cold"], input="0.8 -0.3\n", capture_output=True, text=True)
+    assert proc.returncode == 2 and "usage:" in proc.stderr and proc.stdout == ""
+    proc = subprocess.run(
+        [program], input="0.8 -0.3\r\n\n0.1\t0.2\n", capture_output=True, text=True
+    )
+    assert proc.returncode == 0 and len(proc.stdout.splitlines()) == 2
+
+
 def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     runner = CliRunner()
     d = tmp_path / "tun"
