@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from mpcmobo.cli import app
 from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.mpc import ParametricMPC
+from mpcmobo.mpc.codegen import compiler_command
 from mpcmobo.mpc.embedded import embedded_compile_command, export_embedded
 from mpcmobo.mpc.export import c_compile_command, controller_function, export_c, export_casadi
 from mpcmobo.systems import get_system
@@ -88,6 +89,38 @@ def test_the_generated_c_compiles_and_gives_the_same_inputs(tmp_path):
     assert bad.returncode == 2 and b"a state is 2 numbers separated by spaces" in bad.stderr
 
 
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_generated_c_compiles_strictly_without_a_warning(tmp_path):
+    """CasADi's functions share one signature and leave parameters unused: a build with
+    ``-std=c99 -Wall -Wextra -pedantic`` says nothing of it."""
+    d = export_c(ParametricMPC(get_system("lq")), None, tmp_path / "c")
+    flags = [a for a in c_compile_command(d) if a.startswith("-I")]
+    strict = ["-std=c99", "-Wall", "-Wextra", "-pedantic", "-fsyntax-only"]
+    for name in ("controller.c", "main.c"):
+        cmd = [*compiler_command(), *strict, *flags, str(d / name)]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+def test_the_c_example_reads_one_state_per_line(tmp_path):
+    """The C format's ``main.c`` refuses a line with a number too many or too few, naming it,
+    rather than read on into the next state, and an argument (it takes none)."""
+    d = export_c(ParametricMPC(get_system("lq"), continuation_steps=0), None, tmp_path / "c")
+    subprocess.run(c_compile_command(d), capture_output=True, check=True)
+    program = str(d / "controller")
+    for text, line in (("0.8 -0.3 0.1\n0.2\n", 1), ("\n0.8 -0.3\n0.8\n-0.3\n", 3)):
+        proc = subprocess.run([program], input=text, capture_output=True, text=True)
+        assert proc.returncode == 2, text
+        assert f"line {line}: a state is 2 numbers separated by spaces" in proc.stderr
+    proc = subprocess.run([program, "--cold"], input="0.8 -0.3\n", capture_output=True, text=True)
+    assert proc.returncode == 2 and "usage:" in proc.stderr and proc.stdout == ""
+    proc = subprocess.run(
+        [program], input="0.8 -0.3\r\n\n0.1\t0.2\n", capture_output=True, text=True
+    )
+    assert proc.returncode == 0 and len(proc.stdout.splitlines()) == 2
+
+
 def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     runner = CliRunner()
     d = tmp_path / "tun"
@@ -133,6 +166,20 @@ def test_an_export_does_not_mix_with_another_controllers_files(tmp_path):
     )
     prefixes = ("mpcmobo_", "mpc_functions_")  # the MPC's functions, the file's version
     assert exported and all(name.startswith(prefixes) for name in exported), exported
+
+
+def test_an_export_without_a_compiler_says_so(tmp_path, monkeypatch):
+    """``--compile`` where ``$CC`` names no program: the files are written and the message says
+    so, names the compiler and gives the build line (exit code 2), not a traceback."""
+    from mpcmobo.cli.plant import _write_controller
+
+    monkeypatch.setenv("CC", "no-such-cc -O1")
+    mpc = ParametricMPC(get_system("lq"), codegen=False)
+    out = tmp_path / "emb"
+    with pytest.raises(TunerError, match="C compiler 'no-such-cc' cannot be run") as err:
+        _write_controller(mpc, None, "embedded", out, True)
+    assert "set $CC" in str(err.value) and "main.c -lm -o" in str(err.value)
+    assert (out / "mpc_functions.c").is_file() and not (out / "controller").exists()
 
 
 OWN_PATHS = {

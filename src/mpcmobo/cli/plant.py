@@ -602,10 +602,22 @@ def _exported(mpc: Any, theta: Any, fmt_: str, out: Path, compile_c: bool) -> st
         cmd = c_compile_command(out)
     files = ", ".join(names)
     if compile_c:
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise TunerError(f"compiling failed: {proc.stderr.strip()[-1500:]}")
+        _compile(cmd, f"wrote {out}/{files}")
     return f"wrote {out}/{files}; build with:\n" + " ".join(cmd)
+
+
+def _compile(cmd: list[str], written: str) -> None:
+    """Run the build ``cmd`` of what ``written`` says was written; a compiler that cannot be
+    run or that fails is a :class:`TunerError` (the files stay)."""
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+    except OSError as err:
+        raise TunerError(
+            f"{written}, but the C compiler {cmd[0]!r} cannot be run ({err.strerror}): set $CC "
+            "to yours, or build them with:\n" + " ".join(cmd)
+        ) from None
+    if proc.returncode != 0:
+        raise TunerError(f"compiling failed: {proc.stderr.strip()[-1500:]}")
 
 
 @app.command()

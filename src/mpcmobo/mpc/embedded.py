@@ -37,7 +37,7 @@ import numpy as np
 
 from mpcmobo.mpc.codegen import compiler_command
 from mpcmobo.mpc.embedded_source import CONTROLLER_C, CONTROLLER_H, MAIN_C
-from mpcmobo.mpc.export import check_generated
+from mpcmobo.mpc.export import check_generated, quiet_unused
 from mpcmobo.mpc.interior import RESTART_BARRIER
 from mpcmobo.mpc.parametric import ParametricMPC
 
@@ -171,6 +171,7 @@ def export_embedded(
     gen.generate(str(directory) + os.sep)
     generated = [directory / "mpc_functions.c", directory / "mpc_functions.h"]
     check_generated(generated[0], generated)
+    quiet_unused(generated[0])
     constants = _constants(mpc, theta, functions)
     (directory / "controller.h").write_text(CONTROLLER_H)
     (directory / "controller.c").write_text(CONTROLLER_C.replace("/* CONSTANTS */\n", constants))

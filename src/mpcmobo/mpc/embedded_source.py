@@ -10,8 +10,9 @@ extern "C" {
 #endif
 
 /* The input u (nu values) for the measured state x (nx values): 0 when solved (the policy of
- * the MPC), 1 when no path converged and u is the fallback (the previous plan's next input,
- * else the reference input). */
+ * the MPC), 1 when no path converged, or x holds a NaN or an infinity, and u is the fallback
+ * (the previous plan's next input, else the reference input; always within the input bounds).
+ * A state that is NaN or inf leaves the warm start as it was. */
 int controller_step(const double* x, double* u);
 /* Forget the warm start: the next step starts cold (call between episodes). */
 void controller_reset(void);
@@ -185,11 +186,27 @@ static int restart(double m0) { /* the continuation from the shifted plan, centr
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
+static int all_finite(const double* v, const int* index, int n) { /* v[index[i]], or v[i] */
+  int i;
+  for (i = 0; i < n; i++) if (!isfinite(v[index ? index[i] : i])) return 0;
+  return 1;
+}
+
+static int fallback(double* u) { /* the previous plan's next input, else u_r; returns 1 */
+  int i, stage = AGE + 1 < NSTAGE ? AGE + 1 : NSTAGE - 1;
+  for (i = 0; i < NU; i++)
+    u[i] = clip(HAVE_PLAN ? PLAN[stage * NU + i] : U_REF[i], U_LB[i], U_UB[i]);
+  PATH = ITERS = 0;
+  AGE++;
+  return 1;
+}
+
 int controller_step(const double* x, double* u) {
   int i, k = 0;
+  PATH = 0;
+  if (!all_finite(x, 0, NX)) return fallback(u); /* a state that is NaN or inf is not solved */
   for (i = 0; i < NX; i++) P[i] = x[i];
   for (i = 0; i < NP - NX; i++) P[NX + i] = THETA[i];
-  PATH = 0;
   if (HAVE_WARM) {
     warm();
     if ((k = newton_path())) PATH = 1;
@@ -204,14 +221,8 @@ int controller_step(const double* x, double* u) {
     if (!k) k = cold(0.1);
     if (k && minimum()) PATH = 3;
   }
-  ITERS = PATH ? k : 0;
-  if (!PATH) { /* the fallback input: the previous plan's next input, else u_r */
-    int stage = AGE + 1 < NSTAGE ? AGE + 1 : NSTAGE - 1;
-    for (i = 0; i < NU; i++)
-      u[i] = clip(HAVE_PLAN ? PLAN[stage * NU + i] : U_REF[i], U_LB[i], U_UB[i]);
-    AGE++;
-    return 1;
-  }
+  if (!PATH || !all_finite(Y, IU, NSTAGE * NU)) return fallback(u);
+  ITERS = k;
   for (i = 0; i < NSTAGE * NU; i++) PLAN[i] = U_REF[i % NU] + SU[i % NU] * Y[IU[i]];
   for (i = 0; i < NU; i++) u[i] = clip(PLAN[i], U_LB[i], U_UB[i]);
   memcpy(YPREV, Y, sizeof Y);
@@ -228,29 +239,60 @@ int controller_nu(void) { return NU; }
 """
 
 MAIN_C = r"""/* Example: the embedded controller in closed loop with your own code.
- * Reads one state per line (nx numbers) from stdin and prints the input (nu numbers), the
- * path (1 Newton, 2 continuation, 4 restart, 3 cold, 0 fallback) and the step's wall time in
- * microseconds.
+ * Reads one state per line (nx numbers separated by spaces or tabs; empty lines are skipped)
+ * from stdin and prints the input (nu numbers), the path (1 Newton, 2 continuation, 4
+ * restart, 3 cold, 0 fallback) and the step's wall time in microseconds. A line that is not
+ * nx numbers stops it with exit code 2, naming the line.
  * With the argument --cold every step starts cold (controller_reset before each one). */
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 #include <time.h>
 #include "controller.h"
 
+#define MAX_N 64
+#define BLANK " \t\r\n"
+
+/* The state on a line: 1 when it holds nx numbers, 0 when it is empty, -1 otherwise. */
+static int read_state(const char* line, double* x, int nx) {
+  char* end;
+  int i;
+  if (line[strspn(line, BLANK)] == '\0') return 0;
+  for (i = 0; i < nx; i++) {
+    x[i] = strtod(line, &end);
+    if (end == line) return -1;
+    line = end;
+  }
+  return line[strspn(line, BLANK)] == '\0' ? 1 : -1;
+}
+
+static int usage(const char* program, int nx, FILE* to) {
+  fprintf(to, "usage: %s [--cold] < states (one state per line: %d numbers)\n", program, nx);
+  return to == stdout ? 0 : 2;
+}
+
 int main(int argc, char** argv) {
-  double x[64], u[64];
-  int i, cold = argc > 1 && strcmp(argv[1], "--cold") == 0;
-  int nx = controller_nx(), nu = controller_nu();
+  double x[MAX_N], u[MAX_N];
+  char line[4096];
+  int i, got, n = 0, nx = controller_nx(), nu = controller_nu();
+  int cold = argc == 2 && strcmp(argv[1], "--cold") == 0;
   struct timespec t0, t1;
-  while (1) {
-    for (i = 0; i < nx; i++) {
-      int read = scanf("%lf", &x[i]);
-      if (read == EOF && i == 0) return 0;
-      if (read != 1) {
-        fprintf(stderr, "a state is %d numbers separated by spaces or newlines\n", nx);
-        return 2;
-      }
+  if (argc == 2 && (strcmp(argv[1], "--help") == 0 || strcmp(argv[1], "-h") == 0))
+    return usage(argv[0], nx, stdout);
+  if (argc > 2 || (argc == 2 && !cold)) return usage(argv[0], nx, stderr);
+  if (nx > MAX_N || nu > MAX_N) {
+    fprintf(stderr, "this example reads at most %d states and inputs\n", MAX_N);
+    return 2;
+  }
+  while (fgets(line, sizeof line, stdin)) {
+    n++;
+    got = read_state(line, x, nx);
+    if (got == 0) continue;
+    if (got < 0 || (!strchr(line, '\n') && !feof(stdin))) {
+      fprintf(stderr, "line %d: a state is %d numbers separated by spaces, one state per line\n",
+              n, nx);
+      return 2;
     }
     if (cold) controller_reset();
     clock_gettime(CLOCK_MONOTONIC, &t0);
@@ -261,5 +303,6 @@ int main(int argc, char** argv) {
            (t1.tv_sec - t0.tv_sec) * 1e6 + (t1.tv_nsec - t0.tv_nsec) * 1e-3);
     fflush(stdout);
   }
+  return 0;
 }
 """

@@ -160,19 +160,61 @@ def check_generated(source: Path, written: list[Path]) -> None:
     )
 
 
+#: what :func:`quiet_unused` puts before CasADi's generated C: its functions share one
+#: signature and many leave a parameter unused, which GCC and Clang would report one by one in
+#: a build with ``-Wextra``
+QUIET_UNUSED = (
+    "/* generated functions share one signature: not every one uses each parameter */\n"
+    "#if defined(__GNUC__)\n"
+    '#pragma GCC diagnostic ignored "-Wunused-parameter"\n'
+    "#endif\n"
+)
+
+
+def quiet_unused(source: Path) -> None:
+    """Prepend :data:`QUIET_UNUSED` to CasADi's generated ``source``, so that a build with
+    ``-Wall -Wextra -pedantic`` compiles it without a warning."""
+    source.write_text(QUIET_UNUSED + source.read_text())
+
+
 def _casadi_dir() -> Path:
     return Path(ca.__file__).resolve().parent
 
 
 MAIN_C = r"""/* Example: the tuned MPC in closed loop with your own code.
- * Reads one state per line (NX numbers) from stdin, prints the input (NU numbers).
+ * Reads one state per line (NX numbers separated by spaces or tabs; empty lines are skipped)
+ * from stdin, prints the input (NU numbers). A line that is not NX numbers stops it with exit
+ * code 2, naming the line; a failed solve with exit code 1.
  * The first call starts cold; each later one warm-starts from the previous solution. */
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
 #include "controller.h"
 
-int main(void) {
+#define BLANK " \t\r\n"
+
+/* The state on a line: 1 when it holds NX numbers, 0 when it is empty, -1 otherwise. */
+static int read_state(const char* line, casadi_real* x) {
+  char* end;
+  int i;
+  if (line[strspn(line, BLANK)] == '\0') return 0;
+  for (i = 0; i < NX; i++) {
+    x[i] = strtod(line, &end);
+    if (end == line) return -1;
+    line = end;
+  }
+  return line[strspn(line, BLANK)] == '\0' ? 1 : -1;
+}
+
+int main(int argc, char** argv) {
   casadi_int sz_arg, sz_res, sz_iw, sz_w;
+  char line[4096];
+  int got, n = 0;
+  if (argc > 1) {
+    fprintf(argc == 2 && strcmp(argv[1], "--help") == 0 ? stdout : stderr,
+            "usage: %s < states (one state per line: %d numbers)\n", argv[0], NX);
+    return argc == 2 && strcmp(argv[1], "--help") == 0 ? 0 : 2;
+  }
   controller_work(&sz_arg, &sz_res, &sz_iw, &sz_w);
   const casadi_real** arg = malloc(sz_arg * sizeof(casadi_real*));
   casadi_real** res = malloc(sz_res * sizeof(casadi_real*));
@@ -180,14 +222,14 @@ int main(void) {
   casadi_real* w = malloc(sz_w * sizeof(casadi_real));
   casadi_real x[NX], warm[NW] = {0}, u[NU], cold = 1;
   int mem = controller_checkout();
-  while (1) {
-    for (int i = 0; i < NX; i++) {
-      int read = scanf("%lf", &x[i]);
-      if (read == EOF && i == 0) goto done;
-      if (read != 1) {
-        fprintf(stderr, "a state is %d numbers separated by spaces or newlines\n", NX);
-        return 2;
-      }
+  while (fgets(line, sizeof line, stdin)) {
+    n++;
+    got = read_state(line, x);
+    if (got == 0) continue;
+    if (got < 0 || (!strchr(line, '\n') && !feof(stdin))) {
+      fprintf(stderr, "line %d: a state is %d numbers separated by spaces, one state per line\n",
+              n, NX);
+      return 2;
     }
     arg[0] = x; arg[1] = warm; arg[2] = &cold;
     res[0] = u; res[1] = warm;  /* the solution becomes the next warm start */
@@ -196,7 +238,6 @@ int main(void) {
     printf("\n");
     cold = 0;
   }
-done:
   controller_release(mem);
   return 0;
 }
@@ -213,6 +254,7 @@ def export_c(mpc: ParametricMPC, theta: np.ndarray | None, directory: str | os.P
     gen.add(fn)
     gen.generate(str(directory) + os.sep)
     check_generated(directory / f"{NAME}.c", [directory / f"{NAME}.c", directory / f"{NAME}.h"])
+    quiet_unused(directory / f"{NAME}.c")
     sizes = f"#define NX {mpc.nx}\n#define NU {mpc.nu}\n#define NW {mpc.problem.nw}\n"
     header = directory / f"{NAME}.h"
     header.write_text(header.read_text() + "\n" + sizes)
