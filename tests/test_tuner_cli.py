@@ -166,6 +166,9 @@ def test_ctrl_c_while_the_next_trial_is_prepared_says_the_trial_is_told(
 
 def test_export_names_a_pending_trial_and_force_tells_the_quarantined_log(asked, tmp_path):
     d, tuner, trial, _ = asked
+    res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path / "c")])  # deployed
+    assert res.exit_code == 2 and "no trial of" in _output(res), res.output
+    assert "is told yet" in _output(res) and "job" not in _output(res)  # a tuner's words
     res = runner.invoke(app, ["export", str(d), "--theta", "0", "--out", str(tmp_path / "c")])
     assert res.exit_code == 2 and "trial 0 is pending" in _output(res), res.output
     assert "(written by ask)" in _output(res)  # mpcmobo ask wrote it

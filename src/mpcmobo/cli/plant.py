@@ -519,16 +519,25 @@ def _job_of(run_dir: RunDirectory, learner: str | None, seed: int | None) -> tup
     return jobs[0]
 
 
+def _nothing_yet(run_dir: RunDirectory, name: str, seed: int) -> str:
+    """Why a tuner or a job with no told trial (no episode) has nothing to export."""
+    if run_dir.is_tuner():
+        return (
+            f"no trial of {run_dir.path} is told yet: the deployed controller is still the "
+            f"MPC's own (theta0), and nothing is learned to export; tell a trial first "
+            f"(mpcmobo ask {run_dir.path})"
+        )
+    return f"the job {name} s{seed} has no episode yet: nothing to export"
+
+
 def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int | None) -> Any:
     """The theta ``which`` ("deployed", "final" or a trial's id) of the job of ``run_dir``, and
     the settings."""
     settings = run_dir.saved_settings()
     name, s = _job_of(run_dir, learner, seed)
     ckpt = run_dir.checkpoint(name, s)
-    if ckpt is None or (not ckpt.rows and ckpt.pending is None):
-        raise TunerError(f"the job {name} s{s} has no episode yet: nothing to export")
-    if which in ("deployed", "final") and not ckpt.rows:
-        raise TunerError(f"the job {name} s{s} has no episode yet: nothing to export")
+    if ckpt is None or (not ckpt.rows and (ckpt.pending is None or which in ("deployed", "final"))):
+        raise TunerError(_nothing_yet(run_dir, name, s))
     if which == "deployed":
         return settings, name, np.asarray(ckpt.rows[-1].incumbent, float)
     if which == "final":
