@@ -123,3 +123,13 @@ def test_the_example_reads_one_state_per_line(lq_embedded):
         assert f"line {line}: a state is 2 numbers separated by spaces" in proc.stderr
     proc = _main(d, "0.8 -0.3\r\n\n0.1\t0.2\r\n", "--cold")
     assert proc.returncode == 0 and len(proc.stdout.splitlines()) == 2
+
+
+def test_a_fast_math_build_is_refused(lq_embedded):
+    """``-ffast-math`` (in ``-Ofast``) lets the compiler drop every check for NaN and inf, the
+    NaN state's included: the controller's source refuses such a build, saying why."""
+    d, _, _ = lq_embedded
+    for flag in ("-Ofast", "-ffast-math"):
+        cmd = [*compiler_command(), flag, "-c", str(d / "controller.c"), "-o", str(d / "fast.o")]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        assert proc.returncode != 0 and "without -ffast-math or -Ofast" in proc.stderr, flag

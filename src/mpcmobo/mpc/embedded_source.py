@@ -39,6 +39,10 @@ CONTROLLER_C = r"""/* The solve of the embedded controller: Newton steps on the 
 #include "mpc_functions.h"
 #include "controller.h"
 
+#if defined(__FAST_MATH__)
+#error "controller.c tells NaN and inf apart (a failed sensor, a step that diverges): build it without -ffast-math or -Ofast, which let the compiler assume neither occurs"
+#endif
+
 /* CONSTANTS */
 static const casadi_real* ARG[SZ_ARG];
 static casadi_real* RES[SZ_RES];
