@@ -20,14 +20,16 @@ deployed theta is evaluated as in a study (J_eval); on a real plant it is not.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import json
 import math
 import pickle
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -48,6 +50,8 @@ from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
 from mpcmobo.systems.registry import is_factory_path
+
+T = TypeVar("T")
 
 __all__ = ["LogQuarantined", "Trial", "Tuner", "TunerError", "write_log"]
 
@@ -99,6 +103,18 @@ class Trial:
             "x0": [float(v) for v in self.x0],
             "noise": np.asarray(self.noise).tolist(),
         }
+
+
+def _one_writer(method: Callable[..., T]) -> Callable[..., T]:
+    """``method`` of a :class:`Tuner` run as the one process that changes the tuner
+    (:meth:`Tuner._changing`)."""
+
+    @functools.wraps(method)
+    def guarded(self: Tuner, *args: Any, **kwargs: Any) -> T:
+        with self._changing():
+            return method(self, *args, **kwargs)
+
+    return guarded
 
 
 class Tuner:
@@ -198,13 +214,20 @@ class Tuner:
             settings = run_dir.reopen(settings.model_copy(update={"episodes": int(episodes)}))
         tuner = cls.__new__(cls)
         tuner._open(run_dir, settings, new=False)
-        tuner._learn_accepted()
-        if tuner._records_behind():  # a tell killed after its checkpoint, before its records
-            write_records(run_dir.path, settings, tuner.reference)
-            tuner._write_status()
-        elif episodes is not None and episodes > tuner.files.status_budget():
-            tuner._write_status()  # the larger budget, for `mpcmobo status`
+        with tuner._changing():
+            tuner._repair(episodes)
         return tuner
+
+    def _repair(self, episodes: int | None) -> None:
+        """At a load: what a process stopped between its steps left undone (a log accepted
+        and not learned from, records behind the checkpoint), and the status of a larger
+        budget ``episodes``."""
+        self._learn_accepted()
+        if self._records_behind():  # a tell killed after its checkpoint, before its records
+            write_records(self.run_dir.path, self.settings, self.reference)
+            self._write_status()
+        elif episodes is not None and episodes > self.files.status_budget():
+            self._write_status()  # the larger budget, for `mpcmobo status`
 
     def _records_behind(self) -> bool:
         """Whether ``status.json`` (written last by a tell) is older than the job's checkpoint:
@@ -235,6 +258,39 @@ class Tuner:
         self.files = TunerFiles(run_dir.path)
         self._errors: dict = {}  # one-step errors of told logs, per (trial, model)
         self._accepted: dict | None = None  # a log accepted and not learned from yet
+        self._writing = getattr(self, "_writing", 0)  # the depth of _changing
+        self._seen = self._checkpoint_stamp()  # the checkpoint as this object knows it
+
+    def _checkpoint_stamp(self) -> tuple[int, int, int] | None:
+        """The job checkpoint's file identity, time and size (None: none yet): it changes
+        whenever a process saves the tuner."""
+        ckpt = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
+        try:
+            st = ckpt.stat()
+        except FileNotFoundError:
+            return None
+        return (st.st_ino, st.st_mtime_ns, st.st_size)
+
+    @contextlib.contextmanager
+    def _changing(self) -> Iterator[None]:
+        """Change the tuner as its one writer: hold ``tuner.lock``
+        (:meth:`~mpcmobo.experiment.tunerfiles.TunerFiles.lock`), and refuse where another
+        process saved the tuner since this object loaded or last saved it (its change would
+        be lost under this one's): a :class:`TunerError` that says to load it again."""
+        with self.files.lock():
+            if self._writing == 0 and self._checkpoint_stamp() != self._seen:
+                raise TunerError(
+                    f"the tuner in {self.run_dir.path} was changed by another process since "
+                    "this one loaded it (an ask, a tell or a retract there): load it again "
+                    f"(Tuner.load) and repeat; nothing of this process's was written"
+                )
+            self._writing += 1
+            try:
+                yield
+            finally:
+                self._writing -= 1
+                if self._writing == 0:
+                    self._seen = self._checkpoint_stamp()
 
     def _reference(self, settings: Settings) -> Reference:
         """J* and J_eval(theta0) where the plant can be simulated; else neither."""
@@ -260,6 +316,7 @@ class Tuner:
         """Trials told so far."""
         return self.job.run.episode
 
+    @_one_writer
     def ask(self) -> Trial:
         """The next trial (the pending one again if it has not been told; after an
         :meth:`accept`, the learner learns first)."""
@@ -290,6 +347,7 @@ class Tuner:
             mpc=self._policy_mpc,
         )
 
+    @_one_writer
     def tell(
         self,
         trial: Trial | int,
@@ -322,6 +380,7 @@ class Tuner:
         self.accept(trial, states, inputs, stage_costs, violations, force=force)
         return self.learn(progress=progress)
 
+    @_one_writer
     def accept(
         self,
         trial: Trial | int,
@@ -358,6 +417,7 @@ class Tuner:
         self._write_status()
         return float(mean_stage_cost(record))
 
+    @_one_writer
     def learn(self, *, progress: Progress | None = None) -> EpisodeRow:
         """The second half of :meth:`tell`: the learner learns from the accepted log and the
         episode is recorded; its row. Where that fails (or is interrupted) the trial is pending
@@ -500,6 +560,7 @@ class Tuner:
         self._write_status()
         return row
 
+    @_one_writer
     def retract(self, trial: Trial | int, *, later: bool = False) -> list[int]:
         """Take told trials back: the learner's state becomes what it was before ``trial``
         was told, and ``trial`` is pending again (asked again, it is the same trial). Trials

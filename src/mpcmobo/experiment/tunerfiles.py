@@ -13,6 +13,7 @@ Layout in the tuner's directory ``DIR``::
     retracted/trial-<id>.parquet a retracted trial's log, and .json: its record and when
     retracted/episodes.parquet   the records of every retracted trial, ``retracted_at`` added
     status.json                  ``Tuner.status()``, rewritten after every ask, tell, retract
+    tuner.lock                   held (``flock``) while a process changes the tuner
     trials/<id>/                 a trial as ``mpcmobo ask`` wrote it (trial.json, its controller)
     system.pkl                   a ``System`` given as an object (registered again on load)
     system-modules.json          where the modules of that System's functions are
@@ -22,9 +23,12 @@ Every file is written atomically (:mod:`mpcmobo.experiment.storage`).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +40,61 @@ from mpcmobo.experiment.plantlog import PlantLog, TunerError, parse_log
 from mpcmobo.systems.base import System
 
 QUARANTINED = "quarantined"
+# the file a process holds while it changes the tuner (TunerFiles.lock), and how long another
+# process waits for it
+LOCK_FILE = "tuner.lock"
+LOCK_WAIT_S = 600.0
+
+
+# per lock file: this process's hold of it (its descriptor and depth) and its threads' lock
+_HELD: dict[Path, list[Any]] = {}
+_HELD_GUARD = threading.Lock()
+
+
+@contextlib.contextmanager
+def writer_lock(path: Path, timeout: float = LOCK_WAIT_S) -> Iterator[None]:
+    """Hold the lock file ``path`` (an exclusive ``flock``, which the system releases when the
+    process ends, however it ends) while a process changes the tuner; reentrant in a process
+    (a tell holds it through its accept and its learning), one thread at a time. A lock that
+    another process holds is waited for up to ``timeout`` seconds, then a
+    :class:`TunerError`. Where the system has no ``flock`` (Windows), only the threads of this
+    process are kept apart."""
+    path = path.resolve()
+    with _HELD_GUARD:
+        held = _HELD.setdefault(path, [None, 0, threading.RLock()])
+    with held[2]:
+        if held[1] == 0:
+            held[0] = _acquire(path, timeout)
+        held[1] += 1
+        try:
+            yield
+        finally:
+            held[1] -= 1
+            if held[1] == 0 and held[0] is not None:
+                os.close(held[0])  # releases the lock
+                held[0] = None
+
+
+def _acquire(path: Path, timeout: float) -> int | None:
+    """The descriptor of ``path`` with its exclusive ``flock`` taken (None: no ``flock``)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not on POSIX
+        return None
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return fd
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                os.close(fd)
+                raise TunerError(
+                    f"another process has been changing the tuner in {path.parent} for "
+                    f"{timeout:.0f} s (a tell, an ask or a retract): try again when it is done"
+                ) from None
+            time.sleep(0.05)
 
 
 def _now() -> str:
@@ -53,6 +112,11 @@ class TunerFiles:
         self.retracted_dir = self.path / "retracted"
         self.status_path = self.path / "status.json"
         self._forced: dict[str, tuple[int, list[str]]] = {}  # told file: (mtime, checks)
+
+    # ------------------------------------------------------------------ one writer
+    def lock(self, timeout: float = LOCK_WAIT_S) -> contextlib.AbstractContextManager[None]:
+        """Held while this process changes the tuner (:func:`writer_lock`)."""
+        return writer_lock(self.path / LOCK_FILE, timeout)
 
     # ------------------------------------------------------------------ told trials
     def save_told(

@@ -1,0 +1,88 @@
+"""One writer at a time: a tuner changed by another process since a ``Tuner`` loaded it is
+not overwritten by that object (the other's trials would be lost), and two processes that
+change one tuner take turns (``tuner.lock``)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import pytest
+from test_interrupts import same_source_env
+from test_tuner_checks import episode
+
+from mpcmobo.experiment.tuner import Tuner, TunerError
+from mpcmobo.experiment.tunerfiles import LOCK_FILE, TunerFiles
+
+SETTINGS = {"episodes": 6, "steps": 12, "start_mode": "cycle", "n_cycle_starts": 2}
+
+HOLD = """
+import sys, time
+from pathlib import Path
+from mpcmobo.experiment.tunerfiles import TunerFiles
+with TunerFiles(Path(sys.argv[1])).lock():
+    print("held", flush=True)
+    time.sleep(float(sys.argv[2]))
+"""
+
+
+@pytest.fixture
+def told_twice(tmp_path):
+    d = tmp_path / "t"
+    tuner = Tuner("lq", "mpc-rl", d, **SETTINGS)
+    for _ in range(2):
+        trial = tuner.ask()
+        tuner.tell(trial, *episode(tuner, trial))
+    return d
+
+
+def test_a_stale_tuner_does_not_overwrite_another_process_s_trials(told_twice):
+    """Two loads of one tuner: the first tells a trial; the second, which has not seen it,
+    may not retract or tell over it, and the told trial stays; loaded again, it may."""
+    first, second = Tuner.load(told_twice), Tuner.load(told_twice)
+    trial = first.ask()
+    first.tell(trial, *episode(first, trial))
+    for change in (
+        lambda: second.retract(0, later=True),
+        lambda: second.tell(trial, *episode(second, trial)),
+        second.ask,
+    ):
+        with pytest.raises(TunerError, match="changed by another process since this one"):
+            change()
+    st = Tuner.load(told_twice).status()
+    assert st["told"] == 3 and [t["id"] for t in st["trials"]] == [0, 1, 2]
+    again = Tuner.load(told_twice)
+    assert again.retract(2) == [2] and again.status()["told"] == 2
+    with pytest.raises(TunerError, match="changed by another process"):
+        first.ask()  # the first is stale now too: the retract changed the tuner
+
+
+def test_a_process_changing_the_tuner_is_waited_for(told_twice):
+    """While another process holds ``tuner.lock`` a change waits for it, and goes on once it
+    is released; the lock is the system's, so a killed holder releases it."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", HOLD, str(told_twice), "1.5"],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=same_source_env(),
+    )
+    assert proc.stdout.readline().strip() == "held"
+    t0 = time.monotonic()
+    tuner = Tuner.load(told_twice)  # its repairs wait for the lock
+    assert time.monotonic() - t0 > 0.5
+    proc.wait(timeout=30)
+    killed = subprocess.Popen(
+        [sys.executable, "-c", HOLD, str(told_twice), "60"],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=same_source_env(),
+    )
+    assert killed.stdout.readline().strip() == "held"
+    with pytest.raises(TunerError, match="another process has been changing the tuner"):
+        with TunerFiles(told_twice).lock(timeout=0.3):
+            pass
+    killed.kill()
+    killed.wait(timeout=30)
+    trial = tuner.ask()  # the lock of the killed process is gone with it
+    assert trial.id == 2 and (told_twice / LOCK_FILE).exists()
