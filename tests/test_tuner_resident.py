@@ -323,3 +323,24 @@ def test_serve_stopped_while_it_learns_exits_at_once(made, monkeypatch):
     )
     res = CliRunner().invoke(app, ["serve", str(made)])
     assert exits == [143] and res.exit_code == 143  # idle: no os._exit, a normal exit
+
+
+def test_a_closed_resident_stops_serving_without_an_error(made):
+    """``close()`` (the process stopping, from another thread) while ``serve()`` waits in
+    ``accept()``, which then fails: the loop ends, where it went on to accept on a listener
+    that was gone (an AttributeError)."""
+    resident = Resident(made, lambda line: None)
+
+    class Closing:
+        address = None
+
+        def accept(self):
+            resident.listener = None  # closed meanwhile
+            raise OSError("the listener is closed")
+
+        def close(self):
+            pass
+
+    resident.listener = Closing()
+    resident.serve()  # returns: no AttributeError
+    assert resident.listener is None
