@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
+import threading
 
 import pytest
 from test_interrupts import same_source_env
@@ -18,13 +18,26 @@ from mpcmobo.experiment.tunerfiles import LOCK_FILE, TunerFiles
 SETTINGS = {"episodes": 6, "steps": 12, "start_mode": "cycle", "n_cycle_starts": 2}
 
 HOLD = """
-import sys, time
+import sys
 from pathlib import Path
 from mpcmobo.experiment.tunerfiles import TunerFiles
 with TunerFiles(Path(sys.argv[1])).lock():
     print("held", flush=True)
-    time.sleep(float(sys.argv[2]))
+    sys.stdin.readline()  # held until a line comes (or the process is killed)
 """
+
+
+def _holder(d) -> subprocess.Popen:
+    """Another process holding the tuner's lock until it reads a line."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", HOLD, str(d)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=same_source_env(),
+    )
+    assert proc.stdout.readline().strip() == "held"
+    return proc
 
 
 @pytest.fixture
@@ -61,28 +74,21 @@ def test_a_stale_tuner_does_not_overwrite_another_process_s_trials(told_twice):
 def test_a_process_changing_the_tuner_is_waited_for(told_twice):
     """While another process holds ``tuner.lock`` a change waits for it, and goes on once it
     is released; the lock is the system's, so a killed holder releases it."""
-    proc = subprocess.Popen(
-        [sys.executable, "-c", HOLD, str(told_twice), "1.5"],
-        stdout=subprocess.PIPE,
-        text=True,
-        env=same_source_env(),
-    )
-    assert proc.stdout.readline().strip() == "held"
-    t0 = time.monotonic()
-    tuner = Tuner.load(told_twice)  # its repairs wait for the lock
-    assert time.monotonic() - t0 > 0.5
-    proc.wait(timeout=30)
-    killed = subprocess.Popen(
-        [sys.executable, "-c", HOLD, str(told_twice), "60"],
-        stdout=subprocess.PIPE,
-        text=True,
-        env=same_source_env(),
-    )
-    assert killed.stdout.readline().strip() == "held"
+    tuner = Tuner.load(told_twice)
+    holder = _holder(told_twice)
+    asked: list = []
+    thread = threading.Thread(target=lambda: asked.append(tuner.ask()), daemon=True)
+    thread.start()
+    thread.join(timeout=1.0)
+    assert thread.is_alive() and not asked  # waiting: a free lock is taken at once
+    holder.communicate("go\n", timeout=30)
+    thread.join(timeout=60)
+    assert [t.id for t in asked] == [2]
+    killed = _holder(told_twice)
     with pytest.raises(TunerError, match="another process has been changing the tuner"):
         with TunerFiles(told_twice).lock(timeout=0.3):
             pass
     killed.kill()
     killed.wait(timeout=30)
-    trial = tuner.ask()  # the lock of the killed process is gone with it
-    assert trial.id == 2 and (told_twice / LOCK_FILE).exists()
+    with TunerFiles(told_twice).lock(timeout=5):  # gone with the killed process
+        assert (told_twice / LOCK_FILE).exists()
