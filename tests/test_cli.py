@@ -180,14 +180,14 @@ def test_run_seeds_forms_resume_and_evaluate(tmp_path):
     assert res.exit_code == 2 and "--steps" in res.output
     # --episodes extends the budget of a resumed run, never shortens it
     res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--episodes", "2"])
-    assert res.exit_code == 1 and "extended, not shortened" in res.output
+    assert res.exit_code == 2 and "extended, not shortened" in res.output
     res = runner.invoke(app, ["run", "--resume", "--out", str(out), "--episodes", "4", "-q"])
     assert res.exit_code == 0, res.output
     assert len(storage.read_episodes(out)) == 2 * 4
     assert json.loads((out / "summary.json").read_text())["settings"]["episodes"] == 4
     res = runner.invoke(app, ["run", *SMALL, "--out", str(out)])
     said = " ".join(res.output.split())
-    assert res.exit_code == 1 and "holds a run; choose a new --out directory" in said
+    assert res.exit_code == 2 and "holds a run; choose a new --out directory" in said
     assert "--resume --episodes N extends it" in said
     res = runner.invoke(app, ["evaluate", str(out), "--n-starts", "2"])
     assert res.exit_code == 0, res.output

@@ -142,12 +142,12 @@ def test_bad_out_paths_are_clear_errors_and_create_nothing(tmp_path):
     }
     for out, message in cases.items():
         res = runner.invoke(app, ["run", *SMALL, "--out", out])
-        assert res.exit_code == 1, (out, res.output)
+        assert res.exit_code == 2, (out, res.output)
         no_traceback(res)
         assert message in res.output, (out, res.output)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
     res = runner.invoke(app, ["run", "--resume", "--out", str(tmp_path / "nope")])
-    assert res.exit_code == 1 and "nothing to resume" in res.output
+    assert res.exit_code == 2 and "nothing to resume" in res.output
     no_traceback(res)
     assert not (tmp_path / "nope").exists()
 

@@ -268,7 +268,7 @@ def test_refuses_to_overwrite_and_checks_learners(full_run, tmp_path, monkeypatc
         run_study(small(), out_full)
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("mine")
-    with pytest.raises(StudyError, match="is not empty; choose a new --out directory$"):
+    with pytest.raises(StudyError, match="is not empty; choose a new or empty directory$"):
         run_study(small(), tmp_path / "other")
     with pytest.raises(StudyError, match="nothing to resume"):
         run_study(None, tmp_path / "empty", resume=True)

@@ -38,6 +38,24 @@ def test_a_new_tuner_needs_its_system(tmp_path):
         Tuner(out=tmp_path / "p")
 
 
+def test_a_new_tuner_in_a_file_or_a_used_directory_is_a_usage_error(tmp_path):
+    """The directory of ask is its argument (no --out): a file, a path under a file or a
+    directory with other files is refused with exit code 2, as by the other commands, and
+    nothing is written."""
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "notes.txt").write_text("mine")
+    cases = {a_file: "is a file", a_file / "t": "is a file", used: "is not empty"}
+    for directory, message in cases.items():
+        res = runner.invoke(app, ["ask", str(directory), "--system", "lq"])
+        assert res.exit_code == 2 and message in _output(res), (directory, res.output)
+        assert "--out" not in res.output, res.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "used"]
+    assert [p.name for p in used.iterdir()] == ["notes.txt"]
+
+
 @pytest.fixture
 def asked(tmp_path):
     """A tuner on lq made by ``mpcmobo ask``, its trial 0 pending, and a true log of it."""

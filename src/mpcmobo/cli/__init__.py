@@ -25,7 +25,13 @@ from mpcmobo import __version__
 from mpcmobo.cli.progress import Bars, Lines, fmt, progress_bars
 from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.price import UNPRICED
-from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError, read_run_file
+from mpcmobo.experiment.rundir import (
+    OlderRunError,
+    RunDirectory,
+    RunDirError,
+    StudyError,
+    read_run_file,
+)
 from mpcmobo.experiment.settings import DEFAULT_LEARNERS, Settings, SettingsError, load_settings
 from mpcmobo.learners.registry import LEARNER_SPECS
 
@@ -251,7 +257,7 @@ def run(
         else:
             with progress_bars(console) as progress:
                 summary = run_study(settings, out, resume=resume, progress=Bars(progress))  # type: ignore[arg-type]  # --resume checked --out
-    except (SettingsError, OlderRunError) as err:
+    except (SettingsError, OlderRunError, RunDirError) as err:
         _fail(str(err), 2)
     except StudyError as err:
         _fail(str(err), 1)

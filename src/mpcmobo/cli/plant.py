@@ -32,7 +32,7 @@ from mpcmobo.cli.progress import Waiting, WorkProgress, fmt
 from mpcmobo.experiment import storage
 from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.plantlog import TunerError
-from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, StudyError
+from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, RunDirError, StudyError
 from mpcmobo.experiment.settings import SettingsError
 from mpcmobo.experiment.tunerstatus import saved_status
 
@@ -42,12 +42,12 @@ app: typer.Typer = cli.app
 
 
 def _errors(fn: Any) -> Any:
-    """Run ``fn`` with the tuner's and the settings' errors as exit code 2, a run's files that
-    cannot be read as exit code 1; an error raised while a Ctrl-C unwound ``fn`` is the Ctrl-C
+    """Run ``fn`` with the tuner's, the settings' and the directory's errors as exit code 2, a
+    run's files that cannot be read as exit code 1; an error raised while a Ctrl-C unwound ``fn`` is the Ctrl-C
     (:func:`_during_interrupt`)."""
     try:
         return fn()
-    except (TunerError, SettingsError, OlderRunError) as err:
+    except (TunerError, SettingsError, OlderRunError, RunDirError) as err:
         cli._fail(str(err), 2)
     except StudyError as err:
         cli._fail(str(err), 1)

@@ -57,6 +57,13 @@ class RunFileError(StudyError):
     """A file of a run cannot be read; the message names it and says what to do."""
 
 
+class RunDirError(StudyError):
+    """The directory given cannot take the run asked for: a file, a directory that holds
+    another run, is not empty or cannot be written, a missing parent, no run to resume, or a
+    budget that would shrink. A mistake in the command, as invalid settings are (the CLI's
+    exit code 2); nothing is written."""
+
+
 class OlderRunError(StudyError):
     """The run was written by an older mpcmobo whose checkpoints this version cannot resume
     (the CLI's exit code 2); its records stay readable."""
@@ -214,9 +221,9 @@ class RunDirectory:
         that this one does not know are dropped, so that a run of an older version can still
         be evaluated."""
         if self.path.exists() and not self.path.is_dir():
-            raise StudyError(f"{self.path} is a file, not a run directory")
+            raise RunDirError(f"{self.path} is a file, not a run directory")
         if not self.holds_run():
-            raise StudyError(f"nothing to resume: {self.config} does not exist")
+            raise RunDirError(f"nothing to resume: {self.config} does not exist")
         try:
             saved = read_toml(self.config)
             before = _saved_before(saved)
@@ -238,33 +245,33 @@ class RunDirectory:
     def check_new(self, parents: bool = True) -> None:
         """That a new run can start here: an empty directory, or a new one in a writable
         directory (``parents``: missing parent directories may be created); else a
-        :class:`StudyError` saying why. Nothing is created."""
+        :class:`RunDirError` saying why. Nothing is created."""
         path = self.path
         if path.exists():
             if not path.is_dir():
-                raise StudyError(f"--out {path} is a file; give a directory for the run")
+                raise RunDirError(f"{path} is a file; give a new or empty directory")
             if self.holds_run():
-                raise StudyError(
+                raise RunDirError(
                     f"{path} holds a run; choose a new --out directory, or continue it with "
                     "--resume (--resume --episodes N extends it)"
                 )
             if any(path.iterdir()):
-                raise StudyError(f"{path} is not empty; choose a new --out directory")
+                raise RunDirError(f"{path} is not empty; choose a new or empty directory")
             if not os.access(path, os.W_OK | os.X_OK):
-                raise StudyError(f"--out {path}: the directory is not writable")
+                raise RunDirError(f"{path}: the directory is not writable")
             return
         parent = path.parent
         while not parent.exists() and parents and parent != parent.parent:
             parent = parent.parent
         if not parent.exists():
-            raise StudyError(
+            raise RunDirError(
                 f"--out {path}: the parent directory {path.parent} does not exist; create it "
                 "first or choose another --out"
             )
         if not parent.is_dir():
-            raise StudyError(f"--out {path}: {parent} is a file, not a directory")
+            raise RunDirError(f"{path}: {parent} is a file, not a directory")
         if not os.access(parent, os.W_OK | os.X_OK):
-            raise StudyError(f"--out {path}: cannot create it, {parent} is not writable")
+            raise RunDirError(f"{path}: cannot create it, {parent} is not writable")
 
     def create(self, settings: Settings, parents: bool = True) -> Settings:
         """Start a new run here: the directory must be empty or new (:meth:`check_new`);
@@ -284,7 +291,7 @@ class RunDirectory:
                     d.rmdir()
                 except OSError:
                     break
-            raise StudyError(f"--out {self.path}: cannot write the run there ({err})") from None
+            raise RunDirError(f"{self.path}: cannot write the run there ({err})") from None
         return resolved
 
     def check_schema(self) -> None:
@@ -315,7 +322,7 @@ class RunDirectory:
         if settings is None:
             return saved
         if settings.episodes < saved.episodes:
-            raise StudyError(
+            raise RunDirError(
                 f"episodes: the run in {self.path} has a budget of {saved.episodes}; a resumed "
                 f"run can be extended, not shortened (got {settings.episodes})"
             )
