@@ -63,6 +63,18 @@ def test_the_node_map_is_checked_and_its_secrets_never_shown(cstr, tmp_path, mon
             "stale_periods: Input should be greater than or equal to 1",
         ),
         (NODES.replace('password = "from-the-file"', "password = 12"), "security.password"),
+        (
+            "stale_period = 3\n" + NODES,
+            "stale_period: unknown key; allowed keys here: states, inputs, safe_input, enable",
+        ),
+        (
+            NODES.replace("scale = 1.8", "sclae = 1.8"),
+            "states.T.sclae: unknown key; allowed keys here: node, scale, offset",
+        ),
+        (
+            NODES.replace('password = "from-the-file"', 'pasword = "from-the-file"'),
+            "security.pasword: unknown key; allowed keys here: user, password, certificate",
+        ),
         ("[states\n", "cannot be read"),
         (NODES + 'policy = "Basic256Sha256"\n', "policy Basic256Sha256 needs a certificate"),
     ]:

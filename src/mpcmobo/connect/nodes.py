@@ -186,8 +186,18 @@ def load_nodes(path: str | Path, system: System) -> NodeMap:
     try:
         nodes = NodeMap.model_validate(data)
     except ValidationError as err:
-        first = err.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        # the message, never the input: a password in the wrong place stays unprinted
-        raise ConnectError(f"nodes: {where}: {first['msg']} ({path})") from None
+        raise ConnectError(f"{_node_error(err.errors()[0])} ({path})") from None
     return nodes.check(system)
+
+
+def _node_error(first: Any) -> str:
+    """The first problem of a node map: its key and pydantic's message, never the input (a
+    password in the wrong place stays unprinted); an unknown key with the keys allowed there."""
+    loc = tuple(str(p) for p in first["loc"])
+    where = ".".join(loc)
+    if first["type"] != "extra_forbidden":
+        return f"nodes: {where}: {first['msg']}"
+    tables: dict[tuple[str, ...], type[BaseModel]] = {(): NodeMap, ("security",): Security}
+    model = PlantNode if loc[0] in ("states", "inputs") else tables.get(loc[:-1])
+    allowed = f"; allowed keys here: {', '.join(model.model_fields)}" if model else ""
+    return f"nodes: {where}: unknown key{allowed}"
