@@ -279,6 +279,7 @@ def test_refuses_to_overwrite_and_checks_learners(full_run, tmp_path, monkeypatc
     monkeypatch.setitem(sys.modules, "ray", None)
     with pytest.raises(SettingsError, match=r"backend: 'ray' needs the optional dependency ray"):
         run_study(small(backend="ray", workers=2), tmp_path / "ray")
+    assert not (tmp_path / "ray").exists()
 
 
 def test_orphaned_worker_stops_after_its_checkpoint(tmp_path):
@@ -361,6 +362,12 @@ def test_a_ray_cluster_takes_the_jobs_with_one_worker_and_must_answer(tmp_path, 
     with pytest.raises(StudyError, match=f"RAY_ADDRESS=127.0.0.1:{port}: no Ray cluster answers"):
         workers.check_reachable(f"127.0.0.1:{port}")
     workers.check_reachable("auto")  # left to Ray
+    # a new run refuses the address before it writes anything (J* is not computed for nothing)
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
+    monkeypatch.setattr(workers, "_run_ray", lambda *a: pytest.fail("the jobs were started"))
+    with pytest.raises(StudyError, match="no Ray cluster answers"):
+        run_study(s, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
 
 
 def tiny_lq(**options):

@@ -28,7 +28,7 @@ from mpcmobo.experiment.rundir import ReferenceFailed, RunDirectory, StudyError,
 from mpcmobo.experiment.sections import SettingsError
 from mpcmobo.experiment.settings import Settings
 from mpcmobo.experiment.summary import write_records
-from mpcmobo.experiment.workers import run_jobs
+from mpcmobo.experiment.workers import check_backend, run_jobs
 from mpcmobo.learners.registry import LEARNER_SPECS
 from mpcmobo.mpc.codegen import require_compiler
 from mpcmobo.systems.base import SystemDefinitionError
@@ -84,6 +84,7 @@ def run_study(
     with interrupts.catching():
         if settings is not None and not resume:
             check_learners(settings)  # a bad learner option fails before anything is written
+            check_backend(settings)  # so does a Ray backend without ray or its cluster
         if resume and RunDirectory(out_dir).is_tuner():
             raise StudyError(
                 f"{out_dir} holds a tuner (ask and tell): its trials run on the plant, not in "

@@ -7,9 +7,11 @@ or a job's error stops every worker at the end of its current MPC step (``DIR/.s
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import pickle
 import signal
+import sys
 from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -178,6 +180,26 @@ def _stop_pool(pool: ProcessPoolExecutor, stop: Path, remaining: Collection[Futu
 CLUSTER_TIMEOUT_S = 10.0
 
 
+NO_RAY = (
+    "backend: 'ray' needs the optional dependency ray (pip install 'mpcmobo[ray]'); "
+    "allowed without it: 'process'"
+)
+
+
+def check_backend(settings: Settings) -> None:
+    """Before a new run writes anything: the Ray backend needs ray installed (else a
+    :class:`SettingsError`), and a cluster that ``RAY_ADDRESS`` names must answer, unless the
+    caller has joined one already (:func:`check_reachable`)."""
+    if settings.backend != "ray":
+        return
+    if importlib.util.find_spec("ray") is None:
+        raise SettingsError(NO_RAY)
+    address = os.environ.get("RAY_ADDRESS")
+    ray = sys.modules.get("ray")
+    if address and not (ray is not None and ray.is_initialized()):
+        check_reachable(address)
+
+
 def check_reachable(address: str) -> None:
     """A :class:`StudyError` where ``RAY_ADDRESS`` names a ``host:port`` (or ``ray://host:port``)
     that accepts no connection within ``CLUSTER_TIMEOUT_S``: Ray itself would wait for it for
@@ -203,10 +225,7 @@ def _run_ray(
     try:
         import ray
     except ImportError:
-        raise SettingsError(
-            "backend: 'ray' needs the optional dependency ray (pip install 'mpcmobo[ray]'); "
-            "allowed without it: 'process'"
-        ) from None
+        raise SettingsError(NO_RAY) from None
     started = not ray.is_initialized()  # a cluster of the study's own, shut down after it
     if started:
         address = os.environ.get("RAY_ADDRESS")
