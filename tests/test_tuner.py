@@ -276,6 +276,23 @@ def test_a_tuner_is_extended_not_shortened_and_not_run_by_mpcmobo_run(tmp_path):
         Tuner("lq", "bo", tmp_path / "s", seeds=[1, 2])
 
 
+def test_a_tuner_with_no_told_trial_is_extended(tmp_path):
+    """A budget extended before the first tell (trial 0 asked, pending): the tuner loads with
+    the larger budget, gives the same pending trial, and goes on."""
+    out = tmp_path / "t"
+    tuner = Tuner("lq", "bo", out, episodes=1, steps=6)
+    trial = tuner.ask()
+    extended = Tuner.load(out, episodes=2)
+    again = extended.ask()
+    assert again.id == 0 and np.array_equal(again.theta, trial.theta)
+    assert Tuner.load(out).settings.episodes == 2
+    res = CliRunner().invoke(app, ["ask", str(out), "--episodes", "3"])
+    assert res.exit_code == 0 and json.loads(res.output)["id"] == 0, res.output
+    extended = Tuner.load(out)
+    extended.tell(again, *_episode(extended, again))
+    assert extended.ask().id == 1 and extended.settings.episodes == 3
+
+
 def test_a_tuner_that_cannot_be_built_leaves_nothing(tmp_path):
     """A system the settings cannot build (an unknown identified parameter) fails before a
     tuner exists: the directory is left as it was, in Python and on the command line."""

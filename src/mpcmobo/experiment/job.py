@@ -159,7 +159,10 @@ class Job:
         """Undo what only the end of the old budget recorded, so that the records equal those
         of a run started with this budget: the schedule is replayed over the rows; the old last
         episode keeps its evaluation only if the schedule makes it anyway, and loses its "final"
-        trajectories and its learning trajectory if that was off the schedule."""
+        trajectories and its learning trajectory if that was off the schedule. Without a row (a
+        tuner whose first trial is pending) there is nothing to undo."""
+        if not self.rows:
+            return
         *before, end = self.rows
         for row in before:
             self.schedule.step(row.episode, np.asarray(row.incumbent, dtype=float))
