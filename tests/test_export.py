@@ -126,7 +126,7 @@ def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     d = tmp_path / "tun"
     assert runner.invoke(app, ["ask", str(d), "--system", "lq", "-n", "2"]).exit_code == 0
     res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path / "m.casadi")])
-    assert res.exit_code == 2 and "no episode yet" in res.output  # nothing told yet
+    assert res.exit_code == 2 and "is told yet" in " ".join(res.output.split())  # none told
     res = runner.invoke(app, ["export", str(d), "--format", "zip", "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "--format must be casadi, c or embedded" in res.output
     (tmp_path / "file").write_text("")
@@ -138,6 +138,11 @@ def test_the_command_line_exports_a_trial_and_refuses_a_bad_choice(tmp_path):
     assert res.exit_code == 2 and "is a file; C code goes into a directory" in res.output
     res = runner.invoke(app, ["export", str(d), "--out", str(tmp_path)])
     assert res.exit_code == 2 and "is a directory; the CasADi function is one file" in res.output
+    for fmt_ in ("casadi", "c", "embedded"):  # a path under a file: no traceback
+        under = tmp_path / "file" / "sub" / "m"
+        res = runner.invoke(app, ["export", str(d), "--format", fmt_, "--out", str(under)])
+        said = " ".join(res.output.split())
+        assert res.exit_code == 2 and f"{tmp_path / 'file'} is a file, not a directory" in said
     res = runner.invoke(app, ["export", str(tmp_path / "nothere"), "--out", str(tmp_path / "y")])
     assert res.exit_code == 2 and "nothere does not exist" in " ".join(res.output.split())
     res = runner.invoke(app, ["export", str(d), "--learner", "bo", "--out", str(tmp_path / "y")])

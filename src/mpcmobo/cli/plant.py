@@ -576,6 +576,18 @@ EXPORT_FILES = {
 }
 
 
+def _check_export_out(out: Path, fmt_: str) -> None:
+    """That ``--out`` can take the export (else a :class:`TunerError`): no file on its path, a
+    file for the CasADi function, a directory for C code."""
+    blocked = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocked is not None:
+        raise TunerError(f"--out {out}: {blocked} is a file, not a directory")
+    if fmt_ != "casadi" and out.exists() and not out.is_dir():
+        raise TunerError(f"--out {out} is a file; C code goes into a directory")
+    if fmt_ == "casadi" and out.is_dir():
+        raise TunerError(f"--out {out} is a directory; the CasADi function is one file")
+
+
 def _write_controller(mpc: Any, theta: Any, fmt_: str, out: Path, compile_c: bool) -> str:
     """Write the controller of ``mpc`` with ``theta`` in the format ``fmt_`` into ``out``
     (compiled with ``compile_c``); what ``mpcmobo export`` prints."""
@@ -653,10 +665,7 @@ def export(
     def go() -> str:
         run_dir = cli._require_run(directory)
         restore_system(directory)  # a tuner's System given as an object
-        if fmt_ != "casadi" and out.exists() and not out.is_dir():
-            raise TunerError(f"--out {out} is a file; C code goes into a directory")
-        if fmt_ == "casadi" and out.is_dir():
-            raise TunerError(f"--out {out} is a directory; the CasADi function is one file")
+        _check_export_out(out, fmt_)
         settings, name, th = _theta_of(run_dir, theta, learner, seed)
         options = settings.mpc.options()
         if fmt_ == "embedded":  # the MPC's own functions, generated again as plain C
