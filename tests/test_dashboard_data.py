@@ -72,6 +72,9 @@ def test_the_command_binds_to_localhost_and_refuses_a_missing_directory(tmp_path
     (tmp_path / "f").write_text("x")
     res = CliRunner().invoke(app, ["dashboard", str(tmp_path / "f")])
     assert res.exit_code == 2 and "is a file" in res.output
+    for port in ("-1", "65536"):  # a usage error, not bind()'s OverflowError
+        res = CliRunner().invoke(app, ["dashboard", str(tmp_path), "--port", port])
+        assert res.exit_code == 2 and "Invalid value for '--port'" in res.output, res.output
 
 
 def test_a_file_is_read_once_per_change_and_a_damaged_one_is_a_message(dashboard_run, tmp_path):

@@ -24,7 +24,9 @@ app: typer.Typer = cli.app
 )
 def dashboard(
     directories: Annotated[list[Path], typer.Argument(help="Run or tuner directories.")],
-    port: Annotated[int, typer.Option(help="The port to serve on (0: any free one).")] = 8050,
+    port: Annotated[
+        int, typer.Option(min=0, max=65535, help="The port to serve on (0: any free one).")
+    ] = 8050,
     host: Annotated[
         str, typer.Option(help="The address to bind (0.0.0.0: every interface).")
     ] = "127.0.0.1",
