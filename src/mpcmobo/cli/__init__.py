@@ -145,7 +145,10 @@ _System = Annotated[
     str | None,
     typer.Option(
         "--system",
-        help="system: a name (`mpcmobo systems`), 'module:function' or 'file.py:function'",
+        help=(
+            "system: a name (`mpcmobo systems`), 'module:function' or 'file.py:function'; "
+            "in place of the --config file's system, whose other [system] keys still apply"
+        ),
         show_default=_default("system").name,
     ),
 ]
@@ -335,7 +338,9 @@ def warn_summary(summary: dict, unpriced: bool = True) -> None:
 
 
 def _system_override(system: str | None) -> dict[str, Any] | None:
-    """``--system X``: a name, or a factory path (then it replaces the file's system)."""
+    """``--system X``: a name, or a factory path, in place of the settings file's system name
+    or factory; the file's other ``[system]`` keys (``identify``, ``learn_model``, ...)
+    still apply to it."""
     if system is None:
         return None
     if ":" in system:
