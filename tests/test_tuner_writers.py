@@ -4,6 +4,7 @@ change one tuner take turns (``tuner.lock``)."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import threading
@@ -71,24 +72,32 @@ def test_a_stale_tuner_does_not_overwrite_another_process_s_trials(told_twice):
         first.ask()  # the first is stale now too: the retract changed the tuner
 
 
-def test_a_process_changing_the_tuner_is_waited_for(told_twice):
-    """While another process holds ``tuner.lock`` a change waits for it, and goes on once it
-    is released; the lock is the system's, so a killed holder releases it."""
+def test_a_process_changing_the_tuner_is_waited_for(told_twice, capsys):
+    """While another process holds ``tuner.lock`` a load and a change wait for it, saying
+    so, and go on once it is released; the lock is the system's, so a killed holder releases
+    it."""
     tuner = Tuner.load(told_twice)
     holder = _holder(told_twice)
-    asked: list = []
-    thread = threading.Thread(target=lambda: asked.append(tuner.ask()), daemon=True)
-    thread.start()
-    thread.join(timeout=1.0)
-    assert thread.is_alive() and not asked  # waiting: a free lock is taken at once
+    done: list = []
+    threads = [
+        threading.Thread(target=lambda w=work: done.append(w()), daemon=True)
+        for work in (lambda: Tuner.load(told_twice), tuner.ask)
+    ]
+    for thread in threads:
+        thread.start()
+    threads[0].join(timeout=1.0)
+    assert all(t.is_alive() for t in threads) and not done  # waiting: a free lock is at once
     holder.communicate("go\n", timeout=30)
-    thread.join(timeout=60)
-    assert [t.id for t in asked] == [2]
+    for thread in threads:
+        thread.join(timeout=60)
+    assert f"waiting for another process (process {holder.pid})" in capsys.readouterr().err
+    assert sorted(type(d).__name__ for d in done) == ["Trial", "Tuner"]
+    assert next(d for d in done if not isinstance(d, Tuner)).id == 2
     killed = _holder(told_twice)
-    with pytest.raises(TunerError, match="another process has been changing the tuner"):
+    with pytest.raises(TunerError, match=f"process {killed.pid}.* has been changing the tuner"):
         with TunerFiles(told_twice).lock(timeout=0.3):
             pass
     killed.kill()
     killed.wait(timeout=30)
     with TunerFiles(told_twice).lock(timeout=5):  # gone with the killed process
-        assert (told_twice / LOCK_FILE).exists()
+        assert (told_twice / LOCK_FILE).read_text().strip() == str(os.getpid())

@@ -213,9 +213,10 @@ class Tuner:
                 )
             settings = run_dir.reopen(settings.model_copy(update={"episodes": int(episodes)}))
         tuner = cls.__new__(cls)
-        tuner._open(run_dir, settings, new=False)
-        with tuner._changing():
-            tuner._repair(episodes)
+        with TunerFiles(run_dir.path).lock():  # loaded as no other process is changing it
+            tuner._open(run_dir, settings, new=False)
+            with tuner._changing():
+                tuner._repair(episodes)
         return tuner
 
     def _repair(self, episodes: int | None) -> None:

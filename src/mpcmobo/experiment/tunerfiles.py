@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -82,19 +83,40 @@ def _acquire(path: Path, timeout: float) -> int | None:
     except ImportError:  # pragma: no cover - not on POSIX
         return None
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-    deadline = time.monotonic() + timeout
+    deadline, said = time.monotonic() + timeout, False
     while True:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return fd
+            break
         except BlockingIOError:
+            holder = f" (process {_holder(path)})"
             if time.monotonic() > deadline:
                 os.close(fd)
                 raise TunerError(
-                    f"another process has been changing the tuner in {path.parent} for "
-                    f"{timeout:.0f} s (a tell, an ask or a retract): try again when it is done"
+                    f"another process{holder} has been changing the tuner in {path.parent} "
+                    f"for {timeout:.0f} s (a tell, an ask or a retract): try again when it is "
+                    "done"
                 ) from None
+            if not said:
+                print(
+                    f"waiting for another process{holder} that changes the tuner in "
+                    f"{path.parent} (a tell, an ask or a retract)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                said = True
             time.sleep(0.05)
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
+
+
+def _holder(path: Path) -> str:
+    """The process that holds the lock file ``path`` as it wrote itself there ("?": unknown)."""
+    try:
+        return path.read_text(encoding="ascii").strip() or "?"
+    except (OSError, ValueError):
+        return "?"
 
 
 def _now() -> str:
