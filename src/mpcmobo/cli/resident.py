@@ -394,9 +394,9 @@ class Resident:
         """Answer requests until interrupted; then the files that name the process go."""
         assert self.listener is not None  # open() first
         try:
-            while True:
+            while (listener := self.listener) is not None:  # None: closed (close())
                 try:
-                    conn = self.listener.accept()
+                    conn = listener.accept()
                 except (OSError, EOFError, AuthenticationError):  # a client without the key
                     continue
                 with conn:
