@@ -502,6 +502,7 @@ def evaluate(
             for_records=True, evaluation__n_starts=n_starts, evaluation__seed=seed
         )
         incumbents = run_dir.incumbents(settings)
+        _check_evaluated_system(run_dir, settings)
     except SettingsError as err:
         _fail(str(err), 2)
     except StudyError as err:
@@ -522,6 +523,22 @@ def evaluate(
     except SettingsError as err:
         _fail(str(err), 2)
     console.print(_evaluation_table(settings, incumbents, evaluator, evaluators))
+
+
+def _check_evaluated_system(run_dir: RunDirectory, settings: Settings) -> None:
+    """Refuse (:class:`StudyError`) to evaluate a run's thetas on a system that is not the one
+    its reference was computed with (its file edited since: a cost weight, a bound, the
+    equations): the table would measure the run's thetas with another system's J* and cost."""
+    from mpcmobo.experiment.build import build_system
+    from mpcmobo.experiment.reference import check_same_system, saved_system
+
+    reference = run_dir.reference()
+    if reference is None:
+        return
+    what = f"run in {run_dir.path}"
+    if settings.system.factory is not None:
+        what += f" (its system from {settings.system.factory})"
+    check_same_system(saved_system(reference), build_system(settings), what)
 
 
 def _evaluation_table(
