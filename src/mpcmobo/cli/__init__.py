@@ -319,10 +319,29 @@ def failed_warnings(summary: dict) -> list[str]:
     return lines
 
 
+def unsolved_warnings(summary: dict) -> list[str]:
+    """One line per job with recorded episodes in which MPC solves failed
+    (``unsolved_episodes`` of its summary): how many, the worst, and what ran the plant."""
+    lines = []
+    for learner, s in summary["learners"].items():
+        for seed, per in s.get("per_seed", {}).items():
+            hit = per.get("unsolved_episodes") or []
+            if not hit:
+                continue
+            worst = max(hit, key=lambda h: h["failed_solves"])
+            lines.append(
+                f"{learner} seed {seed}: MPC solves failed in {len(hit)} episode(s) (episode "
+                f"{worst['episode']}: {worst['failed_solves']} failed solves), where the "
+                "fallback input (the previous plan) drove the plant; check the model with "
+                "that episode's theta (a model that is not finite there fails every solve)"
+            )
+    return lines
+
+
 def warn_summary(summary: dict, unpriced: bool = True) -> None:
-    """Print :func:`bound_warnings`, :func:`failed_warnings` and (``unpriced``)
-    :func:`unpriced_warnings` of ``summary`` to standard error."""
-    lines = bound_warnings(summary) + failed_warnings(summary)
+    """Print :func:`bound_warnings`, :func:`failed_warnings`, :func:`unsolved_warnings` and
+    (``unpriced``) :func:`unpriced_warnings` of ``summary`` to standard error."""
+    lines = bound_warnings(summary) + failed_warnings(summary) + unsolved_warnings(summary)
     lines += unpriced_warnings(summary) if unpriced else []
     for line in lines:
         err_console.print(f"warning: {escape(line)}", highlight=False, soft_wrap=True)
