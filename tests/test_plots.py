@@ -463,4 +463,4 @@ def test_fig1_names_the_training_reference_of_random_starts(small_run):
     summary = {**summary, "settings": {**summary["settings"], "start_mode": "random"}}
     ax = fig1(ep, summary, ["bo"]).axes[0]
     (label,) = [lab for lab in _lines(ax) if r"\tilde J^\star" in lab]
-    assert f"first {K} training starts" in label and "same starts" not in label, label
+    assert f"the first {K} starts only" in label and "same starts" not in label, label

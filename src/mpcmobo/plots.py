@@ -239,10 +239,7 @@ def _training_reference_label(summary: dict, K: int) -> str:
     later episodes do not share."""
     if summary.get("settings", {}).get("start_mode", "cycle") == "cycle":
         return r"$\tilde J^\star$: perfect-model MPC, same starts and noise"
-    return (
-        rf"$\tilde J^\star$: perfect-model MPC from the first {K} training starts"
-        " (random starts: later episodes start elsewhere)"
-    )
+    return rf"$\tilde J^\star$: perfect-model MPC, the first {K} starts only (random starts)"
 
 
 def _evaluation_panel(ax_eval: Axes, d: pd.DataFrame, name: str, summary: dict) -> None:
