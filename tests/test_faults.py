@@ -259,3 +259,25 @@ def test_a_state_that_is_not_finite_fails_the_episode_by_name_and_the_summary_sa
     (line,) = failed_warnings(summary)
     assert line.startswith(f"mpc-rl seed 0: 1 episode(s) failed (episode {e}: PlantDiverged: the")
     assert "never deployed" in line
+
+
+def test_episodes_with_failed_solves_are_named_in_the_summary_and_warned():
+    """A recorded episode in which MPC solves failed (a theta whose model is not finite fails
+    every solve; the fallback input drives the plant) is listed per seed with its count, and
+    the run's warnings name it; a failed episode is counted among the failed ones alone."""
+    import pandas as pd
+
+    from mpcmobo.cli import unsolved_warnings
+    from mpcmobo.experiment.summary import _unsolved_episodes
+
+    rows = pd.DataFrame(
+        {"episode": [0, 1, 2, 3], "solver_failures": [0, 36, 2, 36]}
+        | {"mean_stage_cost": [1.0, 184.4, 3.0, np.nan]}
+    )
+    hit = _unsolved_episodes(rows)
+    assert hit == [{"episode": 1, "failed_solves": 36}, {"episode": 2, "failed_solves": 2}]
+    summary = {"learners": {"mobo": {"per_seed": {"0": {"unsolved_episodes": hit}}}}}
+    (line,) = unsolved_warnings(summary)
+    assert line.startswith("mobo seed 0: MPC solves failed in 2 episode(s) (episode 1: 36 failed")
+    assert "fallback input" in line and "not finite" in line
+    assert unsolved_warnings({"learners": {"mobo": {"per_seed": {"0": {}}}}}) == []

@@ -709,3 +709,36 @@ def test_the_twin_of_the_right_model_predicts_a_plant_episode_exactly_by_replayi
     plant = mean_stage_cost(record)
     assert twin.predict(record.theta, [replay])[0] == pytest.approx(plant, rel=1e-8)
     assert abs(twin.predict(record.theta, [Replay(record.x[0])])[0] / plant - 1) > 0.01
+
+
+def test_identify_first_records_the_last_fit_once_the_switch_gave_up():
+    """The switch dropped its candidates and the tuning learner tunes the nominal model: the
+    record's identified parameters are the last fit, not the nominal model the deployed theta
+    holds (which figure 5 and identified_final would show as identified); once an identified
+    model is deployed, they are the deployed theta's."""
+    from mpcmobo.learners.identified import IdentifyFirst
+    from mpcmobo.learners.mpc_rl import MPCRL
+
+    lq = get_system("lq", identify=get_system("lq").param_names)
+    space, theta0 = lq.search_space, np.asarray(lq.parameterization.theta0, float)
+    learner = IdentifyFirst(
+        lambda th: MPCRL(space, th),
+        space,
+        theta0,
+        name="mpc-rl",
+        starts=Starts("cycle", 3),
+        model_fit=ModelFit(lq),
+        deploy=EvidenceDeploy(),
+    )
+    sw = learner.switch_
+    nominal = sw.fit.estimate_of(theta0)
+    sw.identification_ = _fit_of(nominal * 0.8)
+    sw.decisions_, sw.waiting_ = 1, sw.policy.min_runs  # a drop, and no candidate since
+    assert sw.settled() and sw.deployed_params_ is None
+    learner._advance()
+    assert learner.inner_ is not None
+    np.testing.assert_array_equal(learner.identified(), nominal * 0.8)
+    deployed = theta0.copy()
+    deployed[sw.fit.theta_index] = nominal * 0.9  # an identified model deployed
+    sw.deployed_ = deployed
+    np.testing.assert_array_equal(learner.identified(), nominal * 0.9)

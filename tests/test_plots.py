@@ -454,3 +454,13 @@ def test_a_failed_training_reference_episode_is_named_in_the_summary():
     )
     none = training_summary(reference(bad))
     assert none["J_tilde_star"] is None and none["J_tilde_star_reason"].endswith("so is the median")
+
+
+def test_fig1_names_the_training_reference_of_random_starts(small_run):
+    """Under random starts J~* is the perfect-model MPC on the first K training starts alone:
+    the legend says so instead of "same starts", which holds under cycled starts only."""
+    ep, summary = _records(small_run)
+    summary = {**summary, "settings": {**summary["settings"], "start_mode": "random"}}
+    ax = fig1(ep, summary, ["bo"]).axes[0]
+    (label,) = [lab for lab in _lines(ax) if r"\tilde J^\star" in lab]
+    assert f"the first {K} starts only" in label and "same starts" not in label, label

@@ -172,12 +172,14 @@ def test_systems_lists_plugins_and_says_how_to_add_one(files, tmp_path, monkeypa
     [
         (("imperfect=(0.6,)", "imperfect=(0.7,)"), "nominal_params"),
         (("x[0] + 0.5 * x[1] - 1.5", "x[0] + 0.5 * x[1] - 1.4"), "its equations"),
+        (("Q=np.array([1.0, 0.2])", "Q=np.array([1.0, 0.3])"), "Q, theta0"),
     ],
 )
 def test_a_resume_refuses_a_system_whose_file_changed(tmp_path, edit, named):
-    """The system's file edited between a run and its resume (a model parameter, or its
-    constraint's expression): the resume is refused naming what changed (exit 1, as a resume
-    with a shorter budget), and writes nothing; the file put back, the run resumes."""
+    """The system's file edited between a run and its resume (a model parameter, its
+    constraint's expression, or a weight of the stage cost): the resume and ``evaluate`` are
+    refused naming what changed (exit 1, as a resume with a shorter budget), and write
+    nothing; the file put back, the run resumes."""
     (tmp_path / "user").mkdir()
     d = write_user_files(tmp_path / "user")
     spec = f"{d}/usersys.py:make_system"
@@ -195,6 +197,10 @@ def test_a_resume_refuses_a_system_whose_file_changed(tmp_path, edit, named):
     assert res.returncode == 1, res.stdout + res.stderr  # as the other refusals of a resume
     said = " ".join((res.stdout + res.stderr).split())
     assert "not the one the run" in said and named in said and "Traceback" not in said
+    evaluate = [sys.executable, "-m", "mpcmobo.cli", "evaluate", str(out)]
+    res = subprocess.run(evaluate, capture_output=True, text=True, env=same_source_env())
+    said = " ".join((res.stdout + res.stderr).split())
+    assert res.returncode == 1 and "not the one the run" in said and named in said, said
     assert sorted((p.name, p.stat().st_mtime_ns) for p in out.rglob("*") if p.is_file()) == before
     (d / "usersys.py").write_text(source)
     res = subprocess.run(resume, capture_output=True, text=True, env=same_source_env())

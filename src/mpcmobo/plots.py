@@ -7,7 +7,8 @@ and the legend says how many seeds; a run with one seed draws single lines.
 
 Fig. 1 compares like with like: the training curve J~ (f1, eq. cl_perf: discounted,
 with exploration, on the training starts) is drawn against J~* (the same f1 of the perfect-model
-MPC on the same training starts with the same noise, ``summary.json`` ``J_tilde_star``), and
+MPC on the same training starts with the same noise, ``summary.json`` ``J_tilde_star``; with
+random starts on the first training starts alone, as its legend says), and
 J_eval of the deployed theta (undiscounted, no exploration, on the fixed evaluation starts)
 against J* (the same mean stage cost of the perfect-model MPC on the same starts). Per-episode
 J~ is drawn faint, and on top its mean over as many episodes as make J~* of a seed (one cycle
@@ -219,7 +220,7 @@ def _training_panel(ax: Axes, d: pd.DataFrame, name: str, summary: dict) -> None
             color="tab:blue",
             ls="--",
             lw=1.2,
-            label=r"$\tilde J^\star$: perfect-model MPC, same starts and noise"
+            label=_training_reference_label(summary, K)
             + (f" (median of {len(per_seed)} seeds)" if len(per_seed) > 1 else ""),
         )
         if len(per_seed) > 1:
@@ -230,6 +231,15 @@ def _training_panel(ax: Axes, d: pd.DataFrame, name: str, summary: dict) -> None
     _log_if_positive(ax, np.r_[d["J_tilde"].to_numpy(float), per_seed])
     ax.set_ylabel(rf"{label}: $\tilde J$")
     ax.legend(loc="best", fontsize=7, framealpha=0.85)
+
+
+def _training_reference_label(summary: dict, K: int) -> str:
+    """What J~* of Fig. 1 is: with cycled starts the perfect-model MPC from the starts every
+    cycle repeats; with random starts from the first ``K`` training starts alone, which the
+    later episodes do not share."""
+    if summary.get("settings", {}).get("start_mode", "cycle") == "cycle":
+        return r"$\tilde J^\star$: perfect-model MPC, same starts and noise"
+    return rf"$\tilde J^\star$: perfect-model MPC, the first {K} starts only (random starts)"
 
 
 def _evaluation_panel(ax_eval: Axes, d: pd.DataFrame, name: str, summary: dict) -> None:

@@ -328,10 +328,29 @@ def failed_warnings(summary: dict) -> list[str]:
     return lines
 
 
+def unsolved_warnings(summary: dict) -> list[str]:
+    """One line per job with recorded episodes in which MPC solves failed
+    (``unsolved_episodes`` of its summary): how many, the worst, and what ran the plant."""
+    lines = []
+    for learner, s in summary["learners"].items():
+        for seed, per in s.get("per_seed", {}).items():
+            hit = per.get("unsolved_episodes") or []
+            if not hit:
+                continue
+            worst = max(hit, key=lambda h: h["failed_solves"])
+            lines.append(
+                f"{learner} seed {seed}: MPC solves failed in {len(hit)} episode(s) (episode "
+                f"{worst['episode']}: {worst['failed_solves']} failed solves), where the "
+                "fallback input (the previous plan) drove the plant; check the model with "
+                "that episode's theta (a model that is not finite there fails every solve)"
+            )
+    return lines
+
+
 def warn_summary(summary: dict, unpriced: bool = True) -> None:
-    """Print :func:`bound_warnings`, :func:`failed_warnings` and (``unpriced``)
-    :func:`unpriced_warnings` of ``summary`` to standard error."""
-    lines = bound_warnings(summary) + failed_warnings(summary)
+    """Print :func:`bound_warnings`, :func:`failed_warnings`, :func:`unsolved_warnings` and
+    (``unpriced``) :func:`unpriced_warnings` of ``summary`` to standard error."""
+    lines = bound_warnings(summary) + failed_warnings(summary) + unsolved_warnings(summary)
     lines += unpriced_warnings(summary) if unpriced else []
     for line in lines:
         err_console.print(f"warning: {escape(line)}", highlight=False, soft_wrap=True)
@@ -513,6 +532,7 @@ def evaluate(
             for_records=True, evaluation__n_starts=n_starts, evaluation__seed=seed
         )
         incumbents = run_dir.incumbents(settings)
+        _check_evaluated_system(run_dir, settings)
     except SettingsError as err:
         _fail(str(err), 2)
     except StudyError as err:
@@ -533,6 +553,22 @@ def evaluate(
     except SettingsError as err:
         _fail(str(err), 2)
     console.print(_evaluation_table(settings, incumbents, evaluator, evaluators))
+
+
+def _check_evaluated_system(run_dir: RunDirectory, settings: Settings) -> None:
+    """Refuse (:class:`StudyError`) to evaluate a run's thetas on a system that is not the one
+    its reference was computed with (its file edited since: a cost weight, a bound, the
+    equations): the table would measure the run's thetas with another system's J* and cost."""
+    from mpcmobo.experiment.build import build_system
+    from mpcmobo.experiment.reference import check_same_system, saved_system
+
+    reference = run_dir.reference()
+    if reference is None:
+        return
+    what = f"run in {run_dir.path}"
+    if settings.system.factory is not None:
+        what += f" (its system from {settings.system.factory})"
+    check_same_system(saved_system(reference), build_system(settings), what)
 
 
 def _evaluation_table(

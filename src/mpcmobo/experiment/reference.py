@@ -44,7 +44,23 @@ def system_info(system: System) -> dict:
         "true_params": None
         if system.true_params is None
         else np.asarray(system.true_params, float).tolist(),
+        **_cost_info(system),
         "equations": equations_fingerprint(system),
+    }
+
+
+def _cost_info(system: System) -> dict:
+    """The RL stage cost's weights, the initial-state box and theta0: what J_eval and every
+    learner's evidence are measured with, compared like the other fields on a resume."""
+    Gamma_h = system.Gamma_h
+    return {
+        "Q": np.asarray(system.Q, float).tolist(),
+        "R": np.asarray(system.R, float).tolist(),
+        "Gamma": np.asarray(system.Gamma, float).tolist(),
+        "Gamma_h": None if Gamma_h is None else np.asarray(Gamma_h, float).tolist(),
+        "x0_lb": np.asarray(system.x0_lb, float).tolist(),
+        "x0_ub": np.asarray(system.x0_ub, float).tolist(),
+        "theta0": np.asarray(system.parameterization.theta0, float).tolist(),
     }
 
 
@@ -75,7 +91,13 @@ def check_run_system(run_dir: RunDirectory) -> None:
         what = f"{'tuner' if run_dir.is_tuner() else 'run'} in {run_dir.path}"
         if settings.system.factory is not None:
             what += f" (its system from {settings.system.factory})"
-        check_same_system(reference.system, build_system(settings), what)
+        check_same_system(saved_system(reference), build_system(settings), what)
+
+
+def saved_system(reference: Reference) -> dict:
+    """The :func:`system_info` a reference was computed with, with its theta0 (a run saved
+    before ``system_info`` held theta0 has it in the reference alone)."""
+    return {"theta0": np.asarray(reference.theta0, float).tolist(), **reference.system}
 
 
 def check_same_system(saved: dict, system: System, what: str) -> None:

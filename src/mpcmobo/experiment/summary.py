@@ -82,6 +82,7 @@ def _seed_summary(
         "excess_cost": _sum_or_null(s, "excess_cost"),
         "theta_final": [float(x) for x in s["incumbent"].iloc[-1]],
         "failed_episodes": _failed_episodes(s),
+        "unsolved_episodes": _unsolved_episodes(s),
         "identified_final": _last_identified(s),
         "wall_time_s": float(wall_time_s),
     }
@@ -97,6 +98,21 @@ def _failed_episodes(s: pd.DataFrame) -> list[dict[str, Any]]:
     return [
         {"episode": int(e), "error": str(err)}
         for e, err in zip(failed["episode"], failed["error"], strict=True)
+    ]
+
+
+def _unsolved_episodes(s: pd.DataFrame) -> list[dict[str, Any]]:
+    """The job's recorded episodes in which MPC solves failed, each ``{"episode",
+    "failed_solves"}``: at those steps the MPC's fallback input (the previous plan) drove the
+    plant. A failed episode is in :func:`_failed_episodes` instead (none in a file without
+    the columns)."""
+    if "solver_failures" not in s.columns or "mean_stage_cost" not in s.columns:
+        return []
+    ran = np.isfinite(s["mean_stage_cost"].to_numpy(float))
+    hit = s[ran & (s["solver_failures"].to_numpy() > 0)]
+    return [
+        {"episode": int(e), "failed_solves": int(n)}
+        for e, n in zip(hit["episode"], hit["solver_failures"], strict=True)
     ]
 
 
@@ -142,6 +158,7 @@ def _learner_summary(
         "J_worst": max(worst) if worst else None,
         "regressions": int(sum(v["regressions"] for v in vals)),
         "failed_episodes": int(sum(len(v.get("failed_episodes", [])) for v in vals)),
+        "unsolved_episodes": int(sum(len(v.get("unsolved_episodes", [])) for v in vals)),
         "seeds_with_regressions": sum(1 for v in vals if v["regressions"] > 0),
         **_best_seed_theta(per_seed),
         "theta_names": theta_names,

@@ -310,9 +310,15 @@ class IdentifyFirst(Learner):
         return None if twin is None else twin.starts.copy()
 
     def identified(self) -> np.ndarray | None:
-        """The model identified for the deployed theta (the last fit while the switch runs)."""
+        """The model of the deployed theta once it is not theta0's nominal model (an
+        identified model deployed, or one the tuning learner moved); else the last fit, also
+        after the switch gave up and the tuning learner tunes the nominal model (None before
+        a fit)."""
         if self.inner_ is not None:
-            return self.switch_.fit.estimate_of(self.switch_.deployed_)
+            fit = self.switch_.fit
+            own = fit.estimate_of(self.switch_.deployed_)
+            if not np.array_equal(own, fit.estimate_of(self.theta0)):
+                return own
         ident = self.switch_.identification_
         return None if ident is None else ident.estimate.copy()
 
