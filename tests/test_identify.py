@@ -30,6 +30,22 @@ from mpcmobo.systems import get_system
 from mpcmobo.systems.plant import SystemPlant
 
 
+def _identify_first(system, make):
+    """``IdentifyFirst`` of MPC-RL learners made by ``make`` on ``system``, cycled over three
+    starts, deploying on evidence."""
+    from mpcmobo.learners.identified import IdentifyFirst
+
+    return IdentifyFirst(
+        make,
+        system.search_space,
+        np.asarray(system.parameterization.theta0, float),
+        name="mpc-rl",
+        starts=Starts("cycle", 3),
+        model_fit=ModelFit(system),
+        deploy=EvidenceDeploy(),
+    )
+
+
 def _episode(system, rng, steps=60):
     """States (steps+1, nx) and inputs (steps, nu) of the true plant under random inputs."""
     x = np.empty((steps + 1, system.nx))
@@ -577,7 +593,6 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
     offers its theta to the switch; the tuning learner is built only after that candidate is
     decided, and its deployments are judged by the deployed model's twin. Without the loop's
     closed loops on a model there is no twin, and it tunes at once."""
-    from mpcmobo.learners.identified import IdentifyFirst
     from mpcmobo.learners.mpc_rl import MPCRL
 
     lq = get_system("lq", identify=get_system("lq").param_names)
@@ -595,15 +610,7 @@ def test_identify_first_offers_the_twins_theta_before_it_tunes():
             built.append(th)
             return MPCRL(space, th)
 
-        learner = IdentifyFirst(
-            make,
-            space,
-            theta0,
-            name="mpc-rl",
-            starts=Starts("cycle", 3),
-            model_fit=ModelFit(lq),
-            deploy=EvidenceDeploy(),
-        )
+        learner = _identify_first(lq, make)
         assert not built  # the inner learner is built once, when the switch has settled
         if service is not None:
             learner.use_start_costs(service)
@@ -716,20 +723,11 @@ def test_identify_first_records_the_last_fit_once_the_switch_gave_up():
     record's identified parameters are the last fit, not the nominal model the deployed theta
     holds (which figure 5 and identified_final would show as identified); once an identified
     model is deployed, they are the deployed theta's."""
-    from mpcmobo.learners.identified import IdentifyFirst
     from mpcmobo.learners.mpc_rl import MPCRL
 
     lq = get_system("lq", identify=get_system("lq").param_names)
     space, theta0 = lq.search_space, np.asarray(lq.parameterization.theta0, float)
-    learner = IdentifyFirst(
-        lambda th: MPCRL(space, th),
-        space,
-        theta0,
-        name="mpc-rl",
-        starts=Starts("cycle", 3),
-        model_fit=ModelFit(lq),
-        deploy=EvidenceDeploy(),
-    )
+    learner = _identify_first(lq, lambda th: MPCRL(space, th))
     sw = learner.switch_
     nominal = sw.fit.estimate_of(theta0)
     sw.identification_ = _fit_of(nominal * 0.8)
