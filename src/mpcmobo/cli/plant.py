@@ -34,6 +34,7 @@ from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, RunDirError, StudyError
 from mpcmobo.experiment.settings import SettingsError
+from mpcmobo.experiment.tunerfiles import LOCK_FILE, held_elsewhere
 from mpcmobo.experiment.tunerstatus import saved_status
 
 __all__ = ["ask", "export", "retract", "serve", "status", "tell"]
@@ -144,8 +145,12 @@ def _write_trial(directory: Path, tuner: Any) -> dict:
 
 def _prepared_trial(directory: Path) -> dict | None:
     """The pending trial as ``DIR/trials/<id>/trial.json`` holds it, where the tuner's
-    ``status.json`` is current and names it pending, its controller was written and its
-    system's file is not newer than its reference (None: the tuner must be loaded to ask)."""
+    ``status.json`` is current and names it pending, no other process changes the tuner (a
+    tell of that trial under way), its controller was written and its system's file is not
+    newer than its reference (None: the tuner must be loaded to ask, which waits for the
+    other process)."""
+    if held_elsewhere(directory / LOCK_FILE):  # first: a tell that ends now is read whole
+        return None
     st = saved_status(directory)
     if st is None or st["pending"] is None or st.get("learning") is not None:
         return None
