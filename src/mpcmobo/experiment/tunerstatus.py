@@ -225,9 +225,10 @@ def saved_status(
     as None), with the recommendation naming ``directory`` as given; None where the file is
     missing, unreadable, of other keys, or older than the tuner's settings or a checkpoint of
     its job (written by an interrupted tell, or the budget extended since): then the tuner must
-    be loaded to say it. Where it names a trial whose accepted log is not learned from yet,
-    ``learns(directory)`` says whether a process is learning from it now (None: none is; the
-    file cannot tell a process that learns from one that was killed)."""
+    be loaded to say it. Where it names a trial whose accepted log is not learned from yet (or
+    the pending trial's log is in ``accepted/``: kept by a process killed before it wrote the
+    file again), ``learns(directory)`` says whether a process is learning from it now (None:
+    none is; the file cannot tell a process that learns from one that was killed)."""
     path = Path(directory)
     status, mark = path / "status.json", path / "tuner.json"
     if not (status.is_file() and mark.is_file()):
@@ -242,6 +243,10 @@ def saved_status(
         return None
     if not isinstance(st, dict) or not STATUS_KEYS <= set(st):
         return None
+    pending = st["pending"]
+    if st.get("learning") is None and pending is not None:  # the next load learns from it
+        if (path / "accepted" / f"trial-{pending}.pkl").is_file():
+            st["learning"] = pending
     return with_recommendation(st, path, learns)
 
 
