@@ -134,6 +134,44 @@ def test_a_checkpoint_newer_than_the_records_gives_the_jobs_rows(dashboard_run, 
     assert len(source.trajectory(key)["x"]) == 2  # lq's two states
 
 
+def _states(out) -> dict:
+    return {
+        (j["learner"], j["seed"]): j["state"]
+        for j in run_payload(RunSource(out, FileCache()), 0)["jobs"]
+    }
+
+
+def test_a_job_killed_before_its_budget_reads_stopped_and_a_finished_one_recorded(
+    dashboard_run, tmp_path
+):
+    """A study killed with ``kill -9`` before it wrote a summary: its unfinished jobs read
+    "stopped", a job that ran its budget "recorded"; so after an extension of a complete run
+    (its summary says complete) killed before the new budget, and after Ctrl-C."""
+    out = tmp_path / "run"
+    shutil.copytree(dashboard_run, out)
+    ep = pd.read_parquet(out / "episodes.parquet")
+    storage.write_parquet(out / "episodes.parquet", ep[(ep.learner != "mobo") | (ep.episode < 1)])
+    ckpt = out / "jobs" / "mobo-s1" / "checkpoint.pkl"
+    killed = storage.read_pickle(ckpt)  # at its third episode
+    storage.write_pickle(ckpt, dict(killed, done=False, rows=killed["rows"][:2]))
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], **TEXT)
+    where = {"pid": int(gone.stdout), "host": socket.gethostname()}
+    (out / RUNNING_FILE).write_text(json.dumps(where))
+    os.remove(out / "summary.json")
+    states = _states(out)
+    assert states["identify", 0] == states["identify", 1] == "recorded", states
+    assert states["mobo", 0] == states["mobo", 1] == "stopped", states
+    (out / RUNNING_FILE).unlink()  # Ctrl-C: the summary says the run is not complete
+    storage.write_json(out / "summary.json", {"complete": False})
+    assert _states(out) == states
+    extended = tmp_path / "extended"
+    shutil.copytree(dashboard_run, extended)  # complete, then --episodes 5 killed at once
+    config = (extended / "config.toml").read_text()
+    (extended / "config.toml").write_text(config.replace("episodes = 3\n", "episodes = 5\n"))
+    assert set(_states(extended).values()) == {"stopped"}
+    assert set(_states(dashboard_run).values()) == {"recorded"}
+
+
 def _rows(incumbents, thetas, costs):
     return pd.DataFrame(
         {
