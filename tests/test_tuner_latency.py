@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 
 from mpcmobo.cli import app
 from mpcmobo.experiment.tuner import Tuner, TunerError, write_log
+from mpcmobo.mpc import export
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 HEAVY = ("torch", "botorch", "gpytorch", "mpcmobo.experiment.tuner", "mpcmobo.learners.gp")
@@ -174,3 +175,31 @@ def test_ask_during_a_tell_waits_for_it_rather_than_print_the_trial_it_tells(
         assert res.exit_code == 2 and loaded == [work] and "loaded" in res.output, res.output
         res = runner.invoke(app, ["ask", str(work)])
     assert res.exit_code == 0 and json.loads(res.output)["id"] == 2, res.output
+
+
+def test_a_trial_s_controller_is_replaced_whole_or_not_at_all(told, tmp_path, monkeypatch):
+    """``ask`` writing a trial's controller again (here: killed halfway through it) leaves the
+    earlier, complete file, which a plant program may be loading meanwhile, and no part of its
+    own; two commands writing it at once do not write into one file."""
+    d, _ = told
+    work = tmp_path / "t"
+    shutil.copytree(d, work)
+    assert runner.invoke(app, ["ask", str(work)]).exit_code == 0
+    controller = work / "trials" / "1" / "controller.casadi"
+    before = controller.read_bytes()
+
+    def killed_halfway(mpc, theta, path):
+        Path(path).write_bytes(before[: len(before) // 2])
+        raise RuntimeError("killed")
+
+    (work / "status.json").unlink()  # the tuner loaded, the trial written again
+    with monkeypatch.context() as m:
+        m.setattr(export, "export_casadi", killed_halfway)
+        res = runner.invoke(app, ["ask", str(work)])
+    assert res.exit_code != 0
+    assert controller.read_bytes() == before
+    assert sorted(p.name for p in controller.parent.iterdir()) == [
+        "controller.casadi",
+        "trial.json",
+    ]
+    assert json.loads(runner.invoke(app, ["ask", str(work)]).output)["id"] == 1

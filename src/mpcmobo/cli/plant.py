@@ -131,14 +131,20 @@ def ask(
 
 def _write_trial(directory: Path, tuner: Any) -> dict:
     """The tuner's next trial (the pending one), written with its controller to
-    ``DIR/trials/<id>/``; its JSON."""
+    ``DIR/trials/<id>/`` (each file whole: written aside, then renamed); its JSON."""
     from mpcmobo.mpc.export import export_casadi
 
     trial = tuner.ask()
     where = directory / "trials" / str(trial.id)
     where.mkdir(parents=True, exist_ok=True)
     data = trial.to_json()
-    export_casadi(trial.mpc, trial.theta, where / "controller.casadi")
+    part = where / f"controller.casadi.{os.getpid()}.part"  # then renamed: a plant program
+    # loading the controller, or another command writing it, never meets half a file
+    try:
+        export_casadi(trial.mpc, trial.theta, part)
+        os.replace(part, where / "controller.casadi")
+    finally:
+        part.unlink(missing_ok=True)
     storage.atomic_write_text(where / "trial.json", json.dumps(data, indent=1) + "\n")
     return dict(data)
 
