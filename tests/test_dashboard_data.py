@@ -282,6 +282,29 @@ def test_a_told_log_is_said_to_be_learned_from_only_while_the_tuners_process_run
     assert "the next command that loads the tuner" in reason
 
 
+def test_a_log_kept_by_a_process_killed_before_it_said_so_is_on_the_page(tmp_path, monkeypatch):
+    """A tell or ``mpcmobo serve`` killed after it kept the log in ``accepted/`` and before it
+    wrote ``status.json`` again: the page is built again and says what ``mpcmobo status``
+    says (the log accepted, not learned from yet), not that the trial is to be run."""
+    from test_tuner_checks import episode
+
+    from mpcmobo.dashboard.server import Dashboard
+    from mpcmobo.experiment.tuner import Tuner
+
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=3, steps=6)
+    trial = tuner.ask()
+    board = Dashboard([tmp_path / "t"], serving=lambda path: False)
+    before = board.state()[0]
+    with monkeypatch.context() as m:
+        m.setattr(Tuner, "_write_status", lambda self: None)  # killed before it
+        tuner.accept(trial, *episode(tuner, trial))
+    version, body = board.state()
+    status = json.loads(body)["runs"][0]["tuner"]["status"]
+    reason = status["recommendation"]["reason"]
+    assert version != before and status["learning"] == 0, reason
+    assert "is accepted (accepted/trial-0.pkl)" in reason and "run it on the plant" not in reason
+
+
 def test_the_episodes_with_an_error_are_named_on_the_page(dashboard_run, tmp_path):
     """A failed episode (its error in its record) is named in the page's messages with its
     job, episode and error, the first three of a job, then how many more."""

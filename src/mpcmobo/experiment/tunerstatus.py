@@ -243,11 +243,20 @@ def saved_status(
         return None
     if not isinstance(st, dict) or not STATUS_KEYS <= set(st):
         return None
-    pending = st["pending"]
-    if st.get("learning") is None and pending is not None:  # the next load learns from it
-        if (path / "accepted" / f"trial-{pending}.pkl").is_file():
-            st["learning"] = pending
+    kept = kept_unsaid(st, path)
+    if kept is not None:
+        st["learning"] = kept
     return with_recommendation(st, path, learns)
+
+
+def kept_unsaid(st: dict[str, Any], path: Path) -> int | None:
+    """The pending trial of the status ``st`` (``status.json``'s) where its log is in
+    ``accepted/`` of the tuner in ``path`` and ``st`` does not say so: kept by a process killed
+    before it wrote the file again (the next load learns from it). None otherwise."""
+    pending = st.get("pending")
+    if st.get("learning") is not None or pending is None:
+        return None
+    return int(pending) if (path / "accepted" / f"trial-{pending}.pkl").is_file() else None
 
 
 def with_recommendation(
