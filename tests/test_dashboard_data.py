@@ -134,6 +134,44 @@ def test_a_checkpoint_newer_than_the_records_gives_the_jobs_rows(dashboard_run, 
     assert len(source.trajectory(key)["x"]) == 2  # lq's two states
 
 
+def _states(out) -> dict:
+    return {
+        (j["learner"], j["seed"]): j["state"]
+        for j in run_payload(RunSource(out, FileCache()), 0)["jobs"]
+    }
+
+
+def test_a_job_killed_before_its_budget_reads_stopped_and_a_finished_one_recorded(
+    dashboard_run, tmp_path
+):
+    """A study killed with ``kill -9`` before it wrote a summary: its unfinished jobs read
+    "stopped", a job that ran its budget "recorded"; so after an extension of a complete run
+    (its summary says complete) killed before the new budget, and after Ctrl-C."""
+    out = tmp_path / "run"
+    shutil.copytree(dashboard_run, out)
+    ep = pd.read_parquet(out / "episodes.parquet")
+    storage.write_parquet(out / "episodes.parquet", ep[(ep.learner != "mobo") | (ep.episode < 1)])
+    ckpt = out / "jobs" / "mobo-s1" / "checkpoint.pkl"
+    killed = storage.read_pickle(ckpt)  # at its third episode
+    storage.write_pickle(ckpt, dict(killed, done=False, rows=killed["rows"][:2]))
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], **TEXT)
+    where = {"pid": int(gone.stdout), "host": socket.gethostname()}
+    (out / RUNNING_FILE).write_text(json.dumps(where))
+    os.remove(out / "summary.json")
+    states = _states(out)
+    assert states["identify", 0] == states["identify", 1] == "recorded", states
+    assert states["mobo", 0] == states["mobo", 1] == "stopped", states
+    (out / RUNNING_FILE).unlink()  # Ctrl-C: the summary says the run is not complete
+    storage.write_json(out / "summary.json", {"complete": False})
+    assert _states(out) == states
+    extended = tmp_path / "extended"
+    shutil.copytree(dashboard_run, extended)  # complete, then --episodes 5 killed at once
+    config = (extended / "config.toml").read_text()
+    (extended / "config.toml").write_text(config.replace("episodes = 3\n", "episodes = 5\n"))
+    assert set(_states(extended).values()) == {"stopped"}
+    assert set(_states(dashboard_run).values()) == {"recorded"}
+
+
 def _rows(incumbents, thetas, costs):
     return pd.DataFrame(
         {
@@ -242,6 +280,29 @@ def test_a_told_log_is_said_to_be_learned_from_only_while_the_tuners_process_run
     after, reason = said()
     assert after != before and "no process is learning from it" in reason
     assert "the next command that loads the tuner" in reason
+
+
+def test_a_log_kept_by_a_process_killed_before_it_said_so_is_on_the_page(tmp_path, monkeypatch):
+    """A tell or ``mpcmobo serve`` killed after it kept the log in ``accepted/`` and before it
+    wrote ``status.json`` again: the page is built again and says what ``mpcmobo status``
+    says (the log accepted, not learned from yet), not that the trial is to be run."""
+    from test_tuner_checks import episode
+
+    from mpcmobo.dashboard.server import Dashboard
+    from mpcmobo.experiment.tuner import Tuner
+
+    tuner = Tuner("lq", "mpc-rl", tmp_path / "t", episodes=3, steps=6)
+    trial = tuner.ask()
+    board = Dashboard([tmp_path / "t"], serving=lambda path: False)
+    before = board.state()[0]
+    with monkeypatch.context() as m:
+        m.setattr(Tuner, "_write_status", lambda self: None)  # killed before it
+        tuner.accept(trial, *episode(tuner, trial))
+    version, body = board.state()
+    status = json.loads(body)["runs"][0]["tuner"]["status"]
+    reason = status["recommendation"]["reason"]
+    assert version != before and status["learning"] == 0, reason
+    assert "is accepted (accepted/trial-0.pkl)" in reason and "run it on the plant" not in reason
 
 
 def test_the_episodes_with_an_error_are_named_on_the_page(dashboard_run, tmp_path):

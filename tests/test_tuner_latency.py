@@ -13,10 +13,12 @@ from pathlib import Path
 
 import pytest
 from test_tuner_checks import episode
+from test_tuner_writers import _holder
 from typer.testing import CliRunner
 
 from mpcmobo.cli import app
-from mpcmobo.experiment.tuner import Tuner, write_log
+from mpcmobo.experiment.tuner import Tuner, TunerError, write_log
+from mpcmobo.mpc import export
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 HEAVY = ("torch", "botorch", "gpytorch", "mpcmobo.experiment.tuner", "mpcmobo.learners.gp")
@@ -147,3 +149,57 @@ def test_tell_prepares_the_next_trial_and_ask_prints_it_without_the_tuner(
     printed = json.loads(res.output)
     assert printed["id"] == 2
     assert printed == Tuner.load(work).ask().to_json()
+
+
+def test_ask_during_a_tell_waits_for_it_rather_than_print_the_trial_it_tells(
+    told, tmp_path, monkeypatch
+):
+    """While another process changes the tuner (a tell of the prepared trial under way),
+    ``ask`` does not print that trial from the files: it loads the tuner, which waits for the
+    tell; once the tell is done it prints the prepared trial again without the tuner."""
+    d, log = told
+    work = tmp_path / "t"
+    shutil.copytree(d, work)
+    assert runner.invoke(app, ["tell", str(work), "1", str(log)]).exit_code == 0
+    loaded: list[Path] = []
+
+    def load(directory, *a, **k):
+        loaded.append(directory)
+        raise TunerError("loaded")
+
+    holder = _holder(work)  # the other process's tell
+    with monkeypatch.context() as m:
+        m.setattr(Tuner, "load", load)
+        res = runner.invoke(app, ["ask", str(work)])
+        holder.communicate("go\n", timeout=30)
+        assert res.exit_code == 2 and loaded == [work] and "loaded" in res.output, res.output
+        res = runner.invoke(app, ["ask", str(work)])
+    assert res.exit_code == 0 and json.loads(res.output)["id"] == 2, res.output
+
+
+def test_a_trial_s_controller_is_replaced_whole_or_not_at_all(told, tmp_path, monkeypatch):
+    """``ask`` writing a trial's controller again (here: killed halfway through it) leaves the
+    earlier, complete file, which a plant program may be loading meanwhile, and no part of its
+    own; two commands writing it at once do not write into one file."""
+    d, _ = told
+    work = tmp_path / "t"
+    shutil.copytree(d, work)
+    assert runner.invoke(app, ["ask", str(work)]).exit_code == 0
+    controller = work / "trials" / "1" / "controller.casadi"
+    before = controller.read_bytes()
+
+    def killed_halfway(mpc, theta, path):
+        Path(path).write_bytes(before[: len(before) // 2])
+        raise RuntimeError("killed")
+
+    (work / "status.json").unlink()  # the tuner loaded, the trial written again
+    with monkeypatch.context() as m:
+        m.setattr(export, "export_casadi", killed_halfway)
+        res = runner.invoke(app, ["ask", str(work)])
+    assert res.exit_code != 0
+    assert controller.read_bytes() == before
+    assert sorted(p.name for p in controller.parent.iterdir()) == [
+        "controller.casadi",
+        "trial.json",
+    ]
+    assert json.loads(runner.invoke(app, ["ask", str(work)]).output)["id"] == 1

@@ -19,7 +19,7 @@ import pytest
 from test_tuner_checks import episode
 from typer.testing import CliRunner
 
-from mpcmobo.cli import app
+from mpcmobo.cli import app, resident
 from mpcmobo.cli.resident import ADDRESS_FILE, KEY_FILE, Resident, ResidentError, request
 from mpcmobo.experiment.tuner import Tuner, write_log
 
@@ -193,6 +193,54 @@ def test_status_after_a_tell_killed_before_its_learning_names_the_command_that_l
         assert f"mpcmobo ask {made} learns from it and prints the next trial" in reason, reason
     (made / ADDRESS_FILE).unlink()
     assert _ask(made)["id"] == 1 and Tuner.load(made).episodes == 1
+
+
+def test_a_log_kept_by_a_process_killed_before_it_wrote_the_status_is_not_asked_again(
+    made, monkeypatch
+):
+    """A process (a tell, ``mpcmobo serve``) killed after it kept the log in ``accepted/`` and
+    before it wrote ``status.json`` again: ``status`` says that the log is accepted and not
+    learned from yet, not that the trial is to be run on the plant, and ``ask`` learns from
+    it and prints the next trial, not the told one."""
+    tuner = Tuner.load(made)
+    trial = tuner.ask()
+    assert _ask(made)["id"] == 0  # the trial written for ask, as a tell prepares it
+    with monkeypatch.context() as m:
+        m.setattr(Tuner, "_write_status", lambda self: None)  # killed before it
+        tuner.accept(trial, *episode(tuner, trial))
+    del tuner
+    st = json.loads(runner.invoke(app, ["status", str(made), "--json"]).stdout)
+    reason = st["recommendation"]["reason"]
+    assert st["learning"] == 0 and "run it on the plant" not in reason, reason
+    assert "is accepted (accepted/trial-0.pkl) and not learned from yet" in reason, reason
+    assert _ask(made)["id"] == 1 and Tuner.load(made).episodes == 1
+
+
+class _Gone:
+    """A connection to a tuner's process killed while it answers: the answer never comes."""
+
+    def __enter__(self) -> _Gone:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def send(self, obj: object) -> None:
+        pass
+
+    def recv(self) -> object:
+        raise EOFError
+
+
+def test_a_process_killed_while_it_answers_is_named_with_where_to_look(made, monkeypatch):
+    """The tuner's process dies before its answer: the command's error names what happened
+    (the closed connection) and the status that shows whether the told log was kept."""
+    monkeypatch.setattr(resident, "_connect", lambda directory: _Gone())
+    with pytest.raises(ResidentError) as err:
+        request(made, "tell", trial=0, log=None, force=False)
+    text = str(err.value)
+    assert "stopped while it answered (EOFError)" in text, text
+    assert f"mpcmobo status {made} shows whether it kept a told log" in text, text
 
 
 def test_a_failed_learning_is_reported_and_the_trial_is_pending_again(made, tmp_path):

@@ -34,6 +34,7 @@ from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, RunDirError, StudyError
 from mpcmobo.experiment.settings import SettingsError
+from mpcmobo.experiment.tunerfiles import LOCK_FILE, held_elsewhere
 from mpcmobo.experiment.tunerstatus import saved_status
 
 __all__ = ["ask", "export", "retract", "serve", "status", "tell"]
@@ -130,22 +131,32 @@ def ask(
 
 def _write_trial(directory: Path, tuner: Any) -> dict:
     """The tuner's next trial (the pending one), written with its controller to
-    ``DIR/trials/<id>/``; its JSON."""
+    ``DIR/trials/<id>/`` (each file whole: written aside, then renamed); its JSON."""
     from mpcmobo.mpc.export import export_casadi
 
     trial = tuner.ask()
     where = directory / "trials" / str(trial.id)
     where.mkdir(parents=True, exist_ok=True)
     data = trial.to_json()
-    export_casadi(trial.mpc, trial.theta, where / "controller.casadi")
+    part = where / f"controller.casadi.{os.getpid()}.part"  # then renamed: a plant program
+    # loading the controller, or another command writing it, never meets half a file
+    try:
+        export_casadi(trial.mpc, trial.theta, part)
+        os.replace(part, where / "controller.casadi")
+    finally:
+        part.unlink(missing_ok=True)
     storage.atomic_write_text(where / "trial.json", json.dumps(data, indent=1) + "\n")
     return dict(data)
 
 
 def _prepared_trial(directory: Path) -> dict | None:
     """The pending trial as ``DIR/trials/<id>/trial.json`` holds it, where the tuner's
-    ``status.json`` is current and names it pending, its controller was written and its
-    system's file is not newer than its reference (None: the tuner must be loaded to ask)."""
+    ``status.json`` is current and names it pending, no other process changes the tuner (a
+    tell of that trial under way), its controller was written and its system's file is not
+    newer than its reference (None: the tuner must be loaded to ask, which waits for the
+    other process)."""
+    if held_elsewhere(directory / LOCK_FILE):  # first: a tell that ends now is read whole
+        return None
     st = saved_status(directory)
     if st is None or st["pending"] is None or st.get("learning") is not None:
         return None

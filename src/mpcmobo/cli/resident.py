@@ -112,8 +112,9 @@ def request(
         except (OSError, EOFError) as err:
             raise ResidentError(
                 f"the tuner's process (mpcmobo serve {directory}) stopped while it answered "
-                f"({err or type(err).__name__}); nothing it had recorded is lost: run the "
-                "command again",
+                f"({str(err) or type(err).__name__}); nothing it had recorded is lost: "
+                f"mpcmobo status {directory} shows whether it kept a told log (the next "
+                "command learns from it), else run the command again",
                 1,
             ) from None
 

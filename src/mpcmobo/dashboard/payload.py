@@ -55,6 +55,28 @@ def _tuner(
     return out
 
 
+def _state(
+    running: bool,
+    ckpt: dict | None,
+    rows: Any,
+    settings: Settings | None,
+    summary: Any,
+) -> str:
+    """What the page says of a job: ``running``; ``recorded`` where it ran its budget (its
+    checkpoint done, or its last episode the budget's last); else ``stopped`` (Ctrl-C, or a
+    study killed before it wrote a summary, or during an extension of a complete one). Without
+    the settings, the summary's ``complete`` decides."""
+    if running:
+        return "running"
+    if ckpt is not None and ckpt.get("done", False):
+        return "recorded"
+    if settings is not None:
+        finished = len(rows) > 0 and int(rows["episode"].max()) >= settings.episodes - 1
+    else:
+        finished = not isinstance(summary, dict) or bool(summary.get("complete", True))
+    return "recorded" if finished else "stopped"
+
+
 def _identified(
     source: RunSource, settings: Settings | None, reference: Reference | None, jobs: list[dict]
 ) -> dict[str, Any] | None:
@@ -150,7 +172,8 @@ def run_payload(source: RunSource, index: int) -> dict[str, Any]:
         job = job_series(rows.sort_values("episode"), start, names)
         ckpt = live.get((learner, seed))
         running = ckpt is not None and not ckpt.get("done", False) and alive
-        head = {"learner": str(learner), "seed": int(seed), "live": running}
+        state = _state(running, ckpt, rows, settings, summary)
+        head = {"learner": str(learner), "seed": int(seed), "live": running, "state": state}
         jobs.append({**head, "deploy": _deploy_options(raw, str(learner)), **job})
     jobs.sort(key=lambda j: (learners.index(j["learner"]), j["seed"]))
     groups = {

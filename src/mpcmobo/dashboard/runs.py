@@ -24,7 +24,7 @@ from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.records import Reference
 from mpcmobo.experiment.rundir import RUNNING_FILE, RunDirectory
 from mpcmobo.experiment.settings import Settings, read_toml
-from mpcmobo.experiment.tunerstatus import STATUS_KEYS, with_recommendation
+from mpcmobo.experiment.tunerstatus import STATUS_KEYS, kept_unsaid, with_recommendation
 
 __all__ = ["RunSource"]
 
@@ -73,7 +73,8 @@ class RunSource:
             "trajectories.parquet",
             RUNNING_FILE,
         ]
-        return [self.path / n for n in fixed] + sorted(self.path.glob("jobs/*/checkpoint.pkl"))
+        jobs = sorted(self.path.glob("jobs/*/checkpoint.pkl"))
+        return [self.path / n for n in fixed] + jobs + sorted(self.path.glob("accepted/*.pkl"))
 
     def stamp(self) -> tuple[Any, ...]:
         """The stamps of :meth:`files`: equal while nothing on disk changed."""
@@ -114,14 +115,17 @@ class RunSource:
 
     def status(self) -> dict[str, Any] | None:
         """A tuner's ``status.json`` (None where it writes none); where it says that a told
-        log is being learned from, its recommendation as ``mpcmobo status`` makes it: a
-        process learns only where the tuner's process runs (``serving``)."""
+        log is being learned from, or the pending trial's log is in ``accepted/``, its
+        recommendation as ``mpcmobo status`` makes it: a process learns only where the tuner's
+        process runs (``serving``)."""
         st = self._read("status.json", read_json)
-        if not isinstance(st, dict) or st.get("learning") is None or self.serving is None:
+        if not isinstance(st, dict) or not STATUS_KEYS <= set(st):
             return st
-        if not STATUS_KEYS <= set(st):
+        kept = kept_unsaid(st, self.path)  # a log kept by a process killed before it said so
+        if kept is None and (st.get("learning") is None or self.serving is None):
             return st
-        return with_recommendation(dict(st), self.path, self.serving)
+        learning = st["learning"] if kept is None else kept
+        return with_recommendation(dict(st, learning=learning), self.path, self.serving)
 
     def study_alive(self) -> bool:
         """Whether the study's process runs (:meth:`~mpcmobo.experiment.rundir.RunDirectory.

@@ -111,6 +111,26 @@ def _acquire(path: Path, timeout: float) -> int | None:
     return fd
 
 
+def held_elsewhere(path: Path) -> bool:
+    """Whether another process holds the lock file ``path`` now (changes the tuner: a tell
+    under way); False where the file does not exist or the system has no ``flock``."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not on POSIX
+        return False
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)  # releases a lock taken here
+    return False
+
+
 def _holder(path: Path) -> str:
     """The process that holds the lock file ``path`` as it wrote itself there ("?": unknown)."""
     try:

@@ -225,9 +225,10 @@ def saved_status(
     as None), with the recommendation naming ``directory`` as given; None where the file is
     missing, unreadable, of other keys, or older than the tuner's settings or a checkpoint of
     its job (written by an interrupted tell, or the budget extended since): then the tuner must
-    be loaded to say it. Where it names a trial whose accepted log is not learned from yet,
-    ``learns(directory)`` says whether a process is learning from it now (None: none is; the
-    file cannot tell a process that learns from one that was killed)."""
+    be loaded to say it. Where it names a trial whose accepted log is not learned from yet (or
+    the pending trial's log is in ``accepted/``: kept by a process killed before it wrote the
+    file again), ``learns(directory)`` says whether a process is learning from it now (None:
+    none is; the file cannot tell a process that learns from one that was killed)."""
     path = Path(directory)
     status, mark = path / "status.json", path / "tuner.json"
     if not (status.is_file() and mark.is_file()):
@@ -242,7 +243,20 @@ def saved_status(
         return None
     if not isinstance(st, dict) or not STATUS_KEYS <= set(st):
         return None
+    kept = kept_unsaid(st, path)
+    if kept is not None:
+        st["learning"] = kept
     return with_recommendation(st, path, learns)
+
+
+def kept_unsaid(st: dict[str, Any], path: Path) -> int | None:
+    """The pending trial of the status ``st`` (``status.json``'s) where its log is in
+    ``accepted/`` of the tuner in ``path`` and ``st`` does not say so: kept by a process killed
+    before it wrote the file again (the next load learns from it). None otherwise."""
+    pending = st.get("pending")
+    if st.get("learning") is not None or pending is None:
+        return None
+    return int(pending) if (path / "accepted" / f"trial-{pending}.pkl").is_file() else None
 
 
 def with_recommendation(

@@ -43,7 +43,7 @@ function drawJobs(runs) {
     const J = lastFinite(job.J_eval);
     const n = job.episode.length;
     rows.push([run.name, job.learner, job.seed, `${n}${run.budget ? " / " + run.budget : ""}`,
-      job.live ? "running" : (run.complete === false ? "stopped" : "recorded"),
+      job.state,
       n ? job.cost[n - 1] : null, n ? job.cum_cost[n - 1] : null, J,
       J !== null && run.J_star ? J / run.J_star : null, run.J_star, run.J_initial,
       job.changes.length, (job.refused || []).length, job.errors.length]);
