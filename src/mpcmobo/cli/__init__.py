@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
@@ -310,40 +310,38 @@ def unpriced_warnings(summary: dict) -> list[str]:
     ]
 
 
+def _jobs_with(summary: dict, key: str) -> Iterator[tuple[str, str, list[dict]]]:
+    """(learner, seed, items) of each job whose per-seed summary lists items under ``key``."""
+    for learner, s in summary["learners"].items():
+        for seed, per in s.get("per_seed", {}).items():
+            items = per.get(key) or []
+            if items:
+                yield learner, seed, items
+
+
 def failed_warnings(summary: dict) -> list[str]:
     """One line per job with episodes that failed (``failed_episodes`` of its summary): how
     many, the first with its error, and what it means for the theta that ran it."""
-    lines = []
-    for learner, s in summary["learners"].items():
-        for seed, per in s.get("per_seed", {}).items():
-            failed = per.get("failed_episodes") or []
-            if not failed:
-                continue
-            first = failed[0]
-            lines.append(
-                f"{learner} seed {seed}: {len(failed)} episode(s) failed (episode "
-                f"{first['episode']}: {first['error']}); the learner observed no closed loop "
-                "there, and a theta with a failed episode is never deployed"
-            )
-    return lines
+    return [
+        f"{learner} seed {seed}: {len(failed)} episode(s) failed (episode "
+        f"{failed[0]['episode']}: {failed[0]['error']}); the learner observed no closed loop "
+        "there, and a theta with a failed episode is never deployed"
+        for learner, seed, failed in _jobs_with(summary, "failed_episodes")
+    ]
 
 
 def unsolved_warnings(summary: dict) -> list[str]:
     """One line per job with recorded episodes in which MPC solves failed
     (``unsolved_episodes`` of its summary): how many, the worst, and what ran the plant."""
     lines = []
-    for learner, s in summary["learners"].items():
-        for seed, per in s.get("per_seed", {}).items():
-            hit = per.get("unsolved_episodes") or []
-            if not hit:
-                continue
-            worst = max(hit, key=lambda h: h["failed_solves"])
-            lines.append(
-                f"{learner} seed {seed}: MPC solves failed in {len(hit)} episode(s) (episode "
-                f"{worst['episode']}: {worst['failed_solves']} failed solves), where the "
-                "fallback input (the previous plan) drove the plant; check the model with "
-                "that episode's theta (a model that is not finite there fails every solve)"
-            )
+    for learner, seed, hit in _jobs_with(summary, "unsolved_episodes"):
+        worst = max(hit, key=lambda h: h["failed_solves"])
+        lines.append(
+            f"{learner} seed {seed}: MPC solves failed in {len(hit)} episode(s) (episode "
+            f"{worst['episode']}: {worst['failed_solves']} failed solves), where the "
+            "fallback input (the previous plan) drove the plant; check the model with "
+            "that episode's theta (a model that is not finite there fails every solve)"
+        )
     return lines
 
 
