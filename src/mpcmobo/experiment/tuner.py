@@ -234,7 +234,7 @@ class Tuner:
         """Whether ``status.json`` (written last by a tell) is older than the job's checkpoint:
         a tell was stopped after the learner's state was saved and before the records and the
         status were written from it."""
-        ckpt = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
+        ckpt = self._checkpoint_file
         status = self.files.status_path
         if not (ckpt.exists() and status.exists()):
             return ckpt.exists()
@@ -243,6 +243,7 @@ class Tuner:
     def _open(self, run_dir: RunDirectory, settings: Settings, new: bool) -> None:
         self.run_dir, self.settings = run_dir, settings
         self.learner, self.seed = settings.learners[0], settings.seeds[0]
+        self._checkpoint_file = storage.checkpoint_path(run_dir.path, self.learner, self.seed)
         system = build_system(settings, self.learner)  # the learner's: its identify checked
         self.evaluates = system.has_true_plant or needs_plant(settings)
         reference = run_dir.reference()
@@ -265,9 +266,8 @@ class Tuner:
     def _checkpoint_stamp(self) -> tuple[int, int, int] | None:
         """The job checkpoint's file identity, time and size (None: none yet): it changes
         whenever a process saves the tuner."""
-        ckpt = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
         try:
-            st = ckpt.stat()
+            st = self._checkpoint_file.stat()
         except FileNotFoundError:
             return None
         return (st.st_ino, st.st_mtime_ns, st.st_size)
@@ -544,7 +544,7 @@ class Tuner:
         force: bool,
     ) -> EpisodeRow:
         """The episode of ``plan`` recorded, with what a retract needs to undo it."""
-        ckpt = storage.checkpoint_path(self.run_dir.path, self.learner, self.seed)
+        ckpt = self._checkpoint_file
         snapshot = ckpt.read_bytes() if ckpt.exists() else None  # the state after the ask
         try:
             row = self.job.complete(plan, record, "", mpc_time)
