@@ -242,21 +242,7 @@ int controller_nx(void) { return NX; }
 int controller_nu(void) { return NU; }
 """
 
-MAIN_C = r"""/* Example: the embedded controller in closed loop with your own code.
- * Reads one state per line (nx numbers separated by spaces or tabs; empty lines are skipped)
- * from stdin and prints the input (nu numbers), the path (1 Newton, 2 continuation, 4
- * restart, 3 cold, 0 fallback) and the step's wall time in microseconds. A line that is not
- * nx numbers stops it with exit code 2, naming the line.
- * With the argument --cold every step starts cold (controller_reset before each one). */
-#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <string.h>
-#include <time.h>
-#include "controller.h"
-
-#define MAX_N 64
-#define BLANK " \t\r\n"
+READ_STATE_C = r"""#define BLANK " \t\r\n"
 
 /* The state on a line: 1 when it holds nx numbers, 0 when it is empty, -1 otherwise. */
 static int read_state(const char* line, double* x, int nx) {
@@ -270,7 +256,28 @@ static int read_state(const char* line, double* x, int nx) {
   }
   return line[strspn(line, BLANK)] == '\0' ? 1 : -1;
 }
+"""
+"""The example programs' reader of one state per line (``read_state``, with ``BLANK``):
+the embedded and the C format's ``main.c`` alike (``<stdlib.h>`` and ``<string.h>``)."""
 
+MAIN_C = (
+    r"""/* Example: the embedded controller in closed loop with your own code.
+ * Reads one state per line (nx numbers separated by spaces or tabs; empty lines are skipped)
+ * from stdin and prints the input (nu numbers), the path (1 Newton, 2 continuation, 4
+ * restart, 3 cold, 0 fallback) and the step's wall time in microseconds. A line that is not
+ * nx numbers stops it with exit code 2, naming the line.
+ * With the argument --cold every step starts cold (controller_reset before each one). */
+#define _POSIX_C_SOURCE 199309L
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+#include "controller.h"
+
+#define MAX_N 64
+"""
+    + READ_STATE_C
+    + r"""
 static int usage(const char* program, int nx, FILE* to) {
   fprintf(to, "usage: %s [--cold] < states (one state per line: %d numbers)\n", program, nx);
   return to == stdout ? 0 : 2;
@@ -310,3 +317,4 @@ int main(int argc, char** argv) {
   return 0;
 }
 """
+)

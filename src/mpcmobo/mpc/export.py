@@ -30,6 +30,7 @@ import casadi as ca
 import numpy as np
 
 from mpcmobo.mpc.codegen import compiler_command
+from mpcmobo.mpc.embedded_source import READ_STATE_C
 from mpcmobo.mpc.parametric import ParametricMPC
 
 __all__ = [
@@ -181,7 +182,8 @@ def _casadi_dir() -> Path:
     return Path(ca.__file__).resolve().parent
 
 
-MAIN_C = r"""/* Example: the tuned MPC in closed loop with your own code.
+MAIN_C = (
+    r"""/* Example: the tuned MPC in closed loop with your own code.
  * Reads one state per line (NX numbers separated by spaces or tabs; empty lines are skipped)
  * from stdin, prints the input (NU numbers). A line that is not NX numbers stops it with exit
  * code 2, naming the line; a failed solve with exit code 1.
@@ -191,21 +193,9 @@ MAIN_C = r"""/* Example: the tuned MPC in closed loop with your own code.
 #include <string.h>
 #include "controller.h"
 
-#define BLANK " \t\r\n"
-
-/* The state on a line: 1 when it holds NX numbers, 0 when it is empty, -1 otherwise. */
-static int read_state(const char* line, casadi_real* x) {
-  char* end;
-  int i;
-  if (line[strspn(line, BLANK)] == '\0') return 0;
-  for (i = 0; i < NX; i++) {
-    x[i] = strtod(line, &end);
-    if (end == line) return -1;
-    line = end;
-  }
-  return line[strspn(line, BLANK)] == '\0' ? 1 : -1;
-}
-
+"""
+    + READ_STATE_C
+    + r"""
 int main(int argc, char** argv) {
   casadi_int sz_arg, sz_res, sz_iw, sz_w;
   char line[4096];
@@ -224,7 +214,7 @@ int main(int argc, char** argv) {
   int mem = controller_checkout();
   while (fgets(line, sizeof line, stdin)) {
     n++;
-    got = read_state(line, x);
+    got = read_state(line, x, NX);  /* casadi_real is double */
     if (got == 0) continue;
     if (got < 0 || (!strchr(line, '\n') && !feof(stdin))) {
       fprintf(stderr, "line %d: a state is %d numbers separated by spaces, one state per line\n",
@@ -242,6 +232,7 @@ int main(int argc, char** argv) {
   return 0;
 }
 """
+)
 
 
 def export_c(mpc: ParametricMPC, theta: np.ndarray | None, directory: str | os.PathLike) -> Path:
