@@ -481,6 +481,62 @@ def test_an_offered_candidate_kept_off_a_start_is_judged_there_on_its_bounded_si
     assert fitted.candidate_ is not None and len(fitted.evidence_) == 0  # judged on the plant
 
 
+def _fitted_switch(cstr, starts=6):
+    """A switch (cycle of ``starts``) whose theta0 ran from every start at cost 10, with the
+    fit's candidate made; (switch, theta0, candidate)."""
+    system = get_system("cstr", identify=cstr.param_names)
+    theta0 = system.parameterization.theta0
+    sw = ModelSwitch(ModelFit(system), theta0, Starts("cycle", starts), EvidenceDeploy())
+    for start in range(starts):
+        sw.observe(theta0.copy(), _cost(10.0, start), "deployed")
+    sw.identification_ = _fit_of(np.asarray(cstr.true_params, float))
+    sw.decide()
+    assert sw.candidate_ is not None and not sw.offered()
+    return sw, theta0, sw.candidate_.copy()
+
+
+def test_a_fitted_candidate_refused_from_a_start_is_judged_there_on_the_budgets_bound(cstr):
+    """Under cycled starts the budget's refusal of the fit's candidate from a start (no
+    simulation) stands in for its episode there: the deployed theta's plant cost from that
+    start times the bound (a "bounded" row), so that the cycle's paired test decides. Cheaper
+    from the other starts by more than the bound costs, the candidate is deployed; refused
+    from more than a third of the cycle's starts, it is dropped unrun there. Another theta, a
+    result without a finite bound of at least 1, an offered candidate and random starts leave
+    it as it was."""
+    from mpcmobo.learners.evidence import BOUNDED
+
+    sw, theta0, cand = _fitted_switch(cstr)
+    sw.refused(theta0 * 1.02, _cost(10.0, 0, 2.0))  # not the candidate
+    sw.refused(cand.copy(), _cost(10.0, 0, float("inf")))  # the model not calibrated
+    sw.refused(cand.copy(), _cost(float("nan"), 0, 2.0))  # the deployed episode failed
+    assert len(sw.evidence_) == 6 and sw.kept_off_ == 0
+    for start in (0, 1, 2, 4, 5):
+        sw.observe(cand.copy(), _cost(1.0, start), "verify")
+    assert sw.candidate_ is not None  # five starts of six: not judged yet
+    sw.refused(cand.copy(), _cost(10.0, 3, 2.0))
+    assert sw.evidence_.kinds[-1] == BOUNDED and sw.evidence_.Y[-1, 0] == 20.0
+    assert sw.evidence_.costs[-1] == pytest.approx(10.0 / 60 * 2.0)
+    assert theta_key(sw.deployed_) == theta_key(cand)  # -9 x 5 and +10: cheaper, paired
+    sw, theta0, cand = _fitted_switch(cstr)
+    for start in (0, 1, 2):
+        sw.refused(cand.copy(), _cost(10.0, start, 1.2))
+    assert sw.candidate_ is None and sw.decisions_ == 1  # 3 of 6 starts: dropped
+    assert theta_key(sw.deployed_) == theta_key(theta0)
+    assert list(sw.evidence_.kinds).count(BOUNDED) == 2
+    sw, theta0, cand = _fitted_switch(cstr)
+    sw.refused(cand.copy(), _cost(10.0, 0, 0.5))  # a bound below 1 is no bound
+    assert len(sw.evidence_) == 6
+    sw, theta0, offered = _offered_switch(cstr)
+    sw.refused(offered.copy(), _cost(6.0, 0, 1.5))  # offered: its simulations bound it
+    assert len(sw.evidence_) == 3 and sw.offered()
+    system = get_system("cstr", identify=cstr.param_names)
+    rand = ModelSwitch(ModelFit(system), theta0, Starts("random", 3), EvidenceDeploy())
+    rand.identification_ = _fit_of(np.asarray(cstr.true_params, float))
+    rand.decide()
+    rand.refused(rand.candidate_.copy(), _cost(10.0, -1, 2.0))
+    assert len(rand.evidence_) == 0  # random starts: the test counts episodes from any start
+
+
 def test_the_twins_candidate_is_judged_by_the_deployed_models_twin_and_resumes_so(cstr):
     """A fitted candidate (a model of its own) is judged by the plain tests; the twin's theta,
     offered on the deployed identified model, by that model's twin (its simulated starts drawn

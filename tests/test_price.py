@@ -395,6 +395,52 @@ def test_a_refused_candidate_is_simulated_on_the_model_for_a_learner_that_learns
     np.testing.assert_array_equal(learner.observed[2], learner.theta0)  # the plant's episode
 
 
+class Bounded(FarAway):
+    """FarAway that keeps the refusals it is told of with their bounds."""
+
+    name = "bounded"
+
+    def __init__(self, system, candidate):
+        super().__init__(system, candidate)
+        self.refused = []
+
+    def observe_refused(self, theta, result):
+        self.refused.append((np.array(theta), result))
+
+
+def test_a_refusal_without_a_simulation_reaches_the_learner_with_its_bound(lq):
+    """A candidate the budget refuses on a calibrated model, for a learner that does not learn
+    in simulation, reaches the learner as the deployed theta's plant episode from that start
+    with the bound on the candidate's cost ratio (its predicted ratio times SPREAD_ERRORS of
+    the model's ratio errors), before that episode itself; before the calibration there is
+    no bound, and nothing reaches it."""
+    from mpcmobo.experiment.loop import SPREAD_ERRORS
+
+    run, _ = _run(lq, 0.0, _expensive(lq))
+    learner = Bounded(lq, _expensive(lq))
+    run.learner = learner
+    plans, rows, spreads = [], [], []
+    for _ in range(4):
+        plan = run.plan()
+        spreads.append(math.exp(SPREAD_ERRORS * run.price.ratio_error()))
+        plans.append(plan)
+        rows.append(run.finish(plan, _episode(lq, run, plan))[0])
+    assert all(r["refused"] and not p.simulated for r, p in zip(rows, plans, strict=True))
+    assert [math.isfinite(p.refused_bound) for p in plans] == [False, False, True, True]
+    assert len(learner.refused) == 2 and len(learner.observed) == 4
+    for (theta, result), plan, row, spread in zip(
+        learner.refused, plans[2:], rows[2:], spreads[2:], strict=True
+    ):
+        np.testing.assert_array_equal(theta, learner.candidate)
+        params = run.prediction_params(np.asarray(plan.deployed))
+        c = run.start_cost(plan.x0, learner.candidate, params, plan.noise)
+        assert plan.refused_bound == pytest.approx(c / plan.predicted_deployed * spread)
+        assert result.spread == plan.refused_bound > 1
+        assert result.stage_cost == pytest.approx(row["plant_cost"])  # the deployed's episode
+        assert result.start_id == plan.start_id
+        np.testing.assert_array_equal(result.x0, plan.x0)
+
+
 def test_the_gate_resumes_from_the_run_state(lq):
     run, _ = _run(lq, 0.0, _expensive(lq))
     for _ in range(3):

@@ -47,9 +47,11 @@ class EpisodePlan:
     With an exploration budget (:mod:`mpcmobo.experiment.price`): the predicted cost of the
     theta that runs and of the deployed one from ``x0`` with ``noise`` (NaN: not predicted),
     why the learner's candidate was refused ("": it was not) and that candidate, whether the
-    learner learns from that candidate's episode simulated on the model (``simulated``), and
-    whether tuning has converged (the deployed theta runs without noise and the learner does
-    not observe it)."""
+    learner learns from that candidate's episode simulated on the model (``simulated``), else
+    the bound on the refused candidate's cost as a multiple of the deployed theta's from the
+    same start (``refused_bound``: its predicted ratio times ``SPREAD_ERRORS`` of the model's
+    ratio errors; NaN: none), and whether tuning has converged (the deployed theta runs without
+    noise and the learner does not observe it)."""
 
     episode: int
     theta: np.ndarray
@@ -66,6 +68,7 @@ class EpisodePlan:
     refused: str = ""
     refused_theta: list[float] | None = None
     simulated: bool = False
+    refused_bound: float = math.nan
     converged: bool = False
 
     def to_dict(self) -> dict:
@@ -277,6 +280,8 @@ class LearningRun:
                 plan.simulated = verdict.simulated
                 if verdict.simulated:
                     plan.refused += f"; {SIMULATED_NOTE}"
+                elif c > 0 and d > 0:
+                    plan.refused_bound = c / d * math.exp(SPREAD_ERRORS * self.price.ratio_error())
         plan.propose_time += time.perf_counter() - t0
         return plan
 
@@ -465,12 +470,16 @@ class LearningRun:
 
     def _observe(self, plan: EpisodePlan, result: EpisodeResult) -> None:
         """The learner's observations of the episode: the refused candidate's simulation
-        first, where the plan has one, then the plant's episode; nothing once tuning has
-        converged."""
+        first, where the plan has one, else the refusal with its bound (the plant's episode of
+        the deployed theta, :meth:`~mpcmobo.learners.Learner.observe_refused`), then the
+        plant's episode; nothing once tuning has converged."""
         if plan.converged:
             return
         if plan.simulated:
             self._observe_simulated(plan)
+        elif plan.refused and math.isfinite(plan.refused_bound):
+            bounded = replace(result, spread=plan.refused_bound)
+            self.learner.observe_refused(np.asarray(plan.refused_theta, float), bounded)
         self.learner.observe(plan.theta, result)
 
     def _observe_simulated(self, plan: EpisodePlan) -> None:

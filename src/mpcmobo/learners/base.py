@@ -124,6 +124,15 @@ class Learner(ABC):
         so; default: ignored."""
         return
 
+    def observe_refused(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """Take a candidate ``theta`` the exploration budget refused where no simulation stands
+        in for it (the model's error is too large for one): ``result`` is the deployed theta's
+        plant episode from the same start (which :meth:`observe` takes next), its ``spread``
+        the budget's bound on the candidate's cost there as a multiple of that episode's. The
+        identifying learners judge their candidate on it under cycled starts
+        (:meth:`~mpcmobo.learners.switch.ModelSwitch.refused`); default: ignored."""
+        return
+
     # ------------------------------------------------------------------ queries
     @abstractmethod
     def incumbent(self) -> np.ndarray:

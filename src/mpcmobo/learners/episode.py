@@ -74,7 +74,9 @@ class EpisodeResult:
     exploration: np.ndarray | None = None  # (T, nu) the inputs applied minus the MPC's
     # an episode simulated on the identified model in place of a refused one: the factor (>= 1)
     # within which its costs are trusted as the plant's (exp of twice the RMS log error of the
-    # model's predictions of plant episodes; inf: not calibrated); NaN: a plant episode
+    # model's predictions of plant episodes; inf: not calibrated); the deployed theta's plant
+    # episode given for a refused candidate (Learner.observe_refused): the bound on the
+    # candidate's cost as a multiple of this episode's; NaN: a plant episode
     spread: float = float("nan")
 
     @property

@@ -106,6 +106,11 @@ class IdentifyLearner(Learner):
         self.n_observed += 1
         self.runner_.observe(theta, result)
 
+    def observe_refused(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """The switch's bound on its refused candidate
+        (:meth:`~mpcmobo.learners.switch.ModelSwitch.refused`)."""
+        self.switch_.refused(theta, result)
+
     def incumbent(self) -> np.ndarray:
         """The deployed theta."""
         return self.switch_.deployed_.copy()
@@ -211,6 +216,14 @@ class IdentifyFirst(Learner):
             self.inner_.observe_simulated(theta, result)
         else:
             self.switch_.kept_off(theta, result)
+
+    def observe_refused(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """The inner learner's, once it tunes; before, the switch's bound on its refused
+        fitted candidate (:meth:`~mpcmobo.learners.switch.ModelSwitch.refused`)."""
+        if self.inner_ is not None:
+            self.inner_.observe_refused(theta, result)
+        else:
+            self.switch_.refused(theta, result)
 
     def _advance(self) -> None:
         """Once the switch has settled: the twin's tuning (once), and when the switch has

@@ -22,7 +22,11 @@ the deployed model's twin. Where the exploration budget keeps it off the plant f
 its costs times the model's spread (``EpisodeResult.spread``), stands in for the plant episode
 from that start (``"bounded"`` evidence: pessimistic by the model's own record); kept off
 from more than ``BOUNDED_SHARE`` of a verification's starts (``min_runs``; cycled starts: the
-cycle), it is dropped without a deployment (:meth:`ModelSwitch.kept_off`). Under
+cycle), it is dropped without a deployment (:meth:`ModelSwitch.kept_off`). A fitted candidate
+the budget refuses from a start of the cycle without a simulation (the model's error too
+large) has the budget's own bound there instead: the deployed theta's plant episode from that
+start times the bound on the candidate's cost ratio (:meth:`ModelSwitch.refused`), else the
+cycle's paired test, which needs every start, never decides it. Under
 random starts a fitted candidate's tests adjust each episode's cost by the identified model's
 prediction of it."""
 
@@ -48,6 +52,14 @@ MAX_DECISIONS = 2  # identify-first tuning starts after this many decisions (a m
 # the share of a verification's starts an offered candidate may be judged on by its bounded
 # simulations; kept off the plant more often, it is dropped
 BOUNDED_SHARE = 1 / 3
+
+
+def _bounds(result: EpisodeResult) -> bool:
+    """Whether ``result`` bounds a candidate's episode: finite costs (f1 and the stage cost, not
+    f2..f4) and a finite ``spread`` of at least 1."""
+    spread = float(result.spread)
+    costs = np.isfinite(result.f1) and np.isfinite(result.stage_cost)
+    return bool(costs and np.isfinite(spread) and spread >= 1)
 
 
 class ModelSwitch:
@@ -204,13 +216,37 @@ class ModelSwitch:
         if not (self.offered() and theta_key(theta) == self._candidate_key()):
             return
         self.kept_off_ += 1
-        spread = float(result.spread)
-        # the bound needs the simulation's cost (f1 and the stage cost), not f2..f4
-        costs = np.isfinite(result.f1) and np.isfinite(result.stage_cost)
-        bounded = costs and np.isfinite(spread) and spread >= 1
-        if not bounded or self.kept_off_ > BOUNDED_SHARE * self.policy.min_runs:
+        if not _bounds(result) or self.kept_off_ > BOUNDED_SHARE * self.policy.min_runs:
             self._decided()
             return
+        self._append_bounded(theta, result)
+
+    def refused(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """The fitted candidate, if ``theta`` is it, was refused by the exploration budget from
+        this episode's start under cycled starts, without a simulation (the model's error is too
+        large for one): ``result`` is the deployed theta's plant episode from that start, its
+        ``spread`` the budget's bound on the candidate's cost as a multiple of it. The bound
+        stands in for the candidate's episode from that start (``"bounded"`` evidence), so that
+        the cycle's paired test, which needs every start, decides; refused from more than
+        ``BOUNDED_SHARE`` of its starts (of the cycle, or of its episodes once they are more),
+        it is dropped. Random starts need no stand-in: their test counts episodes from any
+        start."""
+        c = self.candidate_
+        if c is None or not self.follows_fit_ or not self.policy.paired:
+            return
+        if theta_key(theta) != theta_key(c) or not _bounds(result):
+            return
+        self.kept_off_ += 1
+        asked = max(self.policy.min_runs, len(self.evidence_.rows_of(c)) + 1)
+        if self.kept_off_ > BOUNDED_SHARE * asked:
+            self._decided()
+            return
+        self._append_bounded(theta, result)
+
+    def _append_bounded(self, theta: np.ndarray, result: EpisodeResult) -> None:
+        """``result``'s costs times its ``spread`` as ``theta``'s bounded episode from its
+        start; then the decision on the candidate."""
+        spread = float(result.spread)
         self.evidence_.append(
             theta,
             np.array([result.f1 * spread]),
