@@ -312,6 +312,30 @@ def _episode(lq, run, plan):
     return rollout(lq, run.mpc, plan.theta, plan.x0, run.steps, noise=plan.noise)
 
 
+def test_a_real_plants_excess_is_the_plant_cost_times_the_predicted_ratio(lq):
+    """On a real plant (the deployed controller's episode is not measured) a candidate's excess
+    is its plant cost times the model's predicted ratio of the two costs less one, so that a
+    bias of the model common to both cancels: a candidate that is the deployed controller but
+    for 1e-9 in a weight costs the plant nothing more, though the MPC's imperfect model of
+    `lq` predicts each closed loop off by percents; with the budget's predictions, and
+    without a budget (the closed loops of both on the deployed theta's model)."""
+    theta0 = lq.parameterization.theta0
+    near = theta0.copy()
+    near[lq.search_space.names.index("R_f")] *= 1 + 1e-9
+    for budget in (10.0, math.inf):
+        run, _ = _run(lq, budget, near)
+        rows = []
+        for _ in range(4):
+            plan = run.plan()
+            rows.append(run.finish(plan, _episode(lq, run, plan))[0])
+        ran = [r for r in rows if not np.array_equal(r["theta"], theta0)]
+        assert len(ran) == (2 if budget == 10.0 else 4)
+        for r in ran:
+            d = run.start_cost(np.asarray(r["x0"]), theta0, run.mpc.model_params, None)
+            assert abs(d / r["plant_cost"] - 1) > 1e-3  # the model is biased
+            assert abs(r["excess_cost"]) < 1e-6 * r["plant_cost"]
+
+
 def test_the_prediction_is_that_of_the_episode_on_an_exact_model(lq):
     """With the true model, the predicted cost of an episode is its plant cost; the first two
     episodes, before the model is calibrated, run the deployed controller."""
