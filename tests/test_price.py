@@ -159,6 +159,32 @@ def test_a_model_too_wrong_to_price_a_candidate_says_so_when_tuning_stops():
     assert "exploring no longer pays" in priced.converged_
 
 
+def test_an_identified_model_too_wrong_to_price_a_candidate_is_not_told_to_identify():
+    """Where the learner identifies the model already (its predictions are the identified
+    model's, a structurally wrong one), a model too wrong to price a candidate does not advise
+    to tune again with the model identified: the cure is a model with the plant's physics, or
+    a larger budget. The tuner's learning run knows whether its learner identifies."""
+    errors = [0.0, 0.9, -0.1, 0.3]  # a first-order model of a second-order batch reactor
+    price = ExplorationPrice(0.5, episodes=50, identifies=True)
+    for e in errors:
+        price.calibrate(1.0, math.exp(e), {"cost": math.exp(e)})
+    for k in range(PATIENCE):
+        assert not price.judge(1.0, 1.0, k, _unasked).run
+    assert "cannot price a candidate" in price.converged_
+    assert "[system] identify" not in price.converged_
+    assert "identified already" in price.converged_ and "[exploration] budget" in price.converged_
+
+
+def test_the_learning_run_says_whether_its_learner_identifies(tmp_path):
+    from mpcmobo.experiment.job import _learning_run
+    from mpcmobo.experiment.settings import load_settings as load
+
+    lq = get_system("lq")
+    for identify, expected in ((True, True), (False, False)):
+        s = load(None, system={"name": "lq", "identify": identify}, episodes=4).resolved()
+        assert _learning_run(s, lq, "bo", 0).price.identifies is expected
+
+
 def test_a_refusal_is_simulated_only_on_a_model_within_its_error_and_converges_later():
     """A learner that learns in simulation sees a refused candidate, or one that does not pay
     back, on the model where the model's error is at most SIMULATION_ERROR (it does not run);
