@@ -159,6 +159,32 @@ def test_a_model_too_wrong_to_price_a_candidate_says_so_when_tuning_stops():
     assert "exploring no longer pays" in priced.converged_
 
 
+def test_an_identified_model_too_wrong_to_price_a_candidate_is_not_told_to_identify():
+    """Where the learner identifies the model already (its predictions are the identified
+    model's, a structurally wrong one), a model too wrong to price a candidate does not advise
+    to tune again with the model identified: the cure is a model with the plant's physics, or
+    a larger budget. The tuner's learning run knows whether its learner identifies."""
+    errors = [0.0, 0.9, -0.1, 0.3]  # a first-order model of a second-order batch reactor
+    price = ExplorationPrice(0.5, episodes=50, identifies=True)
+    for e in errors:
+        price.calibrate(1.0, math.exp(e), {"cost": math.exp(e)})
+    for k in range(PATIENCE):
+        assert not price.judge(1.0, 1.0, k, _unasked).run
+    assert "cannot price a candidate" in price.converged_
+    assert "[system] identify" not in price.converged_
+    assert "identified already" in price.converged_ and "[exploration] budget" in price.converged_
+
+
+def test_the_learning_run_says_whether_its_learner_identifies(tmp_path):
+    from mpcmobo.experiment.job import _learning_run
+    from mpcmobo.experiment.settings import load_settings as load
+
+    lq = get_system("lq")
+    for identify, expected in ((True, True), (False, False)):
+        s = load(None, system={"name": "lq", "identify": identify}, episodes=4).resolved()
+        assert _learning_run(s, lq, "bo", 0).price.identifies is expected
+
+
 def test_a_refusal_is_simulated_only_on_a_model_within_its_error_and_converges_later():
     """A learner that learns in simulation sees a refused candidate, or one that does not pay
     back, on the model where the model's error is at most SIMULATION_ERROR (it does not run);
@@ -310,6 +336,30 @@ def _episode(lq, run, plan):
     from mpcmobo.mpc import rollout
 
     return rollout(lq, run.mpc, plan.theta, plan.x0, run.steps, noise=plan.noise)
+
+
+def test_a_real_plants_excess_is_the_plant_cost_times_the_predicted_ratio(lq):
+    """On a real plant (the deployed controller's episode is not measured) a candidate's excess
+    is its plant cost times the model's predicted ratio of the two costs less one, so that a
+    bias of the model common to both cancels: a candidate that is the deployed controller but
+    for 1e-9 in a weight costs the plant nothing more, though the MPC's imperfect model of
+    `lq` predicts each closed loop off by percents; with the budget's predictions, and
+    without a budget (the closed loops of both on the deployed theta's model)."""
+    theta0 = lq.parameterization.theta0
+    near = theta0.copy()
+    near[lq.search_space.names.index("R_f")] *= 1 + 1e-9
+    for budget in (10.0, math.inf):
+        run, _ = _run(lq, budget, near)
+        rows = []
+        for _ in range(4):
+            plan = run.plan()
+            rows.append(run.finish(plan, _episode(lq, run, plan))[0])
+        ran = [r for r in rows if not np.array_equal(r["theta"], theta0)]
+        assert len(ran) == (2 if budget == 10.0 else 4)
+        for r in ran:
+            d = run.start_cost(np.asarray(r["x0"]), theta0, run.mpc.model_params, None)
+            assert abs(d / r["plant_cost"] - 1) > 1e-3  # the model is biased
+            assert abs(r["excess_cost"]) < 1e-6 * r["plant_cost"]
 
 
 def test_the_prediction_is_that_of_the_episode_on_an_exact_model(lq):

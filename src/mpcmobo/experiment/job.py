@@ -337,7 +337,11 @@ def _learning_run(
         critic_weighting=settings.critic.weighting,
         beta=settings.beta,
         plant=plant,
-        price=ExplorationPrice(settings.exploration.budget, settings.episodes),
+        price=ExplorationPrice(
+            settings.exploration.budget,
+            settings.episodes,
+            identifies=bool(identified_parameters(settings, system, learner)),
+        ),
     )
 
 

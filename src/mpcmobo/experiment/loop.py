@@ -133,6 +133,17 @@ def cycle_starts(system: System, seed: int, n: int) -> np.ndarray:
     return np.array([system.sample_initial_state(rng) for _ in range(max(1, int(n)))])
 
 
+def _paired_excess(plant_cost: float, predicted: float, predicted_deployed: float) -> float:
+    """The excess of an episode that cost ``plant_cost`` over the deployed controller from the
+    same start, where the model predicted ``predicted`` for it and ``predicted_deployed`` for
+    the deployed controller: the plant cost times ``1 - predicted_deployed / predicted``
+    (:meth:`LearningRun.excess_cost`); the plain difference ``plant_cost -
+    predicted_deployed`` where the ratio is not defined; NaN where neither is known."""
+    if math.isfinite(predicted) and math.isfinite(predicted_deployed) and predicted > 0:
+        return float(plant_cost * (1.0 - predicted_deployed / predicted))
+    return float(plant_cost - predicted_deployed)
+
+
 def _as_list(values: np.ndarray | None) -> list[float]:
     """A learner's identified parameters as a record's list (empty: none)."""
     return [] if values is None else [float(v) for v in np.asarray(values).reshape(-1)]
@@ -531,10 +542,16 @@ class LearningRun:
     ) -> float:
         """What the episode cost the plant beyond the deployed controller from the same start:
         0 where it ran the deployed theta; else its plant cost minus ``deployed_cost`` where
-        that was measured, or minus its prediction before the episode ran (the exploration
-        budget's, :meth:`_priced`), or minus the deployed theta's closed loop on its own model
-        (the MPC's model with the theta's learned model parameters) from the episode's start
-        with its exploration replayed; NaN where none is known."""
+        that was measured. Where it was not (a real plant), the model's two predictions from
+        the episode's start with its exploration, the episode's theta's ``c`` and the deployed
+        theta's ``d``, give the ratio of the two costs, and the excess is the plant cost times
+        ``1 - d / c``: a bias of the model common to both predictions cancels, as in the
+        exploration budget (a structurally wrong model that under-predicts every closed loop
+        by a third would otherwise put the excess of a candidate as good as the deployed
+        controller at minus a third of its cost). The predictions are the budget's, made
+        before the episode ran (:meth:`_priced`), else the closed loops of both thetas on the
+        deployed theta's own model (the MPC's model with its learned model parameters); NaN
+        where neither is known."""
         if plan.deployed is None or not np.isfinite(plant_cost):
             return np.nan
         deployed = np.asarray(plan.deployed, float)
@@ -543,13 +560,13 @@ class LearningRun:
         if np.isfinite(deployed_cost):
             return float(plant_cost - deployed_cost)
         if np.isfinite(plan.predicted_deployed):
-            return float(plant_cost - plan.predicted_deployed)
+            return _paired_excess(plant_cost, plan.predicted_cost, plan.predicted_deployed)
         if result.exploration is None or result.x0 is None:
             return np.nan
-        predicted = self.start_cost(
-            result.x0, deployed, self._model_of(deployed), result.exploration
-        )
-        return float(plant_cost - predicted)
+        params = self._model_of(deployed)
+        d = self.start_cost(result.x0, deployed, params, result.exploration)
+        c = self.start_cost(result.x0, plan.theta, params, result.exploration)
+        return _paired_excess(plant_cost, c, d)
 
     def _model_of(self, theta: np.ndarray) -> np.ndarray:
         """The model parameters the MPC with ``theta`` predicts with: its own, with the

@@ -40,7 +40,8 @@ same noise
   exceeds the budget (``exp(s) >= 1 + budget``: the MPC's own wrong model, without
   identification, is off by a factor that depends on the start), the reason says that the
   model cannot price a candidate, and what to do: tune again with the model identified or with
-  a larger budget (a run's or a tuner's budget is its settings').
+  a larger budget (a run's or a tuner's budget is its settings'); where the model is identified
+  already, with a model whose equations hold the plant's physics, or with a larger budget.
 
 A candidate whose predicted closed loop fails (the model's plant runs away) is refused; where
 the deployed controller's prediction fails there is no basis, and the candidate runs.
@@ -96,13 +97,16 @@ class ExplorationPrice:
     """The gate of exploring episodes (module docstring). ``budget``: how much more than the
     deployed controller a candidate may be predicted to cost, as a fraction of the deployed
     controller's predicted cost (inf: no gate, nothing is predicted); ``episodes``: the run's
-    budget of episodes (the remaining ones bound a payback)."""
+    budget of episodes (the remaining ones bound a payback); ``identifies``: whether the
+    learner identifies the model (its predictions are then the identified model's, and a
+    model that cannot price a candidate is not cured by identifying it)."""
 
-    def __init__(self, budget: float, episodes: int) -> None:
+    def __init__(self, budget: float, episodes: int, identifies: bool = False) -> None:
         if not budget >= 0:
             raise ValueError(f"the exploration budget must be >= 0 (inf: none), got {budget}")
         self.budget = float(budget)
         self.episodes = int(episodes)
+        self.identifies = bool(identifies)
         self.errors_: list[float] = []  # log errors of the model's predictions
         self.model_ = ""  # the model they are of
         self.recent_: list[Episode] = []  # the last RECENT episodes, to calibrate a new model
@@ -218,10 +222,19 @@ class ExplorationPrice:
             if not math.isfinite(spread)
             else f"its cost ratios vary within a factor {spread:.3g}"
         )
+        if self.identifies:  # the identified model's structure misses what the plant does
+            cure = (
+                "the model is identified already, and its structure misses what the plant "
+                "does: tune again with a model whose equations hold the plant's physics, or "
+                "with a larger budget"
+            )
+        else:
+            cure = (
+                "tune again with the model identified ([system] identify) or with a larger budget"
+            )
         return (
             f"{UNPRICED} within the budget of {1 + self.budget:.3f}x "
-            f"({within}): tune again with the model identified ([system] identify) or with "
-            f"a larger budget ([exploration] budget; inf runs every candidate)"
+            f"({within}): {cure} ([exploration] budget; inf runs every candidate)"
         )
 
     def _converge(self, streak: str, episode: int, verdict: Verdict, why: str) -> None:
