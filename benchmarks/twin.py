@@ -92,7 +92,11 @@ def _job(
                 make_evaluator(settings, system, n_starts=fresh, seed=RECHECK_SEED).starts
             ),
             "eval": np.asarray(make_evaluator(settings, system).starts),
-            "cycle": cycle_starts(system, seed, settings.n_cycle_starts),
+            "cycle": (
+                cycle_starts(system, seed, settings.n_cycle_starts)
+                if settings.cycle_starts is None
+                else np.array(settings.cycle_starts, float)
+            ),
         }
         row: dict = {"starts": n_starts, "seed": seed, "seconds": seconds, "better": res.better}
         row["tuned_on"] = res.cost / res.base_cost

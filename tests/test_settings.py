@@ -298,6 +298,28 @@ def make_system():
 """
 
 
+def test_the_cycles_own_starts_are_checked_against_the_system_and_the_start_mode():
+    """``cycle_starts``: their number is ``n_cycle_starts`` (given both, they must agree);
+    each start has the system's states, finite, within its state bounds; under random starts
+    they are refused, naming the key."""
+    s = load_settings(None, system={"name": "lq"}, cycle_starts=[[1.0, 0.5], [-1.0, 0.0]])
+    assert s.n_cycle_starts == 2 and s.resolved().cycle_starts == [[1.0, 0.5], [-1.0, 0.0]]
+    assert load_settings(None, cycle_starts=None).cycle_starts is None
+    bad = {
+        "has 1 value; the system 'lq' has 2 states": [[1.0]],
+        r"cycle_starts\[1\]: v = 99.0 is outside the system's state bounds": [[0, 0], [0, 99]],
+        "Input should be a finite number": [[0.0, float("nan")]],
+        "at least 1 item": [],
+    }
+    for message, starts in bad.items():
+        with pytest.raises(SettingsError, match=message):
+            load_settings(None, system={"name": "lq"}, cycle_starts=starts)
+    with pytest.raises(SettingsError, match="n_cycle_starts is 3 but cycle_starts holds 2"):
+        load_settings(None, system={"name": "lq"}, n_cycle_starts=3, cycle_starts=[[0, 0]] * 2)
+    with pytest.raises(SettingsError, match="start_mode = 'cycle' \\(here 'random'"):
+        load_settings(None, system={"name": "lq"}, start_mode="random", cycle_starts=[[0, 0]])
+
+
 def test_identify_is_a_default_learner_only_where_there_is_a_model_to_identify(tmp_path):
     """The default study runs the paper's learners and ``identify``; on a system that declares
     no model parameter to identify ``identify`` is left out, and naming it is an error."""

@@ -246,6 +246,40 @@ def test_the_episode_starts_where_the_log_does(tmp_path):
         assert rows.start_cost.nunique() == 2
 
 
+def test_a_cycle_of_given_starts_is_run_in_order_and_survives_a_load(tmp_path):
+    """``cycle_starts`` (a batch plant's recipes): the trials start from them in turn, also
+    after a load; their number is the cycle's (the status's start index); a study's episodes
+    start from them too, for every seed."""
+    recipes = [[1.5, -0.5], [-1.0, 0.25], [0.0, 0.75]]
+    tuner = Tuner("lq", "bo", tmp_path / "t", episodes=5, steps=6, cycle_starts=recipes)
+    assert tuner.settings.n_cycle_starts == 3
+    starts = []
+    for k in range(4):
+        if k == 2:
+            tuner = Tuner.load(tmp_path / "t")
+        trial = tuner.ask()
+        starts.append(trial.x0.tolist())
+        X, U = _episode(tuner, trial, trial.x0)
+        tuner.tell(trial, X, U)
+    assert starts == [*recipes, recipes[0]]
+    assert [t["start"] for t in tuner.status()["trials"]] == [0, 1, 2, 0]
+    settings = load_settings(
+        None,
+        system={"name": "lq"},
+        learners=["identify"],
+        seeds=[0, 1],
+        episodes=3,
+        steps=6,
+        workers=1,
+        cycle_starts=recipes,
+        evaluation={"n_starts": 2},
+    )
+    run_study(settings, tmp_path / "study")
+    rows = pd.read_parquet(tmp_path / "study" / "episodes.parquet")
+    for _, job in rows.groupby("seed"):
+        assert [list(x) for x in job.sort_values("episode").x0] == recipes
+
+
 def test_a_tuner_is_extended_not_shortened_and_not_run_by_mpcmobo_run(tmp_path):
     """A spent budget says how to extend it; Tuner.load(out, episodes=N) and mpcmobo ask
     --episodes N extend it, a smaller one is refused; the flags that make a tuner are refused

@@ -330,6 +330,7 @@ def _learning_run(
         exploration_decay=settings.exploration.decay,
         start_mode=settings.start_mode,
         n_cycle_starts=settings.n_cycle_starts,
+        cycle_starts=settings.cycle_starts,
         critic_ridge=settings.critic.ridge,
         critic_method=settings.critic.method,
         critic_q_target=settings.critic.q_target,

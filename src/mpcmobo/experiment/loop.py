@@ -128,9 +128,13 @@ def _start_key(x0: np.ndarray, theta: np.ndarray, p: np.ndarray, e: np.ndarray |
 
 def cycle_starts(system: System, seed: int, n: int) -> np.ndarray:
     """The fixed cycle of ``n`` initial states (n, nx) that ``seed``'s cycled episodes start
-    from (a stream of its own: ``[seed, 7]``'s third child)."""
+    from where the settings do not give them (``cycle_starts``): drawn from the system's
+    initial-state distribution (a stream of its own: ``[seed, 7]``'s third child)."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]).spawn(3)[2])
     return np.array([system.sample_initial_state(rng) for _ in range(max(1, int(n)))])
+
+
+_cycle_starts = cycle_starts  # the function, where LearningRun's argument takes its name
 
 
 def _paired_excess(plant_cost: float, predicted: float, predicted_deployed: float) -> float:
@@ -174,6 +178,7 @@ class LearningRun:
         exploration_decay: float = 1.0,
         start_mode: str = "random",
         n_cycle_starts: int = 6,
+        cycle_starts: Sequence[Sequence[float]] | None = None,
         critic_ridge: float = 1e-6,
         critic_method: str = "lstd",
         critic_q_target: str | None = None,
@@ -206,7 +211,11 @@ class LearningRun:
         s_start, s_noise, _ = np.random.SeedSequence([self.seed, 7]).spawn(3)
         self.rng_start = np.random.default_rng(s_start)
         self.rng_noise = np.random.default_rng(s_noise)
-        self.cycle_starts = cycle_starts(system, self.seed, n_cycle_starts)
+        self.cycle_starts = (
+            _cycle_starts(system, self.seed, n_cycle_starts)
+            if cycle_starts is None
+            else np.array(cycle_starts, float).reshape(-1, system.nx)
+        )
         self.episode = 0
         self.previous_Vc: float | None = None
         self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)

@@ -20,7 +20,7 @@ import math
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
@@ -36,6 +36,9 @@ from mpcmobo.experiment.sections import (
     SystemSettings,
 )
 from mpcmobo.learners.registry import LEARNER_SPECS, LearnerOptionError, validate_options
+
+if TYPE_CHECKING:
+    from mpcmobo.systems import System
 
 # the learners the settings accept by name; those the paper's study runs; the default study's:
 # the paper's and the identification baseline
@@ -63,6 +66,12 @@ class Settings(Section):
     initial state per episode (the paper's)."""
     n_cycle_starts: int = Field(6, ge=1, le=100_000)
     """Starts of the cycle (``start_mode = "cycle"``)."""
+    cycle_starts: list[list[float]] | None = Field(None, min_length=1, max_length=100_000)
+    """The cycle's initial states themselves (``start_mode = "cycle"``), each a list of the
+    system's state values in the order of its state names, within its state bounds: the
+    recipes a batch plant is started from. Their number is ``n_cycle_starts``. Unset:
+    ``n_cycle_starts`` states drawn from the system's initial-state distribution with each
+    job's seed."""
     critic: CriticSettings = Field(default_factory=CriticSettings)
     """The compatible critic."""
     beta: float = Field(1.0, gt=0, allow_inf_nan=False)
@@ -120,10 +129,40 @@ class Settings(Section):
             raise ValueError("each seed may appear only once")
         return v
 
+    @model_validator(mode="before")
+    @classmethod
+    def _cycle_count(cls, data: Any) -> Any:
+        """``n_cycle_starts`` as the number of ``cycle_starts``, where only those are given."""
+        if not isinstance(data, Mapping) or "n_cycle_starts" in data:
+            return data
+        starts = data.get("cycle_starts")
+        if isinstance(starts, list) and starts:
+            return {**data, "n_cycle_starts": len(starts)}
+        return data
+
+    @model_validator(mode="after")
+    def _cycle_starts(self) -> Settings:
+        starts = self.cycle_starts
+        if starts is None:
+            return self
+        if self.start_mode != "cycle":
+            raise ValueError(
+                f"cycle_starts: the cycle's starts apply under start_mode = 'cycle' (here "
+                f"'{self.start_mode}', where every episode starts from a fresh state)"
+            )
+        if self.n_cycle_starts != len(starts):
+            raise ValueError(
+                f"n_cycle_starts is {self.n_cycle_starts} but cycle_starts holds {len(starts)} "
+                "states: give one of them, or the same number"
+            )
+        return self
+
     @model_validator(mode="after")
     def _fits_system(self) -> Settings:
         identify = "learners" in self.model_fields_set and "identify" in self.learners
-        if self.exploration.std is None and not self.system.learn_model and not identify:
+        starts = self.cycle_starts
+        checks = self.exploration.std is not None or self.system.learn_model or identify
+        if not checks and starts is None:
             return self  # nothing system-specific to check; avoid building the system
         try:
             system = build_system(self)
@@ -142,6 +181,8 @@ class Settings(Section):
                 f"learners: the system '{system.name}' declares no model parameter to identify "
                 "(System.param_names): remove 'identify'"
             )
+        if starts is not None:
+            _check_cycle_starts(starts, system)
         return self
 
     # ------------------------------------------------------------------ derived
@@ -175,6 +216,25 @@ class Settings(Section):
     def to_dict(self) -> dict[str, Any]:
         """Plain dict without ``None`` values (TOML has no null)."""
         return _drop_none(self.model_dump())
+
+
+def _check_cycle_starts(starts: list[list[float]], system: System) -> None:
+    """Each of ``cycle_starts`` a finite state of ``system`` within its state bounds; else a
+    ``ValueError`` naming the start and the state."""
+    names = list(system.state_names)
+    for k, x0 in enumerate(starts):
+        if len(x0) != system.nx:
+            raise ValueError(
+                f"cycle_starts[{k}] has {len(x0)} value{'' if len(x0) == 1 else 's'}; the system '{system.name}' has "
+                f"{system.nx} states {names}"
+            )
+        for j, v in enumerate(x0):
+            lo, hi = float(system.x_lb[j]), float(system.x_ub[j])
+            if not (math.isfinite(v) and lo <= v <= hi):
+                raise ValueError(
+                    f"cycle_starts[{k}]: {names[j]} = {v} is outside the system's state "
+                    f"bounds [{lo:g}, {hi:g}]"
+                )
 
 
 def _options_dump(name: str, table: dict[str, Any]) -> dict[str, Any]:
