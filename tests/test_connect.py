@@ -98,7 +98,7 @@ def test_three_trials_are_asked_run_and_told(plant, tmp_path, cstr_system):
     args += ["--period", str(PERIOD), "--trials", "3", "--system", "cstr", "--learner", "mpc-rl"]
     res = runner.invoke(app, [*args, "--config", str(tmp_path / "config.toml")])
     assert res.exit_code == 0, res.output
-    assert res.output.count("told: f1") == 3 and "p99 (" in res.output
+    assert res.output.count("told: plant cost") == 3 and "p99 (" in res.output
     episodes = pd.read_parquet(out / "episodes.parquet")
     assert list(episodes.episode) == [0, 1, 2]
     assert Tuner.load(out).settings.start_mode == "random"  # connect's default for new tuners

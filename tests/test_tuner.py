@@ -21,6 +21,7 @@ from mpcmobo.cli import app
 from mpcmobo.experiment.settings import load_settings
 from mpcmobo.experiment.study import run_study
 from mpcmobo.experiment.tuner import Tuner, TunerError, write_log
+from mpcmobo.learners.switch import REFIT_GROWTH
 from mpcmobo.systems.plant import SystemPlant
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
@@ -409,7 +410,7 @@ def test_status_reports_the_identified_model(tmp_path):
     ident = tuner.status()["identification"]
     system = tuner.system
     assert list(ident["parameters"]) == list(system.param_names)
-    assert ident["transitions"] == 20
+    assert ident["transitions"] == 20 and ident["refit_growth"] == REFIT_GROWTH
     for name, true, nominal in zip(
         system.param_names, system.true_params, system.models["imperfect"]
     ):

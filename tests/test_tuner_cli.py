@@ -253,6 +253,12 @@ def test_status_says_when_the_fit_no_longer_follows_the_trials(capsys):
         text = " ".join(out.get().split())
         assert "fitted on 425 transitions" in text
         assert ("the trials since are not fitted" in text) == frozen
+        assert "fitted again" not in text  # a status saved before it said when
+    with cli.console.capture() as out:
+        plant._print_identification({**ident, "refit_growth": 0.1})
+    text = " ".join(out.get().split())
+    assert "fitted on 425 transitions" in text  # fewer than told: the fit waits for growth
+    assert "(fitted again once the transitions have grown by 10%)" in text
 
 
 def test_a_study_of_one_learner_and_seed_is_not_taken_for_a_tuner(tmp_path):

@@ -85,6 +85,13 @@ def test_retracting_a_trial_with_later_ones(tmp_path):
         "trial-0.json",
         "trial-1.json",
     ]
+    out = tmp_path / "theta.casadi"
+    res = CliRunner().invoke(
+        app, ["export", str(tmp_path / "t"), "--theta", "1", "--out", str(out)]
+    )
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "no trial 1: the job has no told trial" in said, said
+    assert "(trial 1 was retracted: its record is kept in" in said and not out.exists()
 
 
 def test_a_trial_retracted_twice_keeps_both_logs(tmp_path):

@@ -222,7 +222,8 @@ def tell(
     found = sorted({p["check"] for p in told.get("problems", [])})
     forced = f" (accepted with --force despite: {', '.join(found)})" if found else ""
     cli.console.print(
-        f"trial {row.episode} told{forced}: f1 {fmt(row.f1)}, {tuner.episodes} of "
+        f"trial {row.episode} told{forced}: plant cost {fmt(row.plant_cost)} (f1 "
+        f"{fmt(row.f1)}), {tuner.episodes} of "
         f"{tuner.settings.episodes} trials{changed}",
         highlight=False,
     )
@@ -313,7 +314,12 @@ def serve(directory: Path = typer.Argument(..., help="the tuner's directory")) -
         resident.serve()
     except KeyboardInterrupt as err:
         code = getattr(err, "exit_code", 130)
-        log("stopped; an accepted log not learned from yet is learned at the next load")
+        waiting = any((directory / "accepted").glob("trial-*.pkl"))
+        log(
+            "stopped; the accepted log not learned from yet is learned at the next load"
+            if waiting
+            else "stopped"
+        )
         if resident.work.what:  # a learning in a thread, in C++ code: no interpreter shutdown
             sys.stdout.flush()  # under it (that aborts); what it learns is on disk already
             sys.stderr.flush()
@@ -501,9 +507,17 @@ def _print_identification(ident: dict[str, Any], frozen: bool = False) -> None:
         f"fitted on {ident['transitions']} transitions; one-step error on held-out ones (RMS, "
         f"scaled by x_scale) {fmt(ident['holdout_error'], 3)}, the nominal model's "
         f"{fmt(ident['nominal_error'], 3)}"
-        + ("; tuning has converged: the trials since are not fitted" if frozen else ""),
+        + ("; tuning has converged: the trials since are not fitted" if frozen else _refits(ident)),
         highlight=False,
     )
+
+
+def _refits(ident: dict[str, Any]) -> str:
+    """When the model is fitted again (a status saved before it said so: nothing)."""
+    growth = ident.get("refit_growth")
+    if growth is None:
+        return ""
+    return f" (fitted again once the transitions have grown by {100 * growth:g}%)"
 
 
 def _job_of(run_dir: RunDirectory, learner: str | None, seed: int | None) -> tuple[str, int]:
@@ -576,7 +590,10 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
         )
     if not 0 <= k < len(ckpt.rows):
         what = "trial" if run_dir.is_tuner() else "episode"
-        raise TunerError(f"no {what} {k}: the job has {what}s 0 to {len(ckpt.rows) - 1}")
+        kept = run_dir.path / "retracted" / f"trial-{k}.json"
+        gone = f" (trial {k} was retracted: its record is kept in {kept})" if kept.is_file() else ""
+        has = f"{what}s 0 to {len(ckpt.rows) - 1}" if ckpt.rows else f"no told {what}"
+        raise TunerError(f"no {what} {k}: the job has {has}{gone}")
     return settings, name, np.asarray(ckpt.rows[k].theta, float)
 
 

@@ -210,7 +210,10 @@ class _Session:
                 f"{trial.id} {path} --force where the checks are wrong)"
             ) from None
         outcome = Outcome(trial.id, "told", path, "", float(row.f1), *_timing(log))
-        self.echo(f"trial {trial.id} told: f1 {row.f1:.6g}; {outcome.timing(self.period)}")
+        self.echo(
+            f"trial {trial.id} told: plant cost {row.plant_cost:.6g} (f1 {row.f1:.6g}); "
+            f"{outcome.timing(self.period)}"
+        )
         late = sum(latency > self.period for latency in outcome.latencies)
         if late:
             self.echo(

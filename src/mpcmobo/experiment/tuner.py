@@ -46,6 +46,7 @@ from mpcmobo.experiment.summary import write_records
 from mpcmobo.experiment.tunerfiles import TunerFiles, history_errors, told_twin
 from mpcmobo.experiment.usersystem import recorded_system, restore_system, save_system
 from mpcmobo.learners.base import Progress
+from mpcmobo.learners.switch import REFIT_GROWTH
 from mpcmobo.mpc import EpisodeRecord, ParametricMPC, replay
 from mpcmobo.rl.objectives import mean_stage_cost
 from mpcmobo.systems.base import System
@@ -820,6 +821,7 @@ def _identification(learner: Any, system: System) -> dict[str, Any] | None:
         "holdout_error": fit.holdout_error,
         "nominal_error": fit.nominal_error,
         "transitions": fit.n,
+        "refit_growth": REFIT_GROWTH,
     }
 
 
