@@ -506,7 +506,9 @@ def test_the_gate_resumes_from_the_run_state(lq):
 def test_a_tuner_converges_hands_out_the_deployed_controller_and_says_so(tmp_path):
     """bo on ``lq`` with no budget at all: its design's candidates are refused until tuning
     has converged; then each trial is the deployed theta without noise (from a start told
-    before, the same log, which is no longer taken for a repeat), and status says to stop."""
+    before, the same log, which is no longer taken for a repeat), and status says to stop.
+    Another exploration budget given to the tuner (``ask --exploration-budget``) is saved and
+    opens exploring again; an invalid one is refused, naming the key, and changes nothing."""
     from test_tuner import FAST, _episode
     from typer.testing import CliRunner
 
@@ -518,7 +520,7 @@ def test_a_tuner_converges_hands_out_the_deployed_controller_and_says_so(tmp_pat
         {"name": "lq", "identify": False},
         "bo",
         out,
-        episodes=14,
+        episodes=16,
         steps=6,
         exploration={"budget": 0.0},
         learner_options={"bo": FAST},
@@ -541,6 +543,18 @@ def test_a_tuner_converges_hands_out_the_deployed_controller_and_says_so(tmp_pat
     assert res.exit_code == 0 and "tuning has stopped exploring" in res.output
     assert "([system] identify)" in " ".join(res.output.split())  # printed, not taken for markup
     assert "refused" in res.output
+    # another exploration budget on the tuner: saved, and exploring opens again at the next ask
+    res = CliRunner().invoke(app, ["ask", str(out), "--exploration-budget", "inf"])
+    assert res.exit_code == 0, res.output
+    tuner = Tuner.load(out)
+    assert tuner.settings.exploration.budget == math.inf and tuner.settings.episodes == 16
+    st = tuner.status()
+    assert st["exploration"]["converged"] is None and st["recommendation"]["action"] == "continue"
+    trial = tuner.ask()  # the pending trial, asked under the new budget: the learner's own
+    assert np.any(trial.noise) and trial.id == 14
+    res = CliRunner().invoke(app, ["ask", str(out), "--exploration-budget", "-1"])
+    assert res.exit_code == 2 and "exploration.budget" in res.output, res.output
+    assert Tuner.load(out).settings.exploration.budget == math.inf  # nothing changed
 
 
 def test_a_run_that_could_not_price_its_candidates_warns_at_its_end():

@@ -392,3 +392,17 @@ def test_a_closed_resident_stops_serving_without_an_error(made):
     resident.listener = Closing()
     resident.serve()  # returns: no AttributeError
     assert resident.listener is None
+
+
+def test_a_served_tuner_takes_another_exploration_budget(made):
+    """``ask --exploration-budget`` answered by the tuner's process: it reloads the tuner with
+    the budget, which is saved with the tuner's settings."""
+    served = Served(made)
+    try:
+        res = runner.invoke(app, ["ask", str(made), "--exploration-budget", "2"])
+        assert res.exit_code == 0, res.output
+        assert served.resident.tuner.settings.exploration.budget == 2.0
+    finally:
+        served.stop()
+    assert Tuner.load(made).settings.exploration.budget == 2.0
+    assert any("reloading" in h for h in served.heard)

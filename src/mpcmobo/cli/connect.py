@@ -68,7 +68,7 @@ def connect(
         cli.console.print(line, highlight=False, markup=False)
 
     def go() -> Any:
-        tuner = _tuner(directory, episodes, **create)
+        tuner = _tuner(directory, {"episodes": episodes, "exploration_budget": None}, **create)
         node_map = load_nodes(nodes, tuner.system)
         password = node_map.security.password is not None or urlsplit(url).password
         if password and not node_map.security.encrypted:

@@ -70,9 +70,10 @@ def _during_interrupt(err: BaseException) -> bool:
     return False
 
 
-def _tuner(directory: Path, episodes: int | None, **create: Any) -> Any:
-    """The tuner of ``directory``: loaded (``episodes``: a larger budget), or made there from
-    ``create`` the first time (None: the default)."""
+def _tuner(directory: Path, changes: dict[str, Any], **create: Any) -> Any:
+    """The tuner of ``directory``: loaded (``changes``: a larger budget of ``episodes``,
+    another ``exploration_budget``), or made there from ``create`` and them the first time
+    (None: the default)."""
     from mpcmobo.experiment.tuner import Tuner
 
     run_dir = RunDirectory(directory)
@@ -82,9 +83,9 @@ def _tuner(directory: Path, episodes: int | None, **create: Any) -> Any:
             raise TunerError(
                 f"{directory} holds a tuner already; {', '.join(given)} "
                 f"{'applies' if len(given) == 1 else 'apply'} only when one is made "
-                "(--episodes extends its budget)"
+                "(--episodes extends its budget, --exploration-budget changes that one)"
             )
-        return Tuner.load(directory, episodes=episodes)  # a study: refused, named as one
+        return Tuner.load(directory, **changes)  # a study: refused, named as one
     made = {k: v for k, v in create.items() if v is not None}
     if "system" not in made and "config" not in made:
         raise TunerError(
@@ -92,8 +93,10 @@ def _tuner(directory: Path, episodes: int | None, **create: Any) -> Any:
             "path/to/file.py:make_system; mpcmobo systems lists the names) or --config FILE "
             "(a settings file with a [system] table)"
         )
-    if episodes is not None:
-        made["episodes"] = episodes
+    if changes["episodes"] is not None:
+        made["episodes"] = changes["episodes"]
+    if changes["exploration_budget"] is not None:
+        made["exploration"] = {"budget": changes["exploration_budget"]}
     return Tuner(out=directory, **made)
 
 
@@ -107,23 +110,30 @@ def ask(
     episodes: int | None = typer.Option(
         None, "--episodes", "-n", help="the budget of trials; on a tuner, a larger one"
     ),
+    exploration_budget: float | None = typer.Option(
+        None,
+        "--exploration-budget",
+        help="what a candidate may cost beyond the deployed controller ([exploration] budget, "
+        "0.5: 1.5x; inf: any); on a tuner, from the next trial on",
+    ),
 ) -> None:
     """Print the next trial as JSON and write it, with its controller, to DIR/trials/ID/
     (a trial that ``tell`` prepared is printed as it was written, without loading the tuner)."""
     create = {"system": system, "learner": learner, "seed": seed, "config": config}
-    given = episodes is not None or any(v is not None for v in create.values())
+    changes = {"episodes": episodes, "exploration_budget": exploration_budget}
+    given = any(v is not None for v in (*changes.values(), *create.values()))
     prepared = None if given else _prepared_trial(directory)
     if prepared is not None:
         cli.console.print_json(json.dumps(prepared))
         return
     if not any(v is not None for v in create.values()):
-        served, data = _served(directory, "ask", episodes=episodes)
+        served, data = _served(directory, "ask", **changes)
         if served:
             cli.console.print_json(json.dumps(data))
             return
 
     def go() -> dict:
-        return _write_trial(directory, _tuner(directory, episodes, **create))
+        return _write_trial(directory, _tuner(directory, changes, **create))
 
     data = _errors(go)
     cli.console.print_json(json.dumps(data))

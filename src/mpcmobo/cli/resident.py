@@ -196,25 +196,31 @@ class Resident:
         self.tuner = Tuner.load(self.directory)
         self.stamp = self._files_stamp()
 
-    def _current(self, episodes: int | None = None) -> Any:
+    def _current(self, episodes: int | None = None, exploration_budget: float | None = None) -> Any:
         """The tuner, reloaded where its files changed since this process wrote them (or with a
-        larger budget of ``episodes``)."""
-        larger = episodes is not None and episodes != self.tuner.settings.episodes
-        if larger or self._files_stamp() != self.stamp:
+        larger budget of ``episodes``, or another ``exploration_budget``)."""
+        settings = self.tuner.settings
+        larger = episodes is not None and episodes != settings.episodes
+        priced = (
+            exploration_budget is not None and exploration_budget != settings.exploration.budget
+        )
+        if larger or priced or self._files_stamp() != self.stamp:
             from mpcmobo.experiment.tuner import Tuner
 
             self.log("the tuner's files changed: reloading it")
-            self.tuner = Tuner.load(self.directory, episodes=episodes)
+            self.tuner = Tuner.load(
+                self.directory, episodes=episodes, exploration_budget=exploration_budget
+            )
         return self.tuner
 
     def _written(self) -> None:
         self.stamp = self._files_stamp()
 
     # ---------------------------------------------------------------- the requests
-    def _ask(self, episodes: int | None = None) -> dict:
+    def _ask(self, episodes: int | None = None, exploration_budget: float | None = None) -> dict:
         from mpcmobo.cli.plant import _write_trial
 
-        data = _write_trial(self.directory, self._current(episodes))
+        data = _write_trial(self.directory, self._current(episodes, exploration_budget))
         self._written()
         return data
 

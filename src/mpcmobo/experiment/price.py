@@ -40,7 +40,8 @@ same noise
   exceeds the budget (``exp(s) >= 1 + budget``: the MPC's own wrong model, without
   identification, is off by a factor that depends on the start), the reason says that the
   model cannot price a candidate, and what to do: tune again with the model identified or with
-  a larger budget (a run's or a tuner's budget is its settings'); where the model is identified
+  a larger budget (a run's budget is its settings'; a tuner takes another from its next trial
+  on, :meth:`~mpcmobo.experiment.tuner.Tuner.load`); where the model is identified
   already, with a model whose equations hold the plant's physics, or with a larger budget.
 
 A candidate whose predicted closed loop fails (the model's plant runs away) is refused; where
@@ -307,11 +308,13 @@ class ExplorationPrice:
             "converged": self.converged_,
             "converged_at": self.converged_at_,
             "episodes": self.episodes,
+            "budget": self.budget,
         }
 
     def load_state_dict(self, state: dict | None) -> None:
         """Continue from a :meth:`state_dict` (None: a checkpoint without one). A run given
-        more episodes than it had explores again: its remaining episodes changed."""
+        more episodes than it had, or another budget, explores again: its remaining episodes,
+        or what a candidate may cost, changed."""
         if state is None:
             return
         self.errors_ = [float(e) for e in state["errors"]]
@@ -319,7 +322,9 @@ class ExplorationPrice:
         self.recent_ = list(state["recent"])
         self.unpaid_ = int(state["unpaid"])
         self.simulated_ = int(state.get("simulated", 0))  # saved before simulated refusals
-        extended = int(state["episodes"]) != self.episodes
+        # (a state saved before the budget was kept in it: the same budget)
+        repriced = float(state.get("budget", self.budget)) != self.budget
+        extended = int(state["episodes"]) != self.episodes or repriced
         self.converged_ = "" if extended else str(state["converged"])
         at = None if extended else state.get("converged_at")  # saved before it was kept
         self.converged_at_ = None if at is None else int(at)

@@ -41,7 +41,12 @@ from mpcmobo.experiment.plantlog import PlantLog, TunerError, parse_log, write_l
 from mpcmobo.experiment.records import EpisodeRow, Reference
 from mpcmobo.experiment.reference import check_run_system, compute_reference, system_info
 from mpcmobo.experiment.rundir import RunDirectory, open_run
-from mpcmobo.experiment.settings import Settings, load_settings
+from mpcmobo.experiment.settings import (
+    Settings,
+    load_settings,
+    settings_to_toml,
+    validate_settings,
+)
 from mpcmobo.experiment.summary import write_records
 from mpcmobo.experiment.tunerfiles import TunerFiles, history_errors, told_twin
 from mpcmobo.experiment.usersystem import recorded_system, restore_system, save_system
@@ -189,9 +194,16 @@ class Tuner:
             raise
 
     @classmethod
-    def load(cls, out: str | Path, episodes: int | None = None) -> Tuner:
+    def load(
+        cls,
+        out: str | Path,
+        episodes: int | None = None,
+        exploration_budget: float | None = None,
+    ) -> Tuner:
         """The tuner recorded in ``out``, where it stopped (also between ask and tell);
-        ``episodes``: a larger budget of trials from now on (saved with its settings)."""
+        ``episodes``: a larger budget of trials from now on; ``exploration_budget``: another
+        exploration budget (``[exploration] budget``) from the next trial on, which opens
+        exploring again where tuning had stopped (both saved with its settings)."""
         run_dir = RunDirectory(out)
         if not run_dir.holds_run():
             raise TunerError(f"{out} holds no tuner (no config.toml)")
@@ -213,22 +225,26 @@ class Tuner:
                     f"it can be extended, not shortened (got {episodes})"
                 )
             settings = run_dir.reopen(settings.model_copy(update={"episodes": int(episodes)}))
+        priced = _with_exploration_budget(settings, exploration_budget)
         tuner = cls.__new__(cls)
         with TunerFiles(run_dir.path).lock():  # loaded as no other process is changing it
+            if priced is not None:
+                settings = priced
+                storage.atomic_write_text(run_dir.config, settings_to_toml(settings))
             tuner._open(run_dir, settings, new=False)
             with tuner._changing():
-                tuner._repair(episodes)
+                tuner._repair(episodes, repriced=priced is not None)
         return tuner
 
-    def _repair(self, episodes: int | None) -> None:
+    def _repair(self, episodes: int | None, repriced: bool = False) -> None:
         """At a load: what a process stopped between its steps left undone (a log accepted
         and not learned from, records behind the checkpoint), and the status of a larger
-        budget ``episodes``."""
+        budget ``episodes`` or of another exploration budget (``repriced``)."""
         self._learn_accepted()
         if self._records_behind():  # a tell killed after its checkpoint, before its records
             write_records(self.run_dir.path, self.settings, self.reference)
             self._write_status()
-        elif episodes is not None and episodes > self.files.status_budget():
+        elif repriced or (episodes is not None and episodes > self.files.status_budget()):
             self._write_status()  # the larger budget, for `mpcmobo status`
 
     def _records_behind(self) -> bool:
@@ -823,6 +839,16 @@ def _identification(learner: Any, system: System) -> dict[str, Any] | None:
         "transitions": fit.n,
         "refit_growth": REFIT_GROWTH,
     }
+
+
+def _with_exploration_budget(settings: Settings, budget: float | None) -> Settings | None:
+    """``settings`` with the exploration budget ``budget``, checked as the settings check it
+    (None: no budget given, or the same)."""
+    if budget is None or float(budget) == settings.exploration.budget:
+        return None
+    data = settings.model_dump()
+    data["exploration"]["budget"] = budget
+    return validate_settings(data)
 
 
 def _trial_id(trial: Any) -> int:

@@ -127,7 +127,9 @@ def recommendation(
             "action": "stop",
             "reason": (
                 f"tuning has {stopped}: {converged}. The deployed theta is {theta} (mpcmobo "
-                f"export {directory}); further trials run it without exploration"
+                f"export {directory}); further trials run it without exploration (another "
+                f"exploration budget opens exploring again: mpcmobo ask {directory} "
+                "--exploration-budget B)"
             ),
         }
     if told >= budget and verifying:
