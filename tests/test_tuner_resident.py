@@ -406,3 +406,24 @@ def test_a_served_tuner_takes_another_exploration_budget(made):
         served.stop()
     assert Tuner.load(made).settings.exploration.budget == 2.0
     assert any("reloading" in h for h in served.heard)
+
+
+def test_a_served_tell_with_force_names_the_checks_it_was_told_despite(made, tmp_path):
+    """A quarantined log told with --force while the process serves says, as without it,
+    which checks it was accepted despite."""
+    served = Served(made)
+    try:
+        trial = _ask(made)
+        tuner = Tuner.load(made)
+        asked = tuner.ask()
+        X, U = episode(tuner, asked, override=(range(2, 6), [2.5]))
+        log = write_log(tmp_path / "ep.csv", X, U, tuner.system)
+        res = runner.invoke(app, ["tell", str(made), str(trial["id"]), str(log)])
+        assert res.exit_code == 2 and "quarantined" in res.output, res.output
+        res = runner.invoke(app, ["tell", str(made), str(trial["id"]), "--force"])
+        assert res.exit_code == 0, res.output
+        assert "trial 0 told (accepted with --force despite: inputs): plant cost" in " ".join(
+            res.output.split()
+        ), res.output
+    finally:
+        served.stop()

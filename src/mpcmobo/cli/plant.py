@@ -254,8 +254,10 @@ def _told_by_the_process(directory: Path, trial: int, log: Path | None, force: b
             if last
             else f"and prepares the next trial: mpcmobo ask {directory} prints it"
         )
+        found = answer.get("despite") or []
+        forced = f" (accepted with --force despite: {', '.join(found)})" if found else ""
         cli.console.print(
-            f"trial {trial} told: plant cost {fmt(answer['plant_cost'])}, {trial + 1} of "
+            f"trial {trial} told{forced}: plant cost {fmt(answer['plant_cost'])}, {trial + 1} of "
             f"{answer['budget']} trials; the tuner's process learns from it{';' if last else ''} "
             f"{then}",
             highlight=False,

@@ -232,9 +232,15 @@ class Resident:
 
             df = read_log_file(Path(log))
         cost = tuner.accept(trial, df, force=force)
+        despite = tuner.accepted_despite  # before the learning takes the accepted log
         self._written()
         self._hand_over(self._learn, f"learning from trial {trial}")
-        return {"trial": trial, "plant_cost": cost, "budget": tuner.settings.episodes}
+        return {
+            "trial": trial,
+            "plant_cost": cost,
+            "budget": tuner.settings.episodes,
+            "despite": despite,
+        }
 
     def _retract(self, trial: int, later: bool) -> list[int]:
         ids: list[int] = self._current().retract(trial, later=later)

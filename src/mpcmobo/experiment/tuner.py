@@ -480,6 +480,14 @@ class Tuner:
         """The trial whose log is accepted and not learned from yet (None: none)."""
         return None if self._accepted is None else int(self._accepted["plan"]["episode"])
 
+    @property
+    def accepted_despite(self) -> list[str]:
+        """The checks the accepted log not learned from yet was told despite (``force``),
+        sorted; empty: none, or no such log."""
+        if self._accepted is None:
+            return []
+        return sorted({p.check for p in self._accepted["problems"]})
+
     def _checked(
         self,
         tid: int,
