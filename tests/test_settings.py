@@ -320,6 +320,26 @@ def test_the_cycles_own_starts_are_checked_against_the_system_and_the_start_mode
         load_settings(None, system={"name": "lq"}, start_mode="random", cycle_starts=[[0, 0]])
 
 
+def test_numpy_arrays_are_taken_as_the_lists_of_a_settings_file():
+    """Settings given in Python (``Tuner(..., **settings)``) may be NumPy arrays and scalars:
+    a batch plant's recipes as an array, noise levels, seeds, a count; they are validated and
+    stored as the lists and numbers a settings file holds."""
+    s = load_settings(
+        None,
+        system={"name": "cstr", "measurement_noise": np.array([0.1, 0.001, 0.1])},
+        cycle_starts=np.array([[100.0, 0.2, 420.0], [95.0, 0.1, 410.0]]),
+        exploration={"std": np.array([0.5, 0.5])},
+        seeds=np.arange(2),
+        episodes=np.int64(7),
+    )
+    assert s.cycle_starts == [[100.0, 0.2, 420.0], [95.0, 0.1, 410.0]] and s.n_cycle_starts == 2
+    assert s.system.measurement_noise == [0.1, 0.001, 0.1] and s.exploration.std == [0.5, 0.5]
+    assert s.seeds == [0, 1] and s.episodes == 7
+    assert type(s.resolved().cycle_starts[0][0]) is float
+    with pytest.raises(SettingsError, match=r"cycle_starts\[0\] has 3 values"):
+        load_settings(None, system={"name": "lq"}, cycle_starts=np.zeros((1, 3)))
+
+
 def test_identify_is_a_default_learner_only_where_there_is_a_model_to_identify(tmp_path):
     """The default study runs the paper's learners and ``identify``; on a system that declares
     no model parameter to identify ``identify`` is left out, and naming it is an error."""

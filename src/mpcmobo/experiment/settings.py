@@ -365,9 +365,21 @@ def settings_from(data: dict[str, Any], **overrides: Any) -> Settings:
     """Settings from a TOML-like table (a file already read) plus overrides, as
     :func:`load_settings` merges them; the file's values that the overrides replace are
     checked too (:func:`_check_overridden`)."""
-    nested = _nest(overrides)
+    nested = _plain(_nest(overrides))
     _check_overridden(data, nested)
     return validate_settings(_merge(data, nested))
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with NumPy arrays and scalars (anything with ``tolist``) as the lists and
+    numbers a settings file holds, in tables and lists too: ``Tuner(...,
+    cycle_starts=np.array(recipes))`` as ``cycle_starts = [[...], ...]``."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    tolist = getattr(value, "tolist", None)
+    return tolist() if callable(tolist) else value
 
 
 def _overridden(data: dict[str, Any], nested: dict[str, Any], prefix: tuple = ()) -> list[tuple]:
