@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -543,14 +544,17 @@ def test_a_tuner_converges_hands_out_the_deployed_controller_and_says_so(tmp_pat
     assert res.exit_code == 0 and "tuning has stopped exploring" in res.output
     assert "([system] identify)" in " ".join(res.output.split())  # printed, not taken for markup
     assert "refused" in res.output
+    # the next trial planned while converged, as `mpcmobo tell` leaves it (it prepares it)
+    assert not np.any(tuner.ask().noise)
     # another exploration budget on the tuner: saved, and exploring opens again at the next ask
     res = CliRunner().invoke(app, ["ask", str(out), "--exploration-budget", "inf"])
     assert res.exit_code == 0, res.output
+    assert np.any(json.loads(res.stdout[res.stdout.index("{") :])["noise"]), res.output
     tuner = Tuner.load(out)
     assert tuner.settings.exploration.budget == math.inf and tuner.settings.episodes == 16
     st = tuner.status()
     assert st["exploration"]["converged"] is None and st["recommendation"]["action"] == "continue"
-    trial = tuner.ask()  # the pending trial, asked under the new budget: the learner's own
+    trial = tuner.ask()  # the pending trial, planned again under the new budget: the learner's
     assert np.any(trial.noise) and trial.id == 14
     res = CliRunner().invoke(app, ["ask", str(out), "--exploration-budget", "-1"])
     assert res.exit_code == 2 and "exploration.budget" in res.output, res.output

@@ -241,11 +241,24 @@ class Tuner:
         and not learned from, records behind the checkpoint), and the status of a larger
         budget ``episodes`` or of another exploration budget (``repriced``)."""
         self._learn_accepted()
+        if repriced:
+            self._plan_again_where_exploring_opens()
         if self._records_behind():  # a tell killed after its checkpoint, before its records
             write_records(self.run_dir.path, self.settings, self.reference)
             self._write_status()
         elif repriced or (episodes is not None and episodes > self.files.status_budget()):
             self._write_status()  # the larger budget, for `mpcmobo status`
+
+    def _plan_again_where_exploring_opens(self) -> None:
+        """A pending trial planned while tuning had stopped exploring (the deployed theta
+        without noise, the learner not asked; ``mpcmobo tell`` prepares the next trial at
+        once) is planned again where another exploration budget opens exploring: the trial
+        asked next is the learner's, not one more of the deployed controller."""
+        pending = self.job.pending
+        if pending is None or not pending.get("converged") or self.job.run.price.converged:
+            return
+        self.job.pending = None
+        self.job.save()
 
     def _records_behind(self) -> bool:
         """Whether ``status.json`` (written last by a tell) is older than the job's checkpoint:
