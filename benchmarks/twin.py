@@ -44,7 +44,7 @@ from recheck import RECHECK_SEED, _thetas  # benchmarks/ is on sys.path when run
 from mpcmobo.experiment.build import build_system, identified_parameters
 from mpcmobo.experiment.evaluation import make_evaluator
 from mpcmobo.experiment.job import single_threaded
-from mpcmobo.experiment.loop import cycle_starts, model_costs
+from mpcmobo.experiment.loop import model_costs, starts_of_cycle
 from mpcmobo.experiment.settings import load_settings
 from mpcmobo.identify import ModelFit
 from mpcmobo.learners.twin import TWIN_EPISODES, tune_on_twin
@@ -92,11 +92,7 @@ def _job(
                 make_evaluator(settings, system, n_starts=fresh, seed=RECHECK_SEED).starts
             ),
             "eval": np.asarray(make_evaluator(settings, system).starts),
-            "cycle": (
-                cycle_starts(system, seed, settings.n_cycle_starts)
-                if settings.cycle_starts is None
-                else np.array(settings.cycle_starts, float)
-            ),
+            "cycle": starts_of_cycle(system, seed, settings.n_cycle_starts, settings.cycle_starts),
         }
         row: dict = {"starts": n_starts, "seed": seed, "seconds": seconds, "better": res.better}
         row["tuned_on"] = res.cost / res.base_cost

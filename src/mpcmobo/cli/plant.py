@@ -34,7 +34,7 @@ from mpcmobo.experiment.interrupts import Interrupted
 from mpcmobo.experiment.plantlog import TunerError
 from mpcmobo.experiment.rundir import OlderRunError, RunDirectory, RunDirError, StudyError
 from mpcmobo.experiment.settings import SettingsError
-from mpcmobo.experiment.tunerfiles import LOCK_FILE, held_elsewhere
+from mpcmobo.experiment.tunerfiles import LOCK_FILE, TunerFiles, held_elsewhere
 from mpcmobo.experiment.tunerstatus import saved_status
 
 __all__ = ["ask", "export", "retract", "serve", "status", "tell"]
@@ -229,8 +229,7 @@ def tell(
     moved = not np.array_equal(rows[-1].incumbent, before)
     changed = " (the deployed theta changed)" if moved else ""
     told = tuner.files.told(row.episode) or {}
-    found = sorted({p["check"] for p in told.get("problems", [])})
-    forced = f" (accepted with --force despite: {', '.join(found)})" if found else ""
+    forced = _forced(sorted({p["check"] for p in told.get("problems", [])}))
     cli.console.print(
         f"trial {row.episode} told{forced}: plant cost {fmt(row.plant_cost)} (f1 "
         f"{fmt(row.f1)}), {tuner.episodes} of "
@@ -239,6 +238,11 @@ def tell(
     )
     if not tuner.job.done:
         _prepare_next(directory, tuner, row.episode)
+
+
+def _forced(checks: list[str]) -> str:
+    """What a tell's line says of the checks its log was accepted despite (``--force``)."""
+    return f" (accepted with --force despite: {', '.join(checks)})" if checks else ""
 
 
 def _told_by_the_process(directory: Path, trial: int, log: Path | None, force: bool) -> bool:
@@ -254,10 +258,8 @@ def _told_by_the_process(directory: Path, trial: int, log: Path | None, force: b
             if last
             else f"and prepares the next trial: mpcmobo ask {directory} prints it"
         )
-        found = answer.get("despite") or []
-        forced = f" (accepted with --force despite: {', '.join(found)})" if found else ""
         cli.console.print(
-            f"trial {trial} told{forced}: plant cost {fmt(answer['plant_cost'])}, {trial + 1} of "
+            f"trial {trial} told{_forced(answer.get('despite') or [])}: plant cost {fmt(answer['plant_cost'])}, {trial + 1} of "
             f"{answer['budget']} trials; the tuner's process learns from it{';' if last else ''} "
             f"{then}",
             highlight=False,
@@ -326,7 +328,7 @@ def serve(directory: Path = typer.Argument(..., help="the tuner's directory")) -
         resident.serve()
     except KeyboardInterrupt as err:
         code = getattr(err, "exit_code", 130)
-        waiting = any((directory / "accepted").glob("trial-*.pkl"))
+        waiting = bool(TunerFiles(directory).accepted_logs())
         log(
             "stopped; the accepted log not learned from yet is learned at the next load"
             if waiting
@@ -602,8 +604,8 @@ def _theta_of(run_dir: RunDirectory, which: str, learner: str | None, seed: int 
         )
     if not 0 <= k < len(ckpt.rows):
         what = "trial" if run_dir.is_tuner() else "episode"
-        kept = run_dir.path / "retracted" / f"trial-{k}.json"
-        gone = f" (trial {k} was retracted: its record is kept in {kept})" if kept.is_file() else ""
+        kept = TunerFiles(run_dir.path).retracted_record(k)
+        gone = f" (trial {k} was retracted: its record is kept in {kept})" if kept else ""
         has = f"{what}s 0 to {len(ckpt.rows) - 1}" if ckpt.rows else f"no told {what}"
         raise TunerError(f"no {what} {k}: the job has {has}{gone}")
     return settings, name, np.asarray(ckpt.rows[k].theta, float)

@@ -126,15 +126,16 @@ def _start_key(x0: np.ndarray, theta: np.ndarray, p: np.ndarray, e: np.ndarray |
     return b"".join(np.asarray(v, float).tobytes() for v in (x0, theta, p, () if e is None else e))
 
 
-def cycle_starts(system: System, seed: int, n: int) -> np.ndarray:
-    """The fixed cycle of ``n`` initial states (n, nx) that ``seed``'s cycled episodes start
-    from where the settings do not give them (``cycle_starts``): drawn from the system's
+def starts_of_cycle(
+    system: System, seed: int, n: int, given: Sequence[Sequence[float]] | None = None
+) -> np.ndarray:
+    """The fixed cycle of initial states (n, nx) that ``seed``'s cycled episodes start from:
+    the ``given`` ones (the settings' ``cycle_starts``), else ``n`` drawn from the system's
     initial-state distribution (a stream of its own: ``[seed, 7]``'s third child)."""
+    if given is not None:
+        return np.array(given, float).reshape(-1, system.nx)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 7]).spawn(3)[2])
     return np.array([system.sample_initial_state(rng) for _ in range(max(1, int(n)))])
-
-
-_cycle_starts = cycle_starts  # the function, where LearningRun's argument takes its name
 
 
 def _paired_excess(plant_cost: float, predicted: float, predicted_deployed: float) -> float:
@@ -211,11 +212,7 @@ class LearningRun:
         s_start, s_noise, _ = np.random.SeedSequence([self.seed, 7]).spawn(3)
         self.rng_start = np.random.default_rng(s_start)
         self.rng_noise = np.random.default_rng(s_noise)
-        self.cycle_starts = (
-            _cycle_starts(system, self.seed, n_cycle_starts)
-            if cycle_starts is None
-            else np.array(cycle_starts, float).reshape(-1, system.nx)
-        )
+        self.cycle_starts = starts_of_cycle(system, self.seed, n_cycle_starts, cycle_starts)
         self.episode = 0
         self.previous_Vc: float | None = None
         self._start_costs: dict[bytes, float] = {}  # start_cost per initial state (a cache)

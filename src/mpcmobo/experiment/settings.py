@@ -224,9 +224,10 @@ def _check_cycle_starts(starts: list[list[float]], system: System) -> None:
     names = list(system.state_names)
     for k, x0 in enumerate(starts):
         if len(x0) != system.nx:
+            values = f"{len(x0)} value{'' if len(x0) == 1 else 's'}"
             raise ValueError(
-                f"cycle_starts[{k}] has {len(x0)} value{'' if len(x0) == 1 else 's'}; the system '{system.name}' has "
-                f"{system.nx} states {names}"
+                f"cycle_starts[{k}] has {values}; the system '{system.name}' has {system.nx} "
+                f"states {names}"
             )
         for j, v in enumerate(x0):
             lo, hi = float(system.x_lb[j]), float(system.x_ub[j])

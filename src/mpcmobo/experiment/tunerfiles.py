@@ -234,9 +234,13 @@ class TunerFiles:
         entry: dict = storage.read_pickle(path)
         return entry
 
+    def accepted_logs(self) -> list[Path]:
+        """The files of the accepted logs not learned from yet (at most the pending trial's)."""
+        return sorted(self.accepted_dir.glob("trial-*.pkl"))
+
     def drop_accepted(self) -> None:
         """No accepted log waits any more (learned from, or its learning failed)."""
-        for path in self.accepted_dir.glob("trial-*.pkl"):
+        for path in self.accepted_logs():
             path.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ quarantine
@@ -298,6 +302,11 @@ class TunerFiles:
             storage.write_json(path, entry)
 
     # ------------------------------------------------------------------ retracted trials
+    def retracted_record(self, tid: int) -> Path | None:
+        """The file of trial ``tid``'s last retracted record (None: it was not retracted)."""
+        path = self.retracted_dir / f"trial-{tid}.json"
+        return path if path.is_file() else None
+
     def retract(self, entries: list[dict], rows: list[dict], system: System) -> None:
         """Keep the told trials ``entries`` (with their ``rows``) in ``retracted/`` and drop
         them from ``told/``. A trial retracted before keeps that log as ``trial-<id>-<n>``."""
